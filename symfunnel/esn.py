@@ -1,0 +1,218 @@
+"""Echo state network in continuous time (paper eq. 8): deterministic weights from a seed, reservoir ODE as CasADi SX.
+
+The reservoir is
+
+    dX/dt = (1/time_constant) * (-leak * X + tanh(W_in u + W X + b)),
+
+which is eq. 8 with C = 1/time_constant, a = leak, f = tanh and W_back = 0: there is no output feedback, because
+the ESN output y = W_hat^T Phi(X) is the controller's adaptive estimate, and feeding it back would couple the
+reservoir to the adaptation law, which the paper's stability proof (Section 3) does not cover. The bias b plays the
+role of a constant input.
+
+Determinism: every random number comes from ``numpy.random.default_rng(seed)`` (PCG64, ``uniform``/``random``
+only, in a fixed order: W_in, b, then W), whose output is specified bit for bit on every platform. The one
+platform-dependent step is the spectral radius of the raw W, computed by LAPACK (``numpy.linalg.eigvals``), whose
+last bits can differ between BLAS/LAPACK builds; the scale factor spectral_radius / rho(W_raw) is therefore rounded
+to 13 significant digits before it is applied, so that two machines agree bit for bit unless the exact factor lies
+within LAPACK round-off of a 13-digit rounding boundary (probability about delta / 1e-12 for a relative
+disagreement delta between builds, i.e. ~1e-3 at delta ~ 1e-15; larger for big, strongly non-normal W). The cost
+is that rho(W) matches the configured value to within 5e-13 relative (so within 1e-12) rather than to the last bit.
+
+Echo-state property: tanh is 1-Lipschitz and |tanh| <= 1, so each X_i is attracted to [-1/leak, 1/leak] for any
+bounded input, and the reservoir is contracting (its state forgets its initial condition exponentially) when
+||W||_2 < leak, since the Jacobian (1/time_constant)(-leak I + D W), D = diag(tanh') in [0, 1], then has a negative
+2-norm matrix measure. The discrete-time ESN heuristic rho(W) < 1 is enforced; contraction is only reported
+(``ESN.contracting``), not required.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+_SCALE_DIGITS = 13          # significant digits kept of the spectral-radius scale factor (see module docstring)
+_MAX_REDRAWS = 100
+_RHO_FLOOR = 1e-8           # a drawn W with a smaller spectral radius is treated as nilpotent and redrawn
+
+
+class ConfigError(ValueError):
+    """An invalid ESN setting, naming the field and what was expected so the caller can locate it in its input."""
+
+    def __init__(self, key: str, message: str, expected: str):
+        self.key = key
+        self.reason = message
+        self.expected = expected
+        super().__init__(f"{key}: {message} (expected {expected})")
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclass(frozen=True)
+class ESNConfig:
+    """Settings of the echo state network; checked on construction (raises ConfigError, a ValueError)."""
+
+    size: int = 50                 # N reservoir units
+    leak: float = 1.0              # a, leaking decay rate (> 0)
+    time_constant: float = 0.05    # seconds; eq. 8's C = 1/time_constant
+    spectral_radius: float = 0.9   # of W, in (0, 1)
+    input_scaling: float = 0.5     # W_in and b are uniform in [-input_scaling, input_scaling]
+    sparsity: float = 0.9          # fraction of zero entries of W, in [0, 1)
+    seed: int = 0
+    bias: bool = True              # regressor Phi = [X; 1] when True, else X (the reservoir's b is always used)
+
+    def __post_init__(self):
+        if not _is_int(self.size) or self.size < 1:
+            raise ConfigError("size", f"is {self.size!r}", "an integer >= 1")
+        for key in ("leak", "time_constant"):
+            v = getattr(self, key)
+            if not _is_num(v) or v <= 0:
+                raise ConfigError(key, f"is {v!r}", "a finite number > 0")
+        r = self.spectral_radius
+        if not _is_num(r) or not 0 < r < 1:
+            raise ConfigError("spectral_radius", f"is {r!r}", "a number > 0 and < 1")
+        if not _is_num(self.input_scaling) or self.input_scaling < 0:
+            raise ConfigError("input_scaling", f"is {self.input_scaling!r}", "a finite number >= 0")
+        s = self.sparsity
+        if not _is_num(s) or not 0 <= s < 1:
+            raise ConfigError("sparsity", f"is {s!r}", "a number >= 0 and < 1")
+        if not _is_int(self.seed) or self.seed < 0:
+            raise ConfigError("seed", f"is {self.seed!r}", "an integer >= 0")
+        if not isinstance(self.bias, bool):
+            raise ConfigError("bias", f"is {self.bias!r}", "true or false")
+
+
+def _draw_reservoir(rng: np.random.Generator, n: int, sparsity: float) -> np.ndarray:
+    """One raw sparse N x N matrix: uniform[-1, 1] entries, a `sparsity` fraction zeroed, at least one nonzero per row."""
+    values = rng.uniform(-1.0, 1.0, size=(n, n))
+    keep = rng.random(size=(n, n)) >= sparsity
+    rescue_col = np.minimum((rng.random(size=n) * n).astype(np.int64), n - 1)   # used for rows left empty
+    for i in np.flatnonzero(~keep.any(axis=1)):
+        keep[i, rescue_col[i]] = True
+    return np.where(keep, values, 0.0)
+
+
+def _round_sig(x: float, digits: int) -> float:
+    """x rounded to `digits` significant decimal digits (correctly rounded by Python's float formatting)."""
+    return float(f"{x:.{digits - 1}e}")
+
+
+class ESN:
+    """A continuous-time echo state network with fixed random weights; the controller adapts only W_hat in W_hat^T Phi(X)."""
+
+    def __init__(self, config: ESNConfig, n_inputs: int):
+        """Draw W_in (N x K), b (N) and W (N x N) from `config.seed` and scale W to the configured spectral radius."""
+        if not _is_int(n_inputs) or n_inputs < 1:
+            raise ConfigError("n_inputs", f"is {n_inputs!r}", "an integer >= 1")
+        self.config = config
+        self.n_inputs = int(n_inputs)
+        N, K = config.size, self.n_inputs
+        rng = np.random.default_rng(config.seed)
+        W_in = config.input_scaling * rng.uniform(-1.0, 1.0, size=(N, K))
+        b = config.input_scaling * rng.uniform(-1.0, 1.0, size=N)
+        for _ in range(_MAX_REDRAWS):
+            W_raw = _draw_reservoir(rng, N, config.sparsity)
+            rho_raw = float(np.max(np.abs(np.linalg.eigvals(W_raw))))
+            if rho_raw > _RHO_FLOOR:
+                break
+        else:  # pragma: no cover - every row has a nonzero, so the pattern has a cycle and rho = 0 has probability 0
+            raise ConfigError("seed", f"drew a nilpotent reservoir {_MAX_REDRAWS} times", "another seed")
+        self.scale = _round_sig(config.spectral_radius / rho_raw, _SCALE_DIGITS)
+        W = W_raw * self.scale
+        self.W_in = _frozen(W_in)
+        self.W = _frozen(W)
+        self.b = _frozen(b)
+        self.spectral_radius = float(np.max(np.abs(np.linalg.eigvals(self.W))))
+        self.norm2 = float(np.linalg.norm(self.W, 2))
+        self._W_in_dm = ca.sparsify(ca.DM(self.W_in))
+        self._W_dm = ca.sparsify(ca.DM(self.W))
+        self._b_dm = ca.DM(self.b)
+
+    @property
+    def size(self) -> int:
+        """N, the number of reservoir units."""
+        return self.config.size
+
+    @property
+    def n_regressor(self) -> int:
+        """Length of the regressor Phi(X): N + 1 with the constant term, else N."""
+        return self.size + (1 if self.config.bias else 0)
+
+    @property
+    def contracting(self) -> bool:
+        """True when ||W||_2 < leak, a sufficient condition for the reservoir to forget its initial state exponentially."""
+        return self.norm2 < self.config.leak
+
+    @property
+    def sparsity_actual(self) -> float:
+        """Fraction of zero entries of W as drawn (close to, not exactly, the configured sparsity)."""
+        return float(np.mean(self.W == 0.0))
+
+    def _check_sx(self, x, u=None):
+        x = ca.SX(x) if not isinstance(x, (ca.SX, ca.MX)) else x
+        if x.shape != (self.size, 1):
+            raise ValueError(f"reservoir state has shape {x.shape}, expected ({self.size}, 1)")
+        if u is None:
+            return x, None
+        u = ca.SX(u) if not isinstance(u, (ca.SX, ca.MX)) else u
+        if u.shape != (self.n_inputs, 1):
+            raise ValueError(f"ESN input has shape {u.shape}, expected ({self.n_inputs}, 1)")
+        return x, u
+
+    def xdot(self, x: ca.SX, u: ca.SX) -> ca.SX:
+        """Reservoir dynamics (1/time_constant)(-leak x + tanh(W_in u + W x + b)), eq. 8 with W_back = 0, as SX."""
+        x, u = self._check_sx(x, u)
+        c = self.config
+        z = ca.mtimes(self._W_in_dm, u) + ca.mtimes(self._W_dm, x) + self._b_dm
+        return (1.0 / c.time_constant) * (-c.leak * x + ca.tanh(z))
+
+    def regressor(self, x: ca.SX) -> ca.SX:
+        """The regressor Phi(X) = [X; 1] (or X without bias) that the adaptive weights multiply, as SX."""
+        x, _ = self._check_sx(x)
+        return ca.vertcat(x, 1) if self.config.bias else x
+
+    def xdot_numpy(self, x, u) -> np.ndarray:
+        """Numpy twin of `xdot` for x of shape (N,) or (N, m) and u of shape (K,) or (K, m)."""
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        b = self.b if x.ndim == 1 else self.b[:, None]
+        c = self.config
+        return (1.0 / c.time_constant) * (-c.leak * x + np.tanh(self.W_in @ u + self.W @ x + b))
+
+    def regressor_numpy(self, x) -> np.ndarray:
+        """Numpy twin of `regressor` for x of shape (N,) or (N, m)."""
+        x = np.asarray(x, dtype=float)
+        if not self.config.bias:
+            return x.copy()
+        one = np.ones((1,) + x.shape[1:])
+        return np.concatenate([x, one], axis=0)
+
+    def fingerprint(self) -> str:
+        """sha256 of the weights' shapes and little-endian float64 bytes (W_in, W, b), to show determinism in reports."""
+        h = hashlib.sha256()
+        for name, arr in (("W_in", self.W_in), ("W", self.W), ("b", self.b)):
+            h.update(f"{name}{arr.shape};".encode())
+            h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+        return h.hexdigest()
+
+    def summary(self) -> dict:
+        """Numbers a report shows about the reservoir."""
+        return {"size": self.size, "n_inputs": self.n_inputs, "n_regressor": self.n_regressor,
+                "spectral_radius": self.spectral_radius, "norm2": self.norm2, "leak": self.config.leak,
+                "contracting": self.contracting, "sparsity": self.sparsity_actual, "scale": self.scale,
+                "seed": self.config.seed, "fingerprint": self.fingerprint()}
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=np.float64, order="C")
+    a.flags.writeable = False
+    return a
