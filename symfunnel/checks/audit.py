@@ -1,0 +1,397 @@
+"""The audit: model properties and printed claims against the exact derivation, decided by computation.
+
+Each identity is first sampled (a counterexample decides 'fail' outright); where sampling finds no violation,
+sympy is asked for a proof on the converted SX (decides 'pass, symbolic'); if sympy cannot decide in time the
+sampled verdict stands and says how many points it rests on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import signal
+import threading
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from ..design import BASE_INPUTS, Design, derive
+from ..model.base import christoffel_C
+from .sampling import eval_mapped, funnel_states, joint_states, point_of
+
+
+@dataclass
+class CheckResult:
+    """One check: id, pass/fail/skip, a one-line detail, how it was decided, and the evidence."""
+
+    id: str
+    status: str
+    detail: str
+    method: str = ""
+    margin: float | None = None
+    where: dict | None = None
+    evidence: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """The JSON form of design.md section 2 (id, status, detail, plus method, margin, where, evidence)."""
+        out = {"id": self.id, "status": self.status, "detail": self.detail, "method": self.method}
+        if self.margin is not None:
+            out["margin"] = self.margin
+        if self.where is not None:
+            out["where"] = self.where
+        if self.evidence:
+            out["evidence"] = self.evidence
+        return out
+
+
+# --- sympy with a time limit --------------------------------------------------------------------
+
+class _Timeout(Exception):
+    pass
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float):
+    """Raise _Timeout inside the block after `seconds` (main thread only; elsewhere no limit is applied)."""
+    if seconds <= 0 or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Timeout()
+
+    old = signal.signal(signal.SIGALRM, handler)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def sympy_is_zero(expr: ca.SX, inputs: list[ca.SX], timeout: float, max_ops: int = 3000):
+    """True if sympy proves every entry of `expr` identically zero, False if it simplifies to nonzero, None if undecided.
+
+    The returned second value is the simplified sympy matrix (or None).
+    """
+    import sympy
+
+    from ..sx2sympy import sx_to_sympy
+    f = ca.Function("f", inputs, [expr])
+    if f.n_instructions() > max_ops:
+        return None, None
+    try:
+        with time_limit(timeout):
+            m = sx_to_sympy(expr, inputs)
+            simp = m.applyfunc(lambda e: sympy.simplify(sympy.expand_trig(e)) if e != 0 else e)
+    except (_Timeout, RecursionError, MemoryError, NotImplementedError):
+        return None, None
+    if all(e == 0 for e in simp):
+        return True, simp
+    return None, simp
+
+
+def _fmt_vec(v) -> str:
+    return "[" + ", ".join(f"{x:.4g}" for x in np.ravel(v)) + "]"
+
+
+# --- model properties ---------------------------------------------------------------------------
+
+def _model_funcs(design: Design):
+    m = design.scenario.model
+    Mdot = ca.jtimes(m.M, m.q, m.dq)
+    Cchr = christoffel_C(m.M, m.q, m.dq) if m.C_source == "given" else m.C
+    return m, Mdot, Cchr
+
+
+def _identity_check(cid: str, design: Design, X: ca.SX, scale: ca.SX, what: str, rng, *,
+                    show: str) -> "CheckResult":
+    """Decide whether the model expression X(q, dq, p) vanishes: sampled counterexample, then sympy proof."""
+    sc = design.scenario
+    m = sc.model
+    a = sc.audit
+    k = a.samples
+    q, dq = joint_states(design, k, rng)
+    f = ca.Function("f", [m.q, m.dq, m.p], [ca.mmax(ca.fabs(X)), scale]).map(k)
+    P = np.repeat(np.reshape(m.p_values, (-1, 1)), k, axis=1) if m.p.numel() else np.zeros((0, k))
+    absx, sc_ = (np.array(v).ravel() for v in f(q, dq, P))
+    rel = absx / np.maximum(sc_, 1e-300)
+    rel[~np.isfinite(rel)] = np.inf
+    j = int(np.argmax(rel))
+    where = {"q": q[:, j].tolist(), "dq": dq[:, j].tolist()}
+    evidence = {"samples": k, "max_abs": float(absx[j]), "max_rel": float(rel[j])}
+    inputs = [m.q, m.dq, m.p] if m.p.numel() else [m.q, m.dq]
+    if rel[j] > a.tolerance:
+        _, simp = sympy_is_zero(X, inputs, a.sympy_timeout)
+        if simp is not None:
+            import sympy
+            evidence["symbolic"] = str(sympy.sstr(simp))
+        return CheckResult(cid, "fail", f"{what}: violated; largest violation {absx[j]:.4g} "
+                           f"(relative {rel[j]:.3g}) at q = {_fmt_vec(where['q'])}, dq = {_fmt_vec(where['dq'])}"
+                           + (f"; symbolically {show} = {evidence['symbolic']}" if "symbolic" in evidence else ""),
+                           method=f"sampled ({k} random states)", margin=-float(rel[j]), where=where,
+                           evidence=evidence)
+    proven, _ = sympy_is_zero(X, inputs, a.sympy_timeout)
+    if proven:
+        return CheckResult(cid, "pass", f"{what}: holds identically (sympy proves {show} = 0 for all q, dq"
+                           + (" and parameters)" if m.p.numel() else ")"), method="symbolic",
+                           margin=0.0, evidence=evidence)
+    return CheckResult(cid, "pass", f"{what}: holds at {k} random states (largest relative violation "
+                       f"{rel[j]:.3g}); sympy could not decide it symbolically", method=f"sampled ({k} random states)",
+                       margin=float(a.tolerance - rel[j]), where=where, evidence=evidence)
+
+
+def check_M_symmetric(design: Design, rng) -> CheckResult:
+    """model.M_symmetric: M(q) = M(q)^T."""
+    m = design.scenario.model
+    X = m.M - m.M.T
+    return _identity_check("model.M_symmetric", design, X, ca.mmax(ca.fabs(m.M)), "M(q) symmetric", rng,
+                           show="M - M^T")
+
+
+def check_skew(design: Design, rng) -> CheckResult:
+    """model.skew_symmetry (Property 1): N = dM/dt - 2C satisfies N + N^T = 0."""
+    m, Mdot, _ = _model_funcs(design)
+    N = Mdot - 2 * m.C
+    X = N + N.T
+    scale = ca.mmax(ca.fabs(Mdot)) + 2 * ca.mmax(ca.fabs(m.C))
+    return _identity_check("model.skew_symmetry", design, X, scale,
+                           "Property 1 (dM/dt - 2C skew-symmetric)", rng, show="N + N^T with N = dM/dt - 2C")
+
+
+def check_coriolis(design: Design, rng) -> CheckResult:
+    """model.coriolis_consistent: C(q, dq) dq equals the Christoffel-symbol Coriolis vector of M."""
+    m, _, Cchr = _model_funcs(design)
+    X = ca.mtimes(m.C, m.dq) - ca.mtimes(Cchr, m.dq)
+    scale = ca.mmax(ca.fabs(ca.mtimes(Cchr, m.dq))) + ca.mmax(ca.fabs(ca.mtimes(m.C, m.dq)))
+    r = _identity_check("model.coriolis_consistent", design, X, scale,
+                        f"C dq consistent with M (C {m.C_source})", rng, show="C dq - C_christoffel dq")
+    return r
+
+
+def check_M_pd(design: Design, rng) -> CheckResult:
+    """model.M_positive_definite: exact where M is constant, else sampled over the joint range with local refinement."""
+    from scipy.optimize import minimize
+
+    sc = design.scenario
+    m = sc.model
+    a = sc.audit
+    Mn = m.numeric(m.M)
+    fM = ca.Function("M", [m.q], [Mn])
+    k = a.samples
+    q, _ = joint_states(design, k, rng)
+    Ms = np.array(fM.map(k)(q)).reshape(m.n, k, m.n).transpose(1, 0, 2)
+    Ms = 0.5 * (Ms + Ms.transpose(0, 2, 1))
+    eig = np.linalg.eigvalsh(Ms)
+    lmin, lmax = eig[:, 0], eig[:, -1]
+    lmin = np.where(np.isfinite(lmin), lmin, -np.inf)
+    lo, hi = np.array(a.joint_lower), np.array(a.joint_upper)
+
+    def fmin_eig(x):
+        x = np.clip(x, lo, hi)
+        M = np.array(fM(x))
+        val = np.linalg.eigvalsh(0.5 * (M + M.T))[0]
+        return val if np.isfinite(val) else -1e300
+
+    best_val, best_q = float(np.min(lmin)), q[:, int(np.argmin(lmin))]
+    constant = not ca.depends_on(Mn, m.q)
+    if not constant:
+        for j in np.argsort(lmin)[:3]:
+            res = minimize(fmin_eig, q[:, j], method="Nelder-Mead",
+                           options={"xatol": 1e-10, "fatol": 1e-14, "maxiter": 400 * m.n})
+            if res.fun < best_val:
+                best_val, best_q = float(res.fun), np.clip(res.x, lo, hi)
+    method = "exact (M is constant)" if constant else f"sampled ({k} states over the joint range) + local refinement"
+    where = {"q": best_q.tolist()}
+    ev = {"min_eigenvalue": best_val, "max_eigenvalue": float(np.max(lmax)), "samples": k,
+          "M_a": best_val, "M_b": float(np.max(lmax))}
+    if best_val > 0:
+        return CheckResult("model.M_positive_definite", "pass",
+                           f"M(q) positive definite: smallest eigenvalue {best_val:.6g} at q = {_fmt_vec(best_q)}; "
+                           f"eigenvalues within [{best_val:.4g}, {np.max(lmax):.4g}] (Property 2 bounds)",
+                           method=method, margin=best_val, where=where, evidence=ev)
+    return CheckResult("model.M_positive_definite", "fail",
+                       f"M(q) not positive definite: eigenvalue {best_val:.6g} at q = {_fmt_vec(best_q)}",
+                       method=method, margin=best_val, where=where, evidence=ev)
+
+
+# --- funnels --------------------------------------------------------------------------------------
+
+def funnel_initial(design: Design, funnels=None) -> tuple[bool, str, dict, float]:
+    """|e_i(0)| < F_i(0) for e1 then e2, with the smallest phi0 that would admit the initial error."""
+    sc = design.scenario
+    funnels = funnels or sc.funnels
+    n = design.n
+    qd, dqd, ddqd = (np.array(v).ravel() for v in design.reference(0.0))
+    q0, dq0 = np.array(sc.q0), np.array(sc.dq0)
+    e1 = q0 - qd
+    F1 = np.array(funnels["e1"].value(0.0))
+    ev = {"e1(0)": e1.tolist(), "F1(0)": F1.tolist()}
+    margin1 = (F1 - np.abs(e1)) / F1
+    bad = [i for i in range(n) if not abs(e1[i]) < F1[i]]
+    if bad:
+        need = [max(abs(e1[i]) - funnels["e1"].phi_inf[i], 0.0) for i in range(n)]
+        ev["phi0_needed_e1"] = need
+        i = bad[0]
+        return False, (f"funnel e1 infeasible at t = 0: joint {i + 1} has |e1(0)| = {abs(e1[i]):.6g} >= "
+                       f"F1(0) = {F1[i]:.6g}; phi0 > {need[i]:.6g} would admit it"), ev, float(np.min(margin1))
+    a2 = np.array(design.function("alpha2", ["t", "q", "qd", "dqd"])(0.0, q0, qd, dqd)).ravel()
+    e2 = dq0 - a2
+    F2 = np.array(funnels["e2"].value(0.0))
+    ev.update({"alpha2(0)": a2.tolist(), "e2(0)": e2.tolist(), "F2(0)": F2.tolist()})
+    margin2 = (F2 - np.abs(e2)) / F2
+    bad = [i for i in range(n) if not abs(e2[i]) < F2[i]]
+    margin = float(min(np.min(margin1), np.min(margin2)))
+    if bad:
+        need = [max(abs(e2[i]) - funnels["e2"].phi_inf[i], 0.0) for i in range(n)]
+        ev["phi0_needed_e2"] = need
+        i = bad[0]
+        return False, (f"funnel e2 infeasible at t = 0: joint {i + 1} has |e2(0)| = |dq(0) - alpha2(0)| = "
+                       f"{abs(e2[i]):.6g} >= F2(0) = {F2[i]:.6g}; phi0 > {need[i]:.6g} would admit it"), ev, margin
+    return True, (f"|e1(0)| = {_fmt_vec(np.abs(e1))} < F1(0) = {_fmt_vec(F1)} and |e2(0)| = "
+                  f"{_fmt_vec(np.abs(e2))} < F2(0) = {_fmt_vec(F2)}"), ev, margin
+
+
+def check_funnel_parameters(design: Design) -> CheckResult:
+    """funnel.parameters: the conditions stated with eq. 16 (phi0 >= phi_inf > 0) and a >= 0."""
+    bad = []
+    for key, f in design.scenario.funnels.items():
+        for i in range(design.n):
+            if not f.phi0[i] >= f.phi_inf[i] > 0:
+                bad.append(f"{key} joint {i + 1}: phi0 = {f.phi0[i]:g}, phi_inf = {f.phi_inf[i]:g}")
+    if bad:
+        return CheckResult("funnel.parameters", "fail", "phi0 >= phi_inf > 0 (eq. 16) violated: " + "; ".join(bad),
+                           method="exact")
+    return CheckResult("funnel.parameters", "pass", "phi0 >= phi_inf > 0 for every funnel and joint (eq. 16)",
+                       method="exact")
+
+
+def check_funnel_initial(design: Design) -> CheckResult:
+    """funnel.initial_condition: every funnel admits the scenario's initial error."""
+    ok, text, ev, margin = funnel_initial(design)
+    return CheckResult("funnel.initial_condition", "pass" if ok else "fail", text, method="exact",
+                       margin=margin, where={"t": 0.0, "q": list(design.scenario.q0), "dq": list(design.scenario.dq0)},
+                       evidence=ev)
+
+
+# --- claims ---------------------------------------------------------------------------------------
+
+def claim_env(design: Design) -> dict:
+    """Names a claim expression may use, bound to the design's SX (signals, symbols, parameters, constants)."""
+    m = design.scenario.model
+    env = dict(design.signals)
+    env.update({k: design.sym[k] for k in BASE_INPUTS})
+    env.update({c: m.q[i] for i, c in enumerate(m.coordinates)})
+    env.update({"d" + c: m.dq[i] for i, c in enumerate(m.coordinates)})
+    env.update({k: float(v) for k, v in zip(m.p_names, m.p_values)})
+    env.update(design.constants)
+    return env
+
+
+def claim_expression(design: Design, claim) -> ca.SX:
+    """The printed claim as SX over the base symbols, broadcast to its signal's shape."""
+    from ..errors import InputError
+    target = design.signals[claim.signal]
+    e = claim.expression.to_casadi(claim_env(design))
+    e = ca.SX(e)
+    if e.shape == (1, 1) and target.shape != (1, 1):
+        e = ca.repmat(e, *target.shape)
+    if e.shape != target.shape:
+        raise InputError(f"has shape {e.shape[0]}x{e.shape[1]}", file=design.scenario.file,
+                         key=f"claims.{claim.name}.expression",
+                         expected=f"the shape of signal {claim.signal}, {target.shape[0]}x{target.shape[1]}")
+    return e
+
+
+def check_claim(design: Design, claim, rng) -> CheckResult:
+    """claim.<name>: the printed expression against the exact signal, sampled inside the funnels, then sympy."""
+    sc = design.scenario
+    cid = f"claim.{claim.name}"
+    if claim.kind == "funnel":
+        funnels = dict(sc.funnels)
+        funnels[claim.funnel] = claim.spec
+        ok, text, ev, margin = funnel_initial(design, funnels)
+        return CheckResult(cid, "pass" if ok else "fail", f"{claim.source or 'printed'} funnel {claim.funnel}: {text}",
+                           method="exact", margin=margin, where={"t": 0.0}, evidence=ev)
+    exact = design.signals[claim.signal]
+    printed = claim_expression(design, claim)
+    diff = printed - exact
+    k = sc.audit.claim_samples
+    pts = funnel_states(design, k, rng)
+    f = ca.Function("claim", [design.sym[x] for x in BASE_INPUTS], [exact, printed], list(BASE_INPUTS),
+                    ["exact", "printed"])
+    ex, pr = eval_mapped(f, pts, k)
+    r, c = exact.shape
+    ex, pr = ex.reshape(r, k, c), pr.reshape(r, k, c)    # map puts sample j in columns j*c .. j*c + c - 1
+    d = np.abs(pr - ex)
+    scale = np.maximum(np.abs(ex), np.abs(pr))
+    rel = np.where(d == 0, 0.0, d / np.maximum(scale, 1e-300))
+    rel = np.where(np.isfinite(rel), rel, np.inf)
+    rel_pt = rel.max(axis=(0, 2))
+    j = int(np.argmax(rel_pt))
+    where = point_of(pts, j)
+    ev = {"samples": k, "max_rel": float(rel_pt[j]), "max_abs": float(np.nanmax(d[:, j, :])),
+          "exact_at_worst": ex[:, j, :].ravel().tolist()[:12], "printed_at_worst": pr[:, j, :].ravel().tolist()[:12],
+          "fraction_disagreeing": float(np.mean(rel_pt > sc.audit.tolerance))}
+    notes = []
+    dep_exact = {v.name() for v in ca.symvar(exact)}
+    dep_printed = {v.name() for v in ca.symvar(printed)}
+    extra = sorted(dep_printed - dep_exact, key=lambda s: design._owner.get(s, ("", 0)))
+    if extra:
+        notes.append(f"the printed form depends on {', '.join(extra[:6])}{'...' if len(extra) > 6 else ''}, "
+                     f"which the exact {claim.signal} does not")
+        ev["extra_dependencies"] = extra
+    head = f"{claim.source or 'printed'} {claim.signal}"
+    if rel_pt[j] > sc.audit.tolerance:
+        detail = (f"{head}: NOT equivalent to the exact signal; disagrees at {ev['fraction_disagreeing']:.0%} of "
+                  f"{k} points inside the funnels, worst relative difference {rel_pt[j]:.3g} "
+                  f"(abs {ev['max_abs']:.4g}) at t = {where['t']:.4g}, q = {_fmt_vec(where['q'])}, "
+                  f"dq = {_fmt_vec(where['dq'])}")
+        if notes:
+            detail += "; " + "; ".join(notes)
+        return CheckResult(cid, "fail", detail, method=f"sampled ({k} points inside the funnels)",
+                           margin=-float(rel_pt[j]), where=where, evidence=ev)
+    inputs = [design.sym[x] for x in BASE_INPUTS]
+    proven, _ = sympy_is_zero(diff, inputs, sc.audit.sympy_timeout)
+    if proven:
+        return CheckResult(cid, "pass", f"{head}: equivalent to the exact signal (sympy: difference = 0)",
+                           method="symbolic", margin=0.0, evidence=ev)
+    return CheckResult(cid, "pass", f"{head}: agrees with the exact signal at {k} points inside the funnels "
+                       f"(worst relative difference {rel_pt[j]:.3g}); sympy could not prove it",
+                       method=f"sampled ({k} points inside the funnels)",
+                       margin=float(sc.audit.tolerance - rel_pt[j]), where=where, evidence=ev)
+
+
+def check_alpha2_free_of_dq(design: Design) -> CheckResult:
+    """design.alpha2_free_of_dq: alpha2 is a function of t, q and the reference only (never dq or e2)."""
+    free = design.free_symbols("alpha2")
+    bad = [s for s in free if design._owner[s][0] not in ("t", "q", "qd", "dqd")]
+    if bad:
+        return CheckResult("design.alpha2_free_of_dq", "fail", f"alpha2 depends on {', '.join(bad)}",
+                           method="symbolic (dependency graph)")
+    return CheckResult("design.alpha2_free_of_dq", "pass",
+                       f"alpha2 depends on {', '.join(free)} only", method="symbolic (dependency graph)")
+
+
+def audit(scenario, design: Design | None = None, *, progress=None) -> list[CheckResult]:
+    """Run every audit check of a scenario; returns the results in a fixed order."""
+    design = design or derive(scenario)
+    seed = scenario.audit.seed
+    say = progress or (lambda s: None)
+    results = []
+    steps = [
+        ("model.M_symmetric", lambda r: check_M_symmetric(design, r)),
+        ("model.M_positive_definite", lambda r: check_M_pd(design, r)),
+        ("model.skew_symmetry", lambda r: check_skew(design, r)),
+        ("model.coriolis_consistent", lambda r: check_coriolis(design, r)),
+        ("funnel.parameters", lambda r: check_funnel_parameters(design)),
+        ("funnel.initial_condition", lambda r: check_funnel_initial(design)),
+        ("design.alpha2_free_of_dq", lambda r: check_alpha2_free_of_dq(design)),
+    ]
+    for i, claim in enumerate(scenario.claims):
+        steps.append((f"claim.{claim.name}", lambda r, c=claim: check_claim(design, c, r)))
+    for i, (cid, fn) in enumerate(steps):
+        say(f"audit {i + 1}/{len(steps)}: {cid}")
+        results.append(fn(np.random.default_rng([seed, i])))
+    return results

@@ -1,0 +1,261 @@
+"""The `symfunnel` command line: a thin layer over the Python API (scenario, design, checks, simulation, codegen, report)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+from .errors import InputError, SymfunnelError
+
+EXIT_INTERNAL = 3
+
+
+def _progress(quiet: bool):
+    """A progress printer on stderr (silent with --quiet or when stderr is not a terminal and CI is unset)."""
+    if quiet:
+        return lambda s: None
+    t0 = time.perf_counter()
+
+    def say(s: str) -> None:
+        print(f"[{time.perf_counter() - t0:6.1f}s] {s}", file=sys.stderr, flush=True)
+    return say
+
+
+def _dump(obj) -> str:
+    return json.dumps(obj, indent=2, allow_nan=False, default=_json_default)
+
+
+def _json_default(o):
+    import numpy as np
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(type(o).__name__)
+
+
+def _load(args):
+    from .scenario import load_scenario
+    return load_scenario(args.scenario)
+
+
+# --- derive ---------------------------------------------------------------------------------------
+
+def _read_points(path: str):
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except FileNotFoundError:
+        raise InputError("no such file", file=path, expected="a JSON point file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot be read ({exc})", file=path, expected="a JSON point file") from None
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"is not valid JSON ({exc})", file=path,
+                         expected='{"t": ..., "q": [...], "dq": [...]} or a list of such objects') from None
+    return data
+
+
+def cmd_derive(args) -> int:
+    """`symfunnel derive`: signals with size and free variables; --eval values at points; --latex formulas."""
+    from .design import derive, evaluate
+    from .names import SIGNALS
+    sc = _load(args)
+    d = derive(sc)
+    if args.eval:
+        data = _read_points(args.eval)
+        if isinstance(data, list):
+            if not data:
+                raise InputError("is an empty list", file=args.eval, expected="at least one point")
+            values = [evaluate(d, p, file=args.eval, key=f"[{i}]") for i, p in enumerate(data)]
+        else:
+            values = evaluate(d, data, file=args.eval)
+        if args.json:
+            print(_dump({"values": values}))
+        else:
+            for i, vals in enumerate(values if isinstance(values, list) else [values]):
+                if isinstance(values, list):
+                    print(f"# point {i}")
+                for k, v in vals.items():
+                    if k in ("Phi", "x_esn_dot", "w_hat_dot") and not args.all:
+                        continue
+                    print(f"{k:>11} = {_short(v)}")
+        return 0
+    names = [k for k in list(SIGNALS) if k in d.signals]
+    info = {}
+    for k in names:
+        info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
+    if args.latex:
+        _write_latex(d, names, args.latex)
+    if args.json:
+        print(_dump({"scenario": sc.name, "signals": info}))
+        return 0
+    print(f"scenario {sc.name}: {sc.title}")
+    print(f"  model {sc.model.kind}, n = {sc.n}, C {sc.model.C_source}; ESN N = {sc.esn.size}")
+    print(f"{'signal':>11} {'shape':>7} {'ops':>6}  free variables")
+    for k in names:
+        i = info[k]
+        free = _compress_free(i["free"])
+        print(f"{k:>11} {i['shape'][0]:>3}x{i['shape'][1]:<3} {i['ops']:>6}  {free}")
+    if args.latex:
+        print(f"LaTeX written to {args.latex}")
+    return 0
+
+
+def _compress_free(free: list[str]) -> str:
+    """'x_esn_0, ..., x_esn_49' style summary of long runs of symbol names."""
+    out, groups = [], {}
+    for s in free:
+        base = s.rstrip("0123456789").rstrip("_")
+        groups.setdefault(base, []).append(s)
+    for base, items in groups.items():
+        if len(items) > 4:
+            out.append(f"{items[0]}..{items[-1]} ({len(items)})")
+        else:
+            out.extend(items)
+    return ", ".join(out) if out else "(constant)"
+
+
+def _short(v) -> str:
+    import numpy as np
+    if v is None:
+        return "null (outside its funnel)"
+    a = np.array(v, dtype=float)
+    return np.array2string(a, precision=8, max_line_width=200, threshold=20)
+
+
+def _write_latex(d, names, path) -> None:
+    """LaTeX of each signal small enough to read (converted from SX), sizes for the rest."""
+    import sympy
+
+    from .io import atomic_write
+    from .sx2sympy import sx_to_sympy
+    lines = [f"% symfunnel derive --latex: scenario {d.scenario.name}", ""]
+    for k in names:
+        f = d.function(k)
+        ops = d.ops(k)
+        if ops <= 400 and k not in ("Phi",):
+            m = sx_to_sympy(d.signals[k], [d.sym[x] for x in d.inputs_of(k)])
+            tex = sympy.latex(m[0] if m.shape == (1, 1) else m)
+            lines.append(f"% {k}: {ops} operations")
+            lines.append(f"{_tex_name(k)} = {tex}")
+        else:
+            lines.append(f"% {k}: {ops} operations ({f.n_instructions()} tape instructions); too large to print")
+        lines.append("")
+    atomic_write(path, "\n".join(lines))
+
+
+def _tex_name(k: str) -> str:
+    table = {"alpha2": r"\alpha_2", "alpha2_dot": r"\dot\alpha_2", "zeta1": r"\zeta_1", "zeta2": r"\zeta_2",
+             "mu1": r"\mu_1", "mu2": r"\mu_2", "z1_dot": r"\dot z_1", "z2_dot": r"\dot z_2", "tau": r"\tau",
+             "Phi": r"\Phi", "w_hat_dot": r"\dot{\hat W}", "x_esn_dot": r"\dot x_{esn}"}
+    if k in table:
+        return table[k]
+    return k
+
+
+# --- audit ----------------------------------------------------------------------------------------
+
+def cmd_audit(args) -> int:
+    """`symfunnel audit`: model properties and printed claims; --strict exits 1 on any failed check."""
+    from .checks.audit import audit
+    from .design import derive
+    sc = _load(args)
+    say = _progress(args.quiet or args.json)
+    d = derive(sc)
+    results = audit(sc, d, progress=say)
+    failed = [r for r in results if r.status == "fail"]
+    if args.json:
+        print(_dump({"scenario": sc.name, "checks": [r.to_json() for r in results]}))
+    else:
+        print(f"audit of scenario {sc.name} ({sc.file})")
+        for r in results:
+            mark = {"pass": "PASS", "fail": "FAIL", "skip": "SKIP"}[r.status]
+            print(f"  {mark}  {r.id}  [{r.method}]")
+            print(f"        {r.detail}")
+        print(f"{len(results) - len(failed)} passed, {len(failed)} failed")
+    return 1 if (failed and args.strict) else 0
+
+
+# --- entry point ----------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand."""
+    p = argparse.ArgumentParser(prog="symfunnel", description="Symbolic design and verification of funnel "
+                                "controllers for robot manipulators (CasADi).")
+    p.add_argument("--version", action="version", version="symfunnel " + _version())
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def common(sp):
+        sp.add_argument("scenario", nargs="?", default="paper",
+                        help="scenario TOML file or built-in name (default: paper)")
+        sp.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+
+    sp = sub.add_parser("derive", help="build the design; print each signal's size and free variables")
+    common(sp)
+    sp.add_argument("--json", action="store_true", help="machine-readable output")
+    sp.add_argument("--eval", metavar="POINT.json", help="evaluate every signal at a point (or a list)")
+    sp.add_argument("--latex", metavar="FILE", help="write the signals as LaTeX")
+    sp.add_argument("--all", action="store_true", help="with --eval: also print Phi and the ESN/adaptation rates")
+    sp.set_defaults(func=cmd_derive)
+
+    sp = sub.add_parser("audit", help="model properties and printed claims against the exact derivation")
+    common(sp)
+    sp.add_argument("--json", action="store_true", help="machine-readable output")
+    sp.add_argument("--strict", action="store_true", help="exit 1 when any check fails")
+    sp.set_defaults(func=cmd_audit)
+
+    for extra in _extra_commands():
+        extra(sub, common)
+    return p
+
+
+def _extra_commands():
+    """Subcommands that live in their own modules (simulate, verify, codegen, report, bench)."""
+    out = []
+    for mod in ("simulate", "verify", "codegen", "report", "bench"):
+        try:
+            m = __import__(f"symfunnel.commands.{mod}", fromlist=["register"])
+        except ModuleNotFoundError as exc:
+            if exc.name and exc.name.startswith("symfunnel.commands"):
+                continue
+            raise
+        out.append(m.register)
+    return out
+
+
+def _version() -> str:
+    from . import __version__
+    return __version__
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; bad input ends in one line and exit 2, failed checks exit 1, never a traceback."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code = args.func(args)
+    except InputError as exc:
+        print(f"symfunnel: error: {exc}", file=sys.stderr)
+        return 2
+    except SymfunnelError as exc:
+        print(f"symfunnel: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("symfunnel: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # noqa: BLE001 - the contract: nothing escapes as a traceback
+        if os.environ.get("SYMFUNNEL_DEBUG"):
+            raise
+        print(f"symfunnel: internal error: {type(exc).__name__}: {exc} "
+              f"(set SYMFUNNEL_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
+        return EXIT_INTERNAL
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,38 @@
+"""The named signals of the design: one name each, used by the CLI, the audit claims and the generated code."""
+
+# name -> (description, funnel level needed: 0 none, 1 funnel e1, 2 funnels e1 and e2)
+SIGNALS: dict[str, tuple[str, int]] = {
+    "qd": ("reference position q_d(t)", 0),
+    "dqd": ("reference velocity dq_d/dt", 0),
+    "ddqd": ("reference acceleration d2q_d/dt2", 0),
+    "M": ("inertia matrix M(q)", 0),
+    "C": ("Coriolis/centripetal matrix C(q, dq)", 0),
+    "G": ("gravity torque G(q)", 0),
+    "F1": ("funnel boundary of e1: phi0*exp(-a*t) + phi_inf", 0),
+    "dF1": ("dF1/dt", 0),
+    "F2": ("funnel boundary of e2", 0),
+    "dF2": ("dF2/dt", 0),
+    "e1": ("tracking error q - q_d", 0),
+    "de1": ("de1/dt = dq - dq_d", 0),
+    "z1": ("first funnel variable e1/(F1 - |e1|)", 1),
+    "zeta1": ("1/(F1 - |e1|)", 1),
+    "mu1": ("dz1/de1 = F1*zeta1^2", 1),
+    "alpha2": ("virtual control (a function of t, q and the reference only)", 1),
+    "alpha2_dot": ("exact time derivative of alpha2 (forward-mode AD)", 1),
+    "z1_dot": ("exact time derivative of z1 along the flow", 1),
+    "e2": ("second error dq - alpha2", 1),
+    "z2": ("second funnel variable e2/(F2 - |e2|)", 2),
+    "zeta2": ("1/(F2 - |e2|)", 2),
+    "mu2": ("dz2/de2 = F2*zeta2^2", 2),
+    "Phi": ("echo-state regressor Phi(x_esn)", 0),
+    "v": ("commanded acceleration of the inner loop", 2),
+    "tau": ("commanded joint torque (before the unknown dead zone)", 2),
+    "ddq": ("joint acceleration of the nominal model under tau", 2),
+    "de2": ("de2/dt = ddq - alpha2_dot along the nominal model", 2),
+    "z2_dot": ("exact time derivative of z2 along the nominal model", 2),
+    "w_hat_dot": ("adaptive-law right-hand side dW_hat/dt", 2),
+    "x_esn_dot": ("echo-state reservoir dynamics dx_esn/dt", 1),
+}
+
+# Constants of the design that claims may use besides the signals.
+CONSTANTS = ("k1", "k2", "Gamma", "sigma")
