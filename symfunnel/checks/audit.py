@@ -342,6 +342,13 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
         notes.append(f"the printed form depends on {', '.join(extra[:6])}{'...' if len(extra) > 6 else ''}, "
                      f"which the exact {claim.signal} does not")
         ev["extra_dependencies"] = extra
+    if claim.signal == "w_hat_dot":
+        leak = _leakage(design, printed, rng)
+        ev["leakage_at_e2_zero"] = leak
+        if leak["growing_fraction"] > 0:
+            notes.append(f"at states with e2 = 0 the printed law makes ||W_hat|| grow at {leak['growing_fraction']:.0%} "
+                         f"of {leak['samples']} points (d||W_hat||^2/dt up to {leak['max_rate']:.3g}): "
+                         "its sigma term is not a leakage")
     head = f"{claim.source or 'printed'} {claim.signal}"
     if rel_pt[j] > sc.audit.tolerance:
         detail = (f"{head}: NOT equivalent to the exact signal; disagrees at {ev['fraction_disagreeing']:.0%} of "
@@ -361,6 +368,19 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
                        f"(worst relative difference {rel_pt[j]:.3g}); sympy could not prove it",
                        method=f"sampled ({k} points inside the funnels)",
                        margin=float(sc.audit.tolerance - rel_pt[j]), where=where, evidence=ev)
+
+
+def _leakage(design: Design, law: ca.SX, rng, k: int = 200) -> dict:
+    """Sign of d||W_hat||^2/dt = 2 tr(W_hat^T law) at random states with e2 = 0 (where sigma-modification alone acts)."""
+    pts = funnel_states(design, k, rng, fill=0.9)
+    a2 = design.function("alpha2", ["t", "q", "qd", "dqd"]).map(k)
+    pts["dq"] = np.array(a2(pts["t"], pts["q"], pts["qd"], pts["dqd"]))
+    w = design.sym["w_hat"]
+    rate = 2 * ca.trace(ca.mtimes(w.T, law))
+    f = ca.Function("rate", [design.sym[x] for x in BASE_INPUTS], [rate], list(BASE_INPUTS), ["r"])
+    (r,) = eval_mapped(f, pts, k)
+    r = r.ravel()
+    return {"samples": k, "growing_fraction": float(np.mean(r > 0)), "max_rate": float(np.max(r))}
 
 
 def check_alpha2_free_of_dq(design: Design) -> CheckResult:
