@@ -1,0 +1,440 @@
+"""Generated code for the controller: C (CasADi's CodeGenerator) and numpy-only Python (from the SX tape).
+
+Both languages get the same functions, in the same order, all built with `Design.function` from the one SX graph
+(CSE on), and described in `manifest.json` (design.md section 3):
+
+==============  ======================================  ===========================================
+function        inputs                                  outputs
+==============  ======================================  ===========================================
+funnels         t                                       F1, dF1, F2, dF2
+errors          t, q, dq, qd, dqd                       e1, z1, e2, z2
+alpha2          t, q, qd, dqd                           alpha2
+alpha2_dot      t, q, dq, qd, dqd, ddqd                 alpha2_dot
+controller      t, q, dq, qd, dqd, ddqd, x_esn, w_hat   tau, x_esn_dot, w_hat_dot
+==============  ======================================  ===========================================
+
+API::
+
+    files = generate(design, "c")            # {file name: text}, manifest.json included; deterministic
+    write_output(files, "ctl")               # atomic: a failure never leaves half-written files
+    report = check_output(design, "c", files, points=1000)   # compile (cached) / import, compare with CasADi
+    summary = codegen_summary(scenario)       # both languages: files, sizes, op counts, errors, timings
+
+Notes
+-----
+The recorded trajectory shipped with the code (`trajectory.txt`, 50 samples over 2 s) is a short closed-loop run
+of the scenario's nominal model under the controller (RK4, see `recorded_trajectory`); pass `trajectory=` to
+`generate` to ship another one (e.g. the full plant simulation's states).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["CONTRACT", "BASENAME", "contract_functions", "recorded_trajectory", "generate", "write_output",
+           "check_output", "time_controller", "codegen_summary"]
+
+BASENAME = "symfunnel_controller"
+
+#: (name, inputs, outputs) of every generated function, in manifest order.
+CONTRACT: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
+    ("funnels", ("t",), ("F1", "dF1", "F2", "dF2")),
+    ("errors", ("t", "q", "dq", "qd", "dqd"), ("e1", "z1", "e2", "z2")),
+    ("alpha2", ("t", "q", "qd", "dqd"), ("alpha2",)),
+    ("alpha2_dot", ("t", "q", "dq", "qd", "dqd", "ddqd"), ("alpha2_dot",)),
+    ("controller", ("t", "q", "dq", "qd", "dqd", "ddqd", "x_esn", "w_hat"), ("tau", "x_esn_dot", "w_hat_dot")),
+)
+
+LANGS = ("c", "python")
+
+
+def contract_functions(design) -> list:
+    """The casadi.Functions of the contract, in manifest order, from the design's one graph."""
+    out = []
+    for name, inputs, outputs in CONTRACT:
+        f = design.controller() if name == "controller" else design.function(name, list(inputs), list(outputs))
+        out.append(f)
+    return out
+
+
+def recorded_trajectory(design, samples: int = 50, t_final: float | None = None,
+                        substeps: int = 40) -> dict[str, np.ndarray]:
+    """Controller inputs recorded along a short closed-loop run, as (r, c, k) arrays (sample index last).
+
+    Also holds "source", a one-line description of how the samples were made.
+
+    The run is the scenario's nominal model under the controller (no dead zone, friction or disturbance: the
+    design's `ddq` signal), with x_esn and W_hat following their laws, from the scenario's initial state; fixed-step
+    RK4 with `substeps` steps between samples. When that run leaves a funnel or is not finite (a stiff scenario),
+    the trajectory falls back to the reference with offsets inside both funnels
+    (e1 = 0.5 F1 sin(2t + i), e2 = 0.5 F2 cos(3t + i)) and x_esn, W_hat by explicit Euler on their rates.
+    """
+    sc = design.scenario
+    T = t_final if t_final is not None else min(2.0, sc.simulation.t_final)
+    t = np.linspace(0.0, T, samples)
+    try:
+        out = _nominal_run(design, t, substeps)
+    except (FloatingPointError, ValueError):
+        out = None
+    if out is not None:
+        out["source"] = f"closed loop of the nominal model under the controller (RK4, {substeps} steps per sample)"
+        return out
+    out = _offset_trajectory(design, t)
+    out["source"] = "reference with offsets inside both funnels (the nominal closed-loop run left a funnel)"
+    return out
+
+
+def _initial(design) -> tuple[np.ndarray, np.ndarray]:
+    sc = design.scenario
+    N = design.sym["x_esn"].numel()
+    wr, wc = design.sym["w_hat"].shape
+    x0 = np.zeros(N)
+    if getattr(sc, "x_esn0", None):
+        x0[:] = np.asarray(sc.x_esn0, dtype=float).reshape(-1)[:N]
+    return x0, np.full((wr, wc), float(getattr(sc, "w_hat0", 0.0)))
+
+
+def _nominal_run(design, t: np.ndarray, substeps: int):
+    """RK4 run of the nominal closed loop sampled at t; None when it leaves a funnel or diverges."""
+    import casadi as ca
+    sc, s, S = design.scenario, design.sym, design.signals
+    n = design.n
+    x = ca.vertcat(s["q"], s["dq"], s["x_esn"], ca.vec(s["w_hat"]))
+    rhs = ca.vertcat(s["dq"], S["ddq"], S["x_esn_dot"], ca.vec(S["w_hat_dot"]))
+    ref = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
+    rhs = ca.substitute([rhs], [s["qd"], s["dqd"], s["ddqd"]], ref)[0]
+    f = ca.Function("f", [s["t"], x], [rhs])
+    h, tt = ca.SX.sym("h"), s["t"]
+    k1 = f(tt, x)
+    k2 = f(tt + h / 2, x + h / 2 * k1)
+    k3 = f(tt + h / 2, x + h / 2 * k2)
+    k4 = f(tt + h, x + h * k3)
+    step = ca.Function("rk4", [tt, x, h], [x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    x0, w0 = _initial(design)
+    xk = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float), x0, w0.reshape(-1, order="F")])
+    X = np.zeros((xk.size, t.size))
+    X[:, 0] = xk
+    for j in range(1, t.size):
+        hj = (t[j] - t[j - 1]) / substeps
+        for i in range(substeps):
+            xk = np.array(step(t[j - 1] + i * hj, xk, hj)).ravel()
+        if not np.all(np.isfinite(xk)):
+            return None
+        X[:, j] = xk
+    out = _pack(design, t, X[:n], X[n:2 * n], X[2 * n:2 * n + x0.size], X[2 * n + x0.size:])
+    lv = design.function("funnel_check", ["t", "q", "dq", "qd", "dqd"], ["e1", "F1", "e2", "F2"]).map(t.size)
+    e1, F1, e2, F2 = (np.array(v) for v in lv(*[out[k][:, 0, :] for k in ("t", "q", "dq", "qd", "dqd")]))
+    if not (np.all(np.abs(e1) < F1) and np.all(np.abs(e2) < F2)):
+        return None
+    return out
+
+
+def _pack(design, t, q, dq, x, w_flat) -> dict[str, np.ndarray]:
+    k = t.size
+    qd, dqd, ddqd = (np.array(v) for v in design.reference.map(k)(t[None, :]))
+    wr, wc = design.sym["w_hat"].shape
+    col = lambda a: np.asarray(a, dtype=float)[:, None, :]  # noqa: E731
+    return {"t": t[None, None, :], "q": col(q), "dq": col(dq), "qd": col(qd), "dqd": col(dqd),
+            "ddqd": col(ddqd), "x_esn": col(x), "w_hat": np.asarray(w_flat).reshape(wr, wc, k, order="F")}
+
+
+def _offset_trajectory(design, t: np.ndarray) -> dict[str, np.ndarray]:
+    """The reference with offsets inside both funnels; x_esn and W_hat by explicit Euler on their rates."""
+    n, k = design.n, t.size
+    qd, dqd, ddqd = (np.array(v) for v in design.reference.map(k)(t[None, :]))
+    F1, F2 = (np.array(v) for v in design.function("funnel_bounds", ["t"], ["F1", "F2"]).map(k)(t[None, :]))
+    ph = np.arange(n)[:, None]
+    q = qd + 0.5 * F1 * np.sin(2 * t[None, :] + ph)
+    alpha2 = np.array(design.function("alpha2", ["t", "q", "qd", "dqd"]).map(k)(t[None, :], q, qd, dqd))
+    dq = alpha2 + 0.5 * F2 * np.cos(3 * t[None, :] + ph)
+    x0, w0 = _initial(design)
+    x = np.zeros((x0.size, k))
+    w = np.zeros((w0.size, k))
+    x[:, 0], w[:, 0] = x0, w0.reshape(-1, order="F")
+    ctl = design.controller()
+    for j in range(k - 1):
+        dt = t[j + 1] - t[j]
+        _, xdot, wdot = ctl(t[j], q[:, j], dq[:, j], qd[:, j], dqd[:, j], ddqd[:, j], x[:, j],
+                            w[:, j].reshape(w0.shape, order="F"))
+        x[:, j + 1] = x[:, j] + dt * np.array(xdot).ravel()
+        w[:, j + 1] = w[:, j] + dt * np.array(wdot).reshape(-1, order="F")
+    return _pack(design, t, q, dq, x, w)
+
+
+def _manifest(design, functions, lang: str, files: dict[str, str]) -> str:
+    import casadi
+
+    from .. import __version__
+    from .python import manifest_entry
+    from .tape import count_ops
+    entries = []
+    for f in functions:
+        e = manifest_entry(f)
+        e["operations"] = count_ops(f)["operations"]
+        entries.append(e)
+    info = {
+        "generator": f"symfunnel {__version__}",
+        "casadi_version": casadi.__version__,
+        "scenario": design.scenario.name,
+        "language": lang,
+        "files": [{"name": k, "bytes": len(v.encode("utf-8")),
+                   "sha256": hashlib.sha256(v.encode("utf-8")).hexdigest()} for k, v in files.items()],
+        "functions": entries,
+    }
+    if lang == "c":
+        info["c_api"] = {"source": BASENAME + ".c", "header": BASENAME + ".h", "casadi_real": "double",
+                         "casadi_int": "int", "memory": "static (no malloc; work in locals)"}
+    info["trajectory"] = {"file": "trajectory.txt",
+                          "row": "controller inputs in manifest order, matrices column-major"}
+    return json.dumps(info, indent=2) + "\n"
+
+
+def generate(design, lang: str, *, trajectory: dict[str, np.ndarray] | None = None) -> dict[str, str]:
+    """Every output file of one language as {name: text}, manifest.json last; byte-identical for the same design."""
+    from .c import emit_c, support_files, trajectory_text
+    from .python import emit_python
+    if lang not in LANGS:
+        raise ValueError(f"unknown language {lang!r}; expected one of {LANGS}")
+    functions = contract_functions(design)
+    sc = design.scenario
+    traj = trajectory if trajectory is not None else recorded_trajectory(design)
+    traj_txt = trajectory_text(design.controller(), traj, header=(
+        f"symfunnel recorded trajectory for scenario '{sc.name}': one sample per line\n"
+        + str(traj.get("source", "supplied by the caller"))))
+    if lang == "c":
+        files = emit_c(functions, BASENAME)
+        files.update(support_files(traj_txt))
+    else:
+        doc = (f"Funnel controller of scenario '{sc.name}' ({sc.title}).\n\n"
+               "See manifest.json for the functions, their inputs and outputs.")
+        from .c import template
+        files = {BASENAME + ".py": emit_python(functions, module_doc=doc),
+                 "run_trajectory.py": template("run_trajectory.py"),
+                 "trajectory.txt": traj_txt}
+    files["manifest.json"] = _manifest(design, functions, lang, files)
+    return files
+
+
+def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path]:
+    """Write the files into out_dir atomically: all go to a temporary directory first, then are renamed in.
+
+    Raises InputError when out_dir exists and is not a directory. Other files in out_dir are left alone.
+    """
+    from ..errors import InputError
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError("exists and is not a directory", file=str(out), key="--out",
+                         expected="a directory (created when missing)")
+    parent = out.absolute().parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+    except OSError as exc:
+        raise InputError(f"cannot be created ({exc.strerror})", file=str(out), key="--out",
+                         expected="a writable directory") from None
+    try:
+        for name, text in files.items():
+            with open(tmp / name, "w", encoding="utf-8", newline="\n") as fh:
+                fh.write(text)
+        if not out.exists():
+            try:
+                os.rename(tmp, out)
+                return [out / n for n in files]
+            except OSError:
+                out.mkdir(parents=True, exist_ok=True)
+        for name in files:
+            os.replace(tmp / name, out / name)
+    except OSError as exc:
+        raise InputError(f"cannot be written ({exc.strerror or exc})", file=str(out), key="--out",
+                         expected="a writable directory") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return [out / n for n in files]
+
+
+def check_output(design, lang: str, files: dict[str, str], *, points: int = 1000, seed: int = 0,
+                 fill: float | None = None, pts: dict | None = None):
+    """Compile (C, cached) or import (Python) generated files and compare every function with CasADi.
+
+    For C also compiles main.c with the strict flags and runs it over trajectory.txt, comparing its torques with
+    CasADi (extra entry 'main.c trajectory'). Returns a check.CheckReport.
+    """
+    from . import check
+    functions = contract_functions(design)
+    if pts is None:
+        pts = check.sample_points(design, points, seed, check.FILL if fill is None else fill)
+    if lang == "c":
+        lib = check.c_library(files[BASENAME + ".c"], files[BASENAME + ".h"], BASENAME)
+        report = check.check_c(functions, lib.path, pts)
+        report.extra["main.c trajectory"] = _check_main(design, files)
+        return report
+    with tempfile.TemporaryDirectory(prefix="symfunnel-py-") as tmp:
+        path = Path(tmp) / (BASENAME + ".py")
+        path.write_text(files[BASENAME + ".py"], encoding="utf-8")
+        mod = check.load_python_module(path)
+    return check.check_python(functions, mod, pts)
+
+
+def _trajectory_inputs(design, text: str) -> dict[str, np.ndarray]:
+    """Parse trajectory.txt back into (r, c, k) arrays of the controller's inputs."""
+    data = np.loadtxt(text.splitlines(), comments="#", ndmin=2).T
+    ctl = design.controller()
+    out, row = {}, 0
+    for i in range(ctl.n_in()):
+        r, c = ctl.size1_in(i), ctl.size2_in(i)
+        out[ctl.name_in(i)] = data[row:row + r * c].reshape(r, c, -1, order="F")
+        row += r * c
+    return out
+
+
+def main_program(files: dict[str, str], flags=None):
+    """Build main.c + the generated pair with the strict flags (cached); returns build.Built."""
+    from .build import compile_cached
+    from .c import STRICT_CFLAGS
+    src = {k: files[k] for k in (BASENAME + ".c", BASENAME + ".h", "main.c")}
+    return compile_cached(src, ["main.c", BASENAME + ".c"], "symfunnel_main", tuple(flags or STRICT_CFLAGS))
+
+
+def _check_main(design, files: dict[str, str]) -> float:
+    """Worst relative error of main.c's torques over trajectory.txt against CasADi."""
+    from .check import casadi_values, relative_error, run_main
+    exe = main_program(files).path
+    with tempfile.TemporaryDirectory(prefix="symfunnel-traj-") as tmp:
+        p = Path(tmp) / "trajectory.txt"
+        p.write_text(files["trajectory.txt"], encoding="utf-8")
+        rows = run_main(exe, p)
+    inp = _trajectory_inputs(design, files["trajectory.txt"])
+    tau = casadi_values(design.controller(), inp)[0]                  # (n, 1, k)
+    if rows.shape != (tau.shape[2], 1 + tau.shape[0]):
+        return float("inf")
+    return float(relative_error(rows[:, 1:].T[:, None, :], tau).max())
+
+
+# --- timing -----------------------------------------------------------------------------------------
+
+def _best_ns(fn, min_time: float = 0.2, repeats: int = 5) -> float:
+    """Best-of-`repeats` wall time per call of fn() in ns, each repeat running at least min_time / repeats."""
+    n = 1
+    while True:
+        t0 = time.perf_counter()
+        for _ in range(n):
+            fn()
+        dt = time.perf_counter() - t0
+        if dt >= min_time / repeats or n >= 1 << 22:
+            break
+        n *= 2
+    best = dt / n
+    for _ in range(repeats - 1):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            fn()
+        best = min(best, (time.perf_counter() - t0) / n)
+    return best * 1e9
+
+
+def time_controller(design, c_files: dict[str, str] | None = None, py_files: dict[str, str] | None = None,
+                    *, min_time: float = 0.2, c_iterations: int = 200000, batch: int = 1000) -> dict:
+    """ns per controller call: compiled C (timed in C by bench.c), CasADi's VM from Python, generated Python.
+
+    Returns {"c_ns", "casadi_vm_ns" (Function call with DM arguments), "casadi_vm_numpy_ns" (numpy arguments,
+    conversion included), "python_ns", "python_batch_ns" (per point, one call over `batch` points),
+    "casadi_map_ns" (per point, casadi map over the same batch), "operations"}.
+    """
+    import subprocess
+
+    from . import check
+    from .build import compile_cached
+    from .c import STRICT_CFLAGS
+    from .tape import count_ops
+    c_files = c_files or generate(design, "c")
+    py_files = py_files or generate(design, "python")
+    ctl = design.controller()
+    out = {"operations": count_ops(ctl)["operations"]}
+
+    src = {k: c_files[k] for k in (BASENAME + ".c", BASENAME + ".h", "bench.c")}
+    exe = compile_cached(src, ["bench.c", BASENAME + ".c"], "symfunnel_bench", STRICT_CFLAGS).path
+    with tempfile.TemporaryDirectory(prefix="symfunnel-bench-") as tmp:
+        p = Path(tmp) / "trajectory.txt"
+        p.write_text(c_files["trajectory.txt"], encoding="utf-8")
+        proc = subprocess.run([str(exe), str(p), str(c_iterations)], capture_output=True, text=True, timeout=600)
+    if proc.returncode != 0:
+        raise RuntimeError(f"bench program failed: {proc.stderr.strip()}")
+    out["c_ns"] = float(proc.stdout.split()[1])
+
+    inp = _trajectory_inputs(design, c_files["trajectory.txt"])
+    names = [ctl.name_in(i) for i in range(ctl.n_in())]
+    one = [inp[n][:, :, 1] for n in names]
+    import casadi as ca
+    one_dm = [ca.DM(a) for a in one]
+    out["casadi_vm_ns"] = _best_ns(lambda: ctl(*one_dm), min_time)          # arguments already DM
+    out["casadi_vm_numpy_ns"] = _best_ns(lambda: ctl(*one), min_time)       # incl. numpy -> DM conversion
+
+    with tempfile.TemporaryDirectory(prefix="symfunnel-py-") as tmp:
+        path = Path(tmp) / (BASENAME + ".py")
+        path.write_text(py_files[BASENAME + ".py"], encoding="utf-8")
+        mod = check.load_python_module(path)
+    out["python_ns"] = _best_ns(lambda: mod.controller(*one), min_time)
+
+    pts = check.sample_points(design, batch, seed=1)
+    bargs = [pts[n] for n in names]
+    out["python_batch_ns"] = _best_ns(lambda: mod.controller(*bargs), min_time, 3) / batch
+    fmap = ctl.map(batch)
+    margs = [pts[n].transpose(0, 2, 1).reshape(pts[n].shape[0], -1) for n in names]
+    out["casadi_map_ns"] = _best_ns(lambda: fmap(*margs), min_time, 3) / batch
+    return out
+
+
+# --- report -----------------------------------------------------------------------------------------
+
+def codegen_summary(scenario, design=None, *, points: int = 1000, timings: bool = True) -> dict:
+    """Generate both languages into a temp dir, check them against CasADi, time them; plain data for the report.
+
+    Returns {"scenario", "functions": [{"name", "inputs", "outputs", "operations"}],
+    "languages": {"c"|"python": {"files": [{"name", "bytes", "lines"}], "check": CheckReport.to_json()}},
+    "controller_operations", "timings": time_controller(...) or None, "points"}.
+    """
+    from . import check
+    from .build import find_compiler
+    from .tape import count_ops
+    if design is None:
+        from ..design import derive
+        design = derive(scenario)
+    functions = contract_functions(design)
+    pts = check.sample_points(design, points, 0)
+    out = {"scenario": design.scenario.name, "points": points, "languages": {},
+           "functions": [], "controller_operations": count_ops(design.controller())["operations"]}
+    from .python import manifest_entry
+    for f in functions:
+        e = manifest_entry(f)
+        e["operations"] = count_ops(f)["operations"]
+        out["functions"].append(e)
+    files = {}
+    with tempfile.TemporaryDirectory(prefix="symfunnel-codegen-") as tmp:
+        for lang in LANGS:
+            files[lang] = generate(design, lang)
+            write_output(files[lang], Path(tmp) / lang)
+            entry = {"files": [{"name": k, "bytes": len(v.encode("utf-8")), "lines": v.count("\n")}
+                               for k, v in files[lang].items()]}
+            try:
+                if lang == "c":
+                    find_compiler()
+                entry["check"] = check_output(design, lang, files[lang], pts=pts).to_json()
+            except Exception as exc:  # noqa: BLE001 - the report shows why a language could not be checked
+                entry["check"] = None
+                entry["error"] = f"{type(exc).__name__}: {exc}"
+            out["languages"][lang] = entry
+    out["timings"] = None
+    if timings:
+        try:
+            out["timings"] = time_controller(design, files["c"], files["python"])
+        except Exception as exc:  # noqa: BLE001
+            out["timings_error"] = f"{type(exc).__name__}: {exc}"
+    return out

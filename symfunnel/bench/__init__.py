@@ -1,0 +1,38 @@
+"""`symfunnel bench`: performance figures, each measured side by side with a baseline in the same run.
+
+Each area module (`symfunnel.bench.<area>`) exposes `run(progress) -> list[dict]` returning results of the form
+{"id", "value", "unit", "baseline", "baseline_value", "ratio"} (design.md section 2); ratio = baseline time /
+symfunnel time, higher is better.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+AREAS = ("simulate", "codegen", "models")
+
+
+def result(id: str, value: float, unit: str, baseline: str | None = None, baseline_value: float | None = None,
+           ratio: float | None = None, **extra) -> dict:
+    """One bench result in the contract's form (extra keys are allowed and ignored by consumers)."""
+    out = {"id": id, "value": float(value), "unit": unit, "baseline": baseline,
+           "baseline_value": None if baseline_value is None else float(baseline_value),
+           "ratio": None if ratio is None else float(ratio)}
+    out.update(extra)
+    return out
+
+
+def run(areas=None, progress=None) -> list[dict]:
+    """Run the benchmarks of the selected areas (default: all that are available)."""
+    say = progress or (lambda s: None)
+    out = []
+    for area in areas or AREAS:
+        try:
+            mod = importlib.import_module(f"symfunnel.bench.{area}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"symfunnel.bench.{area}":
+                continue
+            raise
+        say(f"bench {area}")
+        out.extend(mod.run(say))
+    return out

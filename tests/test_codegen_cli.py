@@ -1,0 +1,98 @@
+"""`symfunnel codegen`: the command line of item 4 (exit codes, output directory, --check)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from symfunnel.cli import main
+
+needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None and shutil.which("cc") is None,
+                               reason="no C compiler")
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path_factory.getbasetemp() / "cli-cache"))
+
+
+@needs_gcc
+def test_c_check_passes_and_second_run_reuses_the_cache(tmp_path, capsys):
+    out = tmp_path / "ctl"
+    assert main(["codegen", "--lang", "c", "--out", str(out), "--check", "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "worst relative error" in text and "PASS" in text
+    for name in ("symfunnel_controller.c", "symfunnel_controller.h", "main.c", "Makefile", "trajectory.txt",
+                 "manifest.json"):
+        assert (out / name).is_file()
+    from symfunnel.codegen.build import cache_dir
+    before = sorted(p.name for p in cache_dir().iterdir())
+    mtimes = {p: p.stat().st_mtime_ns for p in cache_dir().rglob("*") if p.is_file()}
+    assert main(["codegen", "--lang", "c", "--out", str(out), "--check", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["check"]["passed"] and data["check"]["worst"] <= 1e-12 and data["check"]["points"] >= 1000
+    assert sorted(p.name for p in cache_dir().iterdir()) == before
+    assert {p: p.stat().st_mtime_ns for p in cache_dir().rglob("*") if p.is_file()} == mtimes
+
+
+def test_python_check_passes(tmp_path, capsys):
+    out = tmp_path / "ctlpy"
+    assert main(["codegen", "paper", "--lang", "python", "--out", str(out), "--check", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["language"] == "python" and data["check"]["passed"]
+    assert data["check"]["worst"] <= 1e-10
+    assert set(data["check"]["errors"]) == {"funnels", "errors", "alpha2", "alpha2_dot", "controller"}
+    assert (out / "symfunnel_controller.py").is_file() and (out / "manifest.json").is_file()
+
+
+def test_check_fails_with_exit_1_above_threshold(tmp_path, monkeypatch, capsys):
+    from symfunnel.codegen import check
+    monkeypatch.setitem(check.THRESHOLDS, "python", 0.0)
+    assert main(["codegen", "--lang", "python", "--out", str(tmp_path / "o"), "--check"]) == 1
+    assert "FAIL" in capsys.readouterr().out
+
+
+def test_bad_lang_is_an_argparse_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["codegen", "--lang", "fortran", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_out_pointing_at_a_file_is_input_error(tmp_path, capsys):
+    f = tmp_path / "taken"
+    f.write_text("keep me")
+    assert main(["codegen", "--lang", "python", "--out", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("symfunnel: error:") and "--out" in err and "not a directory" in err
+    assert f.read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
+
+
+def test_too_few_points_is_input_error(tmp_path, capsys):
+    assert main(["codegen", "--lang", "python", "--out", str(tmp_path / "o"), "--check", "--points", "10"]) == 2
+    assert "--points" in capsys.readouterr().err
+
+
+def test_unknown_scenario_is_input_error(tmp_path, capsys):
+    assert main(["codegen", str(tmp_path / "missing.toml"), "--lang", "c", "--out", str(tmp_path / "o")]) == 2
+
+
+def test_existing_directory_is_updated_and_failures_leave_nothing_half_written(tmp_path, monkeypatch):
+    from symfunnel import codegen as cg
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["codegen", "--lang", "python", "--out", str(out), "-q"]) == 0
+    assert (out / "notes.txt").read_text() == "mine"
+    assert (out / "symfunnel_controller.py").is_file()
+
+    # a failure while writing leaves neither the target nor temporary directories behind
+    target = tmp_path / "new"
+    with pytest.raises(TypeError):
+        cg.write_output({"a.txt": "fine", "b.txt": None}, target)
+    assert not target.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o"]
