@@ -229,6 +229,7 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path
     Raises InputError when out_dir exists and is not a directory. Other files in out_dir are left alone.
     """
     from ..errors import InputError
+    from ..io import umask_mode
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a directory", file=str(out), key="--out",
@@ -237,6 +238,7 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path
     try:
         parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+        os.chmod(tmp, umask_mode(directory=True))
     except OSError as exc:
         raise InputError(f"cannot be created ({exc.strerror})", file=str(out), key="--out",
                          expected="a writable directory") from None
