@@ -1,0 +1,230 @@
+"""The closed loop as one ODE x' = f(t, x), assembled from the one symbolic design (no re-derivation).
+
+State x = [q; dq; x_esn; vec(W_hat)] (W_hat column-major, (N+1) x n), so n = 2, N = 50 gives 2 + 2 + 50 + 102 = 156.
+
+Controller (known): tau, x_esn_dot and w_hat_dot are `Design.signals` with the reference substituted as functions
+of t (`Design.reference_t`). Plant (unknown to the controller):
+
+    M_p(q) ddq + C_p(q, dq) dq + G_p(q) + friction(dq) + d(t, q, dq) = D(tau)
+
+with M_p, C_p, G_p = plant.mass_scale * the model's matrices at the model parameters overridden by
+`plant.parameters`, friction = viscous*dq + coulomb*sign_w(dq), D the dead zone of eq. 2 (smoothed with the same
+width w, see `symfunnel.plant`), d the disturbance expressions. ddq is obtained by an LDL^T factorisation of M_p
+written out in SX (n^3/6 operations, no symbolic blow-up for n ~ 7, no pivoting needed as M_p is positive definite).
+
+The nominal model under tau accelerates by ddq_nom = v - W_hat^T Phi (`signals['ddq']`), so the true unknown term
+the ESN estimates is f_true = ddq_plant - ddq_nom and its estimate is w_phi = W_hat^T Phi.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from .errors import InputError
+
+#: logged signals (name -> shape kind): 'n' per joint, 'N' per reservoir unit, '1' scalar
+OUTPUT_NAMES = ("qd", "dqd", "ddqd", "tau", "tau_applied", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2",
+                "friction", "disturbance", "ddq", "ddq_nom", "f_true", "w_phi", "m1", "m2", "V_z", "V_w_hat")
+
+
+def ldl_solve(M: ca.SX, b: ca.SX) -> ca.SX:
+    """x = M^{-1} b for a symmetric positive definite SX matrix, by an LDL^T factorisation written out in SX."""
+    n = M.shape[0]
+    L = [[None] * n for _ in range(n)]
+    D = [None] * n
+    for j in range(n):
+        d = M[j, j]
+        for k in range(j):
+            d = d - L[j][k] * L[j][k] * D[k]
+        D[j] = d
+        for i in range(j + 1, n):
+            s = M[i, j]
+            for k in range(j):
+                s = s - L[i][k] * L[j][k] * D[k]
+            L[i][j] = s / d
+    y = [None] * n
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s = s - L[i][k] * y[k]
+        y[i] = s
+    z = [y[i] / D[i] for i in range(n)]
+    x = [None] * n
+    for i in reversed(range(n)):
+        s = z[i]
+        for k in range(i + 1, n):
+            s = s - L[k][i] * x[k]
+        x[i] = s
+    return ca.vertcat(*x)
+
+
+@dataclass
+class ClosedLoop:
+    """The closed-loop ODE of one scenario: symbolic state, right-hand side and logged signals as casadi Functions."""
+
+    design: object
+    scenario: object
+    n: int
+    N: int
+    width: float
+    t: ca.SX                      # time symbol
+    x: ca.SX                      # state vector [q; dq; x_esn; vec(w_hat)]
+    xdot: ca.SX                   # right-hand side in (t, x)
+    f: ca.Function                # f(t, x) -> xdot
+    outputs: ca.Function          # outputs(t, x) -> logged signals (OUTPUT_NAMES)
+    x0: np.ndarray
+    signals: dict = field(default_factory=dict, repr=False)   # name -> SX in (t, x), the outputs' expressions
+    plant_parts: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def nx(self) -> int:
+        """Number of states."""
+        return int(self.x.numel())
+
+    @property
+    def slices(self) -> dict[str, slice]:
+        """Where q, dq, x_esn and w_hat sit in the state vector."""
+        n, N = self.n, self.N
+        nr = self.design.esn.n_regressor
+        return {"q": slice(0, n), "dq": slice(n, 2 * n), "x_esn": slice(2 * n, 2 * n + N),
+                "w_hat": slice(2 * n + N, 2 * n + N + nr * n)}
+
+    def pack(self, q, dq, x_esn, w_hat) -> np.ndarray:
+        """State vector from its parts (w_hat as an (N+1) x n matrix, stored column-major)."""
+        nr = self.design.esn.n_regressor
+        w = np.broadcast_to(np.asarray(w_hat, dtype=float), (nr, self.n))
+        return np.concatenate([np.ravel(q), np.ravel(dq), np.ravel(x_esn), w.ravel(order="F")]).astype(float)
+
+    def unpack(self, x) -> dict[str, np.ndarray]:
+        """Parts of a state vector (n_x,) or of a trajectory (T, n_x): q, dq, x_esn, w_hat ((.., N+1, n))."""
+        x = np.asarray(x, dtype=float)
+        s = self.slices
+        nr = self.design.esn.n_regressor
+        out = {k: x[..., s[k]] for k in ("q", "dq", "x_esn")}
+        w = x[..., s["w_hat"]]
+        out["w_hat"] = np.swapaxes(w.reshape(w.shape[:-1] + (self.n, nr)), -1, -2)
+        return out
+
+    def rhs(self, t: float, x) -> np.ndarray:
+        """xdot at one point, as numbers."""
+        return np.asarray(self.f(t, x)).ravel()
+
+    def evaluate_outputs(self, t, X) -> dict[str, np.ndarray]:
+        """Logged signals along a trajectory: t (T,), X (T, n_x) -> name -> (T, ...) arrays (time first)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        T = t.size
+        if T == 0:
+            return {k: np.zeros((0,) if k in ("V_z", "V_w_hat") else (0, self.n)) for k in OUTPUT_NAMES}
+        fm = self.outputs.map(T)
+        vals = fm(t.reshape(1, -1), X.T)
+        out = {}
+        for k, v in zip(OUTPUT_NAMES, vals):
+            a = np.asarray(v).T          # (T, rows)
+            out[k] = a[:, 0] if a.shape[1] == 1 and k in ("V_z", "V_w_hat") else a
+        return out
+
+
+def plant_acceleration(scenario, q, dq, t, tau, width: float) -> dict:
+    """The true plant's ddq under commanded torque tau, with its parts (SX in q, dq, t, tau)."""
+    from . import plant as P
+    model = scenario.model
+    pl = scenario.plant
+    n = model.n
+    # plant parameters: the model's values overridden by plant.parameters, then scaled by mass_scale
+    M, C, G = model.M, model.C, model.G
+    if model.p.numel():
+        vals = model.parameter_dict()
+        vals.update(pl.parameters)
+        pv = ca.DM([vals[k] for k in model.p_names])
+        M, C, G = (ca.substitute(E, model.p, pv) for E in (M, C, G))
+    # the model's q/dq are the design's; substitute ours in case they differ
+    M, C, G = (ca.substitute(E, ca.vertcat(model.q, model.dq), ca.vertcat(q, dq)) for E in (M, C, G))
+    s = float(pl.mass_scale)
+    M, C, G = s * M, s * C, s * G
+    fric = P.friction(dq, pl.viscous, pl.coulomb, width)
+    env = {"t": t}
+    for i, c in enumerate(model.coordinates):
+        env[c] = q[i]
+        env["d" + c] = dq[i]
+    dist = ca.vertcat(*[ca.SX(e.to_casadi(env)) for e in pl.disturbance])
+    dz = pl.dead_zone
+    if dz is None:
+        tau_applied = tau
+    else:
+        u = ca.SX.sym("u")
+        left, right = [], []
+        for j in range(n):
+            envj = {"u": u, "b_l": dz.b_l[j], "b_r": dz.b_r[j]}
+            fl = ca.Function("left", [u], [ca.SX(dz.left.to_casadi(envj))])
+            fr = ca.Function("right", [u], [ca.SX(dz.right.to_casadi(envj))])
+            left.append(lambda v, fl=fl: fl(v))
+            right.append(lambda v, fr=fr: fr(v))
+        tau_applied = P.dead_zone(tau, dz.b_l, dz.b_r, left, right, width)
+    rhs = tau_applied - ca.mtimes(C, dq) - G - fric - dist
+    ddq = ca.solve(M, rhs) if n == 1 else ldl_solve(M, rhs)
+    return {"ddq": ddq, "M": M, "C": C, "G": G, "friction": fric, "disturbance": dist, "tau_applied": tau_applied}
+
+
+def build_closed_loop(scenario, design=None, *, width=None) -> ClosedLoop:
+    """Assemble the closed-loop ODE of a scenario from its design (derived here when not given)."""
+    from .design import derive
+    if design is None:
+        design = derive(scenario)
+    w = scenario.simulation.smoothing_width if width is None else width
+    if not (isinstance(w, (int, float)) and np.isfinite(w) and w >= 0):
+        raise InputError(f"is {w!r}", file=scenario.file, key="simulation.smoothing_width",
+                         expected="a finite number >= 0")
+    w = float(w)
+    d = design
+    sym = d.sym
+    n = d.n
+    t, q, dq, x_esn, w_hat = sym["t"], sym["q"], sym["dq"], sym["x_esn"], sym["w_hat"]
+    N = x_esn.numel()
+    ref_syms = ca.vertcat(sym["qd"], sym["dqd"], sym["ddqd"])
+    ref_t = ca.vertcat(d.reference_t["qd"], d.reference_t["dqd"], d.reference_t["ddqd"])
+
+    def sub(e):
+        return ca.substitute(e, ref_syms, ref_t)
+
+    S = d.signals
+    names = ["tau", "x_esn_dot", "w_hat_dot", "ddq", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2", "Phi", "qd",
+             "dqd", "ddqd"]
+    subbed = ca.substitute([S[k] for k in names], [ref_syms], [ref_t])
+    sg = dict(zip(names, subbed))
+    tau = sg["tau"]
+    plant = plant_acceleration(scenario, q, dq, t, tau, w)
+    ddq = plant["ddq"]
+    x = ca.vertcat(q, dq, x_esn, ca.vec(w_hat))
+    xdot = ca.vertcat(dq, ddq, sg["x_esn_dot"], ca.vec(sg["w_hat_dot"]))
+    f = ca.Function("closed_loop", [t, x], [xdot], ["t", "x"], ["xdot"], {"cse": True})
+
+    w_phi = ca.mtimes(w_hat.T, sg["Phi"])
+    f_true = ddq - sg["ddq"]
+    gamma = float(scenario.gamma)
+    outs = {
+        "qd": sg["qd"], "dqd": sg["dqd"], "ddqd": sg["ddqd"], "tau": tau, "tau_applied": plant["tau_applied"],
+        "e1": sg["e1"], "F1": sg["F1"], "e2": sg["e2"], "F2": sg["F2"], "z1": sg["z1"], "z2": sg["z2"],
+        "alpha2": sg["alpha2"], "friction": plant["friction"], "disturbance": plant["disturbance"],
+        "ddq": ddq, "ddq_nom": sg["ddq"], "f_true": f_true, "w_phi": w_phi,
+        "m1": (sg["F1"] - ca.fabs(sg["e1"])) / sg["F1"], "m2": (sg["F2"] - ca.fabs(sg["e2"])) / sg["F2"],
+        "V_z": 0.5 * ca.sumsqr(sg["z1"]) + 0.5 * ca.sumsqr(sg["z2"]),
+        "V_w_hat": ca.sumsqr(w_hat) / (2 * gamma),
+    }
+    outs = {k: ca.SX(outs[k]) for k in OUTPUT_NAMES}
+    outputs = ca.Function("closed_loop_outputs", [t, x], [outs[k] for k in OUTPUT_NAMES], ["t", "x"],
+                          list(OUTPUT_NAMES), {"cse": True})
+
+    sc = scenario
+    nr = d.esn.n_regressor
+    x0 = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float), np.asarray(sc.x_esn0, float),
+                         np.full(nr * n, float(sc.w_hat0))])
+    if w == 0.0:
+        warnings.warn("smoothing_width = 0: exact sign friction and dead-zone kinks; CVODES may stall on them",
+                      RuntimeWarning, stacklevel=2)
+    return ClosedLoop(design=d, scenario=sc, n=n, N=N, width=w, t=t, x=x, xdot=xdot, f=f, outputs=outputs,
+                      x0=x0, signals=outs, plant_parts=plant)

@@ -1,0 +1,110 @@
+"""`symfunnel simulate [SCENARIO] [--t-final T] [--out FILE.npz] [--json]`: the closed loop, with CasADi integrators."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def register(sub, common) -> None:
+    """Add the `simulate` subcommand."""
+    sp = sub.add_parser("simulate", help="closed-loop simulation (plant with dead zone, friction, disturbance; "
+                                         "controller, ESN, adaptation)")
+    common(sp)
+    sp.add_argument("--t-final", type=float, metavar="T", help="simulated time in s (default: the scenario's)")
+    sp.add_argument("--out", metavar="FILE.npz", help="write the whole trajectory (time first) to an .npz file")
+    sp.add_argument("--json", action="store_true", help="print the JSON summary")
+    sp.add_argument("--integrator", choices=["cvodes", "rk", "collocation"],
+                    help="integrator (default: the scenario's, normally cvodes)")
+    sp.add_argument("--width", type=float, metavar="W", help="smoothing width of the non-smooth plant terms "
+                                                             "(default: the scenario's simulation.smoothing_width)")
+    sp.add_argument("--wall-limit", type=float, metavar="S", help="wall-clock limit in s (default: the scenario's)")
+    sp.add_argument("--convergence", action="store_true",
+                    help="also run the smoothing-width convergence study and put it in the summary")
+    sp.add_argument("--no-jit", action="store_true", help="do not compile to C; use the CasADi virtual machine")
+    sp.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Simulate, print the summary (table or JSON), write the npz; exit 1 unless the run stayed in its funnels."""
+    import math
+    import warnings
+
+    from ..cli import _dump, _load, _progress
+    from ..errors import InputError
+    from ..simulate import convergence_study, simulate
+
+    if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
+        raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
+    if args.wall_limit is not None and not (math.isfinite(args.wall_limit) and args.wall_limit > 0):
+        raise InputError(f"is {args.wall_limit:g}", key="--wall-limit", expected="a number > 0")
+    if args.width is not None and not (math.isfinite(args.width) and args.width >= 0):
+        raise InputError(f"is {args.width:g}", key="--width", expected="a number >= 0")
+    if args.out and not args.out.endswith(".npz"):
+        raise InputError(f"is '{args.out}'", key="--out", expected="a file name ending in .npz")
+    say = _progress(args.quiet)
+    sc = _load(args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = simulate(sc, t_final=args.t_final, integrator=args.integrator, width=args.width, progress=say,
+                       wall_limit=args.wall_limit, jit=not args.no_jit)
+    for w in caught:
+        print(f"symfunnel: warning: {w.message}", file=sys.stderr)
+    if args.convergence:
+        res.convergence = convergence_study(sc, t_final=args.t_final, integrator=args.integrator, progress=say)
+    summary = res.summary()
+    if args.out:
+        path = res.save_npz(args.out)
+        say(f"trajectory written to {path}")
+    if args.json:
+        print(_dump(summary))
+    else:
+        _table(summary)
+    if res.status != "ok":
+        print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _fmt(v, spec=".4g") -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, list):
+        return ", ".join(_fmt(x, spec) for x in v)
+    if isinstance(v, float):
+        return format(v, spec)
+    return str(v)
+
+
+def _table(s: dict) -> None:
+    print(f"simulation of scenario {s['scenario']}: {s['status']}")
+    print(f"  {s['message']}")
+    rows = [
+        ("simulated time [s]", f"{_fmt(s['t_end'])} of {_fmt(s['t_final'])} ({s['points']} points)"),
+        ("min funnel margin e1 (per joint)", _fmt(s["min_margin_e1"])),
+        ("min funnel margin e2 (per joint)", _fmt(s["min_margin_e2"])),
+        ("max |e1| [rad]", _fmt(s["max_abs_e1"])),
+        ("max |tau| commanded", _fmt(s["max_abs_tau"])),
+        ("max |tau| applied (after dead zone)", _fmt(s["max_abs_tau_applied"])),
+        ("RMS ESN error |W^T Phi - f_true|", _fmt(s["rms_esn_error"])),
+        ("RMS f_true (scale)", _fmt(s["rms_f_true"])),
+        ("integrator", f"{s['integrator']} ({s['code']} code), smoothing width {_fmt(s['smoothing_width'])}"),
+        ("steps / RHS / Jacobian evaluations",
+         f"{_fmt(s['steps'])} / {_fmt(s['rhs_evaluations'])} / {_fmt(s['jacobian_evaluations'])}"),
+        ("events (switches on the output grid)", f"{_fmt(s['events'])} {s['event_counts']}"),
+        ("wall time [s]", f"{_fmt(s['wall_time'], '.3g')} (compile/load {_fmt(s['compile_time'], '.3g')}, "
+                          f"real-time factor {_fmt(s['realtime_factor'], '.4g')})"),
+    ]
+    if s.get("breach"):
+        b = s["breach"]
+        rows.append(("breach", f"t = {_fmt(b['time'])} s, funnel {b['funnel']}, joint {b['joint']}, "
+                               f"margin {_fmt(b['margin'], '.3g')}"))
+    if s.get("convergence"):
+        c = s["convergence"]
+        for r in c["runs"]:
+            rows.append((f"convergence w = {r['width']:g}", f"max |q - q(w={c['reference_width']:g})| = "
+                                                             f"{_fmt(r['max_abs_q_diff_vs_smallest'], '.3g')}"))
+        rows.append(("observed rate", _fmt(c["observed_rates"], ".3g")))
+    width = max(len(r[0]) for r in rows)
+    for k, v in rows:
+        print(f"  {k:<{width}}  {v}")

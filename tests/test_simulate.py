@@ -1,0 +1,153 @@
+"""Closed-loop simulation: paper run in its funnel, npz/JSON contract, breach, NaN, timeout, integrators, smoothing."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from symfunnel.cli import main
+from symfunnel.scenario import from_dict, load_scenario
+from symfunnel.simulate import convergence_study, simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+DERIV = ROOT / "derivations"
+NPZ_KEYS = ["t", "q", "dq", "qd", "tau", "tau_applied", "e1", "F1", "e2", "F2", "z1", "z2", "x_esn", "w_hat", "V",
+            "V_z", "V_w_hat", "f_true", "w_phi"]
+SUMMARY_KEYS = ["status", "message", "min_margin_e1", "min_margin_e2", "max_abs_tau", "rms_esn_error", "rms_f_true",
+                "wall_time", "steps", "events", "integrator", "smoothing_width"]
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return load_scenario("paper")
+
+
+@pytest.fixture(scope="module")
+def paper_run(paper):
+    return simulate(paper)
+
+
+def _variant(sc, edit, name="variant"):
+    raw = copy.deepcopy(sc.raw)
+    edit(raw)
+    raw["name"] = name
+    return from_dict(raw, file=f"{name}.toml", base_dir=sc.path.parent, default_name=name)
+
+
+def test_paper_stays_in_its_funnel_for_20s(paper_run):
+    r = paper_run
+    assert r.status == "ok", r.message
+    assert r.t[-1] == pytest.approx(20.0)
+    assert np.all(np.abs(r.e1) < r.F1) and np.all(np.abs(r.e2) < r.F2)
+    for k in ("q", "dq", "tau", "x_esn", "w_hat", "V"):
+        assert np.all(np.isfinite(r.signals[k])), k
+    # Figures 6-8, qualitatively: tracking error small after the transient, torque bounded, ESN estimate useful
+    late = r.t > 5
+    assert np.max(np.abs(r.e1[late])) < 0.01
+    s = r.summary()
+    assert max(s["max_abs_tau"]) < 1e3
+    assert all(e < f for e, f in zip(s["rms_esn_error"], s["rms_f_true"]))
+    assert np.max(np.abs(r.x_esn)) <= 1.0 + 1e-9          # tanh reservoir stays in [-1/leak, 1/leak]
+    # friction compensation: the applied torque carries the friction force while tracking
+    corr = np.corrcoef(r.tau_applied[late, 0], r.friction[late, 0])[0, 1]
+    assert corr > 0.5
+
+
+def test_npz_and_summary_contract(paper_run, tmp_path):
+    r = paper_run
+    p = r.save_npz(tmp_path / "sub" / "run.npz")
+    d = np.load(p)
+    T = r.t.size
+    for k in NPZ_KEYS:
+        assert k in d.files, k
+        assert d[k].shape[0] == T, k
+    assert d["w_hat"].shape == (T, 51, 2) and d["x_esn"].shape == (T, 50)
+    assert d["W_star"].shape == (51, 2)
+    s = r.summary()
+    for k in SUMMARY_KEYS:
+        assert k in s, k
+    json.dumps(s, allow_nan=False)
+    assert s["min_margin_e1"] == pytest.approx(list(np.min((r.F1 - np.abs(r.e1)) / r.F1, axis=0)))
+
+
+def test_integrators_agree_on_a_smooth_variant(paper):
+    def edit(raw):
+        raw["plant"]["coulomb"] = 0.0
+        raw["plant"].pop("dead_zone")
+        raw["simulation"]["rk_substeps"] = 100
+    sc = _variant(paper, edit, "smooth")
+    runs = {m: simulate(sc, t_final=1.0, integrator=m) for m in ("cvodes", "rk")}
+    for m, r in runs.items():
+        assert r.status == "ok", (m, r.message)
+    q = runs["cvodes"].q
+    assert np.max(np.abs(runs["rk"].q - q)) < 1e-4          # fast initial transient
+    assert np.max(np.abs(runs["rk"].q[-1] - q[-1])) < 1e-5
+    # collocation is selectable but not compared: CasADi's collocation step fails on this loop (see report)
+
+
+def test_breach_is_reported_with_the_trajectory_so_far(tmp_path):
+    sc = load_scenario(DERIV / "sim_breach.toml")
+    r = simulate(sc)
+    assert r.status == "breach", r.message
+    b = r.breach
+    assert b["funnel"] in ("e1", "e2") and b["joint"] in (1, 2) and b["margin"] <= 0.05
+    assert 0 < b["time"] < sc.simulation.t_final
+    assert r.t[-1] <= b["time"] + 1e-12 and r.t[-1] >= b["time"] - sc.simulation.dt
+    assert np.all(np.isfinite(r.x))
+    assert f"t = {b['time']:.6g}" in r.message and f"joint {b['joint']}" in r.message
+    out = tmp_path / "breach.npz"
+    assert main(["simulate", str(DERIV / "sim_breach.toml"), "-q", "--out", str(out)]) == 1
+    assert np.load(out)["t"][-1] == pytest.approx(r.t[-1])
+
+
+def test_initial_error_outside_is_a_failed_check(paper, capsys):
+    sc = _variant(paper, lambda raw: raw["initial"].update(q=[0.5, 0.0]), "outside")
+    r = simulate(sc)
+    assert r.status == "initial_outside"
+    assert "funnel e1" in r.message and "joint 1" in r.message
+    assert r.t.size == 1
+
+
+def test_nan_never_passes_silently(paper):
+    sc = _variant(paper, lambda raw: raw["plant"].update(disturbance="sqrt(0.5 - t)"), "nan")
+    r = simulate(sc, t_final=1.0)
+    assert r.status in ("failed", "breach")
+    assert r.t[-1] <= 0.51
+    assert np.all(np.isfinite(r.x))
+
+
+def test_wall_clock_limit(paper):
+    r = simulate(paper, wall_limit=1e-6)
+    assert r.status == "timeout"
+    assert "wall-clock limit" in r.message
+
+
+def test_cli_exit_codes(tmp_path, capsys):
+    out = tmp_path / "p.npz"
+    assert main(["simulate", "-q", "--t-final", "1", "--json", "--out", str(out)]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["status"] == "ok" and out.exists()
+    assert main(["simulate", "-q", "--t-final", "0"]) == 2
+    assert main(["simulate", "-q", "--t-final", "-3"]) == 2
+    assert main(["simulate", str(tmp_path / "missing.toml"), "-q"]) == 2
+    assert main(["simulate", "-q", "--t-final", "2", "--wall-limit", "1e-6"]) == 1
+    assert "wall-clock limit" in capsys.readouterr().err
+
+
+def test_smoothing_convergence(paper):
+    c = convergence_study(paper, [1e-1, 1e-2], t_final=2.0)
+    diffs = [r["max_abs_q_diff_vs_smallest"] for r in c["runs"]]
+    assert c["reference_width"] == 1e-3
+    assert diffs[0] > diffs[1] > 0 and diffs[-1] == 0
+    assert all(rate > 0.5 for rate in c["observed_rates"])
+
+
+@pytest.mark.parametrize("name", ["sim_fast_sine", "sim_offset_cosine"])
+def test_untuned_scenarios_stay_inside(name):
+    r = simulate(load_scenario(DERIV / f"{name}.toml"))
+    assert r.status == "ok", r.message
+    assert min(r.summary()["min_margin_e1"]) > 0.5
