@@ -1,0 +1,355 @@
+"""Verification of a scenario's claims on its simulated closed loop: funnels, Lyapunov decay, bounded signals.
+
+`verify(scenario)` simulates (or takes a given SimResult), evaluates the Lyapunov argument of docs/derivation.md along
+the trajectory (`symfunnel.checks.lyapunov`), runs a region-wide falsification over Sobol states inside the funnels,
+and returns one `CheckResult` per claim (ids below), each with a margin (positive = holds with room to spare) and
+where the worst case sits.
+
+Check ids, in order:
+
+- ``simulation.completed``: the run reached t_final (not a breach, timeout or integrator failure);
+- ``funnel.initial_condition``: |e_i(0)| < F_i(0) for both funnels (as in the audit);
+- ``funnel.containment.e1.jointJ``, ``funnel.containment.e2.jointJ``: min over t of (F - |e|)/F > 0;
+- ``lyapunov.decay.paper``, ``lyapunov.decay.corrected``: V_dot <= -rho V + delta at every trajectory point, rho and
+  delta as Theorem 1 prints them / as eq. (8) of docs/derivation.md defines them;
+- ``lyapunov.bound.paper``, ``lyapunov.bound.corrected``: V(t) <= V(0) e^{-rho t} + delta/rho (1 - e^{-rho t}) with
+  the constant rho = min over the trajectory of rho(t) and delta = max over the trajectory of delta(t);
+- ``lyapunov.falsification.paper``, ``lyapunov.falsification.corrected``: the decay inequality at >= 10,000 sampled
+  states inside the funnels (falsification, not a proof);
+- ``bounded.tau``, ``bounded.w_hat``, ``bounded.x_esn``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .audit import CheckResult, check_funnel_initial
+from .lyapunov import REL_TOL, LyapunovTrajectory, along_trajectory, decay_margin, falsify
+
+#: how far (relative) the last quarter's peak |tau| may exceed the peak before it and still count as bounded
+TAU_GROWTH_ALLOWANCE = 0.1
+
+
+@dataclass
+class Verification:
+    """Everything `verify` computed: the checks, and the data behind them (for the report)."""
+
+    scenario: object
+    design: object
+    closed_loop: object
+    result: object                            # SimResult
+    lyapunov: LyapunovTrajectory | None
+    falsification: dict | None
+    checks: list[CheckResult]
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def failed(self) -> list[CheckResult]:
+        """The checks that failed."""
+        return [c for c in self.checks if c.status == "fail"]
+
+    def to_json(self) -> dict:
+        """{"scenario", "status", "checks": [...], "simulation": summary, "lyapunov": {...}, "timings"}."""
+        out = {"scenario": self.scenario.name, "status": "fail" if self.failed else "pass",
+               "checks": [_clean(c.to_json()) for c in self.checks], "timings": self.timings}
+        if self.result is not None:
+            out["simulation"] = {k: self.result.summary().get(k) for k in ("status", "message", "t_end", "t_final",
+                                                                           "points", "wall_time")}
+        if self.lyapunov is not None:
+            L = self.lyapunov
+            out["lyapunov"] = _clean({"W_star": L.w_star_info, "rho_const": L.rho_const,
+                                      "rho_const_lower": L.rho_const_lower, "delta_max": L.delta_max,
+                                      "rho_paper_const": L.rho_paper_const, "delta_paper": L.delta_paper_const})
+        return out
+
+
+def _clean(o):
+    """JSON-safe: numpy to Python, non-finite floats to None."""
+    if isinstance(o, dict):
+        return {k: _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    if isinstance(o, (np.floating, float)):
+        f = float(o)
+        return f if math.isfinite(f) else None
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    return o
+
+
+def _g(x: float) -> str:
+    return f"{x:.4g}"
+
+
+# --- the checks ----------------------------------------------------------------------------------
+
+def check_completed(res) -> CheckResult:
+    """simulation.completed: the run reached its final time inside both funnels."""
+    t_end = float(res.t[-1]) if res.t.size else 0.0
+    tf = res.stats.get("t_final")
+    ev = {"status": res.status, "t_end": t_end, "t_final": tf, "wall_time": res.stats.get("wall_time")}
+    if res.status == "ok":
+        return CheckResult("simulation.completed", "pass", res.message or f"reached t = {t_end:g} s",
+                           method="simulation", margin=0.0, where={"t": t_end}, evidence=ev)
+    where = {"t": t_end}
+    if res.breach:
+        where = {"t": res.breach.get("time"), "funnel": res.breach.get("funnel"), "joint": res.breach.get("joint")}
+    return CheckResult("simulation.completed", "fail", f"{res.status}: {res.message}", method="simulation",
+                       margin=(t_end - tf) if tf else None, where=where, evidence=ev)
+
+
+def check_containment(res, n: int) -> list[CheckResult]:
+    """funnel.containment.eK.jointJ: the smallest relative margin (F - |e|)/F over the run, and when."""
+    out = []
+    s = res.signals
+    t = res.t
+    b = res.breach or {}
+    t_end = float(t[-1]) if t.size else 0.0
+    for key, mk, Fk in (("e1", "m1", "F1"), ("e2", "m2", "F2")):
+        for j in range(n):
+            cid = f"funnel.containment.{key}.joint{j + 1}"
+            breached = b.get("funnel") == key and b.get("joint") == j + 1
+            if t.size == 0 and not breached:
+                out.append(CheckResult(cid, "skip", "no trajectory", method="simulation"))
+                continue
+            if t.size:
+                m = np.asarray(s[mk])[:, j]
+                e = np.asarray(s[key])[:, j]
+                F = np.asarray(s[Fk])[:, j]
+                with np.errstate(invalid="ignore"):
+                    i = int(np.nanargmin(np.where(np.isfinite(m), m, np.inf)))
+                mmin, tmin = float(m[i]), float(t[i])
+                absm = float(F[i] - abs(e[i]))
+            if breached:
+                mb = float(b.get("margin", 0.0))
+                out.append(CheckResult(
+                    cid, "fail", f"|{key}| of joint {j + 1} reached F at t = {b['time']:.6g} s: |{key}| = "
+                    f"{b['abs_error']:.6g}, F = {b['boundary']:.6g} (relative margin {mb:.3g}); "
+                    f"{'initial error outside the funnel' if res.status == 'initial_outside' else 'the run stopped there'}",
+                    method="simulation (breach located on a 100x finer grid)", margin=mb,
+                    where={"t": b["time"], "joint": j + 1},
+                    evidence={"abs_error": b.get("abs_error"), "boundary": b.get("boundary")}))
+                continue
+            span = f"over [0, {t_end:.6g}] s" + ("" if res.status == "ok" else " (the run stopped early)")
+            status = "pass" if mmin > 0 else "fail"
+            out.append(CheckResult(
+                cid, status, f"|{key}| < F{key[1]} {span}: smallest margin (F - |{key}|)/F = {mmin:.4g} "
+                f"(F - |{key}| = {absm:.4g}) at t = {tmin:.4g} s", method=f"simulation ({t.size} output points)",
+                margin=mmin, where={"t": tmin, "joint": j + 1}, evidence={"abs_margin": absm}))
+    return out
+
+
+def check_decay(L: LyapunovTrajectory, which: str) -> CheckResult:
+    """lyapunov.decay.<which>: V_dot <= -rho V + delta along the trajectory (V_dot exact by AD)."""
+    cid = f"lyapunov.decay.{which}"
+    label = ("rho = min{2 k1 zeta1, 2 k2 zeta2, sigma}, delta = sigma/2 ||W*||^2 (Theorem 1 as printed)"
+             if which == "paper" else
+             "rho = min(2 k1 min mu1, k2 min mu2, sigma gamma), delta = sigma/2 ||W*||^2 + sum mu2 eps^2/(2 k2) "
+             "(docs/derivation.md eq. 8)")
+    rhs = L.rhs(which)
+    margin, allow = decay_margin(L.V_dot, rhs, L.scale)
+    finite = np.isfinite(margin)
+    method = f"exact V_dot by AD on the closed-loop graph at {int(finite.sum())} trajectory points"
+    if not finite.any():
+        return CheckResult(cid, "skip", "no trajectory point inside both funnels", method=method)
+    viol = finite & (margin < -allow)
+    i = int(np.argmin(np.where(finite, margin, np.inf)))
+    rel = float(margin[i] / max(abs(L.V_dot[i]) + abs(rhs[i]), 1e-300))
+    ev = {"points": int(finite.sum()), "violations": int(viol.sum()), "V": float(L.V[i]),
+          "V_dot": float(L.V_dot[i]), "rhs": float(rhs[i]), "relative_margin": rel,
+          "rho": float(L.rho_paper[i] if which == "paper" else L.rho[i]),
+          "delta": float(L.delta_paper[i] if which == "paper" else L.delta[i])}
+    where = {"t": float(L.t[i])}
+    if viol.any():
+        tv = L.t[viol]
+        return CheckResult(cid, "fail", f"{label}: VIOLATED at {int(viol.sum())} of {int(finite.sum())} points "
+                           f"(t in [{tv.min():.4g}, {tv.max():.4g}] s); worst at t = {L.t[i]:.4g} s: V_dot = "
+                           f"{_g(L.V_dot[i])} > -rho V + delta = {_g(rhs[i])} by {_g(-margin[i])}",
+                           method=method, margin=float(margin[i]), where=where, evidence=ev)
+    return CheckResult(cid, "pass", f"{label}: holds at all {int(finite.sum())} points; smallest margin "
+                       f"-rho V + delta - V_dot = {_g(margin[i])} at t = {L.t[i]:.4g} s",
+                       method=method, margin=float(margin[i]), where=where, evidence=ev)
+
+
+def check_bound(L: LyapunovTrajectory, which: str) -> CheckResult:
+    """lyapunov.bound.<which>: V(t) <= V(0) e^{-rho t} + delta/rho (1 - e^{-rho t}) with constant rho, delta."""
+    cid = f"lyapunov.bound.{which}"
+    B = L.bound_paper if which == "paper" else L.bound
+    rho = L.rho_paper_const if which == "paper" else L.rho_const
+    delta = L.delta_paper_const if which == "paper" else L.delta_max
+    what = (f"rho = {_g(rho)} (min over the trajectory of the paper's rho(t)), delta = {_g(delta)}"
+            if which == "paper" else
+            f"rho = {_g(rho)} (min over the trajectory of rho(t); the constant lower bound min(2k1/F1(0), "
+            f"k2/F2(0), sigma gamma) is {_g(L.rho_const_lower)}), delta = {_g(delta)} (max over the trajectory)")
+    ok = np.isfinite(B) & np.isfinite(L.V)
+    ok[0] = False                      # B(0) = V(0): equality by construction
+    method = f"integrated bound at {int(ok.sum())} trajectory points"
+    if not ok.any():
+        return CheckResult(cid, "skip", "no trajectory points inside both funnels after t = 0", method=method)
+    margin = B - L.V
+    allow = REL_TOL * np.abs(B)
+    viol = ok & (margin < -allow)
+    i = int(np.argmin(np.where(ok, margin, np.inf)))
+    ev = {"rho": rho, "delta": delta, "V0": float(L.V[0]), "ultimate": delta / rho if rho > 0 else None,
+          "V_at_worst": float(L.V[i]), "bound_at_worst": float(B[i]),
+          "relative_margin": float(margin[i] / max(abs(B[i]), 1e-300))}
+    if viol.any():
+        return CheckResult(cid, "fail", f"V(t) <= V(0) e^(-rho t) + delta/rho (1 - e^(-rho t)) with {what}: VIOLATED "
+                           f"at {int(viol.sum())} points; worst at t = {L.t[i]:.4g} s: V = {_g(L.V[i])} > bound "
+                           f"{_g(B[i])} by {_g(-margin[i])}", method=method, margin=float(margin[i]),
+                           where={"t": float(L.t[i])}, evidence=ev)
+    return CheckResult(cid, "pass", f"V(t) <= V(0) e^(-rho t) + delta/rho (1 - e^(-rho t)) with {what}: holds; "
+                       f"smallest margin {_g(margin[i])} (relative {ev['relative_margin']:.3g}) at t = {L.t[i]:.4g} s",
+                       method=method, margin=float(margin[i]), where={"t": float(L.t[i])}, evidence=ev)
+
+
+def check_falsification(fz: dict, which: str) -> CheckResult:
+    """lyapunov.falsification.<which>: the decay inequality at sampled states inside the funnels."""
+    cid = f"lyapunov.falsification.{which}"
+    r = fz[which]
+    method = (f"falsification (sampled), not a proof: {fz['samples']} scrambled-Sobol states inside both funnels "
+              f"(|e| <= {fz['fill']:g} F, t in [{fz['t_range'][0]:g}, {fz['t_range'][1]:g}], x_esn in its invariant "
+              f"box, W_hat within +-{fz['w_scale']:.3g})")
+    ev = {k: v for k, v in r.items() if k != "where"}
+    w = r["where"]
+    at = f"t = {w['t']:.4g}, q = [{', '.join(f'{v:.4g}' for v in w['q'])}], dq = [{', '.join(f'{v:.4g}' for v in w['dq'])}]"
+    if r["violations"]:
+        return CheckResult(cid, "fail", f"V_dot <= -rho V + delta ({which}) violated at {r['violations']} of "
+                           f"{r['evaluated']} sampled states ({r['fraction']:.1%}); worst at {at}: V_dot = "
+                           f"{_g(r['V_dot'])} > {_g(r['rhs'])}", method=method, margin=r["worst_margin"], where=w,
+                           evidence=ev)
+    return CheckResult(cid, "pass", f"V_dot <= -rho V + delta ({which}): no counterexample at {r['evaluated']} "
+                       f"sampled states; smallest margin {_g(r['worst_margin'])} at {at}", method=method,
+                       margin=r["worst_margin"], where=w, evidence=ev)
+
+
+def check_bounded(res, design, L: LyapunovTrajectory | None) -> list[CheckResult]:
+    """bounded.tau, bounded.w_hat, bounded.x_esn over the simulated horizon."""
+    s = res.signals
+    t = res.t
+    out = []
+    if t.size == 0:
+        return [CheckResult(f"bounded.{k}", "skip", "no trajectory", method="simulation")
+                for k in ("tau", "w_hat", "x_esn")]
+    # tau: finite, and not growing at the end of the horizon
+    tau = np.asarray(s["tau"])
+    fin = bool(np.isfinite(tau).all())
+    a = np.abs(tau)
+    i, j = np.unravel_index(int(np.nanargmax(np.where(np.isfinite(a), a, -1))), a.shape)
+    q = max(1, int(0.75 * len(t)))
+    early = float(np.nanmax(a[:q])) if q else float("nan")
+    late = float(np.nanmax(a[q:])) if q < len(t) else early
+    grow = late / max(early, 1e-300) - 1
+    method = ("finite horizon: finite everywhere, and the peak |tau| over the last quarter of the run at most "
+              f"{1 + TAU_GROWTH_ALLOWANCE:g} x the peak before it (no growth at the end)")
+    ok = fin and grow <= TAU_GROWTH_ALLOWANCE
+    out.append(CheckResult("bounded.tau", "pass" if ok else "fail",
+                           f"max |tau| = {_g(a[i, j])} at t = {t[i]:.4g} s, joint {j + 1}; last-quarter peak "
+                           f"{_g(late)} vs earlier peak {_g(early)}" + ("" if fin else "; NON-FINITE values"),
+                           method=method, margin=float(TAU_GROWTH_ALLOWANCE - grow) if fin else None,
+                           where={"t": float(t[i]), "joint": int(j + 1)},
+                           evidence={"max_abs": float(a[i, j]), "late_peak": late, "early_peak": early}))
+    # W_hat: finite and within the bound the corrected Lyapunov argument implies
+    W = np.asarray(s["w_hat"]).reshape(len(t), -1)
+    nrm = np.linalg.norm(W, axis=1)
+    fin = bool(np.isfinite(W).all())
+    i = int(np.nanargmax(np.where(np.isfinite(nrm), nrm, -1)))
+    if L is not None and np.isfinite(L.bound).any():
+        lim = np.linalg.norm(L.W_star) + np.sqrt(2 * float(res.gamma) * np.maximum(L.bound, 0))
+        ok_pts = np.isfinite(lim)
+        marg = np.where(ok_pts, lim - nrm, np.inf)
+        k = int(np.argmin(marg))
+        ok = fin and bool(np.all(marg >= -REL_TOL * np.abs(np.where(ok_pts, lim, 0))))
+        out.append(CheckResult(
+            "bounded.w_hat", "pass" if ok else "fail",
+            f"max ||W_hat||_F = {_g(nrm[i])} at t = {t[i]:.4g} s; within ||W*|| + sqrt(2 gamma B(t)) (B the "
+            f"corrected integrated bound) with smallest margin {_g(marg[k])} at t = {t[k]:.4g} s; "
+            f"||W_hat(t_end)|| = {_g(nrm[-1])}" + ("" if fin else "; NON-FINITE values"),
+            method="finite horizon: ||W_hat(t)||_F <= ||W*||_F + sqrt(2 gamma B(t)), implied by V >= ||W~||^2/(2 gamma)",
+            margin=float(marg[k]), where={"t": float(t[k])},
+            evidence={"max_norm": float(nrm[i]), "final_norm": float(nrm[-1]), "W_star_norm": float(np.linalg.norm(L.W_star))}))
+    else:
+        out.append(CheckResult("bounded.w_hat", "pass" if fin else "fail",
+                               f"max ||W_hat||_F = {_g(nrm[i])} at t = {t[i]:.4g} s (no Lyapunov bound available)",
+                               method="finite horizon: finite everywhere", where={"t": float(t[i])},
+                               evidence={"max_norm": float(nrm[i])}))
+    # x_esn: the reservoir's invariant box |x| <= 1/leak
+    x = np.asarray(s["x_esn"]).reshape(len(t), -1)
+    box = 1.0 / float(design.scenario.esn.leak)
+    ax = np.abs(x)
+    i, j = np.unravel_index(int(np.nanargmax(np.where(np.isfinite(ax), ax, np.inf))), ax.shape)
+    fin = bool(np.isfinite(x).all())
+    inside0 = bool(np.all(np.abs(x[0]) <= box))
+    ok = fin and float(ax[i, j]) <= box * (1 + 1e-9)
+    out.append(CheckResult("bounded.x_esn", "pass" if ok else "fail",
+                           f"max |x_esn| = {_g(ax[i, j])} (unit {j + 1}, t = {t[i]:.4g} s) against the invariant box "
+                           f"|x| <= 1/leak = {_g(box)}" + ("" if inside0 else " (x_esn(0) starts outside the box)"),
+                           method="finite horizon: |x_esn,i| <= 1/leak (tanh reservoir, see symfunnel/esn.py)",
+                           margin=float(box - ax[i, j]), where={"t": float(t[i]), "unit": int(j + 1)},
+                           evidence={"max_abs": float(ax[i, j]), "box": box}))
+    return out
+
+
+# --- the driver ----------------------------------------------------------------------------------
+
+def verify(scenario, design=None, *, result=None, closed_loop=None, t_final=None, samples: int = 10000,
+           seed: int = 0, progress=None) -> Verification:
+    """Simulate (unless `result` is given) and run every check; never raises for a failed claim."""
+    from ..closedloop import build_closed_loop
+    from ..design import derive
+    say = progress or (lambda s: None)
+    timings = {}
+    t0 = time.perf_counter()
+    if design is None:
+        say("deriving the design")
+        design = derive(scenario)
+    timings["derive"] = time.perf_counter() - t0
+    if closed_loop is None:
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            closed_loop = build_closed_loop(scenario, design)
+    cl = closed_loop
+    if result is None:
+        from ..simulate import simulate
+        t0 = time.perf_counter()
+        say("simulating the closed loop")
+        result = simulate(scenario, t_final=t_final, design=design, progress=say, closed_loop=cl)
+        timings["simulate"] = time.perf_counter() - t0
+        say(f"simulation: {result.status} ({result.message})")
+    checks = [check_completed(result), check_funnel_initial(design)]
+    checks += check_containment(result, design.n)
+    L = None
+    fz = None
+    t = result.t
+    if t.size:
+        t0 = time.perf_counter()
+        say("Lyapunov function and its exact derivative along the trajectory (AD)")
+        L = along_trajectory(cl, t, result.x, result.signals["f_true"])
+        timings["lyapunov"] = time.perf_counter() - t0
+        for which in ("paper", "corrected"):
+            checks.append(check_decay(L, which))
+        for which in ("paper", "corrected"):
+            checks.append(check_bound(L, which))
+        t0 = time.perf_counter()
+        say(f"falsification over {samples} Sobol states inside the funnels")
+        tf = float(t_final if t_final is not None else scenario.simulation.t_final)
+        fz = falsify(cl, L.W_star, samples=samples, seed=seed, t_range=(0.0, tf))
+        timings["falsification"] = time.perf_counter() - t0
+        for which in ("paper", "corrected"):
+            checks.append(check_falsification(fz, which))
+    else:
+        for cid in ("lyapunov.decay.paper", "lyapunov.decay.corrected", "lyapunov.bound.paper",
+                    "lyapunov.bound.corrected", "lyapunov.falsification.paper", "lyapunov.falsification.corrected"):
+            checks.append(CheckResult(cid, "skip", "no trajectory to evaluate on", method="simulation"))
+    checks += check_bounded(result, design, L)
+    return Verification(scenario=scenario, design=design, closed_loop=cl, result=result, lyapunov=L,
+                        falsification=fz, checks=checks, timings=timings)

@@ -1,0 +1,430 @@
+"""Assemble the report's content (scenario, model + audit, derivation, simulation, verification, code, timings) and
+render it with Jinja2 into one self-contained HTML file: inline SVG figures, MathML equations, inline CSS, no scripts,
+no network references."""
+
+from __future__ import annotations
+
+import html as _html
+import importlib
+import importlib.util
+import platform
+import re
+import sys
+import time
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from . import figures as FIG
+
+MATHML_NS = "http://www.w3.org/1998/Math/MathML"     # a namespace name (a URI), not a reference: nothing is fetched
+FORMULA_MAX_OPS = 120          # sympy count_ops of one entry above which a signal is shown by its size only
+FORMULA_MAX_CHARS = 12000      # MathML markup above which a formula is shown by its size only
+
+# --- MathML ----------------------------------------------------------------------------------------
+
+_DOT = "<mo>&#729;</mo>"
+_DDOT = "<mo>&#168;</mo>"
+# <mi>NAME</mi> produced by sympy's presentation printer -> nicer markup
+_MI = {
+    "dq": f"<mover><mi>q</mi>{_DOT}</mover>",
+    "ddq": f"<mover><mi>q</mi>{_DDOT}</mover>",
+    "qd": "<msub><mi>q</mi><mi>d</mi></msub>",
+    "dqd": f"<msub><mover><mi>q</mi>{_DOT}</mover><mi>d</mi></msub>",
+    "ddqd": f"<msub><mover><mi>q</mi>{_DDOT}</mover><mi>d</mi></msub>",
+    "dF": f"<mover><mi>F</mi>{_DOT}</mover>",
+    "de": f"<mover><mi>e</mi>{_DOT}</mover>",
+    "dz": f"<mover><mi>z</mi>{_DOT}</mover>",
+    "alphadot": f"<mover><mi>&#945;</mi>{_DOT}</mover>",
+    "zdot": f"<mover><mi>z</mi>{_DOT}</mover>",
+    "What": "<mover><mi>W</mi><mo>^</mo></mover>",
+    "Whatdot": f"<mover><mover><mi>W</mi><mo>^</mo></mover>{_DOT}</mover>",
+}
+
+# claim / signal names -> sympy symbol names the printer renders well (letters + trailing digits)
+_CLAIM_NAMES = {"alpha2_dot": "alphadot2", "z1_dot": "zdot1", "z2_dot": "zdot2", "w_hat": "What",
+                "w_hat_dot": "Whatdot", "x_esn": "xesn", "x_esn_dot": "xesndot"}
+
+
+def mathml(expr, *, display: bool = False) -> str:
+    """A sympy expression (or Matrix) as a <math> element (presentation MathML, with dots and hats fixed up)."""
+    from sympy.printing.mathml import mathml as _mm
+    body = _mm(expr, printer="presentation")
+    for k, v in _MI.items():
+        body = body.replace(f"<mi>{k}</mi>", v)
+    disp = ' display="block"' if display else ""
+    return f'<math xmlns="{MATHML_NS}"{disp}>{body}</math>'
+
+
+def mathml_eq(lhs: str, rhs_expr, *, display: bool = True) -> str:
+    """'lhs = rhs' as one <math> element; lhs is MathML markup (e.g. from symbol_mathml)."""
+    m = mathml(rhs_expr, display=display)
+    return m.replace(">", f">{lhs}<mo>=</mo>", 1)
+
+
+def symbol_mathml(name: str) -> str:
+    """Markup of a signal's name (e.g. alpha2_dot -> alpha-dot with subscript 2)."""
+    import sympy
+    from sympy.printing.mathml import mathml as _mm
+    body = _mm(sympy.Symbol(_CLAIM_NAMES.get(name, name)), printer="presentation")
+    for k, v in _MI.items():
+        body = body.replace(f"<mi>{k}</mi>", v)
+    return body
+
+
+def _signal_sympy(design, name: str, entry: int | None = 0):
+    """One entry (or the whole matrix when entry is None) of a design signal as sympy, exact, unsimplified."""
+    from ..sx2sympy import sx_to_sympy
+    e = design.signals[name]
+    if entry is not None:
+        e = e[entry]
+    inputs = [design.sym[x] for x in design.inputs_of(name)]
+    m = sx_to_sympy(e, inputs)
+    return m[0] if m.shape == (1, 1) else m
+
+
+def _claim_sympy(claim):
+    """A printed claim's expression as sympy with scalar symbols (the printed law per joint)."""
+    import sympy
+    env = {}
+    for nm in claim.expression.names:
+        env[nm] = sympy.Symbol(_CLAIM_NAMES.get(nm, nm), real=True)
+    return claim.expression.to_sympy(env)
+
+
+# --- small helpers ---------------------------------------------------------------------------------
+
+def _fmt(x, digits: int = 4) -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_fmt(v, digits) for v in np.ravel(x)) + "]"
+    if isinstance(x, (bool, np.bool_)):
+        return str(bool(x))
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    if isinstance(x, (float, np.floating)):
+        return f"{float(x):.{digits}g}"
+    return str(x)
+
+
+def _where(w) -> str:
+    if not w:
+        return ""
+    parts = []
+    for k, v in w.items():
+        if k in ("q", "dq", "e1") and isinstance(v, (list, tuple)):
+            parts.append(f"{k} = {_fmt(v)}")
+        elif k == "t":
+            parts.append(f"t = {_fmt(v)} s")
+        else:
+            parts.append(f"{k} {_fmt(v)}")
+    return ", ".join(parts)
+
+
+def _compress(names: list[str]) -> str:
+    out, groups = [], {}
+    for s in names:
+        base = s.rstrip("0123456789").rstrip("_")
+        groups.setdefault(base, []).append(s)
+    for base, items in groups.items():
+        out.append(f"{items[0]}..{items[-1]} ({len(items)})" if len(items) > 4 else ", ".join(items))
+    return ", ".join(out) if out else "(constant)"
+
+
+def versions() -> list[tuple[str, str]]:
+    """Software versions of this run."""
+    from .. import __version__
+    out = [("symfunnel", __version__), ("Python", sys.version.split()[0]), ("platform", platform.platform())]
+    for mod in ("casadi", "numpy", "scipy", "sympy", "matplotlib", "jinja2"):
+        try:
+            out.append((mod, importlib.import_module(mod).__version__))
+        except Exception:  # noqa: BLE001
+            out.append((mod, "not available"))
+    return out
+
+
+# --- sections --------------------------------------------------------------------------------------
+
+def scenario_section(sc) -> dict:
+    """The scenario and its deviations from the paper."""
+    f1, f2 = sc.funnels["e1"], sc.funnels["e2"]
+    pl = sc.plant
+    params = [
+        ("joints n", sc.n), ("model", f"{sc.model.kind}, C {sc.model.C_source}"),
+        ("model parameters", ", ".join(f"{k} = {v:g}" for k, v in zip(sc.model.p_names, sc.model.p_values)) or "—"),
+        ("reference q_d(t)", ", ".join(e.text for e in sc.reference)),
+        ("initial q(0), dq(0)", f"{_fmt(sc.q0)}, {_fmt(sc.dq0)}"),
+        ("funnel e1: phi0, phi_inf, a", f"{_fmt(f1.phi0)}, {_fmt(f1.phi_inf)}, {_fmt(f1.a)}"),
+        ("funnel e2: phi0, phi_inf, a", f"{_fmt(f2.phi0)}, {_fmt(f2.phi_inf)}, {_fmt(f2.a)}"),
+        ("gains k1, k2", f"{_fmt(sc.k1)}, {_fmt(sc.k2)}"),
+        ("adaptation gamma, sigma, W_hat(0)", f"{sc.gamma:g}, {sc.sigma:g}, {sc.w_hat0:g}"),
+        ("ESN", f"N = {sc.esn.size}, leak {sc.esn.leak:g}, time constant {sc.esn.time_constant:g} s, spectral radius "
+                f"{sc.esn.spectral_radius:g}, sparsity {sc.esn.sparsity:g}, seed {sc.esn.seed}, inputs "
+                f"{', '.join(sc.esn.inputs)}"),
+        ("plant (unknown to the controller)",
+         f"viscous {_fmt(pl.viscous)}, Coulomb {_fmt(pl.coulomb)}, disturbance "
+         f"{', '.join(e.text for e in pl.disturbance)}, mass scale {pl.mass_scale:g}"
+         + (f", dead zone b_l = {_fmt(pl.dead_zone.b_l)}, b_r = {_fmt(pl.dead_zone.b_r)}, left {pl.dead_zone.left.text},"
+            f" right {pl.dead_zone.right.text}" if pl.dead_zone else ", no dead zone")),
+        ("simulation", f"t_final {sc.simulation.t_final:g} s, output step {sc.simulation.dt:g} s, "
+                       f"{sc.simulation.integrator}, rtol {sc.simulation.rtol:g}, atol {sc.simulation.atol:g}, "
+                       f"smoothing width {sc.simulation.smoothing_width:g}"),
+    ]
+    return {"name": sc.name, "title": sc.title, "source": sc.source, "description": sc.description,
+            "file": sc.file, "params": params, "deviations": sc.deviations}
+
+
+def model_section(sc, audit_results) -> dict:
+    """M, C, G as MathML (parameters kept symbolic) and the audit's model/funnel/design checks."""
+    from ..sx2sympy import sx_to_sympy
+    m = sc.model
+    eqs = []
+    ins = [m.q, m.dq] + ([m.p] if m.p.numel() else [])
+    for name in ("M", "C", "G"):
+        X = getattr(m, name)
+        try:
+            f = ca.Function("f", ins, [X])
+            if f.n_instructions() > 2000:
+                raise ValueError("large")
+            mat = sx_to_sympy(X, ins)
+            mm = mathml_eq(f"<mi>{name}</mi>", mat)
+            if len(mm) > 3 * FORMULA_MAX_CHARS:
+                raise ValueError("large")
+            eqs.append({"name": name, "mathml": mm, "ops": None})
+        except Exception:  # noqa: BLE001 - a large model is shown by its size
+            from ..design import count_ops
+            eqs.append({"name": name, "mathml": None, "ops": count_ops(ca.Function("f", ins, [X]))})
+    checks = [c for c in audit_results if not c.id.startswith("claim.")]
+    return {"equations": eqs, "checks": checks}
+
+
+SIGNAL_ORDER = ("F1", "dF1", "e1", "de1", "zeta1", "z1", "mu1", "alpha2", "alpha2_dot", "z1_dot", "e2", "zeta2", "z2",
+                "mu2", "Phi", "v", "tau", "ddq", "de2", "z2_dot", "w_hat_dot", "x_esn_dot")
+
+
+def derivation_section(design, audit_results, progress) -> dict:
+    """Each signal: formula where small (joint 1 shown), size in operations without and with CSE; alpha2_dot panel."""
+    import sympy
+
+    from ..design import count_ops
+    from ..names import SIGNALS
+    rows = []
+    for k in SIGNAL_ORDER:
+        if k not in design.signals:
+            continue
+        e = design.signals[k]
+        inputs = design.inputs_of(k)
+        syms = [design.sym[x] for x in inputs]
+        raw = count_ops(ca.Function("raw", syms, [e]))
+        cse = design.ops(k)
+        row = {"name": k, "sym": symbol_mathml(k), "desc": SIGNALS.get(k, ("", 0))[0],
+               "shape": f"{e.shape[0]}\u00d7{e.shape[1]}", "ops_raw": raw, "ops_cse": cse,
+               "free": _compress(design.free_symbols(k)), "mathml": None, "note": ""}
+        if cse <= 4 * FORMULA_MAX_OPS and e.numel() <= 4 and k not in ("Phi",):
+            try:
+                s = _signal_sympy(design, k, 0)
+                if sympy.count_ops(s) <= FORMULA_MAX_OPS:
+                    mm = mathml_eq(symbol_mathml(k), s, display=False)
+                    if len(mm) <= FORMULA_MAX_CHARS:
+                        row["mathml"] = mm
+                        row["note"] = "entry of joint 1 (the other joints alike)" if e.numel() > 1 else ""
+            except Exception as exc:  # noqa: BLE001
+                row["note"] = f"not converted ({type(exc).__name__})"
+        if row["mathml"] is None and not row["note"]:
+            row["note"] = "too large to read as a formula: size only"
+        rows.append(row)
+    progress("derivation: exact alpha2_dot beside the printed equations")
+    # alpha2_dot panel: the exact derivative (cse form) beside the paper's printed alpha2 (eq. 26) and z1_dot (eq. 21)
+    panel = {"alpha2": None, "alpha2_dot": None, "alpha2_dot_cse": [], "ops": design.ops("alpha2_dot"),
+             "claims": []}
+    try:
+        a2 = _signal_sympy(design, "alpha2", 0)
+        panel["alpha2"] = mathml_eq("<msub><mi>&#945;</mi><mn>2,1</mn></msub>", a2)
+        a2d = _signal_sympy(design, "alpha2_dot", 0)
+        repl, (red,) = sympy.cse(a2d, symbols=sympy.numbered_symbols("x"))
+        panel["alpha2_dot_cse"] = [mathml_eq(mathml(s)[len(f'<math xmlns="{MATHML_NS}">'):-len("</math>")], v)
+                                   for s, v in repl]
+        panel["alpha2_dot"] = mathml_eq(f"<msub><mover><mi>&#945;</mi>{_DOT}</mover><mn>2,1</mn></msub>", red)
+        panel["alpha2_dot_ops_joint1"] = int(sympy.count_ops(a2d))
+    except Exception as exc:  # noqa: BLE001
+        panel["error"] = f"{type(exc).__name__}: {exc}"
+    claims = claims_rows(design, audit_results)
+    panel["claims"] = [c for c in claims if c["signal"] in ("alpha2", "z1_dot")]
+    return {"signals": rows, "alpha2": panel, "claims": claims}
+
+
+def claims_rows(design, audit_results) -> list[dict]:
+    """Each printed claim: its formula as printed (MathML), the exact signal's name, the audit verdict."""
+    by_id = {c.id: c for c in audit_results}
+    out = []
+    for cl in design.scenario.claims:
+        r = by_id.get(f"claim.{cl.name}")
+        row = {"name": cl.name, "source": cl.source, "description": cl.description, "signal": cl.signal,
+               "kind": cl.kind, "mathml": None, "text": "", "check": r}
+        if cl.kind == "funnel":
+            row["text"] = (f"F(t) = {_fmt(cl.spec.phi0)} exp(-{_fmt(cl.spec.a)} t) + {_fmt(cl.spec.phi_inf)} "
+                           f"for {cl.funnel}")
+            row["signal"] = f"funnel {cl.funnel}"
+        else:
+            row["text"] = cl.expression.text
+            try:
+                s = _claim_sympy(cl)
+                row["mathml"] = mathml_eq(symbol_mathml(cl.signal), s, display=False)
+            except Exception:  # noqa: BLE001 - shown as text
+                row["mathml"] = None
+        out.append(row)
+    return out
+
+
+def simulation_section(v, progress) -> dict:
+    """Summary of the run and its figures (SVG)."""
+    res = v.result
+    sc = v.scenario
+    n = v.design.n
+    L = v.lyapunov
+    figs = []
+    if res.t.size >= 2:
+        progress("figures: tracking, funnels, z, torque")
+        figs.append(("tracking", "Joint tracking against the reference", FIG.tracking(res, n)))
+        figs.append(("funnel-e1", "e1 inside \u00b1F1", FIG.funnel(res, n, "e1")))
+        figs.append(("funnel-e2", "e2 inside \u00b1F2", FIG.funnel(res, n, "e2")))
+        figs.append(("z", "Transformed errors z1, z2", FIG.z_signals(res, n)))
+        figs.append(("torque", "Commanded against applied torque through the dead zone",
+                     FIG.torque(res, n, sc.plant.dead_zone)))
+        progress("figures: ESN, weights, Lyapunov")
+        fit = None
+        if L is not None:
+            from ..checks.lyapunov import regressor_values
+            Phi = regressor_values(v.design, np.asarray(res.signals["x_esn"]).reshape(len(res.t), -1))
+            fit = Phi @ L.W_star
+        figs.append(("esn", "The ESN's estimate against the true unknown term", FIG.esn_estimate(res, n, fit)))
+        figs.append(("weights", "\u2016\u0174\u2016_F", FIG.weights(res, L.W_star if L is not None else None)))
+        figs.append(("reservoir", "Reservoir state", FIG.reservoir(res, sc.esn.leak)))
+        if L is not None and np.isfinite(L.V).sum() >= 2:
+            figs.append(("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound(L, res)))
+            figs.append(("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay(L, res)))
+    if v.falsification is not None:
+        figs.append(("falsification", "Falsification over sampled states", FIG.falsification(v.falsification)))
+    summ = res.summary()
+    stats = [("status", res.status), ("message", res.message),
+             ("simulated", f"{summ.get('t_end', 0):g} of {summ.get('t_final') or 0:g} s, {summ.get('points')} output points"),
+             ("integrator", f"{summ.get('integrator')} ({summ.get('code')} code), steps {summ.get('steps')}, "
+                            f"rhs evaluations {summ.get('rhs_evaluations')}"),
+             ("non-smooth terms", summ.get("non_smooth_treatment")),
+             ("wall time", f"{_fmt(summ.get('wall_time'))} s (real-time factor {_fmt(summ.get('realtime_factor'))})"),
+             ("min margin e1 / e2 per joint", f"{_fmt(summ.get('min_margin_e1'))} / {_fmt(summ.get('min_margin_e2'))}"),
+             ("max |tau| / |D(tau)| per joint", f"{_fmt(summ.get('max_abs_tau'))} / {_fmt(summ.get('max_abs_tau_applied'))}"),
+             ("rms ESN error / rms f_true", f"{_fmt(summ.get('rms_esn_error'))} / {_fmt(summ.get('rms_f_true'))}")]
+    return {"figures": figs, "stats": stats, "status": res.status, "breach": res.breach}
+
+
+def verification_section(v) -> dict:
+    """The checks table, W* and rho/delta, falsification summary."""
+    rows = []
+    for c in v.checks:
+        rows.append({"id": c.id, "status": c.status, "detail": c.detail, "method": c.method,
+                     "margin": _fmt(c.margin), "where": _where(c.where)})
+    L = v.lyapunov
+    info = None
+    if L is not None:
+        wi = L.w_star_info
+        info = [("W* (never given by the paper)", wi.get("method", "")),
+                ("||W*||_F", _fmt(wi.get("norm"))),
+                ("rms eps = f_true - W*^T Phi (rms f_true)", f"{_fmt(wi.get('rms_residual'))} ({_fmt(wi.get('rms_f_true'))})"),
+                ("plain least squares, for comparison", f"||W||_F = {_fmt(wi.get('plain_ls_norm'))}, rms residual "
+                 f"{_fmt(wi.get('plain_ls_rms_residual'))}, condition number {_fmt(wi.get('plain_ls_condition'))}"),
+                ("corrected: constant rho (min over trajectory) / constant lower bound",
+                 f"{_fmt(L.rho_const)} / {_fmt(L.rho_const_lower)}"),
+                ("corrected: delta_max (max over trajectory), ultimate bound delta/rho",
+                 f"{_fmt(L.delta_max)}, {_fmt(L.delta_max / L.rho_const if L.rho_const else None)}"),
+                ("paper: rho (min over trajectory), delta = sigma/2 ||W*||^2",
+                 f"{_fmt(L.rho_paper_const)}, {_fmt(L.delta_paper_const)}")]
+    fz = None
+    if v.falsification is not None:
+        f = v.falsification
+        fz = {"samples": f["samples"], "fill": f["fill"], "w_scale": _fmt(f["w_scale"]), "t_range": f["t_range"],
+              "rows": [{"which": w, "violations": f[w]["violations"], "evaluated": f[w]["evaluated"],
+                        "fraction": f"{f[w]['fraction']:.2%}", "worst": _fmt(f[w]["worst_margin"]),
+                        "where": _where(f[w]["where"])} for w in ("paper", "corrected")]}
+    n_fail = sum(c.status == "fail" for c in v.checks)
+    n_pass = sum(c.status == "pass" for c in v.checks)
+    return {"rows": rows, "info": info, "falsification": fz, "n_fail": n_fail, "n_pass": n_pass,
+            "n_skip": len(v.checks) - n_fail - n_pass}
+
+
+def codegen_section(sc, design, progress) -> dict:
+    """The code-generation summary when symfunnel.codegen.codegen_summary exists; else says it is not available."""
+    try:
+        spec = importlib.util.find_spec("symfunnel.codegen")
+        mod = importlib.import_module("symfunnel.codegen") if spec else None
+    except Exception as exc:  # noqa: BLE001
+        return {"available": False, "reason": f"symfunnel.codegen cannot be imported ({type(exc).__name__}: {exc})"}
+    fn = getattr(mod, "codegen_summary", None) if mod else None
+    if fn is None:
+        return {"available": False, "reason": "code generation is not available in this build "
+                                              "(symfunnel.codegen.codegen_summary is missing)"}
+    progress("code generation: C and Python, compiled/imported and cross-checked")
+    t0 = time.perf_counter()
+    try:
+        s = fn(sc, design)
+    except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
+        return {"available": False, "reason": f"code generation failed: {type(exc).__name__}: {exc}"}
+    out = {"available": True, "seconds": time.perf_counter() - t0, "functions": s.get("functions", []),
+           "controller_operations": s.get("controller_operations"), "points": s.get("points"), "languages": [],
+           "timings": _flatten(s.get("timings")) if s.get("timings") else [],
+           "timings_error": s.get("timings_error")}
+    for lang, e in (s.get("languages") or {}).items():
+        chk = e.get("check") or {}
+        out["languages"].append({
+            "lang": lang, "files": e.get("files", []), "error": e.get("error"),
+            "passed": chk.get("passed"), "worst": _fmt(chk.get("worst")), "threshold": _fmt(chk.get("threshold")),
+            "errors": [(k, _fmt(v)) for k, v in (chk.get("errors") or {}).items()] +
+                      [(k, _fmt(v)) for k, v in (chk.get("extra") or {}).items()],
+        })
+    return out
+
+
+def _flatten(d, prefix: str = "") -> list[tuple[str, str]]:
+    out = []
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.extend(_flatten(v, f"{prefix}{k}." if not isinstance(v, dict) else f"{prefix}{k}."))
+        return [(k.rstrip("."), v) for k, v in out]
+    return [(prefix, _fmt(d) if not isinstance(d, str) else d)]
+
+
+# --- rendering -------------------------------------------------------------------------------------
+
+def environment():
+    """The Jinja2 environment (autoescape on) reading symfunnel/report/templates."""
+    import jinja2
+    env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(Path(__file__).parent / "templates")),
+                             autoescape=jinja2.select_autoescape(["html", "j2"], default=True),
+                             trim_blocks=True, lstrip_blocks=True, undefined=jinja2.StrictUndefined)
+    env.filters["fmt"] = _fmt
+    return env
+
+
+def render(context: dict) -> str:
+    """Render the report template with a context."""
+    return environment().get_template("report.html.j2").render(**context)
+
+
+def escape(s: str) -> str:
+    """HTML-escape plain text."""
+    return _html.escape(s)
+
+
+def no_network_references(text: str) -> list[str]:
+    """http(s) references in src/href/xlink:href/url()/@import of an HTML text (namespace declarations excluded)."""
+    bad = []
+    for m in re.finditer(r'\b(?:src|href|xlink:href|action|poster|data|srcset|background)\s*=\s*["\']?\s*(https?:[^"\'\s>]*)',
+                         text, flags=re.I):
+        bad.append(m.group(0))
+    for m in re.finditer(r"url\(\s*['\"]?\s*(https?:[^)'\"]*)", text, flags=re.I):
+        bad.append(m.group(0))
+    for m in re.finditer(r"@import\s+['\"]?https?:", text, flags=re.I):
+        bad.append(m.group(0))
+    return bad

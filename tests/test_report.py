@@ -1,0 +1,174 @@
+"""report: one self-contained HTML file; parses, has its sections, >= 8 SVG figures, MathML, no network reference,
+renders in headless Chromium without console errors; a failing scenario gives a report that shows the failure.
+
+How "no http(s) reference" is decided: the report is parsed with html5lib and every attribute of every element
+(HTML, inline SVG and MathML alike) is inspected. Namespace declarations (``xmlns``, ``xmlns:*``) are *names*
+(URIs that identify the SVG/MathML/XLink vocabularies), never fetched, so they are exempt; every other attribute value
+may not start with http(s) (src, href, xlink:href, srcset, ... included), and no attribute or <style> text may
+contain ``url(http...`` or ``@import``. Besides, the raw text with the namespace declarations removed may not contain
+"http://" or "https://" at all, and there are no <script>, <link>, <iframe>, <object>, <embed> or <img> elements.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import pytest
+
+T_FINAL = 5.0          # shortened horizon for the test; `symfunnel report` itself runs the scenario's 20 s
+SECTIONS = ["overview", "scenario", "model", "derivation", "alpha2-dot", "simulation", "verification", "codegen",
+            "timings"]
+
+
+@pytest.fixture(scope="module")
+def report_path(paper, paper_design, tmp_path_factory):
+    """The paper scenario's report, written once per module."""
+    from symfunnel.report import build_report
+    out = tmp_path_factory.mktemp("report") / "paper.html"
+    p = build_report(paper, out, design=paper_design, t_final=T_FINAL)
+    assert p == out
+    return out
+
+
+@pytest.fixture(scope="module")
+def report_text(report_path):
+    return report_path.read_text(encoding="utf-8")
+
+
+@pytest.fixture(scope="module")
+def tree(report_text):
+    import html5lib
+    return html5lib.parse(report_text, treebuilder="etree", namespaceHTMLElements=False)
+
+
+def _local(tag) -> str:
+    return tag.split("}", 1)[-1] if isinstance(tag, str) else ""
+
+
+def test_parses_strictly(report_text):
+    import html5lib
+    parser = html5lib.HTMLParser(strict=False)
+    parser.parse(report_text)
+    fatal = [e for e in parser.errors if e[1] not in ("unexpected-end-tag-in-math",)]
+    assert not fatal, fatal[:5]
+    assert report_text.startswith("<!DOCTYPE html>")
+
+
+def test_has_its_sections(tree):
+    ids = {el.get("id") for el in tree.iter() if el.get("id")}
+    for s in SECTIONS:
+        assert s in ids, s
+
+
+def test_at_least_eight_svg_figures_and_mathml(tree):
+    svgs = [el for el in tree.iter() if _local(el.tag) == "svg"]
+    assert len(svgs) >= 8
+    maths = [el for el in tree.iter() if _local(el.tag) == "math"]
+    assert len(maths) >= 10
+    # the exact alpha2_dot and the printed claims are there as MathML
+    sec = next(el for el in tree.iter() if el.get("id") == "derivation")
+    assert sum(1 for el in sec.iter() if _local(el.tag) == "math") >= 10
+
+
+def test_no_network_reference(tree, report_text):
+    for el in tree.iter():
+        tag = _local(el.tag)
+        assert tag not in ("script", "link", "iframe", "object", "embed", "img", "base"), tag
+        for k, v in el.attrib.items():
+            name = _local(k)
+            if k == "xmlns" or k.startswith("xmlns:") or name == "xmlns" or "xmlns" in k:
+                continue
+            assert not re.match(r"\s*https?:", v, re.I), (tag, k, v)
+            assert not re.search(r"url\(\s*['\"]?\s*https?:", v, re.I), (tag, k, v)
+        if tag == "style":
+            css = el.text or ""
+            assert "@import" not in css
+            assert not re.search(r"url\(", css)
+    stripped = re.sub(r'\sxmlns(:\w+)?="[^"]*"', "", report_text)
+    assert "http://" not in stripped and "https://" not in stripped
+    from symfunnel.report.html import no_network_references
+    assert no_network_references(report_text) == []
+
+
+def test_verification_table_shows_failures_plainly(tree, report_text):
+    # the paper's Theorem 1 is falsified on the sampled states: shown as FAIL with its margin and where
+    rows = [el for el in tree.iter() if _local(el.tag) == "tr" and "fail-row" in (el.get("class") or "")]
+    text = " ".join("".join(r.itertext()) for r in rows)
+    assert "lyapunov.falsification.paper" in text
+    assert "FAIL" in text
+    assert "not a proof" in report_text
+    assert "W*" in report_text and "never given by the paper" in report_text
+
+
+def test_code_generation_section(tree):
+    sec = next(el for el in tree.iter() if el.get("id") == "codegen")
+    text = "".join(sec.itertext())
+    import importlib.util
+    if importlib.util.find_spec("symfunnel.codegen") is not None:
+        import symfunnel.codegen as cg
+        if hasattr(cg, "codegen_summary"):
+            assert "alpha2_dot" in text and "controller" in text
+            return
+    assert "not available" in text
+
+
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
+        p = shutil.which(name)
+        if p:
+            return p
+    return None
+
+
+@pytest.mark.slow
+def test_renders_in_headless_chromium_without_console_errors(report_path, tmp_path):
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("no Chromium on this machine (.ci/run installs Debian's `chromium`; apt-get install chromium)")
+    shot = tmp_path / "shot.png"
+    profile = tempfile.mkdtemp(prefix="symfunnel-chromium-")
+    try:
+        cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+               "--disable-background-networking", "--disable-component-update", "--disable-sync",
+               f"--user-data-dir={profile}", "--enable-logging=stderr", "--v=0", f"--screenshot={shot}",
+               "--window-size=1200,3000", report_path.resolve().as_uri()]
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env={**os.environ, "HOME": profile})
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
+    log = r.stdout + r.stderr
+    console = [ln for ln in log.splitlines() if "CONSOLE" in ln or "Uncaught" in ln]
+    assert not console, console
+    assert shot.exists(), log[-2000:]
+    import matplotlib.image as mpimg
+    import numpy as np
+    img = mpimg.imread(str(shot))[..., :3]
+    assert img.shape[0] >= 1000 and img.shape[1] >= 1000
+    nonwhite = np.mean(np.any(img < 0.9, axis=2))
+    assert nonwhite > 0.02, f"screenshot looks blank ({nonwhite:.2%} non-white pixels)"
+    assert float(img.std()) > 0.05
+
+
+def test_failing_scenario_gives_a_report_that_shows_the_failure(write_scenario, tmp_path, capsys):
+    """An initial error outside its funnel: `report` still writes the file, and it shows the failed checks."""
+    from symfunnel.cli import main
+    from symfunnel.scenario import DATA_DIR
+    text = (DATA_DIR / "paper_2dof.toml").read_text(encoding="utf-8").replace("phi0 = 0.4 ", "phi0 = 0.18 ", 1)
+    p = write_scenario(text)
+    out = tmp_path / "sub" / "bad.html"
+    code = main(["report", str(p), "--out", str(out), "--no-codegen", "--samples", "1000", "-q"])
+    assert code == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    html = out.read_text(encoding="utf-8")
+    assert "funnel.initial_condition" in html and "initial_outside" in html
+    assert re.search(r"verification check\(s\) FAILED", html)
+    assert not list(out.parent.glob(".*.tmp"))            # atomic: no temporary file left behind
+
+
+def test_default_path(paper):
+    from symfunnel.report import default_path
+    assert default_path(paper) == Path("reports") / "paper.html"
