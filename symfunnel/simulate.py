@@ -671,19 +671,16 @@ def _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner
     signals["esn_error"] = o["w_phi"] - o["f_true"]
     gamma = float(sc.gamma)
     extras = {}
-    # V with W* = least-squares fit of f_true on Phi over the run (ridge 1e-9)
-    nr = cl.design.esn.n_regressor
+    # V needs the ideal weights W*, which no scenario gives: the one estimate of checks.lyapunov (fitted on this run)
+    from .checks.lyapunov import estimate_w_star, regressor_values
+    W_star, _ = estimate_w_star(cl, t, X, o["f_true"])
     if t.size:
-        Phi = np.concatenate([parts["x_esn"], np.ones((t.size, 1))], axis=1) if nr > cl.N else parts["x_esn"]
-        ok = np.isfinite(Phi).all(axis=1) & np.isfinite(o["f_true"]).all(axis=1)
-        A, B = Phi[ok], o["f_true"][ok]
-        W_star = np.linalg.solve(A.T @ A + 1e-9 * np.eye(nr), A.T @ B) if A.shape[0] else np.zeros((nr, cl.n))
-        resid = np.sqrt(np.mean((A @ W_star - B) ** 2, axis=0)) if A.shape[0] else np.zeros(cl.n)
-        dW = W_star[None, :, :] - parts["w_hat"]
-        signals["V"] = o["V_z"] + np.sum(dW ** 2, axis=(1, 2)) / (2 * gamma)
+        fit = o["f_true"] - regressor_values(cl.design, parts["x_esn"]) @ W_star
+        resid = np.sqrt(np.nanmean(fit ** 2, axis=0))
     else:
-        W_star, resid = np.zeros((nr, cl.n)), np.zeros(cl.n)
-        signals["V"] = np.zeros(0)
+        resid = np.zeros(cl.n)
+    dW = W_star[None, :, :] - parts["w_hat"] if t.size else np.zeros((0,) + W_star.shape)
+    signals["V"] = o["V_z"] + np.sum(dW ** 2, axis=(1, 2)) / (2 * gamma)
     extras["W_star"] = W_star
     extras["W_star_residual"] = resid
     wall = time.perf_counter() - start
