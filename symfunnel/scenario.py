@@ -441,7 +441,7 @@ def _simulation(table: Any, file: str) -> SimulationSpec:
     return SimulationSpec(
         t_final=t_final, dt=dt,
         integrator=V.get_str(table, "integrator", d.integrator, file=file, prefix=p,
-                             choices=["cvodes", "idas", "rk", "collocation"]),
+                             choices=["cvodes", "rk", "collocation"]),
         rtol=V.get_float(table, "rtol", d.rtol, file=file, prefix=p, minimum=0, strict_min=True),
         atol=V.get_float(table, "atol", d.atol, file=file, prefix=p, minimum=0, strict_min=True),
         smoothing_width=V.get_float(table, "smoothing_width", d.smoothing_width, file=file, prefix=p,

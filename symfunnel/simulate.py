@@ -119,8 +119,14 @@ def _compiler() -> str | None:
     return os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
 
 
-def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True) -> Compiled:
-    """Generate C for the closed loop's RHS, Jacobian and outputs, compile it once (cached) and load it."""
+def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
+                        approx_jacobian: bool = APPROX_ESN_JACOBIAN) -> Compiled:
+    """Generate C for the closed loop's RHS, Jacobian and outputs, compile it once (cached) and load it.
+
+    `approx_jacobian` selects the modified-Newton Jacobian of `_newton_jacobian` (right for CVODES, whose error
+    control does not depend on it); collocation solves its stage equations with that Jacobian too, and needs the
+    exact one to converge.
+    """
     say = progress or (lambda s: None)
     perm = _permutation(cl)
     dae = _dae_function(cl, perm)
@@ -138,7 +144,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True) -> C
     with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
         cg = ca.CodeGenerator("symfunnel_cl.c", {"with_header": False})
         cg.add(dae)
-        cg.add(_newton_jacobian(cl, dae, perm) if APPROX_ESN_JACOBIAN else dae.jacobian())
+        cg.add(_newton_jacobian(cl, dae, perm) if approx_jacobian else dae.jacobian())
         cg.add(outputs)
         cg.generate(tmp + os.sep)
         src = Path(tmp, "symfunnel_cl.c").read_bytes()
@@ -314,10 +320,16 @@ class _Runner:
                         "linear_solver": "csparse", "disable_internal_warnings": True}
             else:
                 subs = max(1, int(math.ceil(sim.rk_substeps * h / self.h)))
-                opts = {"number_of_finite_elements": subs}
                 if self.method == "collocation":
-                    opts["number_of_finite_elements"] = max(1, subs // 5)
-                    opts.update({"interpolation_order": 3, "collocation_scheme": "radau"})
+                    subs = max(1, subs // 2)
+                # CasADi's fixed-step integrators spread number_of_finite_elements over the whole output grid
+                # (at least one step per interval), so it is the total: subs steps per output interval
+                opts = {"number_of_finite_elements": subs * K}
+                if self.method == "collocation":
+                    opts.update({"interpolation_order": 3, "collocation_scheme": "radau",
+                                 # the design's |e| makes the stage equations kinked where e crosses 0, so Newton
+                                 # may stall there for a step: accept its last iterate then (NaN is still caught)
+                                 "rootfinder_options": {"max_iter": 30, "error_on_fail": False}})
             opts["show_eval_warnings"] = False
             self._integrators[key] = ca.integrator(f"sim_{K}", self.method, self.comp.dae, 0.0, grid, opts)
         return self._integrators[key]
@@ -406,8 +418,6 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
         raise InputError(f"gives {tf / sim.dt:.3g} output points", key="--t-final",
                          expected="at most 1e6 output points (t_final/dt)")
     method = integrator or sim.integrator
-    if method == "idas":
-        method = "cvodes"
     if method not in INTEGRATORS:
         raise InputError(f"is '{method}'", key="--integrator", expected="one of " + ", ".join(INTEGRATORS))
     limit = sim.wall_limit if wall_limit is None else float(wall_limit)
@@ -427,10 +437,11 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
     if w == 0.0:
         warnings.warn("smoothing_width = 0: exact sign friction and dead-zone kinks; CVODES may take many tiny "
                       "steps at every switch (the wall-clock limit still applies)", RuntimeWarning, stacklevel=2)
-    comp = getattr(cl, "_compiled", {}).get(jit)
+    approx = method == "cvodes" and APPROX_ESN_JACOBIAN
+    comp = getattr(cl, "_compiled", {}).get((jit, approx))
     if comp is None:
-        comp = compile_closed_loop(cl, progress=say, jit=jit)
-        cl.__dict__.setdefault("_compiled", {})[jit] = comp
+        comp = compile_closed_loop(cl, progress=say, jit=jit, approx_jacobian=approx)
+        cl.__dict__.setdefault("_compiled", {})[(jit, approx)] = comp
     compile_time = time.perf_counter() - start
 
     M, h = _grid(float(tf), sim.dt)
@@ -467,7 +478,7 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
     sim_start = time.perf_counter()
     k = 0                      # grid index reached
     x = x0
-    K = 1 if method == "collocation" else 25
+    K = 25
     last_report = sim_start
     try:
         while k < M:
@@ -515,8 +526,6 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
             target = min(0.5, remaining / 4)
             want = target / max(per_point, 1e-9)
             K = max([c for c in CHUNK_SIZES if c <= want] or [1])
-            if method == "collocation":
-                K = 1            # CasADi's collocation fails on multi-point output grids here; one step per call
             now = time.perf_counter()
             if now - last_report > 2.0:
                 say(f"t = {k * h:.3g} / {tf:g} s")
