@@ -25,16 +25,8 @@ def _progress(quiet: bool):
 
 
 def _dump(obj) -> str:
-    return json.dumps(obj, indent=2, allow_nan=False, default=_json_default)
-
-
-def _json_default(o):
-    import numpy as np
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    raise TypeError(type(o).__name__)
+    from .io import json_safe
+    return json.dumps(json_safe(obj), indent=2, allow_nan=False)
 
 
 def _load(args):
@@ -61,7 +53,7 @@ def _read_points(path: str):
 def cmd_derive(args) -> int:
     """`symfunnel derive`: signals with size and free variables; --eval values at points; --latex formulas."""
     from .design import derive, evaluate
-    from .names import SIGNALS
+    from .names import SIGNALS, compress_names
     sc = _load(args)
     d = derive(sc)
     if args.eval:
@@ -97,25 +89,11 @@ def cmd_derive(args) -> int:
     print(f"{'signal':>11} {'shape':>7} {'ops':>6}  free variables")
     for k in names:
         i = info[k]
-        free = _compress_free(i["free"])
+        free = compress_names(i["free"])
         print(f"{k:>11} {i['shape'][0]:>3}x{i['shape'][1]:<3} {i['ops']:>6}  {free}")
     if args.latex:
         print(f"LaTeX written to {args.latex}")
     return 0
-
-
-def _compress_free(free: list[str]) -> str:
-    """'x_esn_0, ..., x_esn_49' style summary of long runs of symbol names."""
-    out, groups = [], {}
-    for s in free:
-        base = s.rstrip("0123456789").rstrip("_")
-        groups.setdefault(base, []).append(s)
-    for base, items in groups.items():
-        if len(items) > 4:
-            out.append(f"{items[0]}..{items[-1]} ({len(items)})")
-        else:
-            out.extend(items)
-    return ", ".join(out) if out else "(constant)"
 
 
 def _short(v) -> str:

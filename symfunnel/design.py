@@ -196,7 +196,7 @@ def _as_array(value, shape, what: str, file: str) -> np.ndarray:
     try:
         a = np.array(value, dtype=float)
     except (TypeError, ValueError):
-        raise InputError(f"is not numeric", file=file, key=what, expected=f"numbers of shape {list(shape)}") from None
+        raise InputError("is not numeric", file=file, key=what, expected=f"numbers of shape {list(shape)}") from None
     if a.size != int(np.prod(shape)):
         raise InputError(f"has {a.size} numbers", file=file, key=what,
                          expected=f"{int(np.prod(shape))} numbers (shape {list(shape)})")

@@ -36,3 +36,13 @@ SIGNALS: dict[str, tuple[str, int]] = {
 
 # Constants of the design that claims may use besides the signals.
 CONSTANTS = ("k1", "k2", "Gamma", "sigma")
+
+
+def compress_names(names: list[str]) -> str:
+    """A readable list of symbol names with long runs shortened: 'x_esn_0..x_esn_49 (50)'."""
+    out, groups = [], {}
+    for s in names:
+        groups.setdefault(s.rstrip("0123456789").rstrip("_"), []).append(s)
+    for items in groups.values():
+        out.append(f"{items[0]}..{items[-1]} ({len(items)})" if len(items) > 4 else ", ".join(items))
+    return ", ".join(out) if out else "(constant)"

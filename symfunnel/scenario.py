@@ -228,7 +228,6 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
 
     model = build_model(raw["model"], file=file, base_dir=base_dir)
     n = model.n
-    coords = model.coordinates
 
     reference = _reference(raw["reference"], n, file, model)
     q0, dq0, init = _initial(raw["initial"], n, file)
@@ -415,7 +414,7 @@ def _check_dead_zone(dz: DeadZoneSpec, n: int, file: str) -> None:
             if not math.isfinite(at_b) or abs(at_b) > 1e-9 * max(1.0, abs(b)):
                 raise InputError(f"gives {at_b:g} at u = {b:g} for joint {j + 1}", file=file,
                                  key=f"plant.dead_zone.{side}",
-                                 expected=f"a branch that is 0 at its breakpoint (continuous dead zone)")
+                                 expected="a branch that is 0 at its breakpoint (continuous dead zone)")
             for s in (0.0, 0.5, 1.0, 5.0, 50.0):
                 slope = float(f(b + span * s)[1])
                 if not math.isfinite(slope) or slope <= 0:

@@ -36,6 +36,7 @@ import numpy as np
 
 from .closedloop import OUTPUT_NAMES, ClosedLoop, build_closed_loop
 from .errors import InputError
+from .io import json_safe
 
 INTEGRATORS = ("cvodes", "rk", "collocation")
 CHUNK_SIZES = (1, 5, 25, 100, 500)
@@ -258,7 +259,7 @@ class SimResult:
         }
         if self.convergence is not None:
             out["convergence"] = self.convergence
-        return _finite_json(out)
+        return json_safe(out)
 
     def save_npz(self, path) -> Path:
         """Write the whole trajectory (time first) and the run's metadata to an .npz file, atomically."""
@@ -277,19 +278,6 @@ class SimResult:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **data)
         return path
-
-
-def _finite_json(o):
-    if isinstance(o, dict):
-        return {k: _finite_json(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite_json(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        f = float(o)
-        return f if math.isfinite(f) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    return o
 
 
 # --- the run ---------------------------------------------------------------------------------------------
@@ -741,5 +729,5 @@ def convergence_study(scenario, widths=None, *, t_final=None, integrator=None, p
         if a["max_abs_q_diff_vs_smallest"] > 0 and b["max_abs_q_diff_vs_smallest"] > 0:
             rates.append(math.log(a["max_abs_q_diff_vs_smallest"] / b["max_abs_q_diff_vs_smallest"])
                          / math.log(a["width"] / b["width"]))
-    return _finite_json({"reference_width": ref_w, "runs": rows, "observed_rates": rates,
+    return json_safe({"reference_width": ref_w, "runs": rows, "observed_rates": rates,
                          "note": "q difference against the smallest width; the smoothing error is O(w)"})

@@ -332,8 +332,8 @@ def test_python_module_needs_numpy_only(tmp_path, py_files, design, c_files):
     np.testing.assert_allclose(got, ref, rtol=1e-13)
 
     # the example runner over the recorded trajectory, with numpy alone, gives CasADi's torques
-    run = BLOCKER + f"import runpy, sys; sys.argv = ['run_trajectory.py', 'trajectory.txt']; " \
-        f"runpy.run_path('run_trajectory.py', run_name='__main__')"
+    run = BLOCKER + "import runpy, sys; sys.argv = ['run_trajectory.py', 'trajectory.txt']; " \
+        "runpy.run_path('run_trajectory.py', run_name='__main__')"
     proc = subprocess.run([sys.executable, "-c", run], cwd=out, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     rows = parse_trajectory_output(proc.stdout)

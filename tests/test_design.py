@@ -186,7 +186,7 @@ def test_inner_loop_cancels_to_the_designed_z_dynamics(paper_design):
     k1, k2 = d.constants["k1"], d.constants["k2"]
     target = -ca.dot(k1 * s["mu1"], s["z1"] ** 2) - ca.dot(k2 * s["mu2"], s["z2"] ** 2)
     # ddq of the nominal model is v - W_hat^T Phi; a perfect estimate adds W_hat^T Phi back: ddq = v
-    w, Phi = d.sym["w_hat"], s["Phi"]
+    w = d.sym["w_hat"]
     Vdot_perfect = ca.substitute(Vdot, w, ca.SX.zeros(w.shape))
     target = ca.substitute(target, w, ca.SX.zeros(w.shape))
     f = ca.Function("f", [d.sym[k] for k in BASE_INPUTS], [Vdot_perfect, target], list(BASE_INPUTS), ["a", "b"])

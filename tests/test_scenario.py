@@ -10,7 +10,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from symfunnel.cli import main
 from symfunnel.errors import InputError
 from symfunnel.scenario import load_scenario
 

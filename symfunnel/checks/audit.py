@@ -8,7 +8,6 @@ sampled verdict stands and says how many points it rests on.
 from __future__ import annotations
 
 import contextlib
-import math
 import signal
 import threading
 from dataclasses import dataclass, field

@@ -21,12 +21,12 @@ Check ids, in order:
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..io import json_safe
 from .audit import CheckResult, check_funnel_initial
 from .lyapunov import REL_TOL, LyapunovTrajectory, along_trajectory, decay_margin, falsify
 
@@ -55,34 +55,16 @@ class Verification:
     def to_json(self) -> dict:
         """{"scenario", "status", "checks": [...], "simulation": summary, "lyapunov": {...}, "timings"}."""
         out = {"scenario": self.scenario.name, "status": "fail" if self.failed else "pass",
-               "checks": [_clean(c.to_json()) for c in self.checks], "timings": self.timings}
+               "checks": [json_safe(c.to_json()) for c in self.checks], "timings": self.timings}
         if self.result is not None:
             out["simulation"] = {k: self.result.summary().get(k) for k in ("status", "message", "t_end", "t_final",
                                                                            "points", "wall_time")}
         if self.lyapunov is not None:
             L = self.lyapunov
-            out["lyapunov"] = _clean({"W_star": L.w_star_info, "rho_const": L.rho_const,
+            out["lyapunov"] = json_safe({"W_star": L.w_star_info, "rho_const": L.rho_const,
                                       "rho_const_lower": L.rho_const_lower, "delta_max": L.delta_max,
                                       "rho_paper_const": L.rho_paper_const, "delta_paper": L.delta_paper_const})
         return out
-
-
-def _clean(o):
-    """JSON-safe: numpy to Python, non-finite floats to None."""
-    if isinstance(o, dict):
-        return {k: _clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _clean(o.tolist())
-    if isinstance(o, (np.floating, float)):
-        f = float(o)
-        return f if math.isfinite(f) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    return o
 
 
 def _g(x: float) -> str:

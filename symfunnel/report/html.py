@@ -16,6 +16,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from ..names import compress_names
 from . import figures as FIG
 
 MATHML_NS = "http://www.w3.org/1998/Math/MathML"     # a namespace name (a URI), not a reference: nothing is fetched
@@ -123,16 +124,6 @@ def _where(w) -> str:
     return ", ".join(parts)
 
 
-def _compress(names: list[str]) -> str:
-    out, groups = [], {}
-    for s in names:
-        base = s.rstrip("0123456789").rstrip("_")
-        groups.setdefault(base, []).append(s)
-    for base, items in groups.items():
-        out.append(f"{items[0]}..{items[-1]} ({len(items)})" if len(items) > 4 else ", ".join(items))
-    return ", ".join(out) if out else "(constant)"
-
-
 def versions() -> list[tuple[str, str]]:
     """Software versions of this run."""
     from .. import __version__
@@ -221,7 +212,7 @@ def derivation_section(design, audit_results, progress) -> dict:
         cse = design.ops(k)
         row = {"name": k, "sym": symbol_mathml(k), "desc": SIGNALS.get(k, ("", 0))[0],
                "shape": f"{e.shape[0]}\u00d7{e.shape[1]}", "ops_raw": raw, "ops_cse": cse,
-               "free": _compress(design.free_symbols(k)), "mathml": None, "note": ""}
+               "free": compress_names(design.free_symbols(k)), "mathml": None, "note": ""}
         if cse <= 4 * FORMULA_MAX_OPS and e.numel() <= 4 and k not in ("Phi",):
             try:
                 s = _signal_sympy(design, k, 0)
