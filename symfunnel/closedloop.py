@@ -7,8 +7,9 @@ of t (`Design.reference_t`). Plant (unknown to the controller):
 
     M_p(q) ddq + C_p(q, dq) dq + G_p(q) + friction(dq) + d(t, q, dq) = D(tau)
 
-with M_p, C_p, G_p = plant.mass_scale * the model's matrices at the model parameters overridden by
-`plant.parameters`, friction = viscous*dq + coulomb*sign_w(dq), D the dead zone of eq. 2 (smoothed with the same
+with M_p, G_p = plant.mass_scale * the model's matrices at the model parameters overridden by
+`plant.parameters`, C_p the Christoffel-symbol Coriolis matrix of M_p (physical, whatever C the controller's model
+types in; `plant.coriolis = "model"` takes the model's C instead), friction = viscous*dq + coulomb*sign_w(dq), D the dead zone of eq. 2 (smoothed with the same
 width w, see `symfunnel.plant`), d the disturbance expressions. ddq is obtained by an LDL^T factorisation of M_p
 written out in SX (n^3/6 operations, no symbolic blow-up for n ~ 7, no pivoting needed as M_p is positive definite).
 
@@ -132,11 +133,15 @@ class ClosedLoop:
 def plant_acceleration(scenario, q, dq, t, tau, width: float) -> dict:
     """The true plant's ddq under commanded torque tau, with its parts (SX in q, dq, t, tau)."""
     from . import plant as P
+    from .model.base import christoffel_C
     model = scenario.model
     pl = scenario.plant
     n = model.n
     # plant parameters: the model's values overridden by plant.parameters, then scaled by mass_scale
-    M, C, G = model.M, model.C, model.G
+    M, G = model.M, model.G
+    # The true plant is physical: its Coriolis matrix comes from M (Christoffel symbols), whatever C the
+    # controller's model was given, unless the scenario asks for the model's C (plant.coriolis = "model").
+    C = christoffel_C(M, model.q, model.dq) if pl.coriolis == "christoffel" and model.C_source == "given" else model.C
     if model.p.numel():
         vals = model.parameter_dict()
         vals.update(pl.parameters)

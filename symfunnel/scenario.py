@@ -76,6 +76,7 @@ class PlantSpec:
     dead_zone: DeadZoneSpec | None
     mass_scale: float
     parameters: dict[str, float]
+    coriolis: str = "christoffel"        # the plant's C: "christoffel" (physical, from M) or "model" (as given)
 
 
 @dataclass
@@ -375,8 +376,9 @@ def _esn(table: Any, file: str) -> ESNSpec:
 
 def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
     p = "plant"
-    V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters"],
+    V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters", "coriolis"],
                  file=file, prefix=p)
+    coriolis = V.get_str(table, "coriolis", "christoffel", file=file, prefix=p, choices=["christoffel", "model"])
     viscous = V.per_joint(table, "viscous", n, 0.0, file=file, prefix=p, minimum=0)
     coulomb = V.per_joint(table, "coulomb", n, 0.0, file=file, prefix=p, minimum=0)
     names = {"t"} | set(model.coordinates) | {"d" + c for c in model.coordinates}
@@ -398,7 +400,7 @@ def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
                                  file=file, key=q + ".right")
         dz = DeadZoneSpec(b_l, b_r, left, right)
         _check_dead_zone(dz, n, file)
-    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params)
+    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params, coriolis)
 
 
 def _check_dead_zone(dz: DeadZoneSpec, n: int, file: str) -> None:
