@@ -10,6 +10,7 @@ import pytest
 
 from symfunnel.checks.lyapunov import _sub_reference, lyapunov_function
 from symfunnel.checks.verify import verify
+from symfunnel.design import derive
 
 T_FINAL = 5.0          # a shortened horizon keeps the suite fast; the CLI default is the scenario's 20 s
 
@@ -130,3 +131,14 @@ def test_initial_error_outside_its_funnel_fails_verify(write_scenario, capsys):
     assert ids["simulation.completed"]["status"] == "fail"
     assert ids["funnel.containment.e2.joint1"]["status"] == "fail"
     assert ids["funnel.containment.e2.joint1"]["where"]["t"] == 0.0
+
+
+def test_corrected_decay_fails_when_the_implementation_departs_from_the_derivation(paper):
+    """Not vacuous: with the adaptive law's sign flipped in the graph (as printed in eq. 33's first term under
+    symfunnel's convention), V_dot exceeds -rho V + delta along the run and the check says so."""
+    d = derive(paper)
+    d.signals["w_hat_dot"] = -d.signals["w_hat_dot"]
+    v = verify(paper, d, t_final=2.0, samples=10000)
+    ids = {c.id: c for c in v.checks}
+    assert ids["lyapunov.decay.corrected"].status == "fail"
+    assert ids["lyapunov.decay.corrected"].margin < 0
