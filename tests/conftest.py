@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 # Compiled artefacts of a test run go to a private cache, never to the user's.
@@ -55,3 +56,31 @@ def write_scenario(tmp_path):
         p.write_text(text, encoding="utf-8")
         return p
     return write
+
+
+def alpha2_dot_fd_error(design, k: int, seed: int, fill: float = 0.9) -> tuple[float, int]:
+    """Worst relative gap between alpha2_dot and fourth-order central differences of alpha2 along the flow.
+
+    d/ds alpha2(t + s, q + s dq, qd(t + s), dqd(t + s)) at s = 0, at k points inside the funnels; points whose
+    stencil straddles the |e1| kink at e1 = 0 are skipped. Returns (worst, points used).
+    """
+    from symfunnel.checks.sampling import funnel_states
+    a2 = design.function("alpha2", ["t", "q", "qd", "dqd"])
+    a2d = design.function("alpha2_dot", ["t", "q", "dq", "qd", "dqd", "ddqd"])
+    pts = funnel_states(design, k, np.random.default_rng(seed), fill=fill)
+    worst, used = 0.0, 0
+    for j in range(k):
+        t, q, dq = pts["t"][0, j], pts["q"][:, j], pts["dq"][:, j]
+        h = 1e-5 / (1.0 + np.max(np.abs(dq)))
+        qd, dqd, ddqd = design.reference(t)
+        if np.any(np.abs(q - np.array(qd).ravel()) < 4 * h * (np.abs(dq) + 1)):
+            continue
+
+        def alpha(s):
+            r = design.reference(t + s)
+            return np.array(a2(t + s, q + s * dq, r[0], r[1])).ravel()
+        fd = (8 * (alpha(h) - alpha(-h)) - (alpha(2 * h) - alpha(-2 * h))) / (12 * h)
+        ex = np.array(a2d(t, q, dq, qd, dqd, ddqd)).ravel()
+        worst = max(worst, float(np.max(np.abs(fd - ex)) / max(np.max(np.abs(ex)), 1e-3)))
+        used += 1
+    return worst, used

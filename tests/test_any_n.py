@@ -13,6 +13,8 @@ import pytest
 
 from symfunnel.checks.audit import audit
 from symfunnel.cli import build_parser, main
+
+from .conftest import alpha2_dot_fd_error
 from symfunnel.design import derive
 from symfunnel.scenario import DATA_DIR, load_scenario
 
@@ -117,28 +119,7 @@ def test_arm7_alpha2_dot_equals_central_differences_along_the_flow(arm7_design):
 
     Points inside 90 % of the funnels' width: nearer the edge the stencil itself is the error.
     """
-    from symfunnel.checks.sampling import funnel_states
-    d = arm7_design
-    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
-    a2d = d.function("alpha2_dot", ["t", "q", "dq", "qd", "dqd", "ddqd"])
-    k = 100
-    pts = funnel_states(d, k, np.random.default_rng(11), fill=0.9)
-    worst, used = 0.0, 0
-    for j in range(k):
-        t, q, dq = pts["t"][0, j], pts["q"][:, j], pts["dq"][:, j]
-        h = 1e-5 / (1.0 + np.max(np.abs(dq)))
-        qd0 = np.array(d.reference(t)[0]).ravel()
-        if np.any(np.abs(q - qd0) < 4 * h * (np.abs(dq) + 1)):      # |e1| kink inside the stencil
-            continue
-
-        def alpha(s):
-            qd, dqd, _ = d.reference(t + s)
-            return np.array(a2(t + s, q + s * dq, qd, dqd)).ravel()
-        fd = (8 * (alpha(h) - alpha(-h)) - (alpha(2 * h) - alpha(-2 * h))) / (12 * h)
-        qd, dqd, ddqd = d.reference(t)
-        ex = np.array(a2d(t, q, dq, qd, dqd, ddqd)).ravel()
-        worst = max(worst, np.max(np.abs(fd - ex)) / max(np.max(np.abs(ex)), 1e-3))
-        used += 1
+    worst, used = alpha2_dot_fd_error(arm7_design, 100, 11, fill=0.9)
     assert used > 80
     assert worst <= 1e-6, worst
 
