@@ -425,17 +425,6 @@ def _leakage(design: Design, law: ca.SX, rng, k: int = 200) -> dict:
     return {"samples": k, "growing_fraction": float(np.mean(r > 0)), "max_rate": float(np.max(r))}
 
 
-def check_alpha2_free_of_dq(design: Design) -> CheckResult:
-    """design.alpha2_free_of_dq: alpha2 is a function of t, q and the reference only (never dq or e2)."""
-    free = design.free_symbols("alpha2")
-    bad = [s for s in free if design._owner[s][0] not in ("t", "q", "qd", "dqd")]
-    if bad:
-        return CheckResult("design.alpha2_free_of_dq", "fail", f"alpha2 depends on {', '.join(bad)}",
-                           method="symbolic (dependency graph)")
-    return CheckResult("design.alpha2_free_of_dq", "pass",
-                       f"alpha2 depends on {', '.join(free)} only", method="symbolic (dependency graph)")
-
-
 def audit(scenario, design: Design | None = None, *, progress=None) -> list[CheckResult]:
     """Run every audit check of a scenario; returns the results in a fixed order."""
     design = design or derive(scenario)
@@ -449,7 +438,6 @@ def audit(scenario, design: Design | None = None, *, progress=None) -> list[Chec
         ("model.coriolis_consistent", lambda r: check_coriolis(design, r)),
         ("funnel.parameters", lambda r: check_funnel_parameters(design)),
         ("funnel.initial_condition", lambda r: check_funnel_initial(design)),
-        ("design.alpha2_free_of_dq", lambda r: check_alpha2_free_of_dq(design)),
     ]
     for i, claim in enumerate(scenario.claims):
         steps.append((f"claim.{claim.name}", lambda r, c=claim: check_claim(design, c, r)))
