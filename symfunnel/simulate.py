@@ -23,7 +23,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import shutil
 import subprocess
 import tempfile
 import time
@@ -48,12 +47,6 @@ _LOADED: dict = {}           # source hash -> (ode, outputs) externals loaded in
 
 
 # --- compiled functions ----------------------------------------------------------------------------------
-
-def cache_dir() -> Path:
-    """Where compiled closed loops are kept: $SYMFUNNEL_CACHE or ~/.cache/symfunnel."""
-    env = os.environ.get("SYMFUNNEL_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "symfunnel"
-
 
 @dataclass
 class Compiled:
@@ -116,10 +109,6 @@ def _newton_jacobian(cl: ClosedLoop, dae: ca.Function, perm: np.ndarray) -> ca.F
     return ca.Function(jac.name(), ins, outs, jac.name_in(), jac.name_out(), {"cse": True})
 
 
-def _compiler() -> str | None:
-    return os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
-
-
 def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
                         approx_jacobian: bool = APPROX_ESN_JACOBIAN) -> Compiled:
     """Generate C for the closed loop's RHS, Jacobian and outputs, compile it once (cached) and load it.
@@ -136,11 +125,6 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm")
     if not jit or os.environ.get("SYMFUNNEL_NO_JIT"):
         return vm
-    cc = _compiler()
-    if cc is None:
-        warnings.warn("no C compiler found (gcc/cc/$CC): simulating on the CasADi virtual machine (slower)",
-                      RuntimeWarning, stacklevel=2)
-        return vm
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
         cg = ca.CodeGenerator("symfunnel_cl.c", {"with_header": False})
@@ -153,27 +137,21 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     if digest in _LOADED:
         ext_dae, ext_out, lib = _LOADED[digest]
         return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, True, lib, digest)
-    d = cache_dir()
-    lib = d / f"symfunnel_cl_{digest}.so"
-    cached = lib.exists()
-    if not cached:
-        say(f"compiling the closed loop to C (one-time; cached as {lib})")
-        try:
-            d.mkdir(parents=True, exist_ok=True)
-            c_file = d / f"symfunnel_cl_{digest}.c"
-            c_file.write_bytes(src)
-            fd, tmp_so = tempfile.mkstemp(prefix=".symfunnel_cl_", suffix=".so", dir=d)
-            os.close(fd)
-            r = subprocess.run([cc, *COMPILE_FLAGS, "-o", tmp_so, str(c_file), "-lm"], capture_output=True,
-                               text=True, timeout=600)
-            if r.returncode != 0:
-                os.unlink(tmp_so)
-                raise RuntimeError(r.stderr.strip()[-500:])
-            os.replace(tmp_so, lib)
-        except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
-            warnings.warn(f"compiling the closed loop failed ({exc}); simulating on the CasADi virtual machine",
-                          RuntimeWarning, stacklevel=2)
-            return vm
+    from .codegen.build import compile_cached, find_compiler
+    try:
+        find_compiler()
+    except InputError:
+        warnings.warn("no C compiler found (gcc/cc/$CC): simulating on the CasADi virtual machine (slower)",
+                      RuntimeWarning, stacklevel=2)
+        return vm
+    try:
+        built = compile_cached({"symfunnel_cl.c": src}, ["symfunnel_cl.c"], "symfunnel_cl.so", COMPILE_FLAGS,
+                               on_build=say)
+    except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
+        warnings.warn(f"compiling the closed loop failed ({exc}); simulating on the CasADi virtual machine",
+                      RuntimeWarning, stacklevel=2)
+        return vm
+    lib, cached = built.path, built.cached
     try:
         ext_dae = ca.external("symfunnel_ode", str(lib))
         ext_out = ca.external("symfunnel_outputs", str(lib))

@@ -75,11 +75,12 @@ def _key(sources: dict[str, str | bytes], flags: tuple[str, ...], output: str, c
 
 def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], output: str,
                    flags: tuple[str, ...] | list[str], *, libs: tuple[str, ...] = ("-lm",),
-                   cache: Path | None = None) -> Built:
+                   cache: Path | None = None, on_build=None) -> Built:
     """Compile `compile_files` (names in `sources`) into `output` with `flags`, once per distinct input.
 
     The key is sha256 over the compiler and its version, the flags, the output name and every source file's
     name and text (headers included). A compiler failure raises RuntimeError with its diagnostics.
+    `on_build(message)` is called just before the compiler runs (not on a cache hit), for progress output.
     """
     flags = tuple(flags)
     cc = find_compiler()
@@ -97,6 +98,8 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
             with open(tmp / name, mode, **({} if isinstance(data, bytes) else {"encoding": "utf-8"})) as fh:
                 fh.write(data)
         cmd = [cc, *flags, "-o", output, *compile_files, *libs]
+        if on_build is not None:
+            on_build(f"compiling {output} (one-time; cached in {root})")
         proc = subprocess.run(cmd, cwd=tmp, capture_output=True, text=True)
         if proc.returncode != 0 or proc.stderr.strip():
             raise RuntimeError(f"compiling {output} failed ({' '.join(cmd)}):\n{proc.stderr.strip()}")

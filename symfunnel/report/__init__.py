@@ -86,11 +86,4 @@ def build_report(scenario, out=None, *, design=None, t_final=None, samples: int 
                             progress=progress)
     path = Path(out) if out is not None else default_path(scenario)
     atomic_write(path, text)
-    try:                       # the temporary file of an atomic write is private (0600); a report is for reading
-        import os
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(path, 0o666 & ~mask)
-    except OSError:
-        pass
     return path
