@@ -191,16 +191,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _extra_commands():
-    """Subcommands that live in their own modules (simulate, verify, codegen, report, bench)."""
+    """Subcommands that live in their own modules under symfunnel/commands (one module, one command)."""
+    import pkgutil
+    from . import commands
     out = []
-    for mod in ("simulate", "verify", "codegen", "report", "bench"):
-        try:
-            m = __import__(f"symfunnel.commands.{mod}", fromlist=["register"])
-        except ModuleNotFoundError as exc:
-            if exc.name and exc.name.startswith("symfunnel.commands"):
-                continue
-            raise
-        out.append(m.register)
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        m = __import__(f"symfunnel.commands.{info.name}", fromlist=["register"])
+        if hasattr(m, "register"):
+            out.append(m.register)
     return out
 
 

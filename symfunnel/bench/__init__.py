@@ -8,8 +8,11 @@ symfunnel time, higher is better.
 from __future__ import annotations
 
 import importlib
+import pkgutil
+from pathlib import Path
 
-AREAS = ("simulate", "codegen", "models")
+# Every module of this package is an area: adding a benchmark area is adding one module with `run(progress)`.
+AREAS = tuple(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if not m.name.startswith("_"))
 
 
 def result(id: str, value: float, unit: str, baseline: str | None = None, baseline_value: float | None = None,

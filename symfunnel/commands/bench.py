@@ -5,11 +5,16 @@ from __future__ import annotations
 import json
 
 
+def _areas() -> tuple[str, ...]:
+    from ..bench import AREAS
+    return AREAS
+
+
 def register(sub, common) -> None:
     """Add the `bench` subcommand."""
     sp = sub.add_parser("bench", help="performance figures, each beside a baseline measured in the same run")
     sp.add_argument("--json", action="store_true", help="machine-readable output")
-    sp.add_argument("--only", action="append", metavar="AREA", help="simulate, codegen or models (repeatable)")
+    sp.add_argument("--only", action="append", metavar="AREA", help="one area (repeatable): " + ", ".join(_areas()))
     sp.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
     sp.set_defaults(func=run)
 
