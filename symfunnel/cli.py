@@ -52,10 +52,11 @@ def _read_points(path: str):
 
 def cmd_derive(args) -> int:
     """`symfunnel derive`: signals with size and free variables; --eval values at points; --latex formulas."""
-    from .design import derive, evaluate
-    from .names import SIGNALS, compress_names
+    from .design import evaluate
+    from .names import compress_names
+    from .pipeline import Run
     sc = _load(args)
-    d = derive(sc)
+    d = Run(sc).design
     if args.eval:
         data = _read_points(args.eval)
         if isinstance(data, list):
@@ -71,11 +72,11 @@ def cmd_derive(args) -> int:
                 if isinstance(values, list):
                     print(f"# point {i}")
                 for k, v in vals.items():
-                    if k in ("Phi", "x_esn_dot", "w_hat_dot") and not args.all:
+                    if (k == "Phi" or k.endswith("_dot") and k[:-4] in dict(d.states)) and not args.all:
                         continue
                     print(f"{k:>11} = {_short(v)}")
         return 0
-    names = [k for k in list(SIGNALS) if k in d.signals]
+    names = list(d.signal_info)
     info = {}
     for k in names:
         info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
@@ -85,7 +86,9 @@ def cmd_derive(args) -> int:
         print(_dump({"scenario": sc.name, "signals": info}))
         return 0
     print(f"scenario {sc.name}: {sc.title}")
-    print(f"  model {sc.model.kind}, n = {sc.n}, C {sc.model.C_source}; ESN N = {sc.esn.size}")
+    print(f"  model {sc.model.kind}, n = {sc.n}, C {sc.model.C_source}; design {sc.design.variant}, transform "
+          f"{sc.design.transform}, approximator {sc.design.approximator}"
+          + (f" (N = {sc.esn.size})" if sc.design.approximator == "esn" else ""))
     print(f"{'signal':>11} {'shape':>7} {'ops':>6}  free variables")
     for k in names:
         i = info[k]
@@ -109,7 +112,7 @@ def _write_latex(d, names, path) -> None:
     import sympy
 
     from .io import atomic_write
-    from .sx2sympy import sx_to_sympy
+    from .sx.tosympy import sx_to_sympy
     lines = [f"% symfunnel derive --latex: scenario {d.scenario.name}", ""]
     for k in names:
         f = d.function(k)
@@ -138,12 +141,10 @@ def _tex_name(k: str) -> str:
 
 def cmd_audit(args) -> int:
     """`symfunnel audit`: model properties and printed claims; --strict exits 1 on any failed check."""
-    from .checks.audit import audit
-    from .design import derive
+    from .pipeline import Run
     sc = _load(args)
     say = _progress(args.quiet or args.json)
-    d = derive(sc)
-    results = audit(sc, d, progress=say)
+    results = Run(sc, progress=say).audit
     failed = [r for r in results if r.status == "fail"]
     if args.json:
         print(_dump({"scenario": sc.name, "checks": [r.to_json() for r in results]}))

@@ -1,9 +1,11 @@
 """The closed loop as one ODE x' = f(t, x), assembled from the one symbolic design (no re-derivation).
 
-State x = [q; dq; x_esn; vec(W_hat)] (W_hat column-major, (N+1) x n), so n = 2, N = 50 gives 2 + 2 + 50 + 102 = 156.
+State x = [q; dq; controller states...] with the controller states in the order the design declares
+(`Design.states`; for the paper's ESN design x_esn, then vec(W_hat) column-major, (N+1) x n, so n = 2, N = 50 gives
+2 + 2 + 50 + 102 = 156).
 
-Controller (known): tau, x_esn_dot and w_hat_dot are `Design.signals` with the reference substituted as functions
-of t (`Design.reference_t`). Plant (unknown to the controller):
+Controller (known): tau and the state rates (x_esn_dot, w_hat_dot, ...) are `Design.signals` with the reference
+substituted as functions of t (`Design.reference_t`). Plant (unknown to the controller):
 
     M_p(q) ddq + C_p(q, dq) dq + G_p(q) + friction(dq) + d(t, q, dq) = D(tau)
 
@@ -26,41 +28,11 @@ import casadi as ca
 import numpy as np
 
 from .errors import InputError
+from .sx.linalg import ldl_solve
 
 #: logged signals (name -> shape kind): 'n' per joint, 'N' per reservoir unit, '1' scalar
 OUTPUT_NAMES = ("qd", "dqd", "ddqd", "tau", "tau_applied", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2",
-                "friction", "disturbance", "ddq", "ddq_nom", "f_true", "w_phi", "m1", "m2", "V_z", "V_w_hat")
-
-
-def ldl_solve(M: ca.SX, b: ca.SX) -> ca.SX:
-    """x = M^{-1} b for a symmetric positive definite SX matrix, by an LDL^T factorisation written out in SX."""
-    n = M.shape[0]
-    L = [[None] * n for _ in range(n)]
-    D = [None] * n
-    for j in range(n):
-        d = M[j, j]
-        for k in range(j):
-            d = d - L[j][k] * L[j][k] * D[k]
-        D[j] = d
-        for i in range(j + 1, n):
-            s = M[i, j]
-            for k in range(j):
-                s = s - L[i][k] * L[j][k] * D[k]
-            L[i][j] = s / d
-    y = [None] * n
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s = s - L[i][k] * y[k]
-        y[i] = s
-    z = [y[i] / D[i] for i in range(n)]
-    x = [None] * n
-    for i in reversed(range(n)):
-        s = z[i]
-        for k in range(i + 1, n):
-            s = s - L[k][i] * x[k]
-        x[i] = s
-    return ca.vertcat(*x)
+                "friction", "disturbance", "ddq", "ddq_nom", "f_true", "w_phi", "m1", "m2")
 
 
 @dataclass
@@ -88,26 +60,30 @@ class ClosedLoop:
 
     @property
     def slices(self) -> dict[str, slice]:
-        """Where q, dq, x_esn and w_hat sit in the state vector."""
-        n, N = self.n, self.N
-        nr = self.design.esn.n_regressor
-        return {"q": slice(0, n), "dq": slice(n, 2 * n), "x_esn": slice(2 * n, 2 * n + N),
-                "w_hat": slice(2 * n + N, 2 * n + N + nr * n)}
+        """Where q, dq and each controller state sit in the state vector."""
+        out = {"q": slice(0, self.n), "dq": slice(self.n, 2 * self.n)}
+        i = 2 * self.n
+        for name, (r, c) in self.design.states:
+            out[name] = slice(i, i + r * c)
+            i += r * c
+        return out
 
-    def pack(self, q, dq, x_esn, w_hat) -> np.ndarray:
-        """State vector from its parts (w_hat as an (N+1) x n matrix, stored column-major)."""
-        nr = self.design.esn.n_regressor
-        w = np.broadcast_to(np.asarray(w_hat, dtype=float), (nr, self.n))
-        return np.concatenate([np.ravel(q), np.ravel(dq), np.ravel(x_esn), w.ravel(order="F")]).astype(float)
+    def pack(self, q, dq, *states) -> np.ndarray:
+        """State vector from its parts, controller states in the design's order (matrices stored column-major)."""
+        parts = [np.ravel(q), np.ravel(dq)]
+        for (name, shape), v in zip(self.design.states, states):
+            parts.append(np.broadcast_to(np.asarray(v, dtype=float).reshape(shape if shape[1] > 1 else -1),
+                                         shape if shape[1] > 1 else (shape[0],)).ravel(order="F"))
+        return np.concatenate(parts).astype(float)
 
     def unpack(self, x) -> dict[str, np.ndarray]:
-        """Parts of a state vector (n_x,) or of a trajectory (T, n_x): q, dq, x_esn, w_hat ((.., N+1, n))."""
+        """Parts of a state vector (n_x,) or of a trajectory (T, n_x); matrix states as (.., rows, cols)."""
         x = np.asarray(x, dtype=float)
         s = self.slices
-        nr = self.design.esn.n_regressor
-        out = {k: x[..., s[k]] for k in ("q", "dq", "x_esn")}
-        w = x[..., s["w_hat"]]
-        out["w_hat"] = np.swapaxes(w.reshape(w.shape[:-1] + (self.n, nr)), -1, -2)
+        out = {k: x[..., s[k]] for k in ("q", "dq")}
+        for name, (r, c) in self.design.states:
+            v = x[..., s[name]]
+            out[name] = v if c == 1 else np.swapaxes(v.reshape(v.shape[:-1] + (c, r)), -1, -2)
         return out
 
     def rhs(self, t: float, x) -> np.ndarray:
@@ -120,13 +96,12 @@ class ClosedLoop:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         T = t.size
         if T == 0:
-            return {k: np.zeros((0,) if k in ("V_z", "V_w_hat") else (0, self.n)) for k in OUTPUT_NAMES}
+            return {k: np.zeros((0, self.n)) for k in OUTPUT_NAMES}
         fm = self.outputs.map(T)
         vals = fm(t.reshape(1, -1), X.T)
         out = {}
         for k, v in zip(OUTPUT_NAMES, vals):
-            a = np.asarray(v).T          # (T, rows)
-            out[k] = a[:, 0] if a.shape[1] == 1 and k in ("V_z", "V_w_hat") else a
+            out[k] = np.asarray(v).T          # (T, rows)
         return out
 
 
@@ -175,11 +150,8 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float) -> dict:
     return {"ddq": ddq, "M": M, "C": C, "G": G, "friction": fric, "disturbance": dist, "tau_applied": tau_applied}
 
 
-def build_closed_loop(scenario, design=None, *, width=None) -> ClosedLoop:
-    """Assemble the closed-loop ODE of a scenario from its design (derived here when not given)."""
-    from .design import derive
-    if design is None:
-        design = derive(scenario)
+def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
+    """Assemble the closed-loop ODE of a scenario from its design."""
     w = scenario.simulation.smoothing_width if width is None else width
     if not (isinstance(w, (int, float)) and np.isfinite(w) and w >= 0):
         raise InputError(f"is {w!r}", file=scenario.file, key="simulation.smoothing_width",
@@ -188,8 +160,9 @@ def build_closed_loop(scenario, design=None, *, width=None) -> ClosedLoop:
     d = design
     sym = d.sym
     n = d.n
-    t, q, dq, x_esn, w_hat = sym["t"], sym["q"], sym["dq"], sym["x_esn"], sym["w_hat"]
-    N = x_esn.numel()
+    t, q, dq = sym["t"], sym["q"], sym["dq"]
+    states = [name for name, _ in d.states]
+    N = sym["x_esn"].numel() if "x_esn" in sym else 0
     ref_syms = ca.vertcat(sym["qd"], sym["dqd"], sym["ddqd"])
     ref_t = ca.vertcat(d.reference_t["qd"], d.reference_t["dqd"], d.reference_t["ddqd"])
 
@@ -197,37 +170,35 @@ def build_closed_loop(scenario, design=None, *, width=None) -> ClosedLoop:
         return ca.substitute(e, ref_syms, ref_t)
 
     S = d.signals
-    names = ["tau", "x_esn_dot", "w_hat_dot", "ddq", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2", "Phi", "qd",
-             "dqd", "ddqd"]
+    names = ["tau", *[f"{k}_dot" for k in states], "ddq", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2", "Phi",
+             "qd", "dqd", "ddqd"]
     subbed = ca.substitute([S[k] for k in names], [ref_syms], [ref_t])
     sg = dict(zip(names, subbed))
     tau = sg["tau"]
     plant = plant_acceleration(scenario, q, dq, t, tau, w)
     ddq = plant["ddq"]
-    x = ca.vertcat(q, dq, x_esn, ca.vec(w_hat))
-    xdot = ca.vertcat(dq, ddq, sg["x_esn_dot"], ca.vec(sg["w_hat_dot"]))
+    x = ca.vertcat(q, dq, *[ca.vec(sym[k]) for k in states])
+    xdot = ca.vertcat(dq, ddq, *[ca.vec(sg[f"{k}_dot"]) for k in states])
     f = ca.Function("closed_loop", [t, x], [xdot], ["t", "x"], ["xdot"], {"cse": True})
 
-    w_phi = ca.mtimes(w_hat.T, sg["Phi"])
+    w_hat = sym["w_hat"] if "w_hat" in sym else ca.SX(0, n)
+    w_phi = ca.mtimes(w_hat.T, sg["Phi"]) if d.n_regressor else ca.SX.zeros(n, 1)
     f_true = ddq - sg["ddq"]
-    gamma = float(scenario.gamma)
     outs = {
         "qd": sg["qd"], "dqd": sg["dqd"], "ddqd": sg["ddqd"], "tau": tau, "tau_applied": plant["tau_applied"],
         "e1": sg["e1"], "F1": sg["F1"], "e2": sg["e2"], "F2": sg["F2"], "z1": sg["z1"], "z2": sg["z2"],
         "alpha2": sg["alpha2"], "friction": plant["friction"], "disturbance": plant["disturbance"],
         "ddq": ddq, "ddq_nom": sg["ddq"], "f_true": f_true, "w_phi": w_phi,
         "m1": (sg["F1"] - ca.fabs(sg["e1"])) / sg["F1"], "m2": (sg["F2"] - ca.fabs(sg["e2"])) / sg["F2"],
-        "V_z": 0.5 * ca.sumsqr(sg["z1"]) + 0.5 * ca.sumsqr(sg["z2"]),
-        "V_w_hat": ca.sumsqr(w_hat) / (2 * gamma),
     }
     outs = {k: ca.SX(outs[k]) for k in OUTPUT_NAMES}
     outputs = ca.Function("closed_loop_outputs", [t, x], [outs[k] for k in OUTPUT_NAMES], ["t", "x"],
                           list(OUTPUT_NAMES), {"cse": True})
 
     sc = scenario
-    nr = d.esn.n_regressor
-    x0 = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float), np.asarray(sc.x_esn0, float),
-                         np.full(nr * n, float(sc.w_hat0))])
+    init = d.variant.initial_states()
+    x0 = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float),
+                         *[np.ravel(init[k], order="F") for k in states]])
     if w == 0.0:
         warnings.warn("smoothing_width = 0: exact sign friction and dead-zone kinks; CVODES may stall on them",
                       RuntimeWarning, stacklevel=2)

@@ -1,4 +1,9 @@
-"""The named signals of the design: one name each, used by the CLI, the audit claims and the generated code."""
+"""The named signals of the design and the identifier rules of scenario files (ground floor: imports nothing of ours)."""
+
+import re
+
+#: a scenario identifier (coordinate, parameter, claim name)
+IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 # name -> (description, funnel level needed: 0 none, 1 funnel e1, 2 funnels e1 and e2)
 SIGNALS: dict[str, tuple[str, int]] = {
@@ -46,3 +51,7 @@ def compress_names(names: list[str]) -> str:
     for items in groups.values():
         out.append(f"{items[0]}..{items[-1]} ({len(items)})" if len(items) > 4 else ", ".join(items))
     return ", ".join(out) if out else "(constant)"
+
+
+#: names a scenario may not give to its own coordinates or parameters
+RESERVED = {"t", "u", "pi", "e"} | set(SIGNALS) | set(CONSTANTS) | {"x_esn", "w_hat", "q", "dq"}

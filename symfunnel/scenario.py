@@ -17,29 +17,19 @@ else:  # pragma: no cover
 from . import validate as V
 from .errors import InputError
 from .expr import Expression, parse_expression
-from .names import CONSTANTS, SIGNALS
+from .family.approximators import APPROXIMATORS, ESNApproximator
+from .family.funnels import FunnelSpec, parse_funnel
+from .family.transforms import TRANSFORMS
+from .family.variants import VARIANTS
+from .names import CONSTANTS, IDENT, RESERVED, SIGNALS
 
 DATA_DIR = Path(__file__).parent / "data"
 BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
-            "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims"]
-ESN_INPUTS = ["q", "dq", "e1", "e2", "qd", "dqd", "ddqd", "alpha2", "alpha2_dot"]
-IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-RESERVED = {"t", "u", "pi", "e"} | set(SIGNALS) | set(CONSTANTS) | {"x_esn", "w_hat", "q", "dq"}
-
-
-@dataclass
-class FunnelSpec:
-    """F(t) = phi0*exp(-a*t) + phi_inf, per joint."""
-
-    phi0: list[float]
-    phi_inf: list[float]
-    a: list[float]
-
-    def value(self, t: float) -> list[float]:
-        """F at time t, per joint."""
-        return [p0 * math.exp(-a * t) + pi for p0, pi, a in zip(self.phi0, self.phi_inf, self.a)]
+            "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims", "design",
+            "approximator"]
+ESN_INPUTS = list(ESNApproximator.INPUTS)
 
 
 @dataclass
@@ -98,6 +88,15 @@ class ESNSpec:
     def n_regressor(self) -> int:
         """Length of Phi: N reservoir states plus one bias entry when `bias`."""
         return self.size + (1 if self.bias else 0)
+
+
+@dataclass
+class DesignSpec:
+    """Which design is derived: the variant, its error transformation and its approximator (registry names)."""
+
+    variant: str = "backstepping"
+    transform: str = "funnel"
+    approximator: str = "esn"
 
 
 @dataclass
@@ -165,6 +164,7 @@ class Scenario:
     simulation: SimulationSpec
     audit: AuditSpec
     claims: list[Claim]
+    design: DesignSpec = field(default_factory=DesignSpec)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -259,12 +259,13 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     sim = _simulation(raw.get("simulation", {}), file)
     audit = _audit(raw.get("audit", {}), n, file, model)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
+    design = _design(raw.get("design", {}), raw.get("approximator", {}), file)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
-                    raw=raw)
+                    design=design, raw=raw)
 
 
 # --- sections -------------------------------------------------------------------------------------
@@ -331,13 +332,22 @@ def _x_esn0(init: dict, size: int, file: str) -> list[float]:
     return V.per_joint(init, "x_esn", size, 0.0, file=file, prefix="initial")
 
 
-def _funnel(table: Any, n: int, file: str, prefix: str, defaults) -> FunnelSpec:
-    V.check_keys(table, ["phi0", "phi_inf", "a"], file=file, prefix=prefix)
-    phi0 = V.per_joint(table, "phi0", n, defaults[0], file=file, prefix=prefix, minimum=0)
-    phi_inf = V.per_joint(table, "phi_inf", n, defaults[1], file=file, prefix=prefix, minimum=0,
-                          strict_min=True)
-    a = V.per_joint(table, "a", n, defaults[2], file=file, prefix=prefix, minimum=0)
-    return FunnelSpec(phi0, phi_inf, a)
+def _funnel(table: Any, n: int, file: str, prefix: str, defaults):
+    return parse_funnel(table, n, file, prefix, defaults)
+
+
+def _design(table: Any, approx: Any, file: str) -> DesignSpec:
+    """`[design]` (variant, transform) and `[approximator]` (type), validated against their registries."""
+    d = DesignSpec()
+    V.check_keys(table, ["variant", "transform"], file=file, prefix="design")
+    V.check_keys(approx, ["type"], file=file, prefix="approximator")
+    out = DesignSpec(variant=V.get_str(table, "variant", d.variant, file=file, prefix="design"),
+                     transform=V.get_str(table, "transform", d.transform, file=file, prefix="design"),
+                     approximator=V.get_str(approx, "type", d.approximator, file=file, prefix="approximator"))
+    VARIANTS.get(out.variant, file=file, key="design.variant")
+    TRANSFORMS.get(out.transform, file=file, key="design.transform")
+    APPROXIMATORS.get(out.approximator, file=file, key="approximator.type")
+    return out
 
 
 def _esn(table: Any, file: str) -> ESNSpec:

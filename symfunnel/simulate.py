@@ -180,7 +180,6 @@ class SimResult:
     n: int = 0
     gamma: float = 1.0
     convergence: dict | None = None
-    extras: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -218,8 +217,8 @@ class SimResult:
             "max_abs_tau_applied": per_joint(lambda a: np.max(np.abs(a), axis=0), "tau_applied"),
             "rms_esn_error": per_joint(lambda a: np.sqrt(np.mean(a ** 2, axis=0)), "esn_error"),
             "rms_f_true": per_joint(lambda a: np.sqrt(np.mean(a ** 2, axis=0)), "f_true"),
-            "max_abs_w_hat": float(np.max(np.abs(s["w_hat"]))) if T else None,
-            "max_abs_x_esn": float(np.max(np.abs(s["x_esn"]))) if T else None,
+            "max_abs_w_hat": float(np.max(np.abs(s["w_hat"]))) if T and "w_hat" in s else None,
+            "max_abs_x_esn": float(np.max(np.abs(s["x_esn"]))) if T and "x_esn" in s else None,
             "breach": self.breach,
             "wall_time": self.stats.get("wall_time"),
             "realtime_factor": self.stats.get("realtime_factor"),
@@ -239,13 +238,14 @@ class SimResult:
             out["convergence"] = self.convergence
         return json_safe(out)
 
-    def save_npz(self, path) -> Path:
-        """Write the whole trajectory (time first) and the run's metadata to an .npz file, atomically."""
+    def save_npz(self, path, arrays: dict | None = None) -> Path:
+        """Write the trajectory (time first; `arrays` adds e.g. V and W* of the Lyapunov stage) and the run's
+        metadata to an .npz file, atomically."""
         from .io import atomic_path
         data = {"t": self.t}
         for k, v in self.signals.items():
             data[k] = np.asarray(v)
-        for k, v in self.extras.items():
+        for k, v in (arrays or {}).items():
             data[k] = np.asarray(v)
         data["status"] = np.array(self.status)
         data["message"] = np.array(self.message)
@@ -320,15 +320,14 @@ class _Runner:
 def _outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> dict:
     T = t.size
     if T == 0:
-        return {k: np.zeros((0,) if k in ("V_z", "V_w_hat") else (0, n)) for k in OUTPUT_NAMES}
+        return {k: np.zeros((0, n)) for k in OUTPUT_NAMES}
     fm = comp.maps.get(T)
     if fm is None:
         fm = comp.maps[T] = comp.outputs.map(T)
     vals = fm(t.reshape(1, -1), X.T)
     out = {}
     for k, v in zip(OUTPUT_NAMES, vals):
-        a = np.asarray(v).T
-        out[k] = a[:, 0] if k in ("V_z", "V_w_hat") else a
+        out[k] = np.asarray(v).T
     return out
 
 
@@ -367,7 +366,7 @@ def _grid(t_final: float, dt: float) -> tuple[int, float]:
     return M, t_final / M
 
 
-def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None, progress=None,
+def simulate(scenario, design, *, t_final=None, integrator=None, width=None, progress=None,
              wall_limit=None, closed_loop=None, jit: bool = True) -> SimResult:
     """Simulate a scenario's closed loop; never raises for a breach, a timeout or an integrator failure.
 
@@ -645,19 +644,6 @@ def _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner
     signals.update(o)
     signals["esn_error"] = o["w_phi"] - o["f_true"]
     gamma = float(sc.gamma)
-    extras = {}
-    # V needs the ideal weights W*, which no scenario gives: the one estimate of checks.lyapunov (fitted on this run)
-    from .checks.lyapunov import estimate_w_star, regressor_values
-    W_star, _ = estimate_w_star(cl, t, X, o["f_true"])
-    if t.size:
-        fit = o["f_true"] - regressor_values(cl.design, parts["x_esn"]) @ W_star
-        resid = np.sqrt(np.nanmean(fit ** 2, axis=0))
-    else:
-        resid = np.zeros(cl.n)
-    dW = W_star[None, :, :] - parts["w_hat"] if t.size else np.zeros((0,) + W_star.shape)
-    signals["V"] = o["V_z"] + np.sum(dW ** 2, axis=(1, 2)) / (2 * gamma)
-    extras["W_star"] = W_star
-    extras["W_star_residual"] = resid
     wall = time.perf_counter() - start
     stats.update(runner.stats)
     ev = _count_events(sc, o, parts["dq"])
@@ -671,12 +657,12 @@ def _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner
         message = (f"reached t = {t_end:g} s inside both funnels (min margin e1 "
                    f"{np.min(o['m1']):.3g}, e2 {np.min(o['m2']):.3g})")
     return SimResult(scenario=sc.name, t=t, x=X, signals=signals, status=status, message=message, breach=breach,
-                     stats=stats, n=cl.n, gamma=gamma, extras=extras)
+                     stats=stats, n=cl.n, gamma=gamma)
 
 
 # --- smoothing convergence ------------------------------------------------------------------------------
 
-def convergence_study(scenario, widths=None, *, t_final=None, integrator=None, progress=None, design=None) -> dict:
+def convergence_study(scenario, design, widths=None, *, t_final=None, integrator=None, progress=None) -> dict:
     """Max |q difference| against the smallest width as the smoothing width shrinks, with the observed rate."""
     say = progress or (lambda s: None)
     ws = list(widths if widths is not None else scenario.simulation.convergence_widths)
@@ -685,13 +671,10 @@ def convergence_study(scenario, widths=None, *, t_final=None, integrator=None, p
     if len(ws) < 2:
         raise InputError("needs at least two positive widths", key="simulation.convergence_widths",
                          expected="widths > 0 different from the run's smoothing_width")
-    if design is None:
-        from .design import derive
-        design = derive(scenario)
     runs = {}
     for w in ws:
         say(f"convergence study: width {w:g}")
-        runs[w] = simulate(scenario, t_final=t_final, integrator=integrator, width=w, design=design)
+        runs[w] = simulate(scenario, design, t_final=t_final, integrator=integrator, width=w)
     ref_w = ws[-1]
     ref = runs[ref_w]
     rows = []

@@ -23,10 +23,16 @@ def paper():
 
 
 @pytest.fixture(scope="session")
-def paper_design(paper):
+def paper_run(paper):
+    """The paper scenario through the pipeline (each stage computed once per session, on first use)."""
+    from symfunnel.pipeline import Run
+    return Run(paper)
+
+
+@pytest.fixture(scope="session")
+def paper_design(paper_run):
     """The paper scenario's design (derived once per session)."""
-    from symfunnel.design import derive
-    return derive(paper)
+    return paper_run.design
 
 
 MINIMAL_2LINK = """

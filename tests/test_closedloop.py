@@ -8,6 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from symfunnel.design import derive
 from symfunnel.closedloop import build_closed_loop, ldl_solve, plant_acceleration
 from symfunnel.scenario import from_dict, load_scenario
 
@@ -34,8 +35,8 @@ def test_ldl_solve_matches_numpy():
 
 
 def test_state_layout_and_shapes(paper):
-    cl = build_closed_loop(paper)
-    nr = cl.design.esn.n_regressor
+    cl = build_closed_loop(paper, derive(paper))
+    nr = cl.design.n_regressor
     assert cl.nx == 2 * cl.n + cl.N + nr * cl.n == 156
     x = cl.pack([1, 2], [3, 4], np.arange(cl.N), np.arange(nr * cl.n).reshape(cl.n, nr).T)
     parts = cl.unpack(x)
@@ -48,7 +49,7 @@ def test_state_layout_and_shapes(paper):
 
 def test_ddq_splits_into_nominal_plus_unknown(paper):
     """ddq_plant = v - W^T Phi + f_true, and the ESN estimate is W^T Phi (the lead's identity)."""
-    cl = build_closed_loop(paper)
+    cl = build_closed_loop(paper, derive(paper))
     rng = np.random.default_rng(1)
     x = cl.x0 + 0.01 * rng.normal(size=cl.nx)
     o = cl.evaluate_outputs([0.3], x[None, :])
@@ -94,6 +95,6 @@ def test_plant_with_the_printed_C_does_not_conserve_energy(paper):
 
 def test_no_dead_zone_means_tau_applied_is_tau(paper):
     sc = _variant(paper, lambda raw: raw["plant"].pop("dead_zone"))
-    cl = build_closed_loop(sc)
+    cl = build_closed_loop(sc, derive(sc))
     o = cl.evaluate_outputs([0.0, 0.1], np.vstack([cl.x0, cl.x0]))
     assert np.array_equal(o["tau"], o["tau_applied"])

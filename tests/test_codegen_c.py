@@ -39,18 +39,18 @@ def cache(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def design():
-    return derive(load_scenario("paper"))
+def design(paper_run):
+    return paper_run.design
 
 
 @pytest.fixture(scope="module")
-def c_files(design):
-    return cg.generate(design, "c")
+def c_files(paper_run):
+    return paper_run.code("c")
 
 
 @pytest.fixture(scope="module")
-def py_files(design):
-    return cg.generate(design, "python")
+def py_files(paper_run):
+    return paper_run.code("python")
 
 
 @pytest.fixture(scope="module")
@@ -113,9 +113,10 @@ def test_python_module_manifest_and_order_agree(py_module, c_files):
 
 
 def test_regenerating_gives_identical_bytes(c_files, py_files, tmp_path):
-    d2 = derive(load_scenario("paper"))            # fresh SX objects
+    from symfunnel.pipeline import Run
+    run2 = Run(load_scenario("paper"))             # fresh SX objects, a fresh simulation
     for lang, files in (("c", c_files), ("python", py_files)):
-        again = cg.generate(d2, lang)
+        again = run2.code(lang)
         assert again == files
         a, b = tmp_path / f"{lang}1", tmp_path / f"{lang}2"
         cg.write_output(files, a)
@@ -370,8 +371,8 @@ def test_relative_error_measure():
 # --- report and bench ---------------------------------------------------------------------------------
 
 @needs_gcc
-def test_codegen_summary_for_the_report(design, cache):
-    s = cg.codegen_summary(design.scenario, design, timings=False)
+def test_codegen_summary_for_the_report(paper_run, cache):
+    s = cg.codegen_summary(paper_run.design, paper_run.code_trajectory)
     json.dumps(s, allow_nan=False)
     assert s["points"] >= 1000 and s["controller_operations"] > 1000
     assert [f["name"] for f in s["functions"]] == ["funnels", "errors", "alpha2", "alpha2_dot", "controller"]

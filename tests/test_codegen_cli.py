@@ -98,10 +98,10 @@ def test_existing_directory_is_updated_and_failures_leave_nothing_half_written(t
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o"]
 
 
-def test_generated_python_matches_casadi_at_the_funnel_edge(paper_design):
+def test_generated_python_matches_casadi_at_the_funnel_edge(paper_run):
     """Near the boundary the controller amplifies last-bit differences (z = e/(F - |e|)); the generated Python
     evaluates exp like libm, so it still matches CasADi to round-off at |e| = 0.999 F."""
-    from symfunnel.codegen import check_output, generate
-    files = generate(paper_design, "python")
-    report = check_output(paper_design, "python", files, points=2000, fill=0.999)
+    from symfunnel.codegen import check_output
+    files = paper_run.code("python")
+    report = check_output(paper_run.design, "python", files, points=2000, fill=0.999)
     assert report.worst <= 1e-13

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from symfunnel.codegen.python import SUPPORTED_OPS, emit_python, manifest_entry
-from symfunnel.codegen.tape import read_tape
+from symfunnel.sx.tape import read_tape
 
 N_POINTS = 1000
 

@@ -26,11 +26,12 @@ SECTIONS = ["overview", "scenario", "model", "derivation", "alpha2-dot", "simula
 
 
 @pytest.fixture(scope="module")
-def report_path(paper, paper_design, tmp_path_factory):
+def report_path(paper, tmp_path_factory):
     """The paper scenario's report, written once per module."""
+    from symfunnel.pipeline import Run, RunOptions
     from symfunnel.report import build_report
     out = tmp_path_factory.mktemp("report") / "paper.html"
-    p = build_report(paper, out, design=paper_design, t_final=T_FINAL)
+    p = build_report(Run(paper, RunOptions(t_final=T_FINAL)), out)
     assert p == out
     return out
 

@@ -11,24 +11,25 @@ import pytest
 
 from symfunnel.cli import main
 from symfunnel.scenario import from_dict, load_scenario
+from symfunnel.design import derive
 from symfunnel.simulate import convergence_study, simulate
+
+
+def _sd(sc):
+    return sc, derive(sc)
 
 ROOT = Path(__file__).resolve().parents[1]
 DERIV = ROOT / "derivations"
 NPZ_KEYS = ["t", "q", "dq", "qd", "tau", "tau_applied", "e1", "F1", "e2", "F2", "z1", "z2", "x_esn", "w_hat", "V",
-            "V_z", "V_w_hat", "f_true", "w_phi"]
+            "f_true", "w_phi"]
 SUMMARY_KEYS = ["status", "message", "min_margin_e1", "min_margin_e2", "max_abs_tau", "rms_esn_error", "rms_f_true",
                 "wall_time", "steps", "events", "integrator", "smoothing_width"]
 
 
 @pytest.fixture(scope="module")
-def paper():
-    return load_scenario("paper")
-
-
-@pytest.fixture(scope="module")
-def paper_run(paper):
-    return simulate(paper)
+def sim(paper_run):
+    """The paper's 20 s simulation (the session's one pipeline run)."""
+    return paper_run.simulation
 
 
 def _variant(sc, edit, name="variant"):
@@ -38,13 +39,14 @@ def _variant(sc, edit, name="variant"):
     return from_dict(raw, file=f"{name}.toml", base_dir=sc.path.parent, default_name=name)
 
 
-def test_paper_stays_in_its_funnel_for_20s(paper_run):
-    r = paper_run
+def test_paper_stays_in_its_funnel_for_20s(sim, paper_run):
+    r = sim
     assert r.status == "ok", r.message
     assert r.t[-1] == pytest.approx(20.0)
     assert np.all(np.abs(r.e1) < r.F1) and np.all(np.abs(r.e2) < r.F2)
-    for k in ("q", "dq", "tau", "x_esn", "w_hat", "V"):
+    for k in ("q", "dq", "tau", "x_esn", "w_hat"):
         assert np.all(np.isfinite(r.signals[k])), k
+    assert np.all(np.isfinite(paper_run.lyapunov.V))
     # Figures 6-8, qualitatively: tracking error small after the transient, torque bounded, ESN estimate useful
     late = r.t > 5
     assert np.max(np.abs(r.e1[late])) < 0.01
@@ -58,8 +60,8 @@ def test_paper_stays_in_its_funnel_for_20s(paper_run):
 
 
 def test_npz_and_summary_contract(paper_run, tmp_path):
-    r = paper_run
-    p = r.save_npz(tmp_path / "sub" / "run.npz")
+    r = paper_run.simulation
+    p = r.save_npz(tmp_path / "sub" / "run.npz", paper_run.trajectory_arrays())
     d = np.load(p)
     T = r.t.size
     for k in NPZ_KEYS:
@@ -81,7 +83,7 @@ def test_integrators_agree_on_a_smooth_variant(paper):
         raw["esn"]["size"] = 5
         raw["simulation"]["rk_substeps"] = 20
     sc = _variant(paper, edit, "smooth")
-    runs = {m: simulate(sc, t_final=1.0, integrator=m) for m in ("cvodes", "rk", "collocation")}
+    runs = {m: simulate(sc, derive(sc), t_final=1.0, integrator=m) for m in ("cvodes", "rk", "collocation")}
     for m, r in runs.items():
         assert r.status == "ok", (m, r.message)
         assert r.t.shape == runs["cvodes"].t.shape
@@ -92,7 +94,7 @@ def test_integrators_agree_on_a_smooth_variant(paper):
 
 def test_breach_is_reported_with_the_trajectory_so_far(tmp_path):
     sc = load_scenario(DERIV / "sim_breach.toml")
-    r = simulate(sc)
+    r = simulate(sc, derive(sc))
     assert r.status == "breach", r.message
     b = r.breach
     assert b["funnel"] in ("e1", "e2") and b["joint"] in (1, 2) and b["margin"] <= 0.05
@@ -107,7 +109,7 @@ def test_breach_is_reported_with_the_trajectory_so_far(tmp_path):
 
 def test_initial_error_outside_is_a_failed_check(paper, capsys):
     sc = _variant(paper, lambda raw: raw["initial"].update(q=[0.5, 0.0]), "outside")
-    r = simulate(sc)
+    r = simulate(sc, derive(sc))
     assert r.status == "initial_outside"
     assert "funnel e1" in r.message and "joint 1" in r.message
     assert r.t.size == 1
@@ -115,14 +117,14 @@ def test_initial_error_outside_is_a_failed_check(paper, capsys):
 
 def test_nan_never_passes_silently(paper):
     sc = _variant(paper, lambda raw: raw["plant"].update(disturbance="sqrt(0.5 - t)"), "nan")
-    r = simulate(sc, t_final=1.0)
+    r = simulate(sc, derive(sc), t_final=1.0)
     assert r.status in ("failed", "breach")
     assert r.t[-1] <= 0.51
     assert np.all(np.isfinite(r.x))
 
 
 def test_wall_clock_limit(paper):
-    r = simulate(paper, wall_limit=1e-6)
+    r = simulate(paper, derive(paper), wall_limit=1e-6)
     assert r.status == "timeout"
     assert "wall-clock limit" in r.message
 
@@ -140,7 +142,7 @@ def test_cli_exit_codes(tmp_path, capsys):
 
 
 def test_smoothing_convergence(paper):
-    c = convergence_study(paper, [1e-1, 1e-2], t_final=2.0)
+    c = convergence_study(paper, derive(paper), [1e-1, 1e-2], t_final=2.0)
     diffs = [r["max_abs_q_diff_vs_smallest"] for r in c["runs"]]
     assert c["reference_width"] == 1e-3
     assert diffs[0] > diffs[1] > 0 and diffs[-1] == 0
@@ -149,6 +151,6 @@ def test_smoothing_convergence(paper):
 
 @pytest.mark.parametrize("name", ["sim_fast_sine", "sim_offset_cosine"])
 def test_untuned_scenarios_stay_inside(name):
-    r = simulate(load_scenario(DERIV / f"{name}.toml"))
+    r = simulate(*_sd(load_scenario(DERIV / f"{name}.toml")))
     assert r.status == "ok", r.message
     assert min(r.summary()["min_margin_e1"]) > 0.5

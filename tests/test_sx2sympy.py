@@ -9,8 +9,8 @@ import sympy as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from symfunnel.codegen.tape import OP_NAMES, read_tape
-from symfunnel.sx2sympy import SUPPORTED_OPS, count_ops, function_to_sympy, sx_to_sympy, to_sympy_number
+from symfunnel.sx.tape import OP_NAMES, read_tape
+from symfunnel.sx.tosympy import SUPPORTED_OPS, count_ops, function_to_sympy, sx_to_sympy, to_sympy_number
 
 
 def all_ops_function() -> ca.Function:

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 
 from symfunnel.checks.lyapunov import _sub_reference, lyapunov_function
-from symfunnel.checks.verify import verify
 from symfunnel.design import derive
+from symfunnel.pipeline import Run, RunOptions
 
 T_FINAL = 5.0          # a shortened horizon keeps the suite fast; the CLI default is the scenario's 20 s
 
 
 @pytest.fixture(scope="module")
-def ver(paper, paper_design):
+def ver(paper):
     """verify() on the paper scenario over a shortened horizon (once per module)."""
-    return verify(paper, paper_design, t_final=T_FINAL, samples=10000)
+    return Run(paper, RunOptions(t_final=T_FINAL, samples=10000)).verification
 
 
 def _by_id(v):
@@ -85,11 +85,11 @@ def test_v_dot_is_the_exact_derivative_along_the_flow(ver):
         assert abs(fd - ad) <= 1e-5 * max(1.0, abs(ad)), (t0, fd, ad)
 
 
-def test_corrected_decay_is_the_documented_identity(ver, paper_design):
+def test_corrected_decay_is_the_documented_identity(ver):
     """V_dot = -sum k1 mu1 z1^2 - sum k2 mu2 z2^2 + (mu2 z2)^T eps + sigma tr(W~^T W_hat) (docs/derivation.md)."""
     cl = ver.closed_loop
     sc = cl.scenario
-    d = paper_design
+    d = ver.design
     W = ver.lyapunov.W_star
     f = lyapunov_function(cl, W)
     S = {k: _sub_reference(d, d.signals[k]) for k in ("z1", "z2", "mu1", "mu2", "Phi")}
@@ -136,9 +136,7 @@ def test_initial_error_outside_its_funnel_fails_verify(write_scenario, capsys):
 def test_corrected_decay_fails_when_the_implementation_departs_from_the_derivation(paper):
     """Not vacuous: with the adaptive law's sign flipped in the graph (as printed in eq. 33's first term under
     symfunnel's convention), V_dot exceeds -rho V + delta along the run and the check says so."""
-    d = derive(paper)
-    d.signals["w_hat_dot"] = -d.signals["w_hat_dot"]
-    v = verify(paper, d, t_final=2.0, samples=10000)
+    v = Run(paper, RunOptions(t_final=2.0, samples=10000, mutant="flip_adaptation")).verification
     ids = {c.id: c for c in v.checks}
     assert ids["lyapunov.decay.corrected"].status == "fail"
     assert ids["lyapunov.decay.corrected"].margin < 0

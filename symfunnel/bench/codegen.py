@@ -11,13 +11,12 @@ TARGET_NS = 5000.0
 
 def run(progress) -> list[dict]:
     """Results codegen.c_controller_ns, .python_controller_ns, .python_batch_ns and .controller_ops."""
-    from ..codegen import generate, time_controller
-    from ..design import derive
-    from ..scenario import load_scenario
-    sc = load_scenario("paper")
-    design = derive(sc)
+    from ..codegen import time_controller
+    from ..pipeline import Run
+    run = Run.load("paper")
+    sc, design = run.scenario, run.design
     progress("codegen: generating C and Python")
-    c_files, py_files = generate(design, "c"), generate(design, "python")
+    c_files, py_files = run.code("c"), run.code("python")
     progress("codegen: timing the controller (C in C, CasADi VM, generated Python)")
     tm = time_controller(design, c_files, py_files)
     c, vm, py = tm["c_ns"], tm["casadi_vm_ns"], tm["python_ns"]

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from ..design import BASE_INPUTS, Design, derive
+from ..design import Design
 from ..model.base import christoffel_C
 from .sampling import eval_mapped, funnel_states, joint_states, point_of
 
@@ -76,7 +76,7 @@ def sympy_is_zero(expr: ca.SX, inputs: list[ca.SX], timeout: float, max_ops: int
     """
     import sympy
 
-    from ..sx2sympy import sx_to_sympy
+    from ..sx.tosympy import sx_to_sympy
     f = ca.Function("f", inputs, [expr])
     if f.n_instructions() > max_ops:
         return None, None
@@ -231,7 +231,7 @@ def _pd_by_intervals(Mn: ca.SX, q: ca.SX, lo, hi, timeout: float, max_n: int = 4
     """
     import sympy
 
-    from ..sx2sympy import sx_to_sympy
+    from ..sx.tosympy import sx_to_sympy
     n = q.numel()
     if n > max_n or ca.Function("M", [q], [Mn]).n_instructions() > 500:
         return None
@@ -323,7 +323,7 @@ def claim_env(design: Design) -> dict:
     """Names a claim expression may use, bound to the design's SX (signals, symbols, parameters, constants)."""
     m = design.scenario.model
     env = dict(design.signals)
-    env.update({k: design.sym[k] for k in BASE_INPUTS})
+    env.update({k: design.sym[k] for k in design.inputs})
     env.update({c: m.q[i] for i, c in enumerate(m.coordinates)})
     env.update({"d" + c: m.dq[i] for i, c in enumerate(m.coordinates)})
     env.update({k: float(v) for k, v in zip(m.p_names, m.p_values)})
@@ -361,7 +361,7 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
     diff = printed - exact
     k = sc.audit.claim_samples
     pts = funnel_states(design, k, rng)
-    f = ca.Function("claim", [design.sym[x] for x in BASE_INPUTS], [exact, printed], list(BASE_INPUTS),
+    f = ca.Function("claim", [design.sym[x] for x in design.inputs], [exact, printed], list(design.inputs),
                     ["exact", "printed"])
     ex, pr = eval_mapped(f, pts, k)
     r, c = exact.shape
@@ -401,7 +401,7 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
             detail += "; " + "; ".join(notes)
         return CheckResult(cid, "fail", detail, method=f"sampled ({k} points inside the funnels)",
                            margin=-float(rel_pt[j]), where=where, evidence=ev)
-    inputs = [design.sym[x] for x in BASE_INPUTS]
+    inputs = [design.sym[x] for x in design.inputs]
     proven, _ = sympy_is_zero(diff, inputs, sc.audit.sympy_timeout)
     if proven:
         return CheckResult(cid, "pass", f"{head}: equivalent to the exact signal (sympy: difference = 0)",
@@ -419,15 +419,14 @@ def _leakage(design: Design, law: ca.SX, rng, k: int = 200) -> dict:
     pts["dq"] = np.array(a2(pts["t"], pts["q"], pts["qd"], pts["dqd"]))
     w = design.sym["w_hat"]
     rate = 2 * ca.trace(ca.mtimes(w.T, law))
-    f = ca.Function("rate", [design.sym[x] for x in BASE_INPUTS], [rate], list(BASE_INPUTS), ["r"])
+    f = ca.Function("rate", [design.sym[x] for x in design.inputs], [rate], list(design.inputs), ["r"])
     (r,) = eval_mapped(f, pts, k)
     r = r.ravel()
     return {"samples": k, "growing_fraction": float(np.mean(r > 0)), "max_rate": float(np.max(r))}
 
 
-def audit(scenario, design: Design | None = None, *, progress=None) -> list[CheckResult]:
+def audit(scenario, design: Design, *, progress=None) -> list[CheckResult]:
     """Run every audit check of a scenario; returns the results in a fixed order."""
-    design = design or derive(scenario)
     seed = scenario.audit.seed
     say = progress or (lambda s: None)
     results = []

@@ -35,13 +35,15 @@ REL_TOL = 1e-8
 
 # --- W* -------------------------------------------------------------------------------------------
 
-def regressor_values(design, x_esn: np.ndarray) -> np.ndarray:
-    """Phi(x_esn) at every row of x_esn (T, N) -> (T, N+1 or N)."""
-    f = ca.Function("Phi", [design.sym["x_esn"]], [design.signals["Phi"]])
-    T = x_esn.shape[0]
-    if T == 0:
-        return np.zeros((0, design.esn.n_regressor))
-    return np.asarray(f.map(T)(x_esn.T)).T
+def regressor_values(cl, X: np.ndarray) -> np.ndarray:
+    """Phi at every state of a trajectory X (T, n_x) -> (T, n_regressor)."""
+    d = cl.design
+    X = np.asarray(X, dtype=float).reshape(-1, cl.nx)
+    T = X.shape[0]
+    if T == 0 or d.n_regressor == 0:
+        return np.zeros((T, d.n_regressor))
+    f = ca.Function("Phi", [cl.x], [d.signals["Phi"]])
+    return np.asarray(f.map(T)(X.T)).T
 
 
 def estimate_w_star(cl, t: np.ndarray, X: np.ndarray, f_true: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -55,12 +57,12 @@ def estimate_w_star(cl, t: np.ndarray, X: np.ndarray, f_true: np.ndarray) -> tup
     """
     d = cl.design
     sc = cl.scenario
-    nr = d.esn.n_regressor
+    nr = d.n_regressor
     n = d.n
     T = int(np.size(t))
-    parts = cl.unpack(X)
-    x_esn = np.asarray(parts["x_esn"]).reshape(T, -1)
-    Phi = regressor_values(d, x_esn)
+    if nr == 0:
+        return np.zeros((0, n)), {"samples": 0, "norm": 0.0, "method": "no approximator: no ideal weights"}
+    Phi = regressor_values(cl, X)
     f_true = np.asarray(f_true, dtype=float).reshape(T, -1)
     mu2 = np.full((T, n), np.nan)
     if T:
@@ -103,42 +105,35 @@ def _sub_reference(design, e):
 
 
 def lyapunov_function(cl, W_star: np.ndarray) -> ca.Function:
-    """casadi.Function (t, x) -> V, V_dot, rho_paper, delta_paper, rho, delta, V_z, V_w, inside.
+    """casadi.Function (t, x) -> V, V_dot, rho_paper, delta_paper, rho, delta, V_z, V_w, inside, scale.
 
-    V_dot is the exact derivative along the closed-loop flow: jtimes(V, [t; x], [1; f(t, x)]).
-    `inside` is 1 where both funnels hold strictly (z finite), else 0.
+    V, rho and delta are the design variant's (`Design.variant.lyapunov`) with eps = f_true - W*^T Phi of the
+    closed loop; V_dot is the exact derivative along the closed-loop flow: jtimes(V, [t; x], [1; f(t, x)]).
+    `inside` is 1 where both funnels hold strictly (z finite), else 0. rho_paper/delta_paper are the constants the
+    paper prints in its Theorem 1 (NaN for a transformation without zeta).
     """
     d = cl.design
     sc = cl.scenario
     t, x = cl.t, cl.x
-    S = {k: _sub_reference(d, d.signals[k]) for k in ("z1", "z2", "zeta1", "zeta2", "mu1", "mu2", "Phi", "e1",
-                                                         "e2", "F1", "F2")}
-    w_hat = d.sym["w_hat"]
-    gamma = float(sc.gamma)
-    sigma = float(sc.sigma)
-    k1 = ca.DM(sc.k1)
-    k2 = ca.DM(sc.k2)
-    Ws = ca.DM(np.asarray(W_star, dtype=float))
-    Wt = Ws - w_hat
-    V_z = 0.5 * ca.sumsqr(S["z1"]) + 0.5 * ca.sumsqr(S["z2"])
-    V_w = ca.sumsqr(Wt) / (2 * gamma)
-    V = V_z + V_w
+    Ws = ca.DM(np.asarray(W_star, dtype=float).reshape(d.n_regressor, d.n))
+    Phi = _sub_reference(d, d.signals["Phi"])
+    eps = cl.signals["f_true"] - ca.mtimes(Ws.T, Phi)
+    lyap = d.variant.lyapunov(d, Ws, eps)
+    L = {k: _sub_reference(d, e) for k, e in lyap.items()}
+    S = {k: _sub_reference(d, d.signals[k]) for k in ("e1", "e2", "F1", "F2")}
     xdot = cl.f(t, x)
-    V_dot = ca.jtimes(V, ca.vertcat(t, x), ca.vertcat(ca.SX(1), xdot))
-    f_true = cl.signals["f_true"]
-    eps = f_true - ca.mtimes(Ws.T, S["Phi"])
-    w2 = float(np.sum(np.asarray(W_star) ** 2))
-    rho_p = ca.fmin(ca.fmin(ca.mmin(2 * k1 * S["zeta1"]), ca.mmin(2 * k2 * S["zeta2"])), sigma)
-    delta_p = ca.SX(sigma / 2 * w2)
-    rho_c = ca.fmin(ca.fmin(ca.mmin(2 * k1 * S["mu1"]), ca.mmin(k2 * S["mu2"])), sigma * gamma)
-    delta_c = sigma / 2 * w2 + ca.sum1(S["mu2"] * eps ** 2 / (2 * k2))
+    V_dot = ca.jtimes(L["V"], ca.vertcat(t, x), ca.vertcat(ca.SX(1), xdot))
+    if "zeta1" in d.signals and d.n_regressor:
+        k1, k2, sigma = ca.DM(sc.k1), ca.DM(sc.k2), float(sc.sigma)
+        z1, z2 = _sub_reference(d, d.signals["zeta1"]), _sub_reference(d, d.signals["zeta2"])
+        rho_p = ca.fmin(ca.fmin(ca.mmin(2 * k1 * z1), ca.mmin(2 * k2 * z2)), sigma)
+        delta_p = ca.SX(sigma / 2 * float(np.sum(np.asarray(W_star) ** 2)))
+    else:
+        rho_p, delta_p = ca.SX(np.nan), ca.SX(np.nan)
     inside = ca.logic_and(ca.mmin(S["F1"] - ca.fabs(S["e1"])) > 0, ca.mmin(S["F2"] - ca.fabs(S["e2"])) > 0)
-    # the separate terms of the corrected argument, for scale (round-off allowance) and for the report
-    scale = (ca.sum1(k1 * S["mu1"] * S["z1"] ** 2) + ca.sum1(k2 * S["mu2"] * S["z2"] ** 2)
-             + ca.fabs(ca.mtimes((S["mu2"] * S["z2"]).T, eps)) + sigma * ca.fabs(ca.trace(ca.mtimes(Wt.T, w_hat))))
     names = ["V", "V_dot", "rho_paper", "delta_paper", "rho", "delta", "V_z", "V_w", "inside", "scale"]
-    return ca.Function("lyapunov", [t, x], [V, V_dot, rho_p, delta_p, rho_c, delta_c, V_z, V_w, inside, scale],
-                       ["t", "x"], names, {"cse": True})
+    return ca.Function("lyapunov", [t, x], [L["V"], V_dot, rho_p, delta_p, L["rho"], L["delta"], L["V_z"], L["V_w"],
+                                            inside, L["scale"]], ["t", "x"], names, {"cse": True})
 
 
 def evaluate_lyapunov(cl, W_star, t: np.ndarray, X: np.ndarray) -> dict[str, np.ndarray]:
@@ -200,12 +195,13 @@ def integrated_bound(t: np.ndarray, V0: float, rho: float, delta: float) -> np.n
     return V0 + delta * t
 
 
-def constant_rho_lower(scenario) -> float:
-    """min(2 k1 / F1(0), k2 / F2(0), sigma gamma): a constant lower bound of the corrected rho (mu_i >= 1/F_i(0))."""
-    F1 = np.array(scenario.funnels["e1"].value(0.0))
-    F2 = np.array(scenario.funnels["e2"].value(0.0))
-    return float(min(np.min(2 * np.array(scenario.k1) / F1), np.min(np.array(scenario.k2) / F2),
-                     scenario.sigma * scenario.gamma))
+def constant_rho_lower(design, t_final: float) -> float:
+    """A constant lower bound of the design's rho over [0, t_final] (mu_i >= 1/sup F_i, sup taken on the horizon)."""
+    from ..family.funnels import extremes
+    sc = design.scenario
+    sup1 = extremes(sc.funnels["e1"], t_final)[1]
+    sup2 = extremes(sc.funnels["e2"], t_final)[1]
+    return design.variant.rho_lower(sup1, sup2)
 
 
 def along_trajectory(cl, t: np.ndarray, X: np.ndarray, f_true: np.ndarray, *,
@@ -227,7 +223,7 @@ def along_trajectory(cl, t: np.ndarray, X: np.ndarray, f_true: np.ndarray, *,
     return LyapunovTrajectory(t=np.asarray(t, float), V=L["V"], V_dot=L["V_dot"], rho_paper=L["rho_paper"],
                               delta_paper=L["delta_paper"], rho=L["rho"], delta=L["delta"], V_z=L["V_z"],
                               V_w=L["V_w"], scale=L["scale"], W_star=np.asarray(W_star), w_star_info=info,
-                              rho_const=rho_const, rho_const_lower=constant_rho_lower(cl.scenario),
+                              rho_const=rho_const, rho_const_lower=constant_rho_lower(cl.design, float(t[-1]) if np.size(t) else 0.0),
                               delta_max=delta_max, rho_paper_const=rho_p_const, delta_paper_const=delta_p,
                               bound=bound, bound_paper=bound_p)
 
@@ -255,10 +251,7 @@ def falsify(cl, W_star: np.ndarray, *, samples: int = 10000, seed: int = 0, w_sc
     if w_scale is None:
         w_scale = float(max(np.max(np.abs(W_star)) if np.size(W_star) else 0.0, 1.0))
     pts = funnel_states(d, k, rng, method="sobol", fill=fill, t_range=t_range, w_scale=w_scale)
-    wr, wc = d.sym["w_hat"].shape
-    w = pts["w_hat"].reshape(wr, k, wc)                       # block j = columns j*wc .. j*wc + wc - 1
-    w_vec = w.transpose(1, 2, 0).reshape(k, wc * wr)           # per sample: column-major vec of (wr x wc)
-    X = np.hstack([pts["q"].T, pts["dq"].T, pts["x_esn"].T, w_vec])
+    X = np.hstack([pts["q"].T, pts["dq"].T, *[pts["vec_" + name].T for name, _ in d.states]])
     t = pts["t"].ravel()
     L = evaluate_lyapunov(cl, W_star, t, X)
     out = {"samples": k, "method": "scrambled Sobol", "fill": fill, "w_scale": w_scale,

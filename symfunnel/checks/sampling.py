@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..design import BASE_INPUTS, Design
+from ..design import Design
 
 
 def unit_samples(k: int, dim: int, rng: np.random.Generator, method: str = "random") -> np.ndarray:
@@ -32,17 +32,19 @@ def joint_states(design: Design, k: int, rng: np.random.Generator) -> tuple[np.n
 def funnel_states(design: Design, k: int, rng: np.random.Generator, *, method: str = "random",
                   fill: float = 0.98, t_range: tuple[float, float] | None = None,
                   w_scale: float = 1.0) -> dict[str, np.ndarray]:
-    """k points strictly inside both funnels, as base-input arrays with the sample index last.
+    """k points strictly inside both funnels, as design-input arrays with the sample index last.
 
     t is drawn over [0, t_final], e1 = u1 * fill * F1(t), q = qd(t) + e1, e2 = u2 * fill * F2(t),
-    dq = alpha2 + e2; x_esn within the reservoir's invariant box [-1/leak, 1/leak] and w_hat within +-w_scale.
+    dq = alpha2 + e2; each approximator state within its invariant box and w_hat within +-w_scale.
+    Matrix states come side by side (casadi's map layout: block j holds sample j); `vec_<name>` holds them
+    column-major vectorised, one column per sample (the closed loop's state layout).
     """
     sc = design.scenario
     n = design.n
-    N = design.sym["x_esn"].numel()
-    wr, wc = design.sym["w_hat"].shape
+    box = design.approximator.box()
+    sizes = [(name, r * c) for name, (r, c) in design.states]
     t0, t1 = t_range if t_range is not None else (0.0, sc.simulation.t_final)
-    dim = 1 + 2 * n + N + wr * wc
+    dim = 1 + 2 * n + sum(m for _, m in sizes)
     u = unit_samples(k, dim, rng, method).T               # (dim, k)
     t = t0 + (t1 - t0) * u[0:1]
     ref = design.reference.map(k)
@@ -55,11 +57,16 @@ def funnel_states(design: Design, k: int, rng: np.random.Generator, *, method: s
     alpha2 = np.array(a2(t, q, qd, dqd))
     e2 = (2 * u[1 + n:1 + 2 * n] - 1) * fill * F2
     dq = alpha2 + e2
-    x = (2 * u[1 + 2 * n:1 + 2 * n + N] - 1) / sc.esn.leak
-    w = (2 * u[1 + 2 * n + N:] - 1) * w_scale
-    # casadi's map takes matrix inputs side by side: block j holds sample j's (wr x wc) matrix.
-    w = w.reshape(wr, wc, k, order="F").transpose(0, 2, 1).reshape(wr, k * wc)
-    return dict(t=t, q=q, dq=dq, qd=qd, dqd=dqd, ddqd=ddqd, x_esn=x, w_hat=w)
+    out = dict(t=t, q=q, dq=dq, qd=qd, dqd=dqd, ddqd=ddqd)
+    i = 1 + 2 * n
+    for (name, (r, c)), (_, m) in zip(design.states, sizes):
+        half = box.get(name, w_scale)
+        v = (2 * u[i:i + m] - 1) * half
+        i += m
+        out["vec_" + name] = v
+        # casadi's map takes matrix inputs side by side: block j holds sample j's (r x c) matrix.
+        out[name] = v.reshape(r, c, k, order="F").transpose(0, 2, 1).reshape(r, k * c) if c > 1 else v
+    return out
 
 
 def eval_mapped(f, pts: dict[str, np.ndarray], k: int) -> list[np.ndarray]:
@@ -75,4 +82,4 @@ def point_of(pts: dict[str, np.ndarray], j: int) -> dict:
     return {"t": float(pts["t"][0, j]), "q": pts["q"][:, j].tolist(), "dq": pts["dq"][:, j].tolist()}
 
 
-__all__ = ["unit_samples", "joint_states", "funnel_states", "eval_mapped", "point_of", "BASE_INPUTS"]
+__all__ = ["unit_samples", "joint_states", "funnel_states", "eval_mapped", "point_of"]

@@ -15,16 +15,16 @@ controller      t, q, dq, qd, dqd, ddqd, x_esn, w_hat   tau, x_esn_dot, w_hat_do
 
 API::
 
-    files = generate(design, "c")            # {file name: text}, manifest.json included; deterministic
+    files = generate(design, "c", trajectory=traj)   # {file name: text}, manifest.json included; deterministic
     write_output(files, "ctl")               # atomic: a failure never leaves half-written files
     report = check_output(design, "c", files, points=1000)   # compile (cached) / import, compare with CasADi
-    summary = codegen_summary(scenario)       # both languages: files, sizes, op counts, errors, timings
+    summary = codegen_summary(design, traj)   # both languages: files, sizes, op counts, checks
 
 Notes
 -----
-The recorded trajectory shipped with the code (`trajectory.txt`, 50 samples over 2 s) is a short closed-loop run
-of the scenario's nominal model under the controller (RK4, see `recorded_trajectory`); pass `trajectory=` to
-`generate` to ship another one (e.g. the full plant simulation's states).
+The recorded trajectory shipped with the code (`trajectory.txt`, 50 samples over the first 2 s) comes from the
+pipeline's one simulation of the scenario (`trajectory_from_run`; `symfunnel.pipeline.Run.code` passes it).
+Timing the generated code is `symfunnel bench`'s job, not the report's.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CONTRACT", "BASENAME", "contract_functions", "recorded_trajectory", "generate", "write_output",
+__all__ = ["CONTRACT", "BASENAME", "contract_functions", "trajectory_from_run", "generate", "write_output",
            "check_output", "time_controller", "codegen_summary"]
 
 BASENAME = "symfunnel_controller"
@@ -65,108 +65,32 @@ def contract_functions(design) -> list:
     return out
 
 
-def recorded_trajectory(design, samples: int = 50, t_final: float | None = None,
-                        substeps: int = 40) -> dict[str, np.ndarray]:
-    """Controller inputs recorded along a short closed-loop run, as (r, c, k) arrays (sample index last).
+def trajectory_from_run(design, closed_loop, result, samples: int = 50, span: float = 2.0) -> dict[str, np.ndarray]:
+    """Controller inputs at `samples` times of a simulated run's first `span` seconds, as (r, c, k) arrays.
 
-    Also holds "source", a one-line description of how the samples were made.
-
-    The run is the scenario's nominal model under the controller (no dead zone, friction or disturbance: the
-    design's `ddq` signal), with x_esn and W_hat following their laws, from the scenario's initial state; fixed-step
-    RK4 with `substeps` steps between samples. When that run leaves a funnel or is not finite (a stiff scenario),
-    the trajectory falls back to the reference with offsets inside both funnels
-    (e1 = 0.5 F1 sin(2t + i), e2 = 0.5 F2 cos(3t + i)) and x_esn, W_hat by explicit Euler on their rates.
+    Also holds "source", a one-line description. The samples are interpolated linearly from the simulation's
+    output grid (the simulation stage of the pipeline: no second simulator here); a run that stopped at t = 0
+    gives its initial state alone.
     """
-    sc = design.scenario
-    T = t_final if t_final is not None else min(2.0, sc.simulation.t_final)
-    t = np.linspace(0.0, T, samples)
-    try:
-        out = _nominal_run(design, t, substeps)
-    except (FloatingPointError, ValueError):
-        out = None
-    if out is not None:
-        out["source"] = f"closed loop of the nominal model under the controller (RK4, {substeps} steps per sample)"
-        return out
-    out = _offset_trajectory(design, t)
-    out["source"] = "reference with offsets inside both funnels (the nominal closed-loop run left a funnel)"
-    return out
-
-
-def _initial(design) -> tuple[np.ndarray, np.ndarray]:
-    sc = design.scenario
-    N = design.sym["x_esn"].numel()
-    wr, wc = design.sym["w_hat"].shape
-    x0 = np.zeros(N)
-    if getattr(sc, "x_esn0", None):
-        x0[:] = np.asarray(sc.x_esn0, dtype=float).reshape(-1)[:N]
-    return x0, np.full((wr, wc), float(getattr(sc, "w_hat0", 0.0)))
-
-
-def _nominal_run(design, t: np.ndarray, substeps: int):
-    """RK4 run of the nominal closed loop sampled at t; None when it leaves a funnel or diverges."""
-    import casadi as ca
-    sc, s, S = design.scenario, design.sym, design.signals
-    n = design.n
-    x = ca.vertcat(s["q"], s["dq"], s["x_esn"], ca.vec(s["w_hat"]))
-    rhs = ca.vertcat(s["dq"], S["ddq"], S["x_esn_dot"], ca.vec(S["w_hat_dot"]))
-    ref = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
-    rhs = ca.substitute([rhs], [s["qd"], s["dqd"], s["ddqd"]], ref)[0]
-    f = ca.Function("f", [s["t"], x], [rhs])
-    h, tt = ca.SX.sym("h"), s["t"]
-    k1 = f(tt, x)
-    k2 = f(tt + h / 2, x + h / 2 * k1)
-    k3 = f(tt + h / 2, x + h / 2 * k2)
-    k4 = f(tt + h, x + h * k3)
-    step = ca.Function("rk4", [tt, x, h], [x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
-    x0, w0 = _initial(design)
-    xk = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float), x0, w0.reshape(-1, order="F")])
-    X = np.zeros((xk.size, t.size))
-    X[:, 0] = xk
-    for j in range(1, t.size):
-        hj = (t[j] - t[j - 1]) / substeps
-        for i in range(substeps):
-            xk = np.array(step(t[j - 1] + i * hj, xk, hj)).ravel()
-        if not np.all(np.isfinite(xk)):
-            return None
-        X[:, j] = xk
-    out = _pack(design, t, X[:n], X[n:2 * n], X[2 * n:2 * n + x0.size], X[2 * n + x0.size:])
-    lv = design.function("funnel_check", ["t", "q", "dq", "qd", "dqd"], ["e1", "F1", "e2", "F2"]).map(t.size)
-    e1, F1, e2, F2 = (np.array(v) for v in lv(*[out[k][:, 0, :] for k in ("t", "q", "dq", "qd", "dqd")]))
-    if not (np.all(np.abs(e1) < F1) and np.all(np.abs(e2) < F2)):
-        return None
-    return out
-
-
-def _pack(design, t, q, dq, x, w_flat) -> dict[str, np.ndarray]:
+    t_sim = np.asarray(result.t, dtype=float)
+    if t_sim.size >= 2:
+        t = np.linspace(t_sim[0], min(t_sim[-1], t_sim[0] + span), samples)
+        X = np.stack([np.interp(t, t_sim, result.x[:, j]) for j in range(closed_loop.nx)], axis=1)
+    else:
+        t = np.zeros(1)
+        X = (result.x[:1] if t_sim.size else closed_loop.x0[None, :]).astype(float)
     k = t.size
+    parts = closed_loop.unpack(X)
     qd, dqd, ddqd = (np.array(v) for v in design.reference.map(k)(t[None, :]))
-    wr, wc = design.sym["w_hat"].shape
     col = lambda a: np.asarray(a, dtype=float)[:, None, :]  # noqa: E731
-    return {"t": t[None, None, :], "q": col(q), "dq": col(dq), "qd": col(qd), "dqd": col(dqd),
-            "ddqd": col(ddqd), "x_esn": col(x), "w_hat": np.asarray(w_flat).reshape(wr, wc, k, order="F")}
-
-
-def _offset_trajectory(design, t: np.ndarray) -> dict[str, np.ndarray]:
-    """The reference with offsets inside both funnels; x_esn and W_hat by explicit Euler on their rates."""
-    n, k = design.n, t.size
-    qd, dqd, ddqd = (np.array(v) for v in design.reference.map(k)(t[None, :]))
-    F1, F2 = (np.array(v) for v in design.function("funnel_bounds", ["t"], ["F1", "F2"]).map(k)(t[None, :]))
-    ph = np.arange(n)[:, None]
-    q = qd + 0.5 * F1 * np.sin(2 * t[None, :] + ph)
-    alpha2 = np.array(design.function("alpha2", ["t", "q", "qd", "dqd"]).map(k)(t[None, :], q, qd, dqd))
-    dq = alpha2 + 0.5 * F2 * np.cos(3 * t[None, :] + ph)
-    x0, w0 = _initial(design)
-    x = np.zeros((x0.size, k))
-    w = np.zeros((w0.size, k))
-    x[:, 0], w[:, 0] = x0, w0.reshape(-1, order="F")
-    ctl = design.controller()
-    for j in range(k - 1):
-        dt = t[j + 1] - t[j]
-        _, xdot, wdot = ctl(t[j], q[:, j], dq[:, j], qd[:, j], dqd[:, j], ddqd[:, j], x[:, j],
-                            w[:, j].reshape(w0.shape, order="F"))
-        x[:, j + 1] = x[:, j] + dt * np.array(xdot).ravel()
-        w[:, j + 1] = w[:, j] + dt * np.array(wdot).reshape(-1, order="F")
-    return _pack(design, t, q, dq, x, w)
+    out = {"t": t[None, None, :], "q": col(parts["q"].T), "dq": col(parts["dq"].T), "qd": col(qd),
+           "dqd": col(dqd), "ddqd": col(ddqd)}
+    for name, (r, c) in design.states:
+        v = parts[name]                                    # (k, r) or (k, r, c)
+        out[name] = np.moveaxis(v.reshape(k, r, c), 0, -1)
+    out["source"] = (f"the simulated closed loop of scenario '{design.scenario.name}' (plant with its unknowns), "
+                     f"{k} samples over t = {t[0]:g}..{t[-1]:g} s")
+    return out
 
 
 def _manifest(design, functions, lang: str, files: dict[str, str]) -> str:
@@ -174,7 +98,7 @@ def _manifest(design, functions, lang: str, files: dict[str, str]) -> str:
 
     from .. import __version__
     from .python import manifest_entry
-    from .tape import count_ops
+    from ..sx.tape import count_ops
     entries = []
     for f in functions:
         e = manifest_entry(f)
@@ -197,7 +121,7 @@ def _manifest(design, functions, lang: str, files: dict[str, str]) -> str:
     return json.dumps(info, indent=2) + "\n"
 
 
-def generate(design, lang: str, *, trajectory: dict[str, np.ndarray] | None = None) -> dict[str, str]:
+def generate(design, lang: str, *, trajectory: dict[str, np.ndarray]) -> dict[str, str]:
     """Every output file of one language as {name: text}, manifest.json last; byte-identical for the same design."""
     from .c import emit_c, support_files, trajectory_text
     from .python import emit_python
@@ -205,7 +129,7 @@ def generate(design, lang: str, *, trajectory: dict[str, np.ndarray] | None = No
         raise ValueError(f"unknown language {lang!r}; expected one of {LANGS}")
     functions = contract_functions(design)
     sc = design.scenario
-    traj = trajectory if trajectory is not None else recorded_trajectory(design)
+    traj = trajectory
     traj_txt = trajectory_text(design.controller(), traj, header=(
         f"symfunnel recorded trajectory for scenario '{sc.name}': one sample per line\n"
         + str(traj.get("source", "supplied by the caller"))))
@@ -342,7 +266,7 @@ def _best_ns(fn, min_time: float = 0.2, repeats: int = 5) -> float:
     return best * 1e9
 
 
-def time_controller(design, c_files: dict[str, str] | None = None, py_files: dict[str, str] | None = None,
+def time_controller(design, c_files: dict[str, str], py_files: dict[str, str],
                     *, min_time: float = 0.2, c_iterations: int = 200000, batch: int = 1000) -> dict:
     """ns per controller call: compiled C (timed in C by bench.c), CasADi's VM from Python, generated Python.
 
@@ -355,9 +279,7 @@ def time_controller(design, c_files: dict[str, str] | None = None, py_files: dic
     from . import check
     from .build import compile_cached
     from .c import STRICT_CFLAGS
-    from .tape import count_ops
-    c_files = c_files or generate(design, "c")
-    py_files = py_files or generate(design, "python")
+    from ..sx.tape import count_ops
     ctl = design.controller()
     out = {"operations": count_ops(ctl)["operations"]}
 
@@ -396,7 +318,7 @@ def time_controller(design, c_files: dict[str, str] | None = None, py_files: dic
 
 # --- report -----------------------------------------------------------------------------------------
 
-def codegen_summary(scenario, design=None, *, points: int = 1000, timings: bool = True) -> dict:
+def codegen_summary(design, trajectory: dict, *, points: int = 1000, timings: bool = False) -> dict:
     """Generate both languages into a temp dir, check them against CasADi, time them; plain data for the report.
 
     Returns {"scenario", "functions": [{"name", "inputs", "outputs", "operations"}],
@@ -405,10 +327,7 @@ def codegen_summary(scenario, design=None, *, points: int = 1000, timings: bool 
     """
     from . import check
     from .build import find_compiler
-    from .tape import count_ops
-    if design is None:
-        from ..design import derive
-        design = derive(scenario)
+    from ..sx.tape import count_ops
     functions = contract_functions(design)
     pts = check.sample_points(design, points, 0)
     out = {"scenario": design.scenario.name, "points": points, "languages": {},
@@ -421,7 +340,7 @@ def codegen_summary(scenario, design=None, *, points: int = 1000, timings: bool 
     files = {}
     with tempfile.TemporaryDirectory(prefix="symfunnel-codegen-") as tmp:
         for lang in LANGS:
-            files[lang] = generate(design, lang)
+            files[lang] = generate(design, lang, trajectory=trajectory)
             write_output(files[lang], Path(tmp) / lang)
             entry = {"files": [{"name": k, "bytes": len(v.encode("utf-8")), "lines": v.count("\n")}
                                for k, v in files[lang].items()]}

@@ -89,7 +89,8 @@ def sample_points(design, k: int = 1000, seed: int = 0, fill: float = FILL) -> d
     from ..checks.sampling import funnel_states
     pts = funnel_states(design, k, np.random.default_rng(seed), fill=fill)
     out = {}
-    for name, a in pts.items():
+    for name in design.inputs:
+        a = pts[name]
         r, c = design.sym[name].shape
         a = np.asarray(a, dtype=float)
         # casadi map layout: (r, k*c) with sample j's matrix in columns j*c .. j*c+c-1

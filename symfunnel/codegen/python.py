@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 import casadi
 
-from .tape import OP_NAMES, read_tape
+from ..sx.tape import OP_NAMES, read_tape
 
 __all__ = ["emit_python", "manifest_entry"]
 

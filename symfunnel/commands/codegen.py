@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 
 def register(sub, common) -> None:
@@ -25,16 +26,18 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Generate, write atomically, and optionally cross-check."""
-    from ..codegen import check_output, generate, write_output
+    from ..codegen import check_output, write_output
     from ..codegen.check import FILL
-    from ..design import derive
+    from ..cli import _progress
     from ..errors import InputError
-    from ..scenario import load_scenario
+    from ..pipeline import Run
     if args.points < 1000:
         raise InputError(f"is {args.points}", key="--points", expected="at least 1000 check points")
-    sc = load_scenario(args.scenario)
-    design = derive(sc)
-    files = generate(design, args.lang)
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InputError("exists and is not a directory", key="--out", expected="a directory (created when missing)")
+    run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
+    sc, design = run.scenario, run.design
+    files = run.code(args.lang)
     paths = write_output(files, args.out)
     summary = {"scenario": sc.name, "language": args.lang, "out": str(args.out),
                "files": [{"name": p.name, "bytes": len(files[p.name].encode("utf-8"))} for p in paths]}

@@ -19,12 +19,12 @@ def run(args) -> int:
     """Write the report and print its path. Failed checks are shown in the report; the exit code is still 0."""
     from ..cli import _load, _progress
     from ..errors import InputError
+    from ..pipeline import Run, RunOptions
     from ..report import build_report
     if args.samples < 1:
         raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
     sc = _load(args)
-    say = _progress(args.quiet)
-    path = build_report(sc, args.out, t_final=args.t_final, samples=args.samples, codegen=not args.no_codegen,
-                        progress=say)
+    run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), _progress(args.quiet))
+    path = build_report(run, args.out, codegen=not args.no_codegen)
     print(path)
     return 0

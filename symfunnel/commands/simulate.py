@@ -31,7 +31,8 @@ def run(args) -> int:
 
     from ..cli import _dump, _load, _progress
     from ..errors import InputError
-    from ..simulate import convergence_study, simulate
+    from ..pipeline import Run, RunOptions
+    from ..simulate import convergence_study
 
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
@@ -43,17 +44,19 @@ def run(args) -> int:
         raise InputError(f"is '{args.out}'", key="--out", expected="a file name ending in .npz")
     say = _progress(args.quiet)
     sc = _load(args)
+    run = Run(sc, RunOptions(t_final=args.t_final, integrator=args.integrator, width=args.width,
+                             wall_limit=args.wall_limit, jit=not args.no_jit), say)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = simulate(sc, t_final=args.t_final, integrator=args.integrator, width=args.width, progress=say,
-                       wall_limit=args.wall_limit, jit=not args.no_jit)
+        res = run.simulation
     for w in caught:
         print(f"symfunnel: warning: {w.message}", file=sys.stderr)
     if args.convergence:
-        res.convergence = convergence_study(sc, t_final=args.t_final, integrator=args.integrator, progress=say)
+        res.convergence = convergence_study(sc, run.design, t_final=args.t_final, integrator=args.integrator,
+                                            progress=say)
     summary = res.summary()
     if args.out:
-        path = res.save_npz(args.out)
+        path = res.save_npz(args.out, run.trajectory_arrays() if res.t.size else None)
         say(f"trajectory written to {path}")
     if args.json:
         print(_dump(summary))

@@ -16,14 +16,14 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Run every check; print a table (or JSON); exit 1 when any check fails."""
-    from ..checks.verify import verify
     from ..cli import _dump, _load, _progress
     from ..errors import InputError
+    from ..pipeline import Run, RunOptions
     if args.samples < 1:
         raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
     sc = _load(args)
     say = _progress(args.quiet or args.json)
-    v = verify(sc, t_final=args.t_final, samples=args.samples, progress=say)
+    v = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), say).verification
     failed = v.failed
     if args.json:
         print(_dump(v.to_json()))

@@ -8,12 +8,12 @@ import numpy as np
 from .. import validate as V
 from ..errors import InputError
 from ..expr import parse_expression
+from ..names import IDENT, RESERVED
 from .base import RigidBodyModel, christoffel_C, symbols
 
 
 def _names(table: dict, file: str) -> tuple[list[str], list[str], list[float]]:
     """Coordinates and parameters of a matrices model, checked for clashes with reserved names."""
-    from ..scenario import IDENT, RESERVED
     coords = V.get_list(table, "coordinates", file=file, prefix="model")
     if not coords:
         raise InputError("is empty", file=file, key="model.coordinates", expected="at least one coordinate name")

@@ -6,7 +6,6 @@
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -14,6 +13,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
+from ..names import IDENT
 from ..validate import as_float, did_you_mean, get_list, join, type_name
 from .base import RigidBodyModel, symbols
 
@@ -139,7 +139,6 @@ def _fmt(v: Sequence[float]) -> str:
 
 # ---------------------------------------------------------------- TOML helpers shared by the builders
 
-_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
 def get_coordinates(table: dict, n: int, *, file: str, prefix: str) -> list[str]:
@@ -152,7 +151,7 @@ def get_coordinates(table: dict, n: int, *, file: str, prefix: str) -> list[str]
         raise InputError(f"has {len(names)} names but the model has {n} movable joints", file=file,
                          key=key, expected=f"an array of {n} names")
     for i, c in enumerate(names):
-        if not isinstance(c, str) or not _IDENT.match(c):
+        if not isinstance(c, str) or not IDENT.match(c):
             raise InputError(f"is {c!r}", file=file, key=join(key, i),
                              expected="a name of letters, digits and '_' not starting with a digit")
     dup = sorted({c for c in names if names.count(c) > 1})

@@ -21,31 +21,15 @@ def default_path(scenario) -> Path:
     return Path("reports") / f"{scenario.name}.html"
 
 
-def render_report(scenario, *, design=None, verification=None, t_final=None, samples: int = 10000,
-                  codegen: bool = True, progress=None) -> tuple[str, object]:
-    """The report as HTML text, and the Verification it rests on (computed here unless given)."""
-    from ..checks.audit import audit
-    from ..checks.verify import verify
-    from ..design import derive
+def render_report(run, *, codegen: bool = True) -> str:
+    """The report of a pipeline Run as HTML text (its stages are computed here if they were not yet)."""
     from . import html as H
-    say = progress or (lambda s: None)
-    timings = []
+    say = run.progress or (lambda s: None)
     t_all = time.perf_counter()
-    t0 = time.perf_counter()
-    if design is None:
-        say("deriving the design")
-        design = derive(scenario)
-    timings.append(("derive (one SX derivation)", time.perf_counter() - t0))
-    t0 = time.perf_counter()
-    say("audit: model properties and printed claims")
-    audit_results = audit(scenario, design, progress=say)
-    timings.append(("audit", time.perf_counter() - t0))
-    if verification is None:
-        t0 = time.perf_counter()
-        verification = verify(scenario, design, t_final=t_final, samples=samples, progress=say)
-        for k, v in verification.timings.items():
-            if k != "derive":
-                timings.append((f"verify: {k}", v))
+    scenario, design = run.scenario, run.design
+    audit_results = run.audit
+    verification = run.verification
+    timings = [(f"stage: {k}", v) for k, v in run.timings.items()]
     t0 = time.perf_counter()
     say("report: scenario, model and derivation sections")
     ctx = {
@@ -60,8 +44,8 @@ def render_report(scenario, *, design=None, verification=None, t_final=None, sam
     ctx["verification"] = H.verification_section(verification)
     if codegen:
         t0 = time.perf_counter()
-        ctx["codegen"] = H.codegen_section(scenario, design, say)
-        timings.append(("code generation summary", time.perf_counter() - t0))
+        ctx["codegen"] = H.codegen_section(run, say)
+        timings.append(("code generation and cross-check", time.perf_counter() - t0))
     else:
         ctx["codegen"] = {"available": False, "reason": "code generation was skipped for this report (codegen=False)"}
     audit_fail = [c for c in audit_results if c.status == "fail"]
@@ -70,20 +54,18 @@ def render_report(scenario, *, design=None, verification=None, t_final=None, sam
         "audit_failed": [c.id for c in audit_fail],
         "sim_status": verification.result.status, "sim_message": verification.result.message,
     }
-    timings.append(("total", time.perf_counter() - t_all))
+    timings.append(("report total (after the stages)", time.perf_counter() - t_all))
     ctx["timings"] = [(k, f"{v:.2f} s") for k, v in timings]
     ctx["versions"] = H.versions()
     ctx["generated"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     say("rendering HTML")
-    return H.render(ctx), verification
+    return H.render(ctx)
 
 
-def build_report(scenario, out=None, *, design=None, t_final=None, samples: int = 10000, codegen: bool = True,
-                 progress=None) -> Path:
-    """Write the report of a scenario (default reports/<name>.html) atomically; returns the path."""
+def build_report(run, out=None, *, codegen: bool = True) -> Path:
+    """Write the report of a Run (default reports/<name>.html) atomically; returns the path."""
     from ..io import atomic_write
-    text, _ = render_report(scenario, design=design, t_final=t_final, samples=samples, codegen=codegen,
-                            progress=progress)
-    path = Path(out) if out is not None else default_path(scenario)
+    text = render_report(run, codegen=codegen)
+    path = Path(out) if out is not None else default_path(run.scenario)
     atomic_write(path, text)
     return path

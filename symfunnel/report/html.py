@@ -76,7 +76,7 @@ def symbol_mathml(name: str) -> str:
 
 def _signal_sympy(design, name: str, entry: int | None = 0):
     """One entry (or the whole matrix when entry is None) of a design signal as sympy, exact, unsimplified."""
-    from ..sx2sympy import sx_to_sympy
+    from ..sx.tosympy import sx_to_sympy
     e = design.signals[name]
     if entry is not None:
         e = e[entry]
@@ -169,7 +169,7 @@ def scenario_section(sc) -> dict:
 
 def model_section(sc, audit_results) -> dict:
     """M, C, G as MathML (parameters kept symbolic) and the audit's model/funnel/design checks."""
-    from ..sx2sympy import sx_to_sympy
+    from ..sx.tosympy import sx_to_sympy
     m = sc.model
     eqs = []
     ins = [m.q, m.dq] + ([m.p] if m.p.numel() else [])
@@ -286,13 +286,15 @@ def simulation_section(v, progress) -> dict:
                      FIG.torque(res, n, sc.plant.dead_zone)))
         progress("figures: ESN, weights, Lyapunov")
         fit = None
-        if L is not None:
+        if L is not None and v.design.n_regressor:
             from ..checks.lyapunov import regressor_values
-            Phi = regressor_values(v.design, np.asarray(res.signals["x_esn"]).reshape(len(res.t), -1))
-            fit = Phi @ L.W_star
-        figs.append(("esn", "The ESN's estimate against the true unknown term", FIG.esn_estimate(res, n, fit)))
-        figs.append(("weights", "\u2016\u0174\u2016_F", FIG.weights(res, L.W_star if L is not None else None)))
-        figs.append(("reservoir", "Reservoir state", FIG.reservoir(res, sc.esn.leak)))
+            fit = regressor_values(v.closed_loop, res.x) @ L.W_star
+        if v.design.n_regressor:
+            figs.append(("esn", "The approximator's estimate against the true unknown term",
+                         FIG.esn_estimate(res, n, fit)))
+            figs.append(("weights", "\u2016\u0174\u2016_F", FIG.weights(res, L.W_star if L is not None else None)))
+        if "x_esn" in res.signals:
+            figs.append(("reservoir", "Reservoir state", FIG.reservoir(res, sc.esn.leak)))
         if L is not None and np.isfinite(L.V).sum() >= 2:
             figs.append(("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound(L, res)))
             figs.append(("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay(L, res)))
@@ -345,21 +347,13 @@ def verification_section(v) -> dict:
             "n_skip": len(v.checks) - n_fail - n_pass}
 
 
-def codegen_section(sc, design, progress) -> dict:
-    """The code-generation summary when symfunnel.codegen.codegen_summary exists; else says it is not available."""
-    try:
-        spec = importlib.util.find_spec("symfunnel.codegen")
-        mod = importlib.import_module("symfunnel.codegen") if spec else None
-    except Exception as exc:  # noqa: BLE001
-        return {"available": False, "reason": f"symfunnel.codegen cannot be imported ({type(exc).__name__}: {exc})"}
-    fn = getattr(mod, "codegen_summary", None) if mod else None
-    if fn is None:
-        return {"available": False, "reason": "code generation is not available in this build "
-                                              "(symfunnel.codegen.codegen_summary is missing)"}
+def codegen_section(run, progress) -> dict:
+    """The code-generation summary of a Run: both languages generated, compiled/imported and cross-checked."""
+    from ..codegen import codegen_summary
     progress("code generation: C and Python, compiled/imported and cross-checked")
     t0 = time.perf_counter()
     try:
-        s = fn(sc, design)
+        s = codegen_summary(run.design, run.code_trajectory)
     except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
         return {"available": False, "reason": f"code generation failed: {type(exc).__name__}: {exc}"}
     out = {"available": True, "seconds": time.perf_counter() - t0, "functions": s.get("functions", []),

@@ -9,7 +9,7 @@ from fractions import Fraction
 import casadi
 import sympy
 
-from .codegen.tape import OP_NAMES, count_ops, read_tape
+from .tape import OP_NAMES, count_ops, read_tape
 
 __all__ = ["function_to_sympy", "sx_to_sympy", "count_ops", "to_sympy_number"]
 

@@ -1,0 +1,6 @@
+"""The building blocks a design is declared from: funnel shapes, error transformations and approximators.
+
+Each kind has one registry (`FUNNEL_SHAPES`, `TRANSFORMS`, `APPROXIMATORS`); adding a part is adding one registered
+class to the kind's module. These modules sit below the scenario (which validates against the registries) and the
+design (which builds from them): they import only casadi, numpy and the ground floor.
+"""

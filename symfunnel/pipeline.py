@@ -1,0 +1,146 @@
+"""The one orchestrator: a `Run` carries a scenario through the pipeline, computing each stage once, on demand.
+
+    scenario -> design -> closed loop -> simulation -> Lyapunov argument (W* fitted once) -> verification
+                      \\-> audit                                       \\-> code (C, Python)
+
+Every command, the report and the Python API go through a Run; no stage below rebuilds a stage above (they take
+what they need as arguments), so a report derives, compiles, simulates and fits W* exactly once.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Callable
+
+import numpy as np
+
+from .scenario import Scenario, load_scenario
+
+
+@dataclass
+class RunOptions:
+    """Settings a command may override for the stages of one run (None: the scenario's own)."""
+
+    t_final: float | None = None
+    integrator: str | None = None
+    width: float | None = None
+    wall_limit: float | None = None
+    jit: bool = True
+    samples: int = 10000            # falsification states of verify
+    seed: int = 0
+    mutant: str | None = None       # derive the design with this seeded error (verify --mutants)
+
+
+@dataclass
+class Run:
+    """One scenario through the pipeline; each stage is a cached property computed on first use."""
+
+    scenario: Scenario
+    options: RunOptions = field(default_factory=RunOptions)
+    progress: Callable[[str], None] | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, name_or_path=None, **options) -> "Run":
+        """A Run of a built-in scenario name or a TOML path, with option overrides as keywords."""
+        progress = options.pop("progress", None)
+        return cls(load_scenario(name_or_path), RunOptions(**options), progress)
+
+    def _say(self, msg: str) -> None:
+        if self.progress:
+            self.progress(msg)
+
+    def _timed(self, name: str, fn):
+        t0 = time.perf_counter()
+        out = fn()
+        self.timings[name] = time.perf_counter() - t0
+        return out
+
+    @property
+    def t_final(self) -> float:
+        """The horizon of this run."""
+        return float(self.options.t_final if self.options.t_final is not None else self.scenario.simulation.t_final)
+
+    # --- stages ---------------------------------------------------------------------------------------
+
+    @cached_property
+    def design(self):
+        """The design, derived once (with the run's mutant, if any)."""
+        from .design import derive
+        self._say("deriving the design" + (f" (mutant {self.options.mutant})" if self.options.mutant else ""))
+        return self._timed("derive", lambda: derive(self.scenario, mutant=self.options.mutant))
+
+    @cached_property
+    def closed_loop(self):
+        """The closed-loop ODE of plant and controller."""
+        from .closedloop import build_closed_loop
+        self._say("building the closed loop")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return self._timed("closed_loop", lambda: build_closed_loop(self.scenario, self.design,
+                                                                        width=self.options.width))
+
+    @cached_property
+    def simulation(self):
+        """The simulated closed loop (SimResult)."""
+        from .simulate import simulate
+        o = self.options
+        self._say("simulating the closed loop")
+        res = self._timed("simulate", lambda: simulate(
+            self.scenario, self.design, t_final=o.t_final, integrator=o.integrator, width=o.width,
+            progress=self.progress, wall_limit=o.wall_limit, closed_loop=self.closed_loop, jit=o.jit))
+        self._say(f"simulation: {res.status} ({res.message})")
+        return res
+
+    @cached_property
+    def lyapunov(self):
+        """The Lyapunov argument along the simulated trajectory (W* fitted once), or None without a trajectory."""
+        from .checks.lyapunov import along_trajectory
+        res = self.simulation
+        if not res.t.size:
+            return None
+        self._say("Lyapunov function and its exact derivative along the trajectory (AD)")
+        return self._timed("lyapunov", lambda: along_trajectory(self.closed_loop, res.t, res.x,
+                                                                res.signals["f_true"]))
+
+    @cached_property
+    def audit(self):
+        """The audit's checks (model, funnels, printed claims)."""
+        from .checks.audit import audit
+        return self._timed("audit", lambda: audit(self.scenario, self.design, progress=self.progress))
+
+    @cached_property
+    def verification(self):
+        """Every verify check on the simulated closed loop."""
+        from .checks.verify import verify
+        o = self.options
+        return self._timed("verify", lambda: verify(
+            self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, t_final=self.t_final,
+            samples=o.samples, seed=o.seed, progress=self.progress))
+
+    def trajectory_arrays(self) -> dict[str, np.ndarray]:
+        """The simulated trajectory with V (from the one Lyapunov stage) and W*, for `simulate --out`."""
+        res = self.simulation
+        data = {"t": res.t, **{k: np.asarray(v) for k, v in res.signals.items()}}
+        L = self.lyapunov
+        if L is not None:
+            data["V"] = L.V
+            data["W_star"] = L.W_star
+        return data
+
+    @cached_property
+    def code_trajectory(self) -> dict[str, np.ndarray]:
+        """Controller inputs at 50 samples of the simulated run's first 2 s (for the generated main programs)."""
+        from .codegen import trajectory_from_run
+        return trajectory_from_run(self.design, self.closed_loop, self.simulation)
+
+    def code(self, lang: str) -> dict[str, str]:
+        """The generated files of one language ({name: text}), generated once per language."""
+        cache = self.__dict__.setdefault("_code", {})
+        if lang not in cache:
+            from .codegen import generate
+            cache[lang] = generate(self.design, lang, trajectory=self.code_trajectory)
+        return cache[lang]

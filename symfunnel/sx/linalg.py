@@ -1,0 +1,36 @@
+"""Linear algebra written out in SX (no symbolic blow-up, no pivoting), for models and designs alike."""
+
+from __future__ import annotations
+
+import casadi as ca
+
+
+def ldl_solve(M: ca.SX, b: ca.SX) -> ca.SX:
+    """x = M^{-1} b for a symmetric positive definite SX matrix, by an LDL^T factorisation written out in SX."""
+    n = M.shape[0]
+    L = [[None] * n for _ in range(n)]
+    D = [None] * n
+    for j in range(n):
+        d = M[j, j]
+        for k in range(j):
+            d = d - L[j][k] * L[j][k] * D[k]
+        D[j] = d
+        for i in range(j + 1, n):
+            s = M[i, j]
+            for k in range(j):
+                s = s - L[i][k] * L[j][k] * D[k]
+            L[i][j] = s / d
+    y = [None] * n
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s = s - L[i][k] * y[k]
+        y[i] = s
+    z = [y[i] / D[i] for i in range(n)]
+    x = [None] * n
+    for i in reversed(range(n)):
+        s = z[i]
+        for k in range(i + 1, n):
+            s = s - L[k][i] * x[k]
+        x[i] = s
+    return ca.vertcat(*x)
