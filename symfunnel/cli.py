@@ -150,11 +150,12 @@ def cmd_audit(args) -> int:
         print(_dump({"scenario": sc.name, "checks": [r.to_json() for r in results]}))
     else:
         print(f"audit of scenario {sc.name} ({sc.file})")
-        for r in results:
-            mark = {"pass": "PASS", "fail": "FAIL", "skip": "SKIP"}[r.status]
-            print(f"  {mark}  {r.id}  [{r.method}]")
-            print(f"        {r.detail}")
-        print(f"{len(results) - len(failed)} passed, {len(failed)} failed")
+        from .commands.verify import print_checks
+        print_checks(results)
+        unexpected = [r for r in results if r.unexpected]
+        print(f"{len(results) - len(failed)} passed, {len(failed)} failed "
+              f"({len(failed) - sum(r.expected == 'pass' for r in failed)} expected by the scenario)"
+              + (f"; unexpected: {', '.join(r.id for r in unexpected)}" if unexpected else ""))
     return 1 if (failed and args.strict) else 0
 
 

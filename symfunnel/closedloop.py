@@ -105,6 +105,20 @@ class ClosedLoop:
         return out
 
 
+def dead_zone_branches(scenario) -> tuple[list, list]:
+    """Per joint, the dead zone's left and right branch as callables u -> D(u) (scenario expressions, SX)."""
+    dz = scenario.plant.dead_zone
+    u = ca.SX.sym("u")
+    left, right = [], []
+    for j in range(scenario.n):
+        envj = {"u": u, "b_l": dz.b_l[j], "b_r": dz.b_r[j]}
+        fl = ca.Function("left", [u], [ca.SX(dz.left.to_casadi(envj))])
+        fr = ca.Function("right", [u], [ca.SX(dz.right.to_casadi(envj))])
+        left.append(lambda v, fl=fl: fl(v))
+        right.append(lambda v, fr=fr: fr(v))
+    return left, right
+
+
 def plant_acceleration(scenario, q, dq, t, tau, width: float) -> dict:
     """The true plant's ddq under commanded torque tau, with its parts (SX in q, dq, t, tau)."""
     from . import plant as P
@@ -136,14 +150,7 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float) -> dict:
     if dz is None:
         tau_applied = tau
     else:
-        u = ca.SX.sym("u")
-        left, right = [], []
-        for j in range(n):
-            envj = {"u": u, "b_l": dz.b_l[j], "b_r": dz.b_r[j]}
-            fl = ca.Function("left", [u], [ca.SX(dz.left.to_casadi(envj))])
-            fr = ca.Function("right", [u], [ca.SX(dz.right.to_casadi(envj))])
-            left.append(lambda v, fl=fl: fl(v))
-            right.append(lambda v, fr=fr: fr(v))
+        left, right = dead_zone_branches(scenario)
         tau_applied = P.dead_zone(tau, dz.b_l, dz.b_r, left, right, width)
     rhs = tau_applied - ca.mtimes(C, dq) - G - fric - dist
     ddq = ca.solve(M, rhs) if n == 1 else ldl_solve(M, rhs)

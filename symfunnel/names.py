@@ -55,3 +55,21 @@ def compress_names(names: list[str]) -> str:
 
 #: names a scenario may not give to its own coordinates or parameters
 RESERVED = {"t", "u", "pi", "e"} | set(SIGNALS) | set(CONSTANTS) | {"x_esn", "w_hat", "q", "dq"}
+
+
+#: the outcomes a scenario may declare for a check
+EXPECT_STATUSES = ("pass", "fail")
+
+#: ids of the audit's and verify's checks (claims aside: claim.<name>); per-joint ids come from `check_ids`
+AUDIT_CHECKS = ("model.M_symmetric", "model.M_positive_definite", "model.skew_symmetry", "model.coriolis_consistent",
+                "funnel.parameters", "funnel.initial_condition")
+VERIFY_CHECKS = ("simulation.completed", "design.identity.vdot", "lyapunov.rho_positive", "lyapunov.decay",
+                 "lyapunov.bound", "lyapunov.falsification", "lyapunov.guarantee", "assumption.input_gain",
+                 "bounded.tau", "bounded.w_hat", "bounded.x_esn", "implementation.containment",
+                 "implementation.saturation")
+
+
+def check_ids(n: int) -> list[str]:
+    """Every non-claim check id for an n-joint scenario (what `[[expect]]` may name)."""
+    joints = [f"funnel.containment.{e}.joint{j + 1}" for e in ("e1", "e2") for j in range(n)]
+    return list(AUDIT_CHECKS) + list(VERIFY_CHECKS) + joints

@@ -99,18 +99,21 @@ class Run:
     def lyapunov(self):
         """The Lyapunov argument along the simulated trajectory (W* fitted once), or None without a trajectory."""
         from .checks.lyapunov import along_trajectory
+        from .checks.verify import decay_claim
         res = self.simulation
         if not res.t.size:
             return None
         self._say("Lyapunov function and its exact derivative along the trajectory (AD)")
-        return self._timed("lyapunov", lambda: along_trajectory(self.closed_loop, res.t, res.x,
-                                                                res.signals["f_true"]))
+        return self._timed("lyapunov", lambda: along_trajectory(self.closed_loop, res.t, res.x, res.signals["f_true"],
+                                                                claim=decay_claim(self.scenario)))
 
     @cached_property
     def audit(self):
         """The audit's checks (model, funnels, printed claims)."""
         from .checks.audit import audit
-        return self._timed("audit", lambda: audit(self.scenario, self.design, progress=self.progress))
+        from .checks.gate import apply_expectations
+        return apply_expectations(self.scenario, self._timed(
+            "audit", lambda: audit(self.scenario, self.design, progress=self.progress)))
 
     @cached_property
     def verification(self):
@@ -118,8 +121,8 @@ class Run:
         from .checks.verify import verify
         o = self.options
         return self._timed("verify", lambda: verify(
-            self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, t_final=self.t_final,
-            samples=o.samples, seed=o.seed, progress=self.progress))
+            self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, self.audit,
+            t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress))
 
     def trajectory_arrays(self) -> dict[str, np.ndarray]:
         """The simulated trajectory with V (from the one Lyapunov stage) and W*, for `simulate --out`."""

@@ -21,14 +21,14 @@ from .family.approximators import APPROXIMATORS, ESNApproximator
 from .family.funnels import FunnelSpec, parse_funnel
 from .family.transforms import TRANSFORMS
 from .family.variants import VARIANTS
-from .names import CONSTANTS, IDENT, RESERVED, SIGNALS
+from .names import CONSTANTS, EXPECT_STATUSES, IDENT, RESERVED, SIGNALS, check_ids
 
 DATA_DIR = Path(__file__).parent / "data"
 BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
             "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims", "design",
-            "approximator"]
+            "approximator", "expect"]
 ESN_INPUTS = list(ESNApproximator.INPUTS)
 
 
@@ -39,11 +39,23 @@ class Claim:
     name: str
     source: str
     description: str
-    kind: str                            # "signal" or "funnel"
+    kind: str                            # "signal", "funnel" or "decay"
     signal: str | None = None
     expression: Expression | None = None
     funnel: str | None = None
     spec: FunnelSpec | None = None
+    rho: Expression | None = None        # decay claims: V_dot <= -rho V + delta with these printed constants
+    delta: Expression | None = None
+    expect: str = "pass"                 # the outcome the scenario declares: "pass" (holds) or "fail" (known wrong)
+
+
+@dataclass
+class Expectation:
+    """A declared outcome of a check other than a claim (`[[expect]]`), with the reason the report shows."""
+
+    check: str
+    status: str
+    reason: str
 
 
 @dataclass
@@ -165,6 +177,7 @@ class Scenario:
     audit: AuditSpec
     claims: list[Claim]
     design: DesignSpec = field(default_factory=DesignSpec)
+    expectations: list[Expectation] = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -260,12 +273,13 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     audit = _audit(raw.get("audit", {}), n, file, model)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
     design = _design(raw.get("design", {}), raw.get("approximator", {}), file)
+    expectations = _expectations(raw.get("expect", []), n, claims, file)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
-                    design=design, raw=raw)
+                    design=design, expectations=expectations, raw=raw)
 
 
 # --- sections -------------------------------------------------------------------------------------
@@ -528,7 +542,7 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
     for i, c in enumerate(items):
         p = f"claims[{i}]"
         V.check_keys(c, ["name", "source", "description", "signal", "expression", "funnel", "phi0",
-                         "phi_inf", "a"], file=file, prefix=p, required=["name"])
+                         "phi_inf", "a", "rho", "delta", "expect"], file=file, prefix=p, required=["name"])
         name = V.get_str(c, "name", file=file, prefix=p)
         if not IDENT.match(name) or len(name) > 64:
             raise InputError(f"is '{name}'", file=file, key=p + ".name", expected="an identifier")
@@ -537,6 +551,19 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
         seen.add(name)
         source = V.get_str(c, "source", "", file=file, prefix=p)
         desc = V.get_str(c, "description", "", file=file, prefix=p)
+        expect = V.get_str(c, "expect", "pass", file=file, prefix=p, choices=list(EXPECT_STATUSES))
+        if "rho" in c or "delta" in c:
+            for k in ("signal", "expression", "funnel"):
+                if k in c:
+                    raise InputError("cannot be combined with 'rho'/'delta'", file=file, key=f"{p}.{k}",
+                                     expected="a decay claim has rho and delta only")
+            for k in ("rho", "delta"):
+                if k not in c:
+                    raise InputError("is missing", file=file, key=f"{p}.{k}", expected="rho and delta of the claim")
+            rho, delta = (parse_expression(V.get_str(c, k, file=file, prefix=p), names | {"W_star_norm2"},
+                                           file=file, key=f"{p}.{k}") for k in ("rho", "delta"))
+            out.append(Claim(name, source, desc, "decay", rho=rho, delta=delta, expect=expect))
+            continue
         if "funnel" in c:
             for k in ("signal", "expression"):
                 if k in c:
@@ -545,7 +572,7 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
             fn = V.get_str(c, "funnel", file=file, prefix=p, choices=["e1", "e2"])
             spec = _funnel({k: c[k] for k in ("phi0", "phi_inf", "a") if k in c}, n, file, p,
                            (funnels[fn].phi0, funnels[fn].phi_inf, funnels[fn].a))
-            out.append(Claim(name, source, desc, "funnel", funnel=fn, spec=spec))
+            out.append(Claim(name, source, desc, "funnel", funnel=fn, spec=spec, expect=expect))
             continue
         for k in ("phi0", "phi_inf", "a"):
             if k in c:
@@ -558,7 +585,35 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
         sig = V.get_str(c, "signal", file=file, prefix=p, choices=sorted(SIGNALS))
         expr = parse_expression(V.get_str(c, "expression", file=file, prefix=p), names, file=file,
                                 key=p + ".expression")
-        out.append(Claim(name, source, desc, "signal", signal=sig, expression=expr))
+        out.append(Claim(name, source, desc, "signal", signal=sig, expression=expr, expect=expect))
+    return out
+
+
+def _expectations(items: Any, n: int, claims: list[Claim], file: str) -> list[Expectation]:
+    """`[[expect]]`: declared outcomes of non-claim checks, each naming a known check id and giving a reason."""
+    if not isinstance(items, list):
+        raise InputError(f"is a {V.type_name(items)}", file=file, key="expect",
+                         expected="an array of tables ([[expect]])")
+    known = check_ids(n)
+    out, seen = [], set()
+    for i, e in enumerate(items):
+        p = f"expect[{i}]"
+        V.check_keys(e, ["check", "status", "reason"], file=file, prefix=p, required=["check", "status", "reason"])
+        cid = V.get_str(e, "check", file=file, prefix=p)
+        if cid.startswith("claim."):
+            raise InputError(f"is '{cid}'", file=file, key=p + ".check",
+                             expected="a non-claim check id (a claim declares its outcome with `expect`)")
+        if cid not in known:
+            raise InputError(f"is '{cid}', not a check id{V.did_you_mean(cid, known)}", file=file, key=p + ".check",
+                             expected="a check id of audit or verify (see docs/scenario.md)")
+        if cid in seen:
+            raise InputError(f"'{cid}' is declared twice", file=file, key=p + ".check", expected="one entry per check")
+        seen.add(cid)
+        status = V.get_str(e, "status", file=file, prefix=p, choices=list(EXPECT_STATUSES))
+        reason = V.get_str(e, "reason", file=file, prefix=p).strip()
+        if not reason:
+            raise InputError("is empty", file=file, key=p + ".reason", expected="why the outcome is expected")
+        out.append(Expectation(cid, status, reason))
     return out
 
 

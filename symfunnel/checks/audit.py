@@ -22,7 +22,12 @@ from .sampling import eval_mapped, funnel_states, joint_states, point_of
 
 @dataclass
 class CheckResult:
-    """One check: id, pass/fail/skip, a one-line detail, how it was decided, and the evidence."""
+    """One check: id, pass/fail/warn/skip, a one-line detail, how it was decided, and the evidence.
+
+    `expected` is the outcome the scenario declares (pass unless a claim's `expect` or an `[[expect]]` entry says
+    fail, with `reason`); the check is *unexpected* -- it fails the gate -- when it fails while expected to pass or
+    passes while expected to fail. warn and skip never fail the gate.
+    """
 
     id: str
     status: str
@@ -31,10 +36,20 @@ class CheckResult:
     margin: float | None = None
     where: dict | None = None
     evidence: dict = field(default_factory=dict)
+    expected: str = "pass"
+    reason: str = ""
+
+    @property
+    def unexpected(self) -> bool:
+        """True when this outcome fails the gate."""
+        return self.status in ("pass", "fail") and self.status != self.expected
 
     def to_json(self) -> dict:
-        """The JSON form of design.md section 2 (id, status, detail, plus method, margin, where, evidence)."""
-        out = {"id": self.id, "status": self.status, "detail": self.detail, "method": self.method}
+        """The JSON form of design.md sections 2 and 7 (id, status, expected, detail, plus method, margin, where...)."""
+        out = {"id": self.id, "status": self.status, "expected": self.expected, "detail": self.detail,
+               "method": self.method}
+        if self.reason:
+            out["reason"] = self.reason
         if self.margin is not None:
             out["margin"] = self.margin
         if self.where is not None:
@@ -350,6 +365,9 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
     """claim.<name>: the printed expression against the exact signal, sampled inside the funnels, then sympy."""
     sc = design.scenario
     cid = f"claim.{claim.name}"
+    if claim.kind == "decay":
+        return CheckResult(cid, "skip", f"{claim.source or 'printed'} decay claim: needs the ideal weights fitted on a "
+                           "simulated run, so `symfunnel verify` evaluates it", method="verify")
     if claim.kind == "funnel":
         funnels = dict(sc.funnels)
         funnels[claim.funnel] = claim.spec

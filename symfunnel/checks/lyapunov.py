@@ -104,13 +104,21 @@ def _sub_reference(design, e):
     return ca.substitute(e, ref_syms, ref_t)
 
 
-def lyapunov_function(cl, W_star: np.ndarray) -> ca.Function:
+def claim_rho_delta(design, claim, W_star) -> tuple[ca.SX, ca.SX]:
+    """A decay claim's printed rho (min over joints of its expression) and delta, as SX in the design's symbols."""
+    from .audit import claim_env
+    env = claim_env(design)
+    env["W_star_norm2"] = float(np.sum(np.asarray(W_star, dtype=float) ** 2))
+    return ca.mmin(ca.SX(claim.rho.to_casadi(env))), ca.SX(claim.delta.to_casadi(env))
+
+
+def lyapunov_function(cl, W_star: np.ndarray, claim=None) -> ca.Function:
     """casadi.Function (t, x) -> V, V_dot, rho_paper, delta_paper, rho, delta, V_z, V_w, inside, scale.
 
     V, rho and delta are the design variant's (`Design.variant.lyapunov`) with eps = f_true - W*^T Phi of the
     closed loop; V_dot is the exact derivative along the closed-loop flow: jtimes(V, [t; x], [1; f(t, x)]).
-    `inside` is 1 where both funnels hold strictly (z finite), else 0. rho_paper/delta_paper are the constants the
-    paper prints in its Theorem 1 (NaN for a transformation without zeta).
+    `inside` is 1 where both funnels hold strictly (z finite), else 0. rho_paper/delta_paper are those of a printed
+    decay claim (`claim`, e.g. a paper's theorem: its constants applied to this design), NaN without one.
     """
     d = cl.design
     sc = cl.scenario
@@ -123,11 +131,8 @@ def lyapunov_function(cl, W_star: np.ndarray) -> ca.Function:
     S = {k: _sub_reference(d, d.signals[k]) for k in ("e1", "e2", "F1", "F2")}
     xdot = cl.f(t, x)
     V_dot = ca.jtimes(L["V"], ca.vertcat(t, x), ca.vertcat(ca.SX(1), xdot))
-    if "zeta1" in d.signals and d.n_regressor:
-        k1, k2, sigma = ca.DM(sc.k1), ca.DM(sc.k2), float(sc.sigma)
-        z1, z2 = _sub_reference(d, d.signals["zeta1"]), _sub_reference(d, d.signals["zeta2"])
-        rho_p = ca.fmin(ca.fmin(ca.mmin(2 * k1 * z1), ca.mmin(2 * k2 * z2)), sigma)
-        delta_p = ca.SX(sigma / 2 * float(np.sum(np.asarray(W_star) ** 2)))
+    if claim is not None:
+        rho_p, delta_p = (_sub_reference(d, e) for e in claim_rho_delta(d, claim, W_star))
     else:
         rho_p, delta_p = ca.SX(np.nan), ca.SX(np.nan)
     inside = ca.logic_and(ca.mmin(S["F1"] - ca.fabs(S["e1"])) > 0, ca.mmin(S["F2"] - ca.fabs(S["e2"])) > 0)
@@ -136,9 +141,9 @@ def lyapunov_function(cl, W_star: np.ndarray) -> ca.Function:
                                             inside, L["scale"]], ["t", "x"], names, {"cse": True})
 
 
-def evaluate_lyapunov(cl, W_star, t: np.ndarray, X: np.ndarray) -> dict[str, np.ndarray]:
+def evaluate_lyapunov(cl, W_star, t: np.ndarray, X: np.ndarray, claim=None) -> dict[str, np.ndarray]:
     """The outputs of `lyapunov_function` at T points (t (T,), X (T, nx)); NaN where outside a funnel."""
-    f = lyapunov_function(cl, W_star)
+    f = lyapunov_function(cl, W_star, claim)
     T = int(np.size(t))
     names = [f.name_out(i) for i in range(f.n_out())]
     if T == 0:
@@ -205,18 +210,19 @@ def constant_rho_lower(design, t_final: float) -> float:
 
 
 def along_trajectory(cl, t: np.ndarray, X: np.ndarray, f_true: np.ndarray, *,
-                     W_star: np.ndarray | None = None) -> LyapunovTrajectory:
+                     W_star: np.ndarray | None = None, claim=None) -> LyapunovTrajectory:
     """Evaluate the Lyapunov argument along a trajectory (t (T,), X (T, nx), f_true (T, n) logged signals)."""
     if W_star is None:
         W_star, info = estimate_w_star(cl, t, X, f_true)
     else:
         info = {"method": "given", "norm": float(np.linalg.norm(W_star))}
-    L = evaluate_lyapunov(cl, W_star, t, X)
+    L = evaluate_lyapunov(cl, W_star, t, X, claim)
     with np.errstate(invalid="ignore"):
         rho_const = float(np.nanmin(L["rho"])) if np.any(np.isfinite(L["rho"])) else float("nan")
         delta_max = float(np.nanmax(L["delta"])) if np.any(np.isfinite(L["delta"])) else float("nan")
         rho_p_const = float(np.nanmin(L["rho_paper"])) if np.any(np.isfinite(L["rho_paper"])) else float("nan")
-    delta_p = float(np.sum(np.asarray(W_star) ** 2) * cl.scenario.sigma / 2)
+    with np.errstate(invalid="ignore"):
+        delta_p = float(np.nanmax(L["delta_paper"])) if np.any(np.isfinite(L["delta_paper"])) else float("nan")
     V0 = float(L["V"][0]) if np.size(t) and np.isfinite(L["V"][0]) else float("nan")
     bound = integrated_bound(t, V0, rho_const, delta_max) if np.isfinite(rho_const) else np.full(len(t), np.nan)
     bound_p = integrated_bound(t, V0, rho_p_const, delta_p) if np.isfinite(rho_p_const) else np.full(len(t), np.nan)
@@ -238,7 +244,7 @@ def decay_margin(V_dot, rhs, scale) -> tuple[np.ndarray, np.ndarray]:
 # --- region-wide falsification --------------------------------------------------------------------
 
 def falsify(cl, W_star: np.ndarray, *, samples: int = 10000, seed: int = 0, w_scale: float | None = None,
-            fill: float = 0.98, t_range: tuple[float, float] | None = None) -> dict:
+            fill: float = 0.98, t_range: tuple[float, float] | None = None, claim=None) -> dict:
     """Sample states inside both funnels (scrambled Sobol) and test V_dot <= -rho V + delta at each, both versions.
 
     This is falsification (a search for counterexamples at sampled states), not a proof. x_esn is sampled in the
@@ -253,7 +259,7 @@ def falsify(cl, W_star: np.ndarray, *, samples: int = 10000, seed: int = 0, w_sc
     pts = funnel_states(d, k, rng, method="sobol", fill=fill, t_range=t_range, w_scale=w_scale)
     X = np.hstack([pts["q"].T, pts["dq"].T, *[pts["vec_" + name].T for name, _ in d.states]])
     t = pts["t"].ravel()
-    L = evaluate_lyapunov(cl, W_star, t, X)
+    L = evaluate_lyapunov(cl, W_star, t, X, claim)
     out = {"samples": k, "method": "scrambled Sobol", "fill": fill, "w_scale": w_scale,
            "t_range": list(t_range) if t_range else [0.0, float(cl.scenario.simulation.t_final)]}
     for which in ("corrected", "paper"):

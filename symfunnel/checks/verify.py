@@ -49,12 +49,23 @@ class Verification:
 
     @property
     def failed(self) -> list[CheckResult]:
-        """The checks that failed."""
+        """The checks that failed (expected or not)."""
         return [c for c in self.checks if c.status == "fail"]
+
+    @property
+    def unexpected(self) -> list[CheckResult]:
+        """The checks whose outcome is not the declared one: these fail the gate."""
+        return [c for c in self.checks if c.unexpected]
+
+    @property
+    def status(self) -> str:
+        """The gate's verdict: 'pass' when every outcome is as the scenario declares."""
+        return "fail" if self.unexpected else "pass"
 
     def to_json(self) -> dict:
         """{"scenario", "status", "checks": [...], "simulation": summary, "lyapunov": {...}, "timings"}."""
-        out = {"scenario": self.scenario.name, "status": "fail" if self.failed else "pass",
+        out = {"scenario": self.scenario.name, "status": self.status,
+               "unexpected": [c.id for c in self.unexpected],
                "checks": [json_safe(c.to_json()) for c in self.checks], "timings": self.timings}
         if self.result is not None:
             out["simulation"] = {k: self.result.summary().get(k) for k in ("status", "message", "t_end", "t_final",
@@ -129,11 +140,12 @@ def check_containment(res, n: int) -> list[CheckResult]:
     return out
 
 
-def check_decay(L: LyapunovTrajectory, which: str) -> CheckResult:
-    """lyapunov.decay.<which>: V_dot <= -rho V + delta along the trajectory (V_dot exact by AD)."""
-    cid = f"lyapunov.decay.{which}"
-    label = ("rho = min{2 k1 zeta1, 2 k2 zeta2, sigma}, delta = sigma/2 ||W*||^2 (Theorem 1 as printed)"
-             if which == "paper" else
+def check_decay(L: LyapunovTrajectory, which: str, claim=None) -> CheckResult:
+    """lyapunov.decay (which = 'corrected': the design's rho, delta) or claim.<name> (which = 'paper': a printed decay
+    claim's): V_dot <= -rho V + delta along the trajectory (V_dot exact by AD)."""
+    cid = f"claim.{claim.name}" if which == "paper" else "lyapunov.decay"
+    label = (f"{claim.source or 'printed'}: rho = {claim.rho.text}, delta = {claim.delta.text} (the printed constants "
+             "applied to this design)" if which == "paper" else
              "rho = min(2 k1 min mu1, k2 min mu2, sigma gamma), delta = sigma/2 ||W*||^2 + sum mu2 eps^2/(2 k2) "
              "(docs/derivation.md eq. 8)")
     rhs = L.rhs(which)
@@ -161,9 +173,9 @@ def check_decay(L: LyapunovTrajectory, which: str) -> CheckResult:
                        method=method, margin=float(margin[i]), where=where, evidence=ev)
 
 
-def check_bound(L: LyapunovTrajectory, which: str) -> CheckResult:
-    """lyapunov.bound.<which>: V(t) <= V(0) e^{-rho t} + delta/rho (1 - e^{-rho t}) with constant rho, delta."""
-    cid = f"lyapunov.bound.{which}"
+def check_bound(L: LyapunovTrajectory, which: str = "corrected") -> CheckResult:
+    """lyapunov.bound: V(t) <= V(0) e^{-rho t} + delta/rho (1 - e^{-rho t}) with constant rho, delta."""
+    cid = "lyapunov.bound"
     B = L.bound_paper if which == "paper" else L.bound
     rho = L.rho_paper_const if which == "paper" else L.rho_const
     delta = L.delta_paper_const if which == "paper" else L.delta_max
@@ -193,9 +205,10 @@ def check_bound(L: LyapunovTrajectory, which: str) -> CheckResult:
                        method=method, margin=float(margin[i]), where={"t": float(L.t[i])}, evidence=ev)
 
 
-def check_falsification(fz: dict, which: str) -> CheckResult:
-    """lyapunov.falsification.<which>: the decay inequality at sampled states inside the funnels."""
-    cid = f"lyapunov.falsification.{which}"
+def check_falsification(fz: dict, which: str, claim=None) -> CheckResult:
+    """lyapunov.falsification (or, for a printed decay claim, claim.<name>.falsification's part of claim.<name>):
+    the decay inequality at sampled states inside the funnels."""
+    cid = f"claim.{claim.name}" if which == "paper" else "lyapunov.falsification"
     r = fz[which]
     method = (f"falsification (sampled), not a proof: {fz['samples']} scrambled-Sobol states inside both funnels "
               f"(|e| <= {fz['fill']:g} F, t in [{fz['t_range'][0]:g}, {fz['t_range'][1]:g}], x_esn in its invariant "
@@ -282,32 +295,63 @@ def check_bounded(res, design, L: LyapunovTrajectory | None) -> list[CheckResult
 
 # --- the driver ----------------------------------------------------------------------------------
 
-def verify(scenario, design, closed_loop, result, lyapunov: LyapunovTrajectory | None, *, t_final: float,
-           samples: int = 10000, seed: int = 0, progress=None) -> Verification:
-    """Run every check on the stages computed by the pipeline (`symfunnel.pipeline.Run`); never raises for a
-    failed claim."""
+def decay_claim(scenario):
+    """The scenario's printed decay claim (a theorem's rho and delta), if it declares one."""
+    return next((c for c in scenario.claims if c.kind == "decay"), None)
+
+
+def check_decay_claim(L: LyapunovTrajectory | None, fz: dict | None, claim) -> CheckResult:
+    """claim.<name> of a decay claim: fails when the printed inequality is violated along the run or at a sampled
+    state (both evaluated with the design's exact V_dot)."""
+    if L is None:
+        return CheckResult(f"claim.{claim.name}", "skip", "no trajectory to evaluate on", method="simulation")
+    along = check_decay(L, "paper", claim)
+    if fz is None or along.status == "fail":
+        return along
+    sampled = check_falsification(fz, "paper", claim)
+    if sampled.status == "fail":
+        sampled.detail = along.detail + "; but " + sampled.detail
+        return sampled
+    return along
+
+
+def verify(scenario, design, closed_loop, result, lyapunov: LyapunovTrajectory | None, audit_checks=(), *,
+           t_final: float, samples: int = 10000, seed: int = 0, progress=None) -> Verification:
+    """Every check on the stages computed by the pipeline (`symfunnel.pipeline.Run`), the audit's included, with the
+    scenario's expectations applied; never raises for a failed claim."""
+    from . import theory
+    from .gate import apply_expectations
     say = progress or (lambda s: None)
     timings = {}
     cl = closed_loop
-    checks = [check_completed(result), check_funnel_initial(design)]
-    checks += check_containment(result, design.n)
     L = lyapunov
+    claim = decay_claim(scenario)
+    checks = list(audit_checks)
+    checks += [c for c in [check_completed(result)] + check_containment(result, design.n)]
+    t0 = time.perf_counter()
+    say("design identity: V_dot along the nominal model + symbolic unknowns (AD)")
+    checks.append(theory.check_identity(design, np.random.default_rng([seed, 11]), closed_loop=cl, result=result))
+    timings["identity"] = time.perf_counter() - t0
+    checks.append(theory.check_rho_positive(design, t_final))
     fz = None
     if L is not None:
-        for which in ("paper", "corrected"):
-            checks.append(check_decay(L, which))
-        for which in ("paper", "corrected"):
-            checks.append(check_bound(L, which))
+        checks.append(check_decay(L, "corrected"))
+        checks.append(check_bound(L))
         t0 = time.perf_counter()
         say(f"falsification over {samples} Sobol states inside the funnels")
-        fz = falsify(cl, L.W_star, samples=samples, seed=seed, t_range=(0.0, float(t_final)))
+        fz = falsify(cl, L.W_star, samples=samples, seed=seed, t_range=(0.0, float(t_final)), claim=claim)
         timings["falsification"] = time.perf_counter() - t0
-        for which in ("paper", "corrected"):
-            checks.append(check_falsification(fz, which))
+        checks.append(check_falsification(fz, "corrected"))
     else:
-        for cid in ("lyapunov.decay.paper", "lyapunov.decay.corrected", "lyapunov.bound.paper",
-                    "lyapunov.bound.corrected", "lyapunov.falsification.paper", "lyapunov.falsification.corrected"):
+        for cid in ("lyapunov.decay", "lyapunov.bound", "lyapunov.falsification"):
             checks.append(CheckResult(cid, "skip", "no trajectory to evaluate on", method="simulation"))
+    checks.append(theory.check_guarantee(design, L))
+    say("assumption: input gain M_p^-1 D M over the dead-zone slopes")
+    checks.append(theory.check_input_gain(design, np.random.default_rng([seed, 13])))
+    if claim is not None:
+        checks = [c for c in checks if c.id != f"claim.{claim.name}"]
+        checks.append(check_decay_claim(L, fz, claim))
     checks += check_bounded(result, design, L)
+    apply_expectations(scenario, checks)
     return Verification(scenario=scenario, design=design, closed_loop=cl, result=result, lyapunov=L,
                         falsification=fz, checks=checks, timings=timings)

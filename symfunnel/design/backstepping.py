@@ -104,7 +104,7 @@ class Backstepping:
     def equivalent(self, design, mutant: str) -> str | None:
         """A proof that a mutant cannot change the controller on this scenario, or None."""
         if mutant == "drop_G" and design.signals["G"].is_zero():
-            return "G is identically zero for this model (every entry is the constant 0), so tau is unchanged"
+            return "G is identically zero for this model (its SX is structurally zero), so tau is unchanged"
         if mutant == "drop_C_dq" and design.signals["C"].is_zero():
             return "C is structurally zero for this model, so tau is unchanged"
         return None
@@ -242,6 +242,15 @@ class Backstepping:
                  + ca.fabs(ca.dot(s["mu2"] * s["z2"], eps)) + w_term)
         return {"V": V_z + V_w, "V_z": V_z, "V_w": V_w, "target": target, "rho": rho, "delta": delta,
                 "scale": scale}
+
+    def target_text(self) -> str:
+        """The target form of V_dot, as text for check details."""
+        out = "-sum k1 mu1 z1^2 - sum k2 mu2 z2^2 + (mu2 z2)^T eps"
+        return out + (" + sigma tr(W~^T W_hat)" if self.n_regressor else "")
+
+    def rho_text(self) -> str:
+        """The constant lower bound of rho, as text."""
+        return "min(2 k1/sup F1, k2/sup F2" + (", sigma Gamma)" if self.n_regressor else ")")
 
     def rho_lower(self, F1_sup: np.ndarray, F2_sup: np.ndarray) -> float:
         """A constant lower bound of rho: mu_i >= h'(0)/F_i >= 1/sup F_i for both transformations."""

@@ -1,0 +1,209 @@
+"""Checks of the design's proof itself: its Lyapunov identity, its rho, the guarantee it gives, its assumptions.
+
+- ``design.identity.vdot``: along the nominal model plus a *symbolic* unknown term f = W*^T Phi + eps (W* and eps
+  free), the exact V_dot (AD) equals the variant's target form -- any controller term that disagrees with the proof
+  breaks it. Checked at random states inside the funnels with random W*, eps, and along the simulated trajectory.
+- ``lyapunov.rho_positive``: the constant lower bound of rho over the horizon is > 0 (sigma = 0 gives rho = 0).
+- ``lyapunov.guarantee``: the ultimate bound V <= delta/rho with eps measured along the run for one fitted W*, turned
+  into |z| <= sqrt(2 max(V(0), delta/rho)) and into the funnel margin it implies; `warn` ("vacuous") when that margin
+  is below GUARANTEE_MIN_MARGIN, i.e. it adds (almost) nothing to what the barrier ensures by itself.
+- ``assumption.input_gain``: the torque uses the nominal M, so the plant sees ddq = M_p^-1 D M (v - ...) + ...; the
+  proof needs the effective input gain M_p(q)^-1 D M(q) positive definite (symmetric part), for every combination
+  of each joint's dead-zone branch slopes and the plant's mass and parameter mismatch.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import casadi as ca
+import numpy as np
+
+from .audit import CheckResult
+from .sampling import eval_mapped, funnel_states, point_of
+
+#: relative residual of the identity above which it fails (round-off of the terms is ~1e-13 relative)
+IDENTITY_TOL = 1e-9
+#: sampled states of the identity check (besides the trajectory's)
+IDENTITY_SAMPLES = 2000
+#: a guarantee keeping |e| below (1 - this) F adds too little to the barrier to count
+GUARANTEE_MIN_MARGIN = 0.05
+
+
+def _g(x) -> str:
+    return f"{float(x):.4g}"
+
+
+# --- the identity ------------------------------------------------------------------------------------
+
+def identity_function(design) -> ca.Function:
+    """(design inputs..., W_star, eps) -> (V_dot - target, scale) along the nominal model plus f = W*^T Phi + eps."""
+    n, nr = design.n, design.n_regressor
+    Ws = ca.SX.sym("W_star", nr, n)
+    eps = ca.SX.sym("eps", n)
+    f = (ca.mtimes(Ws.T, design.signals["Phi"]) if nr else 0) + eps
+    lyap = design.variant.lyapunov(design, Ws, eps)
+    x, xdot = design.variant.nominal_flow(design, f)
+    V_dot = ca.jtimes(lyap["V"], x, xdot)
+    ins = [design.sym[k] for k in design.inputs] + [Ws, eps]
+    names = list(design.inputs) + ["W_star", "eps"]
+    return ca.Function("identity", ins, [V_dot - lyap["target"], ca.fabs(V_dot) + lyap["scale"]], names,
+                       ["residual", "scale"], {"cse": True})
+
+
+def _trajectory_points(design, closed_loop, result, k: int) -> dict[str, np.ndarray] | None:
+    """Up to k states of the simulated run as design-input arrays (casadi map layout)."""
+    if result is None or result.t.size == 0:
+        return None
+    idx = np.unique(np.linspace(0, result.t.size - 1, min(k, result.t.size)).astype(int))
+    t = result.t[idx]
+    m = idx.size
+    parts = closed_loop.unpack(result.x[idx])
+    qd, dqd, ddqd = (np.array(v) for v in design.reference.map(m)(t[None, :]))
+    pts = {"t": t[None, :], "q": parts["q"].T, "dq": parts["dq"].T, "qd": qd, "dqd": dqd, "ddqd": ddqd}
+    for name, (r, c) in design.states:
+        v = parts[name]
+        pts[name] = v.T if c == 1 else np.concatenate(list(v), axis=1)       # (r, m*c), block j = sample j
+    return pts
+
+
+def check_identity(design, rng, *, closed_loop=None, result=None, samples: int = IDENTITY_SAMPLES) -> CheckResult:
+    """design.identity.vdot: V_dot along nominal model + f equals the variant's target form (sampled, by AD)."""
+    f = identity_function(design)
+    n, nr = design.n, design.n_regressor
+    sets = [("inside the funnels", funnel_states(design, samples, rng, fill=0.98))]
+    traj = _trajectory_points(design, closed_loop, result, 500)
+    if traj is not None:
+        sets.append(("along the simulated trajectory", traj))
+    worst, where, evaluated, label = 0.0, None, 0, ""
+    for what, pts in sets:
+        k = pts["t"].shape[1]
+        pts = dict(pts)
+        pts["W_star"] = rng.normal(0.0, 1.0, (nr, k * n)) if nr else np.zeros((0, k * n))
+        pts["eps"] = rng.normal(0.0, 10.0, (n, k))
+        resid, scale = eval_mapped(f, pts, k)
+        rel = np.abs(resid.ravel()) / np.maximum(scale.ravel(), 1e-300)
+        rel = np.where(np.isfinite(rel), rel, np.inf)
+        evaluated += k
+        j = int(np.argmax(rel))
+        if rel[j] >= worst:
+            worst, label = float(rel[j]), what
+            where = point_of(pts, j)
+    form = design.variant.target_text()
+    ev = {"states": evaluated, "max_relative_residual": worst, "tolerance": IDENTITY_TOL, "target": form}
+    method = f"AD of V along the nominal model + symbolic f = W*^T Phi + eps, {evaluated} states with random W*, eps"
+    if worst <= IDENTITY_TOL:
+        return CheckResult("design.identity.vdot", "pass",
+                           f"V_dot = {form} holds at {evaluated} states (worst relative residual {worst:.2g})",
+                           method=method, margin=IDENTITY_TOL - worst, where=where, evidence=ev)
+    return CheckResult("design.identity.vdot", "fail",
+                       f"V_dot differs from {form}: relative residual {worst:.3g} {label} (tolerance "
+                       f"{IDENTITY_TOL:g}): the controller disagrees with the proof", method=method,
+                       margin=IDENTITY_TOL - worst, where=where, evidence=ev)
+
+
+# --- rho and the guarantee ---------------------------------------------------------------------------
+
+def check_rho_positive(design, t_final: float) -> CheckResult:
+    """lyapunov.rho_positive: the constant lower bound of rho on [0, t_final] is positive."""
+    from .lyapunov import constant_rho_lower
+    rho = constant_rho_lower(design, t_final)
+    sc = design.scenario
+    ev = {"rho_lower": rho, "k1": sc.k1, "k2": sc.k2, "sigma": sc.sigma, "gamma": sc.gamma}
+    text = design.variant.rho_text()
+    if rho > 0:
+        return CheckResult("lyapunov.rho_positive", "pass", f"rho >= {text} = {_g(rho)} > 0 on [0, {t_final:g}] s",
+                           method="exact (sup of F on the horizon)", margin=rho, evidence=ev)
+    return CheckResult("lyapunov.rho_positive", "fail",
+                       f"rho >= {text} = {_g(rho)}: no decay rate, so Theorem-style bounds give nothing "
+                       "(sigma = 0 is pure gradient adaptation: W~ is not attracted)",
+                       method="exact (sup of F on the horizon)", margin=rho, evidence=ev)
+
+
+def check_guarantee(design, L) -> CheckResult:
+    """lyapunov.guarantee: the funnel margin the ultimate bound delta/rho implies (warn when vacuous)."""
+    cid = "lyapunov.guarantee"
+    if L is None or not np.isfinite(L.rho_const_lower) or L.rho_const_lower <= 0 or not np.isfinite(L.delta_max):
+        return CheckResult(cid, "warn", "no guarantee: rho <= 0 or no trajectory to measure eps on (vacuous)",
+                           method="ultimate bound")
+    rho, delta = L.rho_const_lower, L.delta_max
+    V0 = float(L.V[0]) if np.isfinite(L.V[0]) else 0.0
+    V_ult = delta / rho
+    z_bound = float(np.sqrt(2 * max(V0, V_ult)))
+    usage = float(design.variant.transform.usage(z_bound))
+    margin = 1.0 - usage
+    eps_rms = L.w_star_info.get("rms_residual")
+    ev = {"rho": rho, "delta": delta, "V0": V0, "delta_over_rho": V_ult, "z_bound": z_bound,
+          "implied_margin": margin, "W_star": L.w_star_info, "eps_rms": eps_rms, "threshold": GUARANTEE_MIN_MARGIN}
+    head = (f"V <= max(V(0), delta/rho) = {_g(max(V0, V_ult))} (delta = {_g(delta)} with eps measured along the run "
+            f"for one fitted W*, rho = {_g(rho)}) bounds |z| <= {_g(z_bound)}, i.e. |e| <= {usage:.4g} F")
+    if margin < GUARANTEE_MIN_MARGIN:
+        return CheckResult(cid, "warn", head + f": vacuous -- a margin of {margin:.3g} adds nothing to what the "
+                           f"barrier ensures by itself (threshold {GUARANTEE_MIN_MARGIN:g})",
+                           method="ultimate bound", margin=margin, evidence=ev)
+    return CheckResult(cid, "pass", head + f": a guaranteed funnel margin of {margin:.3g}",
+                       method="ultimate bound", margin=margin, evidence=ev)
+
+
+# --- the input gain ----------------------------------------------------------------------------------
+
+def _slope_sets(scenario) -> list[np.ndarray]:
+    """Per joint, the dead-zone branch slopes to combine (1 without a dead zone)."""
+    from ..closedloop import dead_zone_branches
+    from ..plant import dead_zone_slope_bounds
+    n = scenario.n
+    dz = scenario.plant.dead_zone
+    if dz is None:
+        return [np.array([1.0])] * n
+    left, right = dead_zone_branches(scenario)
+    lo_l, hi_l = dead_zone_slope_bounds(left, left, dz.b_l, dz.b_l)
+    lo_r, hi_r = dead_zone_slope_bounds(right, right, dz.b_r, dz.b_r)
+    return [np.unique(np.round([lo_l[j], hi_l[j], lo_r[j], hi_r[j]], 12)) for j in range(n)]
+
+
+def check_input_gain(design, rng, *, samples: int = 400) -> CheckResult:
+    """assumption.input_gain: lambda_min of sym(M_p(q)^-1 D M(q)) > 0 over sampled q and every slope combination."""
+    from ..closedloop import plant_acceleration
+    sc = design.scenario
+    n = design.n
+    q, dq = design.sym["q"], design.sym["dq"]
+    tau = ca.SX.sym("tau", n)
+    Mp = plant_acceleration(sc, q, dq, design.sym["t"], tau, 0.0)["M"]
+    fM = ca.Function("M", [q], [design.signals["M"], Mp])
+    # q: the reference +- F1 over the horizon, or the audit's joint range where the model gives joint limits
+    pts = funnel_states(design, samples, rng, fill=1.0)
+    Q = pts["q"]
+    if sc.audit.joint_lower and sc.model.kind in ("urdf",):
+        lo, hi = np.array(sc.audit.joint_lower)[:, None], np.array(sc.audit.joint_upper)[:, None]
+        Q = np.concatenate([Q, lo + (hi - lo) * rng.random((n, samples))], axis=1)
+    Mm, Mpl = (np.array(v) for v in fM.map(Q.shape[1])(Q))
+    k = Q.shape[1]
+    Mm = Mm.reshape(n, k, n).transpose(1, 0, 2)
+    Mpl = Mpl.reshape(n, k, n).transpose(1, 0, 2)
+    A = np.linalg.solve(Mpl, Mm)                     # M_p^-1 M, (k, n, n)
+    slopes = _slope_sets(sc)
+    worst, where = np.inf, None
+    combos = 0
+    for d in itertools.product(*slopes):
+        D = np.asarray(d)
+        G = np.linalg.solve(Mpl, D[None, :, None] * Mm)          # M_p^-1 D M
+        S = 0.5 * (G + np.swapaxes(G, 1, 2))
+        lam = np.linalg.eigvalsh(S)[:, 0]
+        j = int(np.argmin(lam))
+        combos += 1
+        if lam[j] < worst:
+            worst, where = float(lam[j]), {"q": Q[:, j].tolist(), "slopes": D.tolist()}
+    nominal = float(np.min(np.linalg.eigvalsh(0.5 * (A + np.swapaxes(A, 1, 2)))[:, 0]))
+    ev = {"states": k, "slope_combinations": combos, "lambda_min": worst, "lambda_min_without_dead_zone": nominal,
+          "slopes_per_joint": [s.tolist() for s in slopes], "mass_scale": sc.plant.mass_scale}
+    method = f"eigenvalues at {k} joint states x {combos} slope combinations"
+    if worst > 0:
+        return CheckResult("assumption.input_gain", "pass",
+                           f"sym(M_p^-1 D M) is positive definite: lambda_min = {_g(worst)} over {k} states and "
+                           f"{combos} dead-zone slope combinations", method=method, margin=worst, where=where,
+                           evidence=ev)
+    return CheckResult("assumption.input_gain", "fail",
+                       f"sym(M_p^-1 D M) loses positive definiteness: lambda_min = {_g(worst)} at q = "
+                       f"{np.round(where['q'], 4).tolist()} with slopes {where['slopes']} (without the dead zone "
+                       f"{_g(nominal)}): the lumped uncertainty then depends on W_hat and the proof's bound on it fails",
+                       method=method, margin=worst, where=where, evidence=ev)
