@@ -6,32 +6,11 @@ import argparse
 import json
 import os
 import sys
-import time
 
+from .commands._common import _dump, _load, _progress  # noqa: F401 - shared with the command modules
 from .errors import InputError, SymfunnelError
 
 EXIT_INTERNAL = 3
-
-
-def _progress(quiet: bool):
-    """A progress printer on stderr (silent with --quiet or when stderr is not a terminal and CI is unset)."""
-    if quiet:
-        return lambda s: None
-    t0 = time.perf_counter()
-
-    def say(s: str) -> None:
-        print(f"[{time.perf_counter() - t0:6.1f}s] {s}", file=sys.stderr, flush=True)
-    return say
-
-
-def _dump(obj) -> str:
-    from .io import json_safe
-    return json.dumps(json_safe(obj), indent=2, allow_nan=False)
-
-
-def _load(args):
-    from .scenario import load_scenario
-    return load_scenario(args.scenario)
 
 
 # --- derive ---------------------------------------------------------------------------------------

@@ -21,7 +21,9 @@ from .family.approximators import APPROXIMATORS, ESNApproximator
 from .family.funnels import FunnelSpec, parse_funnel
 from .family.transforms import TRANSFORMS
 from .family.variants import VARIANTS
-from .names import CONSTANTS, EXPECT_STATUSES, IDENT, RESERVED, SIGNALS, check_ids
+from .integrators import INTEGRATORS
+from .model import MODEL_TYPES
+from .names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
 
 DATA_DIR = Path(__file__).parent / "data"
 BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
@@ -288,18 +290,8 @@ def build_model(table: Any, *, file: str, base_dir: Path):
     """Dispatch `[model]` on its `type` to the model builder that owns that type."""
     V.check_keys(table, ["type", "coordinates", "parameters", "matrices", "path", "gravity", "links",
                          "convention", "joint_range"], file=file, prefix="model", required=["type"])
-    kind = V.get_str(table, "type", file=file, prefix="model", choices=["matrices", "planar", "dh", "urdf"])
-    if kind == "matrices":
-        from .model.matrices import build_matrices
-        return build_matrices(table, file=file)
-    if kind == "planar":
-        from .model.links import build_planar
-        return build_planar(table, file=file)
-    if kind == "dh":
-        from .model.links import build_dh
-        return build_dh(table, file=file)
-    from .model.urdf import build_urdf
-    return build_urdf(table, file=file, base_dir=base_dir)
+    kind = V.get_str(table, "type", file=file, prefix="model", choices=MODEL_TYPES.names())
+    return MODEL_TYPES.get(kind)(table, file=file, base_dir=base_dir)
 
 
 def _reference(table: Any, n: int, file: str, model) -> list[Expression]:
@@ -465,8 +457,7 @@ def _simulation(table: Any, file: str) -> SimulationSpec:
               for i, w in enumerate(widths)]
     return SimulationSpec(
         t_final=t_final, dt=dt,
-        integrator=V.get_str(table, "integrator", d.integrator, file=file, prefix=p,
-                             choices=["cvodes", "rk", "collocation"]),
+        integrator=V.get_str(table, "integrator", d.integrator, file=file, prefix=p, choices=INTEGRATORS.names()),
         rtol=V.get_float(table, "rtol", d.rtol, file=file, prefix=p, minimum=0, strict_min=True),
         atol=V.get_float(table, "atol", d.atol, file=file, prefix=p, minimum=0, strict_min=True),
         smoothing_width=V.get_float(table, "smoothing_width", d.smoothing_width, file=file, prefix=p,

@@ -8,7 +8,7 @@ How a run works (docs/simulation.md has the long version):
 * The right-hand side, its sparse Jacobian and the logged signals are generated as C (`casadi.CodeGenerator`),
   compiled once with the system C compiler and cached in $SYMFUNNEL_CACHE (default ~/.cache/symfunnel) under the
   sha256 of the generated source, then loaded with `casadi.external`; without a compiler the CasADi VM is used.
-* Time is integrated in chunks of the output grid (adaptive: small at first or when slow, up to 500 points), with
+* Time is integrated in chunks of the output grid (growing 1, 5, 25, 100, 500 points: reproducible), with
   a parameter for the chunk's start time, so one integrator object serves every chunk. After each chunk the funnel
   margins m_i = (F_i - |e_i|)/F_i and finiteness are checked on the grid; a breach (or an integrator failure) is
   then located on a 100x finer grid within the output step, and the trajectory up to it is kept.
@@ -35,12 +35,11 @@ import numpy as np
 
 from .closedloop import OUTPUT_NAMES, ClosedLoop, build_closed_loop
 from .errors import InputError
+from .integrators import INTEGRATORS
 from .io import json_safe
 
-INTEGRATORS = ("cvodes", "rk", "collocation")
 CHUNK_SIZES = (1, 5, 25, 100, 500)
 LOCATE_SUBSTEPS = 100
-MAX_STEPS_PER_OUTPUT = 20000
 COMPILE_FLAGS = ["-O1", "-shared", "-fPIC"]
 APPROX_ESN_JACOBIAN = True
 _LOADED: dict = {}           # source hash -> (ode, outputs) externals loaded in this process
@@ -64,9 +63,11 @@ class Compiled:
 
 
 def _permutation(cl: ClosedLoop) -> np.ndarray:
+    """Controller states last first, joints last: keeps the Newton matrix's LU fill-in low."""
     s = cl.slices
     idx = np.arange(cl.nx)
-    return np.concatenate([idx[s["w_hat"]], idx[s["x_esn"]], idx[s["q"]], idx[s["dq"]]])
+    states = [name for name, _ in reversed(cl.design.states)]
+    return np.concatenate([idx[s[k]] for k in states] + [idx[s["q"]], idx[s["dq"]]])
 
 
 def _dae_function(cl: ClosedLoop, perm: np.ndarray) -> ca.Function:
@@ -94,7 +95,7 @@ def _newton_jacobian(cl: ClosedLoop, dae: ca.Function, perm: np.ndarray) -> ca.F
     J = outs[ix]
     pos = np.empty(cl.nx, dtype=int)
     pos[perm] = np.arange(cl.nx)
-    esn = set(int(v) for v in pos[cl.slices["x_esn"]])
+    esn = set(int(v) for v in pos[cl.slices["x_esn"]]) if "x_esn" in cl.slices else set()
     rows, cols = J.sparsity().get_triplet()
     keep_r, keep_c, vals = [], [], []
     for r, c in zip(rows, cols):
@@ -281,21 +282,7 @@ class _Runner:
         if key not in self._integrators:
             sim = self.sim
             grid = [h * (k + 1) for k in range(K)]
-            if self.method == "cvodes":
-                opts = {"abstol": sim.atol, "reltol": sim.rtol, "max_num_steps": MAX_STEPS_PER_OUTPUT,
-                        "linear_solver": "csparse", "disable_internal_warnings": True}
-            else:
-                subs = max(1, int(math.ceil(sim.rk_substeps * h / self.h)))
-                if self.method == "collocation":
-                    subs = max(1, subs // 2)
-                # CasADi's fixed-step integrators spread number_of_finite_elements over the whole output grid
-                # (at least one step per interval), so it is the total: subs steps per output interval
-                opts = {"number_of_finite_elements": subs * K}
-                if self.method == "collocation":
-                    opts.update({"interpolation_order": 3, "collocation_scheme": "radau",
-                                 # the design's |e| makes the stage equations kinked where e crosses 0, so Newton
-                                 # may stall there for a step: accept its last iterate then (NaN is still caught)
-                                 "rootfinder_options": {"max_iter": 30, "error_on_fail": False}})
+            opts = INTEGRATORS.get(self.method)(sim, h, self.h, K)
             opts["show_eval_warnings"] = False
             self._integrators[key] = ca.integrator(f"sim_{K}", self.method, self.comp.dae, 0.0, grid, opts)
         return self._integrators[key]
@@ -383,8 +370,7 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
         raise InputError(f"gives {tf / sim.dt:.3g} output points", key="--t-final",
                          expected="at most 1e6 output points (t_final/dt)")
     method = integrator or sim.integrator
-    if method not in INTEGRATORS:
-        raise InputError(f"is '{method}'", key="--integrator", expected="one of " + ", ".join(INTEGRATORS))
+    INTEGRATORS.get(method, key="--integrator")
     limit = sim.wall_limit if wall_limit is None else float(wall_limit)
     w = sim.smoothing_width if width is None else width
     if not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0):
@@ -485,12 +471,13 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
             k += Kc
             x = X[-1]
             spent = time.perf_counter() - c0
-            # adapt the chunk: about 0.5 s of wall time (or a quarter of what is left), within CHUNK_SIZES
+            # Chunks grow along CHUNK_SIZES whatever the wall time, so a run is reproducible bit for bit (CVODES
+            # restarts at chunk boundaries); only a chunk that would overrun the wall-clock limit is shrunk.
             per_point = spent / Kc
             remaining = max(limit - (time.perf_counter() - start), 1e-3)
-            target = min(0.5, remaining / 4)
-            want = target / max(per_point, 1e-9)
-            K = max([c for c in CHUNK_SIZES if c <= want] or [1])
+            K = CHUNK_SIZES[min(CHUNK_SIZES.index(K) + 1, len(CHUNK_SIZES) - 1)] if K in CHUNK_SIZES else 1
+            if per_point * K > remaining / 4:
+                K = max([c for c in CHUNK_SIZES if per_point * c <= remaining / 4] or [1])
             now = time.perf_counter()
             if now - last_report > 2.0:
                 say(f"t = {k * h:.3g} / {tf:g} s")

@@ -17,7 +17,6 @@ import pytest
 from symfunnel import codegen as cg
 from symfunnel.codegen import build, check
 from symfunnel.codegen.c import STRICT_CFLAGS, parse_trajectory_output
-from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
 
 GCC = shutil.which("gcc")

@@ -100,7 +100,7 @@ def test_verification_table_shows_failures_plainly(tree, report_text):
     # the paper's Theorem 1 is falsified on the sampled states: shown as FAIL with its margin and where
     rows = [el for el in tree.iter() if _local(el.tag) == "tr" and "fail-row" in (el.get("class") or "")]
     text = " ".join("".join(r.itertext()) for r in rows)
-    assert "lyapunov.falsification.paper" in text
+    assert "claim.theorem1" in text
     assert "FAIL" in text
     assert "not a proof" in report_text
     assert "W*" in report_text and "never given by the paper" in report_text

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from symfunnel.checks.lyapunov import _sub_reference, lyapunov_function
-from symfunnel.design import derive
 from symfunnel.pipeline import Run, RunOptions
 
 T_FINAL = 5.0          # a shortened horizon keeps the suite fast; the CLI default is the scenario's 20 s
@@ -27,9 +26,9 @@ def _by_id(v):
 
 def test_every_check_id_is_there_with_a_verdict_margin_and_where(ver, paper):
     ids = _by_id(ver)
-    expected = ["simulation.completed", "funnel.initial_condition", "lyapunov.decay.paper", "lyapunov.decay.corrected",
-                "lyapunov.bound.paper", "lyapunov.bound.corrected", "lyapunov.falsification.paper",
-                "lyapunov.falsification.corrected", "bounded.tau", "bounded.w_hat", "bounded.x_esn"]
+    expected = ["simulation.completed", "funnel.initial_condition", "claim.theorem1", "lyapunov.decay",
+                "lyapunov.bound", "lyapunov.falsification", "bounded.tau", "bounded.w_hat", "bounded.x_esn",
+                "design.identity.vdot", "lyapunov.rho_positive", "assumption.input_gain"]
     expected += [f"funnel.containment.{k}.joint{j + 1}" for k in ("e1", "e2") for j in range(paper.n)]
     for cid in expected:
         assert cid in ids, cid
@@ -44,16 +43,17 @@ def test_paper_run_stays_in_its_funnels_and_the_corrected_claims_hold(ver):
     ids = _by_id(ver)
     assert ver.result.status == "ok"
     for cid, c in ids.items():
-        if cid.startswith("funnel.containment") or cid.endswith(".corrected") or cid.startswith("bounded."):
+        if cid.startswith(("funnel.containment", "lyapunov.decay", "lyapunov.bound", "lyapunov.falsification",
+                           "bounded.", "design.identity")):
             assert c.status == "pass", (cid, c.detail)
 
 
 def test_paper_theorem_is_falsified_and_says_where(ver):
-    c = _by_id(ver)["lyapunov.falsification.paper"]
-    assert c.status == "fail"
+    c = _by_id(ver)["claim.theorem1"]
+    assert c.status == "fail" and c.expected == "fail" and not c.unexpected
     assert c.evidence["violations"] > 0 and c.margin < 0
-    assert "t" in c.where and len(c.where["q"]) == 2
-    assert "falsification (sampled), not a proof" in c.method
+    assert "t" in c.where
+    assert "printed constants" in c.detail
 
 
 def test_falsification_uses_at_least_10000_states(ver):
@@ -109,11 +109,13 @@ def test_verify_json_and_exit_code(capsys):
     from symfunnel.cli import main
     code = main(["verify", "paper", "--json", "--t-final", "2", "--samples", "2000"])
     out = json.loads(capsys.readouterr().out)
-    failed = [c["id"] for c in out["checks"] if c["status"] == "fail"]
-    assert code == (1 if failed else 0)
-    assert "lyapunov.falsification.paper" in failed          # the paper's Theorem 1 is falsified
+    unexpected = [c["id"] for c in out["checks"] if c["status"] in ("pass", "fail") and c["status"] != c["expected"]]
+    assert code == (1 if unexpected else 0) == 0 and out["status"] == "pass"
+    failed = {c["id"]: c for c in out["checks"] if c["status"] == "fail"}
+    assert failed["claim.theorem1"]["expected"] == "fail"      # the paper's Theorem 1 is falsified, as declared
+    assert failed["claim.theorem1"]["reason"]
     for c in out["checks"]:
-        assert {"id", "status", "detail"} <= set(c)
+        assert {"id", "status", "expected", "detail"} <= set(c)
 
 
 def test_initial_error_outside_its_funnel_fails_verify(write_scenario, capsys):
@@ -138,5 +140,7 @@ def test_corrected_decay_fails_when_the_implementation_departs_from_the_derivati
     symfunnel's convention), V_dot exceeds -rho V + delta along the run and the check says so."""
     v = Run(paper, RunOptions(t_final=2.0, samples=10000, mutant="flip_adaptation")).verification
     ids = {c.id: c for c in v.checks}
-    assert ids["lyapunov.decay.corrected"].status == "fail"
-    assert ids["lyapunov.decay.corrected"].margin < 0
+    assert ids["lyapunov.decay"].status == "fail"
+    assert ids["lyapunov.decay"].margin < 0
+    assert ids["design.identity.vdot"].status == "fail"
+    assert v.status == "fail"

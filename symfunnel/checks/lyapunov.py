@@ -121,7 +121,6 @@ def lyapunov_function(cl, W_star: np.ndarray, claim=None) -> ca.Function:
     decay claim (`claim`, e.g. a paper's theorem: its constants applied to this design), NaN without one.
     """
     d = cl.design
-    sc = cl.scenario
     t, x = cl.t, cl.x
     Ws = ca.DM(np.asarray(W_star, dtype=float).reshape(d.n_regressor, d.n))
     Phi = _sub_reference(d, d.signals["Phi"])
@@ -231,7 +230,8 @@ def along_trajectory(cl, t: np.ndarray, X: np.ndarray, f_true: np.ndarray, *,
                               V_w=L["V_w"], scale=L["scale"], W_star=np.asarray(W_star), w_star_info=info,
                               rho_const=rho_const, rho_const_lower=constant_rho_lower(cl.design, float(t[-1]) if np.size(t) else 0.0),
                               delta_max=delta_max, rho_paper_const=rho_p_const, delta_paper_const=delta_p,
-                              bound=bound, bound_paper=bound_p)
+                              bound=bound, bound_paper=bound_p,
+                              extra={"atol": float(cl.scenario.simulation.atol)})
 
 
 def decay_margin(V_dot, rhs, scale) -> tuple[np.ndarray, np.ndarray]:

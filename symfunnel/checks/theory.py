@@ -107,17 +107,27 @@ def check_identity(design, rng, *, closed_loop=None, result=None, samples: int =
 def check_rho_positive(design, t_final: float) -> CheckResult:
     """lyapunov.rho_positive: the constant lower bound of rho on [0, t_final] is positive."""
     from .lyapunov import constant_rho_lower
+    from ..family.funnels import extremes
     rho = constant_rho_lower(design, t_final)
     sc = design.scenario
-    ev = {"rho_lower": rho, "k1": sc.k1, "k2": sc.k2, "sigma": sc.sigma, "gamma": sc.gamma}
+    sup1 = extremes(sc.funnels["e1"], t_final)[1]
+    sup2 = extremes(sc.funnels["e2"], t_final)[1]
+    terms = {"2 k1/sup F1": float(np.min(2 * np.asarray(sc.k1) / sup1)),
+             "k2/sup F2": float(np.min(np.asarray(sc.k2) / sup2))}
+    if design.n_regressor:
+        terms["sigma Gamma"] = float(sc.sigma * sc.gamma)
+    binding = min(terms, key=terms.get)
+    ev = {"rho_lower": rho, "terms": terms, "k1": sc.k1, "k2": sc.k2, "sigma": sc.sigma, "gamma": sc.gamma}
+    where = {"t_range": [0.0, float(t_final)], "binding": binding}
     text = design.variant.rho_text()
     if rho > 0:
-        return CheckResult("lyapunov.rho_positive", "pass", f"rho >= {text} = {_g(rho)} > 0 on [0, {t_final:g}] s",
-                           method="exact (sup of F on the horizon)", margin=rho, evidence=ev)
+        return CheckResult("lyapunov.rho_positive", "pass", f"rho >= {text} = {_g(rho)} > 0 on [0, {t_final:g}] s "
+                           f"(set by {binding})", method="exact (sup of F on the horizon)", margin=rho, where=where,
+                           evidence=ev)
     return CheckResult("lyapunov.rho_positive", "fail",
-                       f"rho >= {text} = {_g(rho)}: no decay rate, so Theorem-style bounds give nothing "
-                       "(sigma = 0 is pure gradient adaptation: W~ is not attracted)",
-                       method="exact (sup of F on the horizon)", margin=rho, evidence=ev)
+                       f"rho >= {text} = {_g(rho)} (set by {binding}): no decay rate, so the Lyapunov bounds give "
+                       "nothing (sigma = 0 is pure gradient adaptation: W~ is not attracted)",
+                       method="exact (sup of F on the horizon)", margin=rho, where=where, evidence=ev)
 
 
 def check_guarantee(design, L) -> CheckResult:

@@ -23,7 +23,7 @@ def run(args) -> int:
     """Run the selected benchmarks and print them as a table or JSON."""
     from ..bench import AREAS
     from ..bench import run as run_bench
-    from ..cli import _progress
+    from ._common import _progress
     from ..errors import InputError
     for a in args.only or []:
         if a not in AREAS:

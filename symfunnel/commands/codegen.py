@@ -28,7 +28,7 @@ def run(args) -> int:
     """Generate, write atomically, and optionally cross-check."""
     from ..codegen import check_output, write_output
     from ..codegen.check import FILL
-    from ..cli import _progress
+    from ._common import _progress
     from ..errors import InputError
     from ..pipeline import Run
     if args.points < 1000:

@@ -17,7 +17,7 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Write the report and print its path. Failed checks are shown in the report; the exit code is still 0."""
-    from ..cli import _load, _progress
+    from ._common import _load, _progress
     from ..errors import InputError
     from ..pipeline import Run, RunOptions
     from ..report import build_report

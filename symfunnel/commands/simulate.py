@@ -13,7 +13,8 @@ def register(sub, common) -> None:
     sp.add_argument("--t-final", type=float, metavar="T", help="simulated time in s (default: the scenario's)")
     sp.add_argument("--out", metavar="FILE.npz", help="write the whole trajectory (time first) to an .npz file")
     sp.add_argument("--json", action="store_true", help="print the JSON summary")
-    sp.add_argument("--integrator", choices=["cvodes", "rk", "collocation"],
+    from ..integrators import INTEGRATORS
+    sp.add_argument("--integrator", choices=INTEGRATORS.names(),
                     help="integrator (default: the scenario's, normally cvodes)")
     sp.add_argument("--width", type=float, metavar="W", help="smoothing width of the non-smooth plant terms "
                                                              "(default: the scenario's simulation.smoothing_width)")
@@ -29,7 +30,7 @@ def run(args) -> int:
     import math
     import warnings
 
-    from ..cli import _dump, _load, _progress
+    from ._common import _dump, _load, _progress
     from ..errors import InputError
     from ..pipeline import Run, RunOptions
     from ..simulate import convergence_study

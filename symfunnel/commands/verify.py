@@ -38,7 +38,7 @@ def print_checks(checks, indent: str = "  ") -> None:
 
 def run(args) -> int:
     """Run every check; print a table (or JSON); exit 1 exactly when an outcome is not the declared one."""
-    from ..cli import _dump, _load, _progress
+    from ._common import _dump, _load, _progress
     from ..errors import InputError
     from ..pipeline import Run, RunOptions
     if args.samples < 1:
@@ -46,7 +46,7 @@ def run(args) -> int:
     sc = _load(args)
     say = _progress(args.quiet or args.json)
     if args.mutants:
-        from ..checks.mutants import run_mutants
+        from ..mutation import run_mutants
         out = run_mutants(sc, t_final=args.t_final, samples=min(args.samples, 2000), progress=say)
         if args.json:
             print(_dump(out))

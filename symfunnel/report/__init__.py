@@ -35,7 +35,7 @@ def render_report(run, *, codegen: bool = True) -> str:
     ctx = {
         "scenario": H.scenario_section(scenario),
         "model": H.model_section(scenario, audit_results),
-        "derivation": H.derivation_section(design, audit_results, say),
+        "derivation": H.derivation_section(design, verification.checks, say),
     }
     timings.append(("report: formulas (SX -> sympy -> MathML)", time.perf_counter() - t0))
     t0 = time.perf_counter()

@@ -258,6 +258,9 @@ def claims_rows(design, audit_results) -> list[dict]:
             row["text"] = (f"F(t) = {_fmt(cl.spec.phi0)} exp(-{_fmt(cl.spec.a)} t) + {_fmt(cl.spec.phi_inf)} "
                            f"for {cl.funnel}")
             row["signal"] = f"funnel {cl.funnel}"
+        elif cl.kind == "decay":
+            row["text"] = f"dV/dt <= -rho V + delta with rho = {cl.rho.text}, delta = {cl.delta.text}"
+            row["signal"] = "V_dot"
         else:
             row["text"] = cl.expression.text
             try:

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..design import derive, variant_of
-from .theory import check_identity
+from .design import derive, variant_of
+from .checks.theory import check_identity
 
 #: horizon of the simulated stage of mutation testing (the scenario's own when shorter)
 MUTANT_HORIZON = 2.0
@@ -22,7 +22,7 @@ def run_mutants(scenario, *, t_final: float | None = None, samples: int = 2000, 
                 progress=None) -> dict:
     """{"mutants": [{"id", "description", "killed", "equivalent", "by", "proof"}], "score", "killed", "total",
     "equivalent", "horizon"} for every mutant of the scenario's design."""
-    from ..pipeline import Run, RunOptions
+    from .pipeline import Run, RunOptions
     say = progress or (lambda s: None)
     horizon = float(t_final if t_final is not None else min(MUTANT_HORIZON, scenario.simulation.t_final))
     variant = variant_of(scenario)

@@ -1,0 +1,28 @@
+"""Helpers every command module shares (progress, JSON output, scenario loading); imports nothing of the CLI."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+
+def _progress(quiet: bool):
+    """A progress printer on stderr (silent with --quiet or when stderr is not a terminal and CI is unset)."""
+    if quiet:
+        return lambda s: None
+    t0 = time.perf_counter()
+
+    def say(s: str) -> None:
+        print(f"[{time.perf_counter() - t0:6.1f}s] {s}", file=sys.stderr, flush=True)
+    return say
+
+
+def _dump(obj) -> str:
+    from ..io import json_safe
+    return json.dumps(json_safe(obj), indent=2, allow_nan=False)
+
+
+def _load(args):
+    from ..scenario import load_scenario
+    return load_scenario(args.scenario)
