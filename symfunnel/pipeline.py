@@ -124,6 +124,13 @@ class Run:
             self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, self.audit,
             t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress))
 
+    @cached_property
+    def mutation(self) -> dict:
+        """`verify --mutants`: the design's seeded errors through the same gate (see symfunnel.mutation)."""
+        from .mutation import run_mutants
+        return self._timed("mutants", lambda: run_mutants(self.scenario, samples=min(self.options.samples, 2000),
+                                                          seed=self.options.seed, progress=self.progress))
+
     def trajectory_arrays(self) -> dict[str, np.ndarray]:
         """The simulated trajectory with V (from the one Lyapunov stage) and W*, for `simulate --out`."""
         res = self.simulation

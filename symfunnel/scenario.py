@@ -48,6 +48,9 @@ class Claim:
     spec: FunnelSpec | None = None
     rho: Expression | None = None        # decay claims: V_dot <= -rho V + delta with these printed constants
     delta: Expression | None = None
+    lhs: Expression | None = None        # inequality claims: lhs <= rhs at every state (counterexamples searched)
+    rhs: Expression | None = None
+    parameters: dict = field(default_factory=dict)   # numbers the printed expression names (e.g. d, a slope)
     expect: str = "pass"                 # the outcome the scenario declares: "pass" (holds) or "fail" (known wrong)
 
 
@@ -523,6 +526,11 @@ def claim_names(n: int, model) -> set[str]:
     return names
 
 
+#: what an inequality claim may name besides a signal claim's names: the design's V and its exact derivative along
+#: the nominal model plus W*^T Phi (eps = 0: the ideal approximation such printed steps assume), and W*
+INEQUALITY_NAMES = {"V", "V_dot", "W_star"}
+
+
 def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
     if not isinstance(items, list):
         raise InputError(f"is a {V.type_name(items)}", file=file, key="claims",
@@ -533,7 +541,8 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
     for i, c in enumerate(items):
         p = f"claims[{i}]"
         V.check_keys(c, ["name", "source", "description", "signal", "expression", "funnel", "phi0",
-                         "phi_inf", "a", "rho", "delta", "expect"], file=file, prefix=p, required=["name"])
+                         "phi_inf", "a", "rho", "delta", "lhs", "rhs", "expect", "parameters"], file=file, prefix=p,
+                     required=["name"])
         name = V.get_str(c, "name", file=file, prefix=p)
         if not IDENT.match(name) or len(name) > 64:
             raise InputError(f"is '{name}'", file=file, key=p + ".name", expected="an identifier")
@@ -543,6 +552,28 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
         source = V.get_str(c, "source", "", file=file, prefix=p)
         desc = V.get_str(c, "description", "", file=file, prefix=p)
         expect = V.get_str(c, "expect", "pass", file=file, prefix=p, choices=list(EXPECT_STATUSES))
+        params_raw = c.get("parameters", {})
+        V.check_keys(params_raw, list(params_raw) if isinstance(params_raw, dict) else [], file=file,
+                     prefix=p + ".parameters")
+        params = {}
+        for k, v in params_raw.items():
+            if not IDENT.match(k) or k in names:
+                raise InputError(f"'{k}' is not a new identifier", file=file, key=f"{p}.parameters.{k}",
+                                 expected="a name the claim's expression uses that is not a signal, symbol or parameter")
+            params[k] = V.as_float(v, file=file, key=f"{p}.parameters.{k}")
+        cnames = names | set(params)
+        if "lhs" in c or "rhs" in c:
+            for k in ("signal", "expression", "funnel", "rho", "delta"):
+                if k in c:
+                    raise InputError("cannot be combined with 'lhs'/'rhs'", file=file, key=f"{p}.{k}",
+                                     expected="an inequality claim has lhs and rhs only")
+            for k in ("lhs", "rhs"):
+                if k not in c:
+                    raise InputError("is missing", file=file, key=f"{p}.{k}", expected="lhs and rhs of the inequality")
+            lhs, rhs = (parse_expression(V.get_str(c, k, file=file, prefix=p), cnames | INEQUALITY_NAMES,
+                                         file=file, key=f"{p}.{k}") for k in ("lhs", "rhs"))
+            out.append(Claim(name, source, desc, "inequality", lhs=lhs, rhs=rhs, expect=expect, parameters=params))
+            continue
         if "rho" in c or "delta" in c:
             for k in ("signal", "expression", "funnel"):
                 if k in c:
@@ -574,9 +605,9 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
             raise InputError("is missing", file=file, key=f"{p}.{missing}",
                              expected="signal + expression, or funnel + phi0/phi_inf/a")
         sig = V.get_str(c, "signal", file=file, prefix=p, choices=sorted(SIGNALS))
-        expr = parse_expression(V.get_str(c, "expression", file=file, prefix=p), names, file=file,
+        expr = parse_expression(V.get_str(c, "expression", file=file, prefix=p), cnames, file=file,
                                 key=p + ".expression")
-        out.append(Claim(name, source, desc, "signal", signal=sig, expression=expr, expect=expect))
+        out.append(Claim(name, source, desc, "signal", signal=sig, expression=expr, expect=expect, parameters=params))
     return out
 
 

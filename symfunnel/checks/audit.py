@@ -334,8 +334,9 @@ def check_funnel_initial(design: Design) -> CheckResult:
 
 # --- claims ---------------------------------------------------------------------------------------
 
-def claim_env(design: Design) -> dict:
-    """Names a claim expression may use, bound to the design's SX (signals, symbols, parameters, constants)."""
+def claim_env(design: Design, claim=None) -> dict:
+    """Names a claim expression may use, bound to the design's SX (signals, symbols, parameters, constants, and the
+    claim's own numbers)."""
     m = design.scenario.model
     env = dict(design.signals)
     env.update({k: design.sym[k] for k in design.inputs})
@@ -343,6 +344,8 @@ def claim_env(design: Design) -> dict:
     env.update({"d" + c: m.dq[i] for i, c in enumerate(m.coordinates)})
     env.update({k: float(v) for k, v in zip(m.p_names, m.p_values)})
     env.update(design.constants)
+    if claim is not None:
+        env.update(claim.parameters)
     return env
 
 
@@ -350,7 +353,7 @@ def claim_expression(design: Design, claim) -> ca.SX:
     """The printed claim as SX over the base symbols, broadcast to its signal's shape."""
     from ..errors import InputError
     target = design.signals[claim.signal]
-    e = claim.expression.to_casadi(claim_env(design))
+    e = claim.expression.to_casadi(claim_env(design, claim))
     e = ca.SX(e)
     if e.shape == (1, 1) and target.shape != (1, 1):
         e = ca.repmat(e, *target.shape)
@@ -368,6 +371,8 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
     if claim.kind == "decay":
         return CheckResult(cid, "skip", f"{claim.source or 'printed'} decay claim: needs the ideal weights fitted on a "
                            "simulated run, so `symfunnel verify` evaluates it", method="verify")
+    if claim.kind == "inequality":
+        return check_inequality(design, claim, rng)
     if claim.kind == "funnel":
         funnels = dict(sc.funnels)
         funnels[claim.funnel] = claim.spec
@@ -395,6 +400,11 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
           "exact_at_worst": ex[:, j, :].ravel().tolist()[:12], "printed_at_worst": pr[:, j, :].ravel().tolist()[:12],
           "fraction_disagreeing": float(np.mean(rel_pt > sc.audit.tolerance))}
     notes = []
+    circular = circular_names(design, claim)
+    if circular:
+        notes.append(f"circular: the printed {claim.signal} uses {', '.join(circular)}, which the derivation defines "
+                     f"through {claim.signal} itself, so it is no explicit formula")
+        ev["circular_through"] = circular
     dep_exact = {v.name() for v in ca.symvar(exact)}
     dep_printed = {v.name() for v in ca.symvar(printed)}
     extra = sorted(dep_printed - dep_exact, key=lambda s: design._owner.get(s, ("", 0)))
@@ -428,6 +438,57 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
                        f"(worst relative difference {rel_pt[j]:.3g}); sympy could not prove it",
                        method=f"sampled ({k} points inside the funnels)",
                        margin=float(sc.audit.tolerance - rel_pt[j]), where=where, evidence=ev)
+
+
+def circular_names(design: Design, claim) -> list[str]:
+    """The signals a printed claim names that depend, through the derivation, on the very signal it defines."""
+    used = [k for k in sorted(claim.expression.names) if k in design.signals and k != claim.signal]
+    if not used:
+        return []
+    delta = ca.SX.sym("offset_" + claim.signal, *design.signals[claim.signal].shape)
+    probe = design.variant.derive(design.mutant, offsets={claim.signal: delta})
+    return [k for k in used if ca.depends_on(ca.vec(probe.signals[k]), ca.vec(delta))]
+
+
+def check_inequality(design: Design, claim, rng) -> CheckResult:
+    """claim.<name> of an inequality claim: lhs <= rhs searched for counterexamples inside the funnels, with V and
+    V_dot the design's (V_dot exact by AD along the nominal model plus W*^T Phi, eps = 0) and W* random."""
+    from ..errors import InputError
+    sc = design.scenario
+    cid = f"claim.{claim.name}"
+    n, nr = design.n, design.n_regressor
+    Ws = ca.SX.sym("W_star", nr, n)
+    f = ca.mtimes(Ws.T, design.signals["Phi"]) if nr else ca.SX.zeros(n, 1)
+    lyap = design.variant.lyapunov(design, Ws, ca.SX.zeros(n, 1))
+    x, xdot = design.variant.nominal_flow(design, f)
+    env = claim_env(design, claim)
+    env.update(V=lyap["V"], V_dot=ca.jtimes(lyap["V"], x, xdot), W_star=Ws)
+    lhs, rhs = (ca.SX(e.to_casadi(env)) for e in (claim.lhs, claim.rhs))
+    for side, e in (("lhs", lhs), ("rhs", rhs)):
+        if e.shape != (1, 1):
+            raise InputError(f"has shape {e.shape[0]}x{e.shape[1]}", file=sc.file, key=f"claims.{claim.name}.{side}",
+                             expected="a scalar (use dot(a, b) for sums over joints)")
+    k = max(sc.audit.claim_samples, 1000)
+    pts = funnel_states(design, k, rng)
+    pts["W_star"] = rng.normal(0.0, 1.0, (nr, k * n)) if nr else np.zeros((0, k * n))
+    F = ca.Function("ineq", [design.sym[x] for x in design.inputs] + [Ws], [lhs, rhs], list(design.inputs) + ["W_star"],
+                    ["lhs", "rhs"])
+    L, R = (a.ravel() for a in eval_mapped(F, pts, k))
+    gap = L - R
+    tol = sc.audit.tolerance * (np.abs(L) + np.abs(R) + 1e-300)
+    viol = np.isfinite(gap) & (gap > tol)
+    j = int(np.nanargmax(np.where(np.isfinite(gap), gap, -np.inf)))
+    where = point_of(pts, j)
+    ev = {"samples": k, "violations": int(viol.sum()), "lhs_at_worst": float(L[j]), "rhs_at_worst": float(R[j])}
+    head = f"{claim.source or 'printed'}: {claim.lhs.text} <= {claim.rhs.text}"
+    method = f"counterexample search at {k} states inside the funnels (random W*, eps = 0; not a proof)"
+    if viol.any():
+        return CheckResult(cid, "fail", f"{head}: counterexample at {int(viol.sum())} of {k} states; worst at t = "
+                           f"{where['t']:.4g}, q = {_fmt_vec(where['q'])}, dq = {_fmt_vec(where['dq'])}: lhs = "
+                           f"{L[j]:.4g} > rhs = {R[j]:.4g}", method=method, margin=-float(gap[j]), where=where,
+                           evidence=ev)
+    return CheckResult(cid, "pass", f"{head}: no counterexample at {k} states (largest lhs - rhs {gap[j]:.3g})",
+                       method=method, margin=-float(gap[j]), where=where, evidence=ev)
 
 
 def _leakage(design: Design, law: ca.SX, rng, k: int = 200) -> dict:

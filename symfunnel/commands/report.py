@@ -12,6 +12,7 @@ def register(sub, common) -> None:
     sp.add_argument("--samples", type=int, default=10000, metavar="K",
                     help="states sampled inside the funnels for the falsification (default 10000)")
     sp.add_argument("--no-codegen", action="store_true", help="leave out the code-generation section")
+    sp.add_argument("--no-mutants", action="store_true", help="leave out the mutation score")
     sp.set_defaults(func=run)
 
 
@@ -25,6 +26,6 @@ def run(args) -> int:
         raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
     sc = _load(args)
     run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), _progress(args.quiet))
-    path = build_report(run, args.out, codegen=not args.no_codegen)
+    path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants)
     print(path)
     return 0

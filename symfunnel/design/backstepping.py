@@ -59,6 +59,17 @@ MUTANTS = (
 )
 
 
+class _Signals(dict):
+    """The signal table under construction: a signal with an offset gets it added where it is defined."""
+
+    def __init__(self, offsets: dict[str, ca.SX]):
+        super().__init__()
+        self.offsets = offsets
+
+    def __setitem__(self, name: str, value) -> None:
+        super().__setitem__(name, value + self.offsets[name] if name in self.offsets else value)
+
+
 def _named(prefix: str, n: int) -> ca.SX:
     return ca.vertcat(*[ca.SX.sym(f"{prefix}{i + 1}") for i in range(n)])
 
@@ -111,8 +122,12 @@ class Backstepping:
 
     # --- signals ------------------------------------------------------------------------------------
 
-    def derive(self, mutant: str | None = None):
-        """Every signal of the design as SX, with `mutant` (an id of `mutants()`) applied when given."""
+    def derive(self, mutant: str | None = None, offsets: dict[str, ca.SX] | None = None):
+        """Every signal of the design as SX, with `mutant` (an id of `mutants()`) applied when given.
+
+        `offsets` adds a symbol to a signal where it is defined, so every signal computed from it depends on that
+        symbol: how the audit finds what depends on a signal through the derivation (circular printed claims).
+        """
         from .core import Design
         sc = self.scenario
         model = sc.model
@@ -131,7 +146,8 @@ class Backstepping:
 
         k1, k2 = ca.DM(sc.k1), ca.DM(sc.k2)
         gamma, sigma = ca.DM(sc.gamma), ca.DM(sc.sigma)
-        s: dict[str, ca.SX] = {"qd": qd, "dqd": dqd, "ddqd": ddqd}
+        s = _Signals(offsets or {})
+        s.update(qd=qd, dqd=dqd, ddqd=ddqd)
         s["M"] = model.numeric(model.M)
         s["C"] = model.numeric(model.C)
         s["G"] = model.numeric(model.G)
@@ -192,7 +208,7 @@ class Backstepping:
         dqd_t = ca.jtimes(qd_t, t, ca.SX(1))
         ddqd_t = ca.jtimes(dqd_t, t, ca.SX(1))
         constants = {"k1": ca.SX(k1), "k2": ca.SX(k2), "Gamma": ca.SX(gamma), "sigma": ca.SX(sigma)}
-        return Design(scenario=sc, variant=self, sym=sym, signals=s,
+        return Design(scenario=sc, variant=self, sym=sym, signals=dict(s),
                       reference_t={"qd": qd_t, "dqd": dqd_t, "ddqd": ddqd_t}, constants=constants,
                       mutant=mutant)
 

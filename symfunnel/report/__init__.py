@@ -21,7 +21,7 @@ def default_path(scenario) -> Path:
     return Path("reports") / f"{scenario.name}.html"
 
 
-def render_report(run, *, codegen: bool = True) -> str:
+def render_report(run, *, codegen: bool = True, mutants: bool = True) -> str:
     """The report of a pipeline Run as HTML text (its stages are computed here if they were not yet)."""
     from . import html as H
     say = run.progress or (lambda s: None)
@@ -48,12 +48,25 @@ def render_report(run, *, codegen: bool = True) -> str:
         timings.append(("code generation and cross-check", time.perf_counter() - t0))
     else:
         ctx["codegen"] = {"available": False, "reason": "code generation was skipped for this report (codegen=False)"}
-    audit_fail = [c for c in audit_results if c.status == "fail"]
+    checks = verification.checks
+    guarantee = next((c for c in checks if c.id == "lyapunov.guarantee"), None)
     ctx["overview"] = {
-        "verify_failed": [c.id for c in verification.checks if c.status == "fail"],
-        "audit_failed": [c.id for c in audit_fail],
+        "gate": verification.status, "unexpected": verification.unexpected,
+        "findings": [c for c in checks if c.expected == "fail" and c.status == "fail"],
+        "guarantee": {"status": guarantee.status if guarantee else "skip",
+                      "detail": guarantee.detail if guarantee else "not evaluated"},
+        "mutation": None,
         "sim_status": verification.result.status, "sim_message": verification.result.message,
     }
+    if mutants:
+        t0 = time.perf_counter()
+        say("mutation testing: the design's seeded errors through the same gate")
+        m = run.mutation
+        ctx["overview"]["mutation"] = {
+            "score": f"{m['score']:.2f}", "killed": m["killed"], "equivalent": m["equivalent"],
+            "nonequivalent": m["total"] - m["equivalent"],
+            "survived": [r["id"] for r in m["mutants"] if not r["killed"] and not r["equivalent"]]}
+        timings.append(("mutation testing", time.perf_counter() - t0))
     timings.append(("report total (after the stages)", time.perf_counter() - t_all))
     ctx["timings"] = [(k, f"{v:.2f} s") for k, v in timings]
     ctx["versions"] = H.versions()
@@ -62,10 +75,10 @@ def render_report(run, *, codegen: bool = True) -> str:
     return H.render(ctx)
 
 
-def build_report(run, out=None, *, codegen: bool = True) -> Path:
+def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True) -> Path:
     """Write the report of a Run (default reports/<name>.html) atomically; returns the path."""
     from ..io import atomic_write
-    text = render_report(run, codegen=codegen)
+    text = render_report(run, codegen=codegen, mutants=mutants)
     path = Path(out) if out is not None else default_path(run.scenario)
     atomic_write(path, text)
     return path

@@ -261,6 +261,9 @@ def claims_rows(design, audit_results) -> list[dict]:
         elif cl.kind == "decay":
             row["text"] = f"dV/dt <= -rho V + delta with rho = {cl.rho.text}, delta = {cl.delta.text}"
             row["signal"] = "V_dot"
+        elif cl.kind == "inequality":
+            row["text"] = f"{cl.lhs.text} <= {cl.rhs.text}"
+            row["signal"] = "inequality"
         else:
             row["text"] = cl.expression.text
             try:
@@ -321,7 +324,7 @@ def verification_section(v) -> dict:
     rows = []
     for c in v.checks:
         rows.append({"id": c.id, "status": c.status, "detail": c.detail, "method": c.method,
-                     "margin": _fmt(c.margin), "where": _where(c.where)})
+                     "margin": _fmt(c.margin), "where": _where(c.where), "expected": c.expected})
     L = v.lyapunov
     info = None
     if L is not None:
@@ -335,7 +338,7 @@ def verification_section(v) -> dict:
                  f"{_fmt(L.rho_const)} / {_fmt(L.rho_const_lower)}"),
                 ("corrected: delta_max (max over trajectory), ultimate bound delta/rho",
                  f"{_fmt(L.delta_max)}, {_fmt(L.delta_max / L.rho_const if L.rho_const else None)}"),
-                ("paper: rho (min over trajectory), delta = sigma/2 ||W*||^2",
+                ("printed decay claim: rho (min over trajectory), delta (max over trajectory)",
                  f"{_fmt(L.rho_paper_const)}, {_fmt(L.delta_paper_const)}")]
     fz = None
     if v.falsification is not None:
@@ -343,7 +346,8 @@ def verification_section(v) -> dict:
         fz = {"samples": f["samples"], "fill": f["fill"], "w_scale": _fmt(f["w_scale"]), "t_range": f["t_range"],
               "rows": [{"which": w, "violations": f[w]["violations"], "evaluated": f[w]["evaluated"],
                         "fraction": f"{f[w]['fraction']:.2%}", "worst": _fmt(f[w]["worst_margin"]),
-                        "where": _where(f[w]["where"])} for w in ("paper", "corrected")]}
+                        "where": _where(f[w]["where"])} for w in ("paper", "corrected")
+                       if f[w]["evaluated"]]}
     n_fail = sum(c.status == "fail" for c in v.checks)
     n_pass = sum(c.status == "pass" for c in v.checks)
     return {"rows": rows, "info": info, "falsification": fz, "n_fail": n_fail, "n_pass": n_pass,
