@@ -98,9 +98,11 @@ def test_no_network_reference(tree, report_text):
 
 def test_verification_table_shows_failures_plainly(tree, report_text):
     # the paper's Theorem 1 is falsified on the sampled states: shown as FAIL with its margin and where
-    rows = [el for el in tree.iter() if _local(el.tag) == "tr" and "fail-row" in (el.get("class") or "")]
+    # expected findings about the paper are styled apart from failures of the design
+    rows = [el for el in tree.iter() if _local(el.tag) == "tr" and "finding-row" in (el.get("class") or "")]
     text = " ".join("".join(r.itertext()) for r in rows)
     assert "claim.theorem1" in text
+    assert "None: every check this design must pass, passes." in report_text
     assert "FAIL" in text
     assert "not a proof" in report_text
     assert "W*" in report_text and "never given by the paper" in report_text
@@ -166,7 +168,8 @@ def test_failing_scenario_gives_a_report_that_shows_the_failure(write_scenario, 
     assert capsys.readouterr().out.strip() == str(out)
     html = out.read_text(encoding="utf-8")
     assert "funnel.initial_condition" in html and "initial_outside" in html
-    assert re.search(r"verification check\(s\) FAILED", html)
+    assert re.search(r'id="gate">\s*<p>Gate \(<code>symfunnel verify</code>\): <span class="badge fail">FAIL', html)
+    assert "Failures of this design" in html
     assert not list(out.parent.glob(".*.tmp"))            # atomic: no temporary file left behind
 
 
