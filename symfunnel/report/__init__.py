@@ -3,7 +3,7 @@
     from symfunnel.report import build_report
     path = build_report(load_scenario("paper"))          # reports/paper.html
 
-Figures are inline SVG (matplotlib), equations MathML (sympy's presentation printer), CSS inline; there are no
+Figures are inline SVG (matplotlib; optionally also PNG and PDF files), equations MathML (sympy's presentation printer), CSS inline; there are no
 scripts and no network references. The file is written atomically.
 """
 
@@ -22,8 +22,9 @@ def default_path(scenario) -> Path:
 
 
 def render_report(scenario, *, design=None, verification=None, t_final=None, samples: int = 10000,
-                  codegen: bool = True, progress=None) -> tuple[str, object]:
-    """The report as HTML text, and the Verification it rests on (computed here unless given)."""
+                  codegen: bool = True, progress=None, figures_dir=None) -> tuple[str, object]:
+    """The report as HTML text, and the Verification it rests on (computed here unless given); with figures_dir,
+    every figure is also written there as PNG and PDF."""
     from ..checks.audit import audit
     from ..checks.verify import verify
     from ..design import derive
@@ -55,7 +56,7 @@ def render_report(scenario, *, design=None, verification=None, t_final=None, sam
     }
     timings.append(("report: formulas (SX -> sympy -> MathML)", time.perf_counter() - t0))
     t0 = time.perf_counter()
-    ctx["simulation"] = H.simulation_section(verification, say)
+    ctx["simulation"] = H.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
     ctx["verification"] = H.verification_section(verification)
     if codegen:
@@ -79,11 +80,12 @@ def render_report(scenario, *, design=None, verification=None, t_final=None, sam
 
 
 def build_report(scenario, out=None, *, design=None, t_final=None, samples: int = 10000, codegen: bool = True,
-                 progress=None) -> Path:
-    """Write the report of a scenario (default reports/<name>.html) atomically; returns the path."""
+                 progress=None, figures_dir=None) -> Path:
+    """Write the report of a scenario (default reports/<name>.html) atomically; returns the path. With figures_dir,
+    every figure also goes there as figNN-ID.png and figNN-ID.pdf (each written atomically)."""
     from ..io import atomic_write
     text, _ = render_report(scenario, design=design, t_final=t_final, samples=samples, codegen=codegen,
-                            progress=progress)
+                            progress=progress, figures_dir=figures_dir)
     path = Path(out) if out is not None else default_path(scenario)
     atomic_write(path, text)
     return path

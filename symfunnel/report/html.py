@@ -354,35 +354,58 @@ def claims_rows(design, audit_results) -> list[dict]:
     return out
 
 
-def simulation_section(v, progress) -> dict:
-    """Summary of the run and its figures (SVG)."""
+PAPER_TITLE = "Adaptive Predefined Performance Neural Control for Robotic Manipulators with Unknown Dead Zone"
+# report figure -> the figure of the paper's Section 4 it corresponds to (number, the paper's caption)
+PAPER_FIGURES = {"tracking": (6, "Output tracking"), "funnel-e1": (6, "Output tracking"),
+                 "esn": (7, "Friction compensation"), "torque": (8, "Control signals")}
+
+
+def figure_caption(fid: str, caption: str, scenario_name: str) -> str:
+    """A figure's caption with the paper figure it reproduces (the paper scenario) or corresponds to (any other)."""
+    if fid in PAPER_FIGURES:
+        num, title = PAPER_FIGURES[fid]
+        verb = "Reproduces" if scenario_name == "paper" else "Corresponds to"
+        return f"{caption}. {verb} Figure {num} (\u201c{title}\u201d) of the paper \u201c{PAPER_TITLE}\u201d."
+    return f"{caption}. Not in the paper (symfunnel's own evidence)."
+
+
+def simulation_section(v, progress, figures_dir=None) -> dict:
+    """Summary of the run and its figures (SVG; also PNG and PDF files in figures_dir when given)."""
     res = v.result
     sc = v.scenario
     n = v.design.n
     L = v.lyapunov
     figs = []
+
+    def add(fid, caption, fn, *args):
+        stem = f"fig{len(figs) + 1:02d}-{fid}"
+        svg = fn(*args, export_to=(figures_dir, stem) if figures_dir is not None else None)
+        figs.append((fid, figure_caption(fid, caption, sc.name), svg))
+
     if res.t.size >= 2:
         progress("figures: tracking, funnels, z, torque")
-        figs.append(("tracking", "Joint tracking against the reference", FIG.tracking(res, n)))
-        figs.append(("funnel-e1", "e1 inside \u00b1F1", FIG.funnel(res, n, "e1")))
-        figs.append(("funnel-e2", "e2 inside \u00b1F2", FIG.funnel(res, n, "e2")))
-        figs.append(("z", "Transformed errors z1, z2", FIG.z_signals(res, n)))
-        figs.append(("torque", "Commanded against applied torque through the dead zone",
-                     FIG.torque(res, n, sc.plant.dead_zone)))
+        add("tracking", "Joint tracking against the reference", FIG.tracking, res, n)
+        add("funnel-e1", "e1 inside \u00b1F1", FIG.funnel, res, n, "e1")
+        add("funnel-margin", "|e|/F on a log scale: containment in both funnels at every scale",
+            FIG.funnel_margin, res, n)
+        add("funnel-e2", "e2 inside \u00b1F2", FIG.funnel, res, n, "e2")
+        add("z", "Transformed errors z1, z2", FIG.z_signals, res, n)
+        add("torque", "Commanded against applied torque through the dead zone", FIG.torque, res, n,
+            sc.plant.dead_zone)
         progress("figures: ESN, weights, Lyapunov")
         fit = None
         if L is not None:
             from ..checks.lyapunov import regressor_values
             Phi = regressor_values(v.design, np.asarray(res.signals["x_esn"]).reshape(len(res.t), -1))
             fit = Phi @ L.W_star
-        figs.append(("esn", "The ESN's estimate against the true unknown term", FIG.esn_estimate(res, n, fit)))
-        figs.append(("weights", "\u2016\u0174\u2016_F", FIG.weights(res, L.W_star if L is not None else None)))
-        figs.append(("reservoir", "Reservoir state", FIG.reservoir(res, sc.esn.leak)))
+        add("esn", "The ESN's estimate against the true unknown term", FIG.esn_estimate, res, n, fit)
+        add("weights", "\u2016\u0174\u2016_F", FIG.weights, res, L.W_star if L is not None else None)
+        add("reservoir", "Reservoir state", FIG.reservoir, res, sc.esn.leak)
         if L is not None and np.isfinite(L.V).sum() >= 2:
-            figs.append(("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound(L, res)))
-            figs.append(("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay(L, res)))
+            add("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound, L, res)
+            add("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay, L, res)
     if v.falsification is not None:
-        figs.append(("falsification", "Falsification over sampled states", FIG.falsification(v.falsification)))
+        add("falsification", "Falsification over sampled states", FIG.falsification, v.falsification)
     summ = res.summary()
     stats = [("status", res.status), ("message", res.message),
              ("simulated", f"{summ.get('t_end', 0):g} of {summ.get('t_final') or 0:g} s, {summ.get('points')} output points"),
