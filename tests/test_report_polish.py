@@ -220,3 +220,10 @@ def test_joint_one_formulas_for_seven_joints():
     rows = {r["name"]: r for r in derivation_section(d, [], lambda s: None)["signals"]}
     for k in ("F1", "z1", "alpha2"):
         assert rows[k]["mathml"] and "<math" in rows[k]["mathml"], k
+
+
+def test_a_formula_says_when_round_off_was_left_out():
+    from symfunnel.report.html import formula_html
+    h = formula_html("<mi>G</mi>", 9.81 * sympy.sin(q2) + 8.7e-14 * sympy.cos(q1), 50.0)
+    assert "1 term(s) with a coefficient below 1e-10" in h and "8.7" not in h and "9.81" in h
+    assert "term(s)" not in formula_html("<mi>G</mi>", 9.81 * sympy.sin(q2) + 0.5 * sympy.cos(q1), 50.0)

@@ -81,22 +81,25 @@ def symbol_mathml(name: str) -> str:
     return body
 
 
-# widths (em) formulas are laid out to: the page, a table's formula column, one side of the alpha2_dot panel
-WIDTH_PAGE, WIDTH_TABLE, WIDTH_PANEL = 48.0, 40.0, 22.0
+# widths (em) formulas are laid out to: the page, a table's formula row, one side of the alpha2_dot panel. The
+# estimate of formula.width is an upper bound (rendered/estimated <= 0.87 in Chromium on paper, arm7 and a URDF
+# robot), so these fit a 1024-px window (tests/test_report_layout.py measures it).
+WIDTH_PAGE, WIDTH_TABLE, WIDTH_PANEL = 50.0, 50.0, 24.0
 MAX_LINES = 12                 # a formula needing more lines than this (parts included) is shown by its size only
 
 
 def formula_html(lhs: str, expr, budget: float, *, max_lines: int = MAX_LINES) -> str | None:
     """`lhs = expr` as HTML laid out to `budget` em (long sums broken into lines, wide parts named and defined
     below), or None when it needs more than max_lines lines. Numerical noise is dropped first (see formula.present)."""
-    e, _ = FM.present(expr)
+    e, dropped = FM.present(expr)
     try:
         defs = FM.lines(e, budget)
     except FM.TooLarge:
         return None
     if sum(len(rows) for _, rows in defs) > max_lines:
         return None
-    return FM.render_defs(lhs, defs, mathml_body)
+    note = f'<div class="note">{_html.escape(noise_note(dropped))}</div>' if dropped else ""
+    return FM.render_defs(lhs, defs, mathml_body) + note
 
 
 def _signal_sympy(design, name: str, entry: int | None = 0):
@@ -220,7 +223,7 @@ def model_section(sc, audit_results) -> dict:
                 raise ValueError("large")
             mat, dropped = FM.present(sx_to_sympy(X, ins))
             mm = matrix_html(name, mat)
-            if mm is None or len(mm) > 3 * FORMULA_MAX_CHARS:
+            if mm is None or len(mm) > 6 * FORMULA_MAX_CHARS:
                 raise ValueError("large")
             eqs.append({"name": name, "mathml": mm, "ops": None, "note": noise_note(dropped)})
         except Exception:  # noqa: BLE001 - a large model is shown by its size
