@@ -252,7 +252,10 @@ class _Layout:
         if isinstance(e, sympy.Add):
             return e
         while width(e) > self.budget - 1.6 and not e.is_Atom:
-            for big in sorted((_unwrap(a) for a in _children_of(e) if not a.is_Atom), key=width, reverse=True):
+            # a wide part that occurs more than once is named first (the reader sees it once), then the widest child
+            cands = sorted(_repeated(e), key=width, reverse=True)
+            cands += sorted((_unwrap(a) for a in _children_of(e) if not a.is_Atom), key=width, reverse=True)
+            for big in cands:
                 if big.is_Atom:
                     continue
                 d = sympy.Dummy()
@@ -263,6 +266,13 @@ class _Layout:
             else:
                 return e
         return e
+
+
+def _repeated(e, min_width: float = 6.0) -> list:
+    """Sub-expressions of e at least min_width em wide that occur more than once in it."""
+    from collections import Counter
+    counts = Counter(a for a in sympy.preorder_traversal(e) if not a.is_Atom)
+    return [a for a, c in counts.items() if c > 1 and a != e and width(a) >= min_width]
 
 
 def _children_of(e):
