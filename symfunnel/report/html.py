@@ -359,8 +359,8 @@ def claims_rows(design, audit_results) -> list[dict]:
 
 PAPER_TITLE = "Adaptive Predefined Performance Neural Control for Robotic Manipulators with Unknown Dead Zone"
 # report figure -> the figure of the paper's Section 4 it corresponds to (number, the paper's caption)
-PAPER_FIGURES = {"tracking": (6, "Output tracking"), "funnel-e1": (6, "Output tracking"),
-                 "esn": (7, "Friction compensation"), "torque": (8, "Control signals")}
+PAPER_FIGURES = {"tracking": (6, "Output tracking"), "esn": (7, "Friction compensation"),
+                 "torque": (8, "Control signals")}
 
 
 def figure_caption(fid: str, caption: str, scenario_name: str) -> str:
