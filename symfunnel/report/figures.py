@@ -1,4 +1,5 @@
-"""The report's figures: matplotlib rendered to inline SVG text (deterministic, no external fonts or references)."""
+"""The report's figures: matplotlib rendered to inline SVG text (deterministic, no external fonts or references),
+and on request also written as PNG and PDF files (`export`)."""
 
 from __future__ import annotations
 
