@@ -176,3 +176,21 @@ def test_failing_scenario_gives_a_report_that_shows_the_failure(write_scenario, 
 def test_default_path(paper):
     from symfunnel.report import default_path
     assert default_path(paper) == Path("reports") / "paper.html"
+
+
+def test_first_contact_details(report_text, tree):
+    """Header names the built-in scenario (not its install path); '(see' has its space; raw sympy matrices are
+    gone from the details; the figures that reproduce the paper's Figures 6-8 say so; the exact alpha2_dot is laid
+    out (lines, named parts) rather than one line cut off at the right."""
+    from symfunnel.scenario import DATA_DIR
+    header = "".join(next(el for el in tree.iter() if _local(el.tag) == "header").itertext())
+    assert "built-in: paper" in header and str(DATA_DIR) not in header
+    text = "".join(tree.itertext())
+    assert not re.search(r"\S\(see", text)
+    assert "Matrix([" not in report_text
+    caps = [" ".join("".join(el.itertext()).split()) for el in tree.iter() if _local(el.tag) == "figcaption"]
+    for num, title in ((6, "Output tracking"), (7, "Friction compensation"), (8, "Control signals")):
+        assert any(f"Reproduces Figure {num} (\u201c{title}\u201d)" in c for c in caps), num
+    a2d = next(el for el in tree.iter() if el.get("id") == "alpha2-dot-formula")
+    rows = [el for el in a2d.iter() if (el.get("class") or "") == "eqn-rhs"]
+    assert len(rows) >= 2

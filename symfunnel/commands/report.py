@@ -11,6 +11,8 @@ def register(sub, common) -> None:
     sp.add_argument("--t-final", type=float, metavar="T", help="simulate to T seconds (default: the scenario's)")
     sp.add_argument("--samples", type=int, default=10000, metavar="K",
                     help="states sampled inside the funnels for the falsification (default 10000)")
+    sp.add_argument("--figures", metavar="DIR",
+                    help="also write every figure as PNG and PDF into DIR (created if missing)")
     sp.add_argument("--no-codegen", action="store_true", help="leave out the code-generation section")
     sp.add_argument("--no-mutants", action="store_true", help="leave out the mutation score")
     sp.set_defaults(func=run)
@@ -24,8 +26,28 @@ def run(args) -> int:
     from ..report import build_report
     if args.samples < 1:
         raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
+    figures = figures_dir(args.figures) if args.figures is not None else None
     sc = _load(args)
     run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), _progress(args.quiet))
-    path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants)
+    path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants, figures_dir=figures)
     print(path)
     return 0
+
+
+def figures_dir(arg: str):
+    """The --figures directory, created now and checked writable, so that a bad one fails before any work."""
+    import os
+    from pathlib import Path
+
+    from ..errors import InputError
+    p = Path(arg)
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{arg} exists and is not a directory", key="--figures", expected="a directory")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create {arg} ({exc.strerror or exc})", key="--figures",
+                         expected="a directory that can be created") from None
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise InputError(f"{arg} is not writable", key="--figures", expected="a writable directory")
+    return p

@@ -3,7 +3,7 @@
     from symfunnel.report import build_report
     path = build_report(load_scenario("paper"))          # reports/paper.html
 
-Figures are inline SVG (matplotlib), equations MathML (sympy's presentation printer), CSS inline; there are no
+Figures are inline SVG (matplotlib; optionally also PNG and PDF files), equations MathML (sympy's presentation printer), CSS inline; there are no
 scripts and no network references. The file is written atomically.
 """
 
@@ -21,8 +21,9 @@ def default_path(scenario) -> Path:
     return Path("reports") / f"{scenario.name}.html"
 
 
-def render_report(run, *, codegen: bool = True, mutants: bool = True) -> str:
-    """The report of a pipeline Run as HTML text (its stages are computed here if they were not yet)."""
+def render_report(run, *, codegen: bool = True, mutants: bool = True, figures_dir=None) -> str:
+    """The report of a pipeline Run as HTML text (its stages are computed here if they were not yet); with
+    figures_dir, every figure is also written there as PNG and PDF."""
     from . import html as H
     say = run.progress or (lambda s: None)
     t_all = time.perf_counter()
@@ -39,7 +40,7 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True) -> str:
     }
     timings.append(("report: formulas (SX -> sympy -> MathML)", time.perf_counter() - t0))
     t0 = time.perf_counter()
-    ctx["simulation"] = H.simulation_section(verification, say)
+    ctx["simulation"] = H.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
     ctx["verification"] = H.verification_section(verification)
     if codegen:
@@ -75,10 +76,11 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True) -> str:
     return H.render(ctx)
 
 
-def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True) -> Path:
-    """Write the report of a Run (default reports/<name>.html) atomically; returns the path."""
+def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True, figures_dir=None) -> Path:
+    """Write the report of a Run (default reports/<name>.html) atomically; returns the path. With figures_dir,
+    every figure also goes there as figNN-ID.png and figNN-ID.pdf (each written atomically)."""
     from ..io import atomic_write
-    text = render_report(run, codegen=codegen, mutants=mutants)
+    text = render_report(run, codegen=codegen, mutants=mutants, figures_dir=figures_dir)
     path = Path(out) if out is not None else default_path(run.scenario)
     atomic_write(path, text)
     return path

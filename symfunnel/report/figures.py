@@ -1,4 +1,5 @@
-"""The report's figures: matplotlib rendered to inline SVG text (deterministic, no external fonts or references)."""
+"""The report's figures: matplotlib rendered to inline SVG text (deterministic, no external fonts or references),
+and on request also written as PNG and PDF files (`export`)."""
 
 from __future__ import annotations
 
@@ -79,13 +80,43 @@ def _mark_end(ax, res):
         ax.axvline(res.t[-1], color="crimson", ls=":", lw=1)
 
 
+def _legend_outside(ax, fontsize: int = 8):
+    """The legend beside the axes (right of the plot area), never over the curves."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=fontsize, frameon=False)
+
+
+def export(fig, directory, stem: str) -> list:
+    """Write a figure as STEM.png (150 dpi) and STEM.pdf into directory, each atomically; returns the paths."""
+    from pathlib import Path
+
+    from ..io import atomic_write
+    out = []
+    for fmt, meta in (("png", {"Software": None}), ("pdf", {"Creator": None, "Producer": None,
+                                                           "CreationDate": None})):
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt, dpi=150, bbox_inches="tight", metadata=meta)
+        out.append(atomic_write(Path(directory) / f"{stem}.{fmt}", buf.getvalue()))
+    return out
+
+
 def _with_rc(fn):
-    def wrapped(*a, **k):
+    """fn builds a Figure; the public function returns it as SVG text (and with export=(DIR, STEM) also writes
+    PNG and PDF); fn.figure(...) returns the Figure itself (the caller closes it)."""
+    def wrapped(*a, export_to=None, **k):
+        plt = _plt()
+        with plt.rc_context(_RC):
+            fig = fn(*a, **k)
+            if export_to is not None:
+                export(fig, *export_to)
+            return to_svg(fig)
+
+    def figure(*a, **k):
         plt = _plt()
         with plt.rc_context(_RC):
             return fn(*a, **k)
     wrapped.__name__ = fn.__name__
     wrapped.__doc__ = fn.__doc__
+    wrapped.figure = figure
     return wrapped
 
 
@@ -99,9 +130,9 @@ def tracking(res, n: int) -> str:
         ax.plot(t, q, color="C0", label="q")
         ax.set_ylabel(f"joint {j + 1} [rad]")
         _mark_end(ax, res)
-    axes[0].legend(loc="upper right", fontsize=8)
+    _legend_outside(axes[0], fontsize=8)
     axes[-1].set_xlabel("t [s]")
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -121,9 +152,9 @@ def funnel(res, n: int, key: str) -> str:
         if b.get("funnel") == key and b.get("joint") == j + 1:
             ax.plot([b["time"]], [np.sign(e[-1] if len(e) else 1) * b["boundary"]], "x", color="crimson", ms=9,
                     label="breach")
-    axes[0].legend(loc="upper right", fontsize=8)
+    _legend_outside(axes[0], fontsize=8)
     axes[-1].set_xlabel("t [s]")
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -138,9 +169,9 @@ def z_signals(res, n: int) -> str:
             ax.plot(t, z, label=f"joint {j + 1}")
         ax.set_ylabel(key)
         _mark_end(ax, res)
-    axes[0].legend(loc="upper right", fontsize=8)
+    _legend_outside(axes[0], fontsize=8)
     axes[-1].set_xlabel("t [s]")
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -154,13 +185,22 @@ def torque(res, n: int, dead_zone=None) -> str:
         if dead_zone is not None:
             ax.axhspan(dead_zone.b_l[j], dead_zone.b_r[j], color="0.5", alpha=0.15, lw=0, label="dead band")
         ax.set_ylabel(f"joint {j + 1} [N m]")
-        lo, hi = np.nanpercentile(np.concatenate([tau, ta]), [1, 99]) if len(tau) else (0, 1)
-        pad = 0.3 * (hi - lo + 1e-9)
-        ax.set_ylim(lo - pad, hi + pad)
+        both = np.concatenate([np.ravel(tau), np.ravel(ta)])
+        both = both[np.isfinite(both)]
+        if both.size:
+            lo, hi = float(both.min()), float(both.max())
+            pad = 0.08 * (hi - lo + 1e-9)
+            ax.set_ylim(lo - pad, hi + pad)          # the whole range: the peak is never clipped
+            typical = float(np.percentile(np.abs(both), 95))
+            if typical > 0 and max(abs(lo), abs(hi)) > 10 * typical:
+                # a short peak would flatten the rest: linear up to the typical size, logarithmic beyond
+                ax.set_yscale("symlog", linthresh=typical)
+                ax.set_ylim(lo - pad, hi + pad)
         _mark_end(ax, res)
-    axes[0].legend(loc="upper right", fontsize=8)
-    axes[-1].set_xlabel("t [s]  (y range: 1st-99th percentile; the initial peak may be clipped)")
-    return to_svg(fig)
+    _legend_outside(axes[0], fontsize=8)
+    axes[-1].set_xlabel("t [s]  (y range: all values; symmetric-log beyond the typical size when a peak "
+                        "dwarfs it)")
+    return fig
 
 
 @_with_rc
@@ -180,9 +220,9 @@ def esn_estimate(res, n: int, W_star_fit=None) -> str:
             pad = 0.3 * (hi - lo + 1e-9)
             ax.set_ylim(lo - pad, hi + pad)
         _mark_end(ax, res)
-    axes[0].legend(loc="upper right", fontsize=7)
+    _legend_outside(axes[0], fontsize=7)
     axes[-1].set_xlabel("t [s]")
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -197,9 +237,9 @@ def weights(res, W_star=None) -> str:
         ax.axhline(np.linalg.norm(W_star), color="C4", ls="--", lw=1, label="\u2016W*\u2016_F (fitted)")
     ax.set_title("Adaptive weights: \u2016\u0174(t)\u2016_F", fontsize=10)
     ax.set_xlabel("t [s]")
-    ax.legend(loc="lower right", fontsize=8)
+    _legend_outside(ax, fontsize=8)
     _mark_end(ax, res)
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -215,9 +255,9 @@ def lyapunov_bound(L, res) -> str:
                 label=f"paper's bound, \u03c1 = {L.rho_paper_const:.3g}, \u03b4 = {L.delta_paper_const:.3g}")
     ax.set_title("Lyapunov function V(t) and V(0)e^(-\u03c1t) + (\u03b4/\u03c1)(1 - e^(-\u03c1t))", fontsize=10)
     ax.set_xlabel("t [s]")
-    ax.legend(loc="best", fontsize=8)
+    _legend_outside(ax, fontsize=8)
     _mark_end(ax, res)
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -240,9 +280,9 @@ def lyapunov_decay(L, res) -> str:
     ax.set_yscale("symlog", linthresh=1.0)
     ax.set_title("Decay claim dV/dt \u2264 -\u03c1V + \u03b4 along the trajectory", fontsize=10)
     ax.set_xlabel("t [s]")
-    ax.legend(loc="best", fontsize=8)
+    _legend_outside(ax, fontsize=8)
     _mark_end(ax, res)
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -265,13 +305,13 @@ def falsification(fz, bins: int = 40) -> str:
         axes[0].step(mids, 100 * frac, where="mid", color=color, label=f"{label}: {nv} of {len(rel)} violate")
         axes[1].step(mids, worst, where="mid", color=color, label=label)
     axes[0].set_ylabel("violating [%]")
-    axes[0].legend(loc="best", fontsize=8)
+    _legend_outside(axes[0], fontsize=8)
     axes[1].axhline(0, color="k", lw=0.8)
     axes[1].set_ylabel("worst relative margin")
     axes[1].set_xlabel("t of the sampled state [s] (bins)")
     fig.suptitle(f"Falsification (sampled, not a proof): {fz['samples']} Sobol states inside the funnels; "
                  "relative margin = (rhs - dV/dt)/(|rhs| + |dV/dt|)", fontsize=9)
-    return to_svg(fig)
+    return fig
 
 
 @_with_rc
@@ -286,6 +326,26 @@ def reservoir(res, leak: float) -> str:
     ax.axhline(-1 / leak, color="k", ls="--", lw=0.8)
     ax.set_title("Echo-state reservoir x_esn(t)", fontsize=10)
     ax.set_xlabel("t [s]")
-    ax.legend(loc="lower right", fontsize=8)
+    _legend_outside(ax, fontsize=8)
     _mark_end(ax, res)
-    return to_svg(fig)
+    return fig
+
+
+@_with_rc
+def funnel_margin(res, n: int) -> str:
+    """|e1|/F1 and |e2|/F2 on a log scale: containment (< 1) stays visible however small the funnel gets."""
+    fig, axes = _joint_axes(n, "Containment at every scale: |e_i(t)|/F_i(t) (log scale; inside the funnel iff < 1)")
+    for j, ax in enumerate(axes):
+        for key, color in (("e1", "C0"), ("e2", "C1")):
+            Fk = "F" + key[1]
+            r = np.abs(np.asarray(res.signals[key])[:, j]) / np.asarray(res.signals[Fk])[:, j]
+            t, rr = _decimate(res.t, r)
+            ax.semilogy(t, np.maximum(rr, 1e-12), color=color, label=f"|{key}|/{Fk}")
+        ax.axhline(1.0, color="crimson", lw=1, ls="--", label="funnel boundary")
+        lo = ax.get_ylim()[0]
+        ax.set_ylim(max(lo, 1e-8), 2.0)
+        ax.set_ylabel(f"joint {j + 1}")
+        _mark_end(ax, res)
+    _legend_outside(axes[0], fontsize=8)
+    axes[-1].set_xlabel("t [s]")
+    return fig

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..names import compress_names
 from . import figures as FIG
+from . import formula as FM
 
 MATHML_NS = "http://www.w3.org/1998/Math/MathML"     # a namespace name (a URI), not a reference: nothing is fetched
 FORMULA_MAX_OPS = 120          # sympy count_ops of one entry above which a signal is shown by its size only
@@ -48,12 +49,18 @@ _CLAIM_NAMES = {"alpha2_dot": "alphadot2", "z1_dot": "zdot1", "z2_dot": "zdot2",
                 "w_hat_dot": "Whatdot", "x_esn": "xesn", "x_esn_dot": "xesndot"}
 
 
-def mathml(expr, *, display: bool = False) -> str:
-    """A sympy expression (or Matrix) as a <math> element (presentation MathML, with dots and hats fixed up)."""
+def mathml_body(expr) -> str:
+    """The presentation MathML of a sympy expression without <math>: dots and hats fixed up, fences stretchy."""
     from sympy.printing.mathml import mathml as _mm
     body = _mm(expr, printer="presentation")
     for k, v in _MI.items():
         body = body.replace(f"<mi>{k}</mi>", v)
+    return FM.stretchy_fences(body)
+
+
+def mathml(expr, *, display: bool = False) -> str:
+    """A sympy expression (or Matrix) as a <math> element (presentation MathML, with dots and hats fixed up)."""
+    body = mathml_body(expr)
     disp = ' display="block"' if display else ""
     return f'<math xmlns="{MATHML_NS}"{disp}>{body}</math>'
 
@@ -72,6 +79,27 @@ def symbol_mathml(name: str) -> str:
     for k, v in _MI.items():
         body = body.replace(f"<mi>{k}</mi>", v)
     return body
+
+
+# widths (em) formulas are laid out to: the page, a table's formula row, one side of the alpha2_dot panel. The
+# estimate of formula.width is an upper bound (rendered/estimated <= 0.87 in Chromium on paper, arm7 and a URDF
+# robot), so these fit a 1024-px window (tests/test_report_layout.py measures it).
+WIDTH_PAGE, WIDTH_TABLE, WIDTH_PANEL = 50.0, 50.0, 24.0
+MAX_LINES = 12                 # a formula needing more lines than this (parts included) is shown by its size only
+
+
+def formula_html(lhs: str, expr, budget: float, *, max_lines: int = MAX_LINES) -> str | None:
+    """`lhs = expr` as HTML laid out to `budget` em (long sums broken into lines, wide parts named and defined
+    below), or None when it needs more than max_lines lines. Numerical noise is dropped first (see formula.present)."""
+    e, dropped = FM.present(expr)
+    try:
+        defs = FM.lines(e, budget)
+    except FM.TooLarge:
+        return None
+    if sum(len(rows) for _, rows in defs) > max_lines:
+        return None
+    note = f'<div class="note">{_html.escape(noise_note(dropped))}</div>' if dropped else ""
+    return FM.render_defs(lhs, defs, mathml_body) + note
 
 
 def _signal_sympy(design, name: str, entry: int | None = 0):
@@ -164,7 +192,21 @@ def scenario_section(sc) -> dict:
                        f"smoothing width {sc.simulation.smoothing_width:g}"),
     ]
     return {"name": sc.name, "title": sc.title, "source": sc.source, "description": sc.description,
-            "file": sc.file, "params": params, "deviations": sc.deviations}
+            "file": sc.file, "file_shown": file_shown(sc), "params": params, "deviations": sc.deviations}
+
+
+def file_shown(sc) -> str:
+    """Where the scenario came from, as the header shows it: 'built-in: NAME' for a scenario shipped with symfunnel
+    (its install path says nothing to a reader), else the file's path."""
+    from ..scenario import BUILTIN, DATA_DIR
+    try:
+        p = Path(sc.file).resolve()
+    except (TypeError, OSError):
+        return str(sc.file)
+    for name, fname in BUILTIN.items():
+        if p == (DATA_DIR / fname).resolve():
+            return f"built-in: {name}"
+    return str(sc.file)
 
 
 def model_section(sc, audit_results) -> dict:
@@ -179,16 +221,51 @@ def model_section(sc, audit_results) -> dict:
             f = ca.Function("f", ins, [X])
             if f.n_instructions() > 2000:
                 raise ValueError("large")
-            mat = sx_to_sympy(X, ins)
-            mm = mathml_eq(f"<mi>{name}</mi>", mat)
-            if len(mm) > 3 * FORMULA_MAX_CHARS:
+            mat, dropped = FM.present(sx_to_sympy(X, ins))
+            mm = matrix_html(name, mat)
+            if mm is None or len(mm) > 6 * FORMULA_MAX_CHARS:
                 raise ValueError("large")
-            eqs.append({"name": name, "mathml": mm, "ops": None})
+            eqs.append({"name": name, "mathml": mm, "ops": None, "note": noise_note(dropped)})
         except Exception:  # noqa: BLE001 - a large model is shown by its size
             from ..design import count_ops
             eqs.append({"name": name, "mathml": None, "ops": count_ops(ca.Function("f", ins, [X]))})
     checks = [c for c in audit_results if not c.id.startswith("claim.")]
     return {"equations": eqs, "checks": checks}
+
+
+def noise_note(dropped: int) -> str:
+    """What the reader is told when terms were dropped for presentation."""
+    if not dropped:
+        return ""
+    return (f"{dropped} term(s) with a coefficient below {FM.NOISE_REL:g} times the largest coefficient "
+            "(floating-point round-off) are left out of this display; the model itself keeps them.")
+
+
+def matrix_html(name: str, mat) -> str | None:
+    """A model matrix as one display formula when it fits the page, else entry by entry (each laid out to the page
+    width; only the upper triangle of a symmetric matrix; zero entries listed by index). None when too large."""
+    import sympy
+    if FM.width(mat) <= WIDTH_PAGE:
+        return mathml_eq(f"<mi>{name}</mi>", mat)
+    sym = mat.shape[0] == mat.shape[1] and mat == mat.T
+    parts, zeros = [], []
+    for i in range(mat.shape[0]):
+        for j in range(mat.shape[1]):
+            if sym and j < i:
+                continue
+            idx = f"{i + 1}" if mat.shape[1] == 1 else f"{i + 1},{j + 1}"
+            if mat[i, j] == 0:
+                zeros.append(idx)
+                continue
+            lhs = f"<msub><mi>{name}</mi><mn>{idx}</mn></msub>"
+            h = formula_html(lhs, sympy.sympify(mat[i, j]), WIDTH_PAGE)
+            if h is None:
+                return None
+            parts.append(h)
+    head = (f'<p class="note">{name} entry by entry ({mat.shape[0]}&times;{mat.shape[1]}'
+            + (", symmetric: upper triangle" if sym else "")
+            + (f"; zero: {name}<sub>{', '.join(zeros)}</sub>" if zeros else "") + ")</p>")
+    return head + "".join(parts)
 
 
 SIGNAL_ORDER = ("F1", "dF1", "e1", "de1", "zeta1", "z1", "mu1", "alpha2", "alpha2_dot", "z1_dot", "e2", "zeta2", "z2",
@@ -213,12 +290,13 @@ def derivation_section(design, audit_results, progress) -> dict:
         row = {"name": k, "sym": symbol_mathml(k), "desc": SIGNALS.get(k, ("", 0))[0],
                "shape": f"{e.shape[0]}\u00d7{e.shape[1]}", "ops_raw": raw, "ops_cse": cse,
                "free": compress_names(design.free_symbols(k)), "mathml": None, "note": ""}
-        if cse <= 4 * FORMULA_MAX_OPS and e.numel() <= 4 and k not in ("Phi",):
+        # one entry (joint 1) is shown whatever n is: its size, not the vector's, decides
+        if k not in ("Phi",) and count_ops(ca.Function("e1", syms, [e[0]])) <= 4 * FORMULA_MAX_OPS:
             try:
                 s = _signal_sympy(design, k, 0)
                 if sympy.count_ops(s) <= FORMULA_MAX_OPS:
-                    mm = mathml_eq(symbol_mathml(k), s, display=False)
-                    if len(mm) <= FORMULA_MAX_CHARS:
+                    mm = formula_html(symbol_mathml(k), s, WIDTH_TABLE)
+                    if mm is not None and len(mm) <= FORMULA_MAX_CHARS:
                         row["mathml"] = mm
                         row["note"] = "entry of joint 1 (the other joints alike)" if e.numel() > 1 else ""
             except Exception as exc:  # noqa: BLE001
@@ -232,18 +310,28 @@ def derivation_section(design, audit_results, progress) -> dict:
              "claims": []}
     try:
         a2 = _signal_sympy(design, "alpha2", 0)
-        panel["alpha2"] = mathml_eq("<msub><mi>&#945;</mi><mn>2,1</mn></msub>", a2)
-        a2d = _signal_sympy(design, "alpha2_dot", 0)
-        repl, (red,) = sympy.cse(a2d, symbols=sympy.numbered_symbols("x"))
-        panel["alpha2_dot_cse"] = [mathml_eq(mathml(s)[len(f'<math xmlns="{MATHML_NS}">'):-len("</math>")], v)
-                                   for s, v in repl]
-        panel["alpha2_dot"] = mathml_eq(f"<msub><mover><mi>&#945;</mi>{_DOT}</mover><mn>2,1</mn></msub>", red)
+        panel["alpha2"] = _panel_formula("<msub><mi>&#945;</mi><mn>2,1</mn></msub>", a2)
+        a2d, _ = FM.present(_signal_sympy(design, "alpha2_dot", 0))
+        taken = {str(x) for x in a2d.free_symbols}
+        xs = (sympy.Symbol(f"x{i}") for i in range(10 ** 6) if f"x{i}" not in taken)
+        repl, (red,) = sympy.cse(a2d, symbols=xs)
+        # the key result first (its top-level structure), then the subexpressions it uses
+        panel["alpha2_dot"] = _panel_formula(f"<msub><mover><mi>&#945;</mi>{_DOT}</mover><mn>2,1</mn></msub>", red)
+        panel["alpha2_dot_cse"] = [_panel_formula(mathml_body(s), v) for s, v in repl]
         panel["alpha2_dot_ops_joint1"] = int(sympy.count_ops(a2d))
     except Exception as exc:  # noqa: BLE001
         panel["error"] = f"{type(exc).__name__}: {exc}"
     claims = claims_rows(design, audit_results)
     panel["claims"] = [c for c in claims if c["signal"] in ("alpha2", "z1_dot")]
     return {"signals": rows, "alpha2": panel, "claims": claims}
+
+
+def _panel_formula(lhs: str, expr) -> str:
+    """A formula of the alpha2_dot panel laid out to the panel's width (never dropped: it is the key result)."""
+    h = formula_html(lhs, expr, WIDTH_PANEL, max_lines=10 ** 6)
+    if h is None:
+        raise ValueError("too large to lay out")
+    return h
 
 
 def claims_rows(design, audit_results) -> list[dict]:
@@ -268,44 +356,66 @@ def claims_rows(design, audit_results) -> list[dict]:
             row["text"] = cl.expression.text
             try:
                 s = _claim_sympy(cl)
-                row["mathml"] = mathml_eq(symbol_mathml(cl.signal), s, display=False)
+                row["mathml"] = formula_html(symbol_mathml(cl.signal), s, WIDTH_PANEL)
             except Exception:  # noqa: BLE001 - shown as text
                 row["mathml"] = None
         out.append(row)
     return out
 
 
-def simulation_section(v, progress) -> dict:
-    """Summary of the run and its figures (SVG)."""
+PAPER_TITLE = "Adaptive Predefined Performance Neural Control for Robotic Manipulators with Unknown Dead Zone"
+# report figure -> the figure of the paper's Section 4 it corresponds to (number, the paper's caption)
+PAPER_FIGURES = {"tracking": (6, "Output tracking"), "esn": (7, "Friction compensation"),
+                 "torque": (8, "Control signals")}
+
+
+def figure_caption(fid: str, caption: str, scenario_name: str) -> str:
+    """A figure's caption with the paper figure it reproduces (the paper scenario) or corresponds to (any other)."""
+    if fid in PAPER_FIGURES:
+        num, title = PAPER_FIGURES[fid]
+        verb = "Reproduces" if scenario_name == "paper" else "Corresponds to"
+        return f"{caption}. {verb} Figure {num} (\u201c{title}\u201d) of the paper \u201c{PAPER_TITLE}\u201d."
+    return f"{caption}. Not in the paper (symfunnel's own evidence)."
+
+
+def simulation_section(v, progress, figures_dir=None) -> dict:
+    """Summary of the run and its figures (SVG; also PNG and PDF files in figures_dir when given)."""
     res = v.result
     sc = v.scenario
     n = v.design.n
     L = v.lyapunov
     figs = []
+
+    def add(fid, caption, fn, *args):
+        stem = f"fig{len(figs) + 1:02d}-{fid}"
+        svg = fn(*args, export_to=(figures_dir, stem) if figures_dir is not None else None)
+        figs.append((fid, figure_caption(fid, caption, sc.name), svg))
+
     if res.t.size >= 2:
         progress("figures: tracking, funnels, z, torque")
-        figs.append(("tracking", "Joint tracking against the reference", FIG.tracking(res, n)))
-        figs.append(("funnel-e1", "e1 inside \u00b1F1", FIG.funnel(res, n, "e1")))
-        figs.append(("funnel-e2", "e2 inside \u00b1F2", FIG.funnel(res, n, "e2")))
-        figs.append(("z", "Transformed errors z1, z2", FIG.z_signals(res, n)))
-        figs.append(("torque", "Commanded against applied torque through the dead zone",
-                     FIG.torque(res, n, sc.plant.dead_zone)))
+        add("tracking", "Joint tracking against the reference", FIG.tracking, res, n)
+        add("funnel-e1", "e1 inside \u00b1F1", FIG.funnel, res, n, "e1")
+        add("funnel-margin", "|e|/F on a log scale: containment in both funnels at every scale",
+            FIG.funnel_margin, res, n)
+        add("funnel-e2", "e2 inside \u00b1F2", FIG.funnel, res, n, "e2")
+        add("z", "Transformed errors z1, z2", FIG.z_signals, res, n)
+        add("torque", "Commanded against applied torque through the dead zone", FIG.torque, res, n,
+            sc.plant.dead_zone)
         progress("figures: ESN, weights, Lyapunov")
         fit = None
         if L is not None and v.design.n_regressor:
             from ..checks.lyapunov import regressor_values
             fit = regressor_values(v.closed_loop, res.x) @ L.W_star
         if v.design.n_regressor:
-            figs.append(("esn", "The approximator's estimate against the true unknown term",
-                         FIG.esn_estimate(res, n, fit)))
-            figs.append(("weights", "\u2016\u0174\u2016_F", FIG.weights(res, L.W_star if L is not None else None)))
+            add("esn", "The approximator's estimate against the true unknown term", FIG.esn_estimate, res, n, fit)
+            add("weights", "\u2016\u0174\u2016_F", FIG.weights, res, L.W_star if L is not None else None)
         if "x_esn" in res.signals:
-            figs.append(("reservoir", "Reservoir state", FIG.reservoir(res, sc.esn.leak)))
+            add("reservoir", "Reservoir state", FIG.reservoir, res, sc.esn.leak)
         if L is not None and np.isfinite(L.V).sum() >= 2:
-            figs.append(("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound(L, res)))
-            figs.append(("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay(L, res)))
+            add("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound, L, res)
+            add("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay, L, res)
     if v.falsification is not None:
-        figs.append(("falsification", "Falsification over sampled states", FIG.falsification(v.falsification)))
+        add("falsification", "Falsification over sampled states", FIG.falsification, v.falsification)
     summ = res.summary()
     stats = [("status", res.status), ("message", res.message),
              ("simulated", f"{summ.get('t_end', 0):g} of {summ.get('t_final') or 0:g} s, {summ.get('points')} output points"),
@@ -378,6 +488,70 @@ def codegen_section(run, progress) -> dict:
     return out
 
 
+_MATRIX = re.compile(r"Matrix\(\[")
+
+
+def detail_html(text) -> str:
+    """A check's detail as HTML: plain text escaped, and each `Matrix([[a, b], [c, d]])` (sympy's str of a matrix)
+    shown as a small table of its entries instead of raw text. The text is split by brackets, never evaluated."""
+    from markupsafe import Markup
+    text = "" if text is None else str(text)
+    out, pos = [], 0
+    for m in _MATRIX.finditer(text):
+        if m.start() < pos:
+            continue
+        rows, end = _matrix_rows(text, m.end() - 1)
+        if rows is None:
+            continue
+        out.append(_html.escape(text[pos:m.start()]))
+        cells = "".join("<tr>" + "".join(f"<td><code>{_html.escape(c)}</code></td>" for c in r) + "</tr>"
+                        for r in rows)
+        out.append(f'<table class="matrix">{cells}</table>')
+        pos = end
+    out.append(_html.escape(text[pos:]))
+    return Markup("".join(out))
+
+
+def _split_top(s: str) -> list[str]:
+    """s split at the commas outside any brackets."""
+    parts, depth, cur = [], 0, []
+    for ch in s:
+        if ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth -= 1
+        if ch == "," and depth == 0:
+            parts.append("".join(cur).strip())
+            cur = []
+        else:
+            cur.append(ch)
+    parts.append("".join(cur).strip())
+    return parts
+
+
+def _matrix_rows(text: str, start: int):
+    """The rows of the bracketed list at text[start] ('[' of 'Matrix([...])') and the end of ')'; (None, 0) if it is
+    not a well-formed matrix literal."""
+    depth = 0
+    for i in range(start, len(text)):
+        ch = text[i]
+        if ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth -= 1
+            if depth == 0:
+                if not text.startswith(")", i + 1):
+                    return None, 0
+                inner = text[start + 1:i].strip()
+                rows = []
+                for r in _split_top(inner):
+                    if not (r.startswith("[") and r.endswith("]")):
+                        return None, 0
+                    rows.append(_split_top(r[1:-1]))
+                return rows, i + 2
+    return None, 0
+
+
 def _flatten(d, prefix: str = "") -> list[tuple[str, str]]:
     out = []
     if isinstance(d, dict):
@@ -396,6 +570,7 @@ def environment():
                              autoescape=jinja2.select_autoescape(["html", "j2"], default=True),
                              trim_blocks=True, lstrip_blocks=True, undefined=jinja2.StrictUndefined)
     env.filters["fmt"] = _fmt
+    env.filters["detail"] = detail_html
     return env
 
 

@@ -1,0 +1,149 @@
+"""Layout in a real browser: the reports of `paper`, `arm7` and a URDF robot rendered by headless Chromium, every
+formula measured. No formula may be wider than the page or hide part of itself in a scroll box, no two formulas may
+overlap, and no formula glyph may shrink below a readable size.
+
+How it is measured: a copy of the report gets a small script that, after load, takes the union of the bounding boxes
+of every token (mi, mn, mo, mtext) of each <math> element (the <math> box of a display formula spans its container,
+so its own box says nothing), the scroll overflow of its `.formula` box, and the computed font size of its tokens, and
+writes them as JSON into the DOM; `chromium --headless --dump-dom` prints that DOM. The probe itself is checked on a
+page with a formula known to be too wide.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import pytest
+
+DATA = Path(__file__).parent / "data"
+MIN_FONT_PX = 9.0       # smallest readable glyph (the page's base size is 16 px)
+
+PROBE = r"""<script>
+window.addEventListener('load', function () {
+  var out = {width: document.documentElement.clientWidth, maths: []};
+  document.querySelectorAll('math').forEach(function (m) {
+    var r = {left: 1e9, right: -1e9, top: 1e9, bottom: -1e9}, fs = 1e9;
+    m.querySelectorAll('mi, mn, mo, mtext').forEach(function (t) {
+      var q = t.getBoundingClientRect();
+      if (q.width > 0 && q.height > 0) {
+        r.left = Math.min(r.left, q.left); r.right = Math.max(r.right, q.right);
+        r.top = Math.min(r.top, q.top); r.bottom = Math.max(r.bottom, q.bottom);
+        fs = Math.min(fs, parseFloat(getComputedStyle(t).fontSize));
+      }
+    });
+    var f = m.closest('.formula');
+    out.maths.push({left: r.left, right: r.right, top: r.top, bottom: r.bottom, font: fs,
+                    hidden: f ? f.scrollWidth - f.clientWidth : 0, text: m.textContent.slice(0, 60)});
+  });
+  var pre = document.createElement('pre'); pre.id = 'layout-probe';
+  pre.textContent = JSON.stringify(out); document.body.appendChild(pre);
+});
+</script>"""
+
+
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
+        p = shutil.which(name)
+        if p:
+            return p
+    return None
+
+
+def measure(html_text: str, width: int = 1280) -> dict:
+    """Render a page in headless Chromium at `width` px and return the probe's measurements."""
+    exe = _chromium()
+    tmp = Path(tempfile.mkdtemp(prefix="symfunnel-layout-"))
+    try:
+        page = tmp / "page.html"
+        page.write_text(html_text.replace("</body>", PROBE + "</body>"), encoding="utf-8")
+        cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync",
+               "--disable-background-networking", "--disable-component-update", f"--user-data-dir={tmp / 'p'}",
+               f"--window-size={width},2000", "--virtual-time-budget=10000", "--dump-dom", page.as_uri()]
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "HOME": str(tmp)})
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    m = re.search(r'<pre id="layout-probe">(.*?)</pre>', r.stdout, re.S)
+    assert m, f"no probe output from Chromium: {r.stderr[-1500:]}"
+    return json.loads(html.unescape(m.group(1)))
+
+
+def problems(d: dict) -> list[str]:
+    """Every formula wider than the page, hidden in a scroll box, overlapping another, or set in a tiny font."""
+    W, out = d["width"], []
+    ms = [x for x in d["maths"] if x["right"] > x["left"]]
+    for x in ms:
+        if x["left"] < -0.5 or x["right"] > W + 0.5:
+            out.append(f"wider than the page ({x['left']:.0f}..{x['right']:.0f} of {W}): {x['text']}")
+        if x["hidden"] > 1:
+            out.append(f"{x['hidden']} px hidden in its scroll box: {x['text']}")
+        if x["font"] < MIN_FONT_PX:
+            out.append(f"font {x['font']:.1f} px: {x['text']}")
+    ms.sort(key=lambda x: x["top"])
+    for i, a in enumerate(ms):
+        for b in ms[i + 1:]:
+            if b["top"] >= a["bottom"] - 0.5:
+                break
+            if min(a["right"], b["right"]) - max(a["left"], b["left"]) > 0.5:
+                out.append(f"overlap: {a['text'][:30]} | {b['text'][:30]}")
+    return out
+
+
+needs_chromium = pytest.mark.skipif(_chromium() is None, reason="no Chromium on this machine (Debian: "
+                                    "apt-get install chromium; .ci/run installs it)")
+
+
+@needs_chromium
+def test_probe_sees_a_formula_too_wide_and_a_tiny_one():
+    wide = "<mi>x</mi><mo>+</mo>" * 400
+    page = ('<!DOCTYPE html><html><body style="max-width:600px"><div class="formula" style="overflow-x:auto">'
+            f'<math display="block">{wide}<mi>y</mi></math></div>'
+            '<p><math><mi style="font-size:5px">z</mi></math></p></body></html>')
+    found = problems(measure(page, 800))
+    assert any("wider than the page" in p for p in found)
+    assert any("hidden in its scroll box" in p for p in found)
+    assert any(p.startswith("font 5.0") for p in found)
+
+
+URDF_SCENARIO = """name = "gantry"
+title = "Gantry from a URDF: prismatic and revolute joints, unaligned axes"
+[model]
+type = "urdf"
+path = "prismatic.urdf"
+gravity = [0.0, 0.0, -9.81]
+[reference]
+q = ["0.1*sin(t)", "0.5 + 0.1*sin(t)", "0.3*sin(t)", "0.1 + 0.05*sin(t)"]
+[initial]
+q = [0.0, 0.5, 0.0, 0.1]
+dq = 0.0
+"""
+
+
+@pytest.mark.slow
+@needs_chromium
+@pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])
+def test_no_formula_wider_than_the_page(which, tmp_path):
+    from symfunnel.report import build_report
+    from symfunnel.scenario import load_scenario
+    if which == "urdf":
+        shutil.copy(DATA / "prismatic.urdf", tmp_path / "prismatic.urdf")
+        (tmp_path / "gantry.toml").write_text(URDF_SCENARIO, encoding="utf-8")
+        sc = load_scenario(tmp_path / "gantry.toml")
+    else:
+        sc = load_scenario(which)
+    out = build_report(sc, tmp_path / "r.html", t_final=0.3, samples=20, codegen=False)
+    text = out.read_text(encoding="utf-8")
+    widths = (1280, 1024) if which == "paper" else (1280,)
+    for w in widths:
+        d = measure(text, w)
+        assert len(d["maths"]) >= 10
+        found = problems(d)
+        assert not found, f"{which} at {w} px: " + "; ".join(found[:8])
+    if which == "paper":
+        assert 'id="alpha2-dot-formula"' in text            # the key result is there, laid out
