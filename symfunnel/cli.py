@@ -37,16 +37,9 @@ def _load(args):
 # --- derive ---------------------------------------------------------------------------------------
 
 def _read_points(path: str):
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
-    except FileNotFoundError:
-        raise InputError("no such file", file=path, expected="a JSON point file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot be read ({exc})", file=path, expected="a JSON point file") from None
-    except (json.JSONDecodeError, RecursionError) as exc:
-        raise InputError(f"is not valid JSON ({exc})", file=path,
-                         expected='{"t": ..., "q": [...], "dq": [...]} or a list of such objects') from None
+    from .inputs import loads_json, read_text
+    expected = '{"t": ..., "q": [...], "dq": [...]} or a list of such objects'
+    data = loads_json(read_text(path, expected="a JSON point file"), file=path, expected=expected)
     return data
 
 
@@ -211,8 +204,10 @@ def _version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; bad input ends in one line and exit 2, failed checks exit 1, never a traceback."""
+    from . import lifecycle
     parser = build_parser()
     args = parser.parse_args(argv)
+    lifecycle.install()
     try:
         code = args.func(args)
     except InputError as exc:
@@ -224,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("symfunnel: interrupted", file=sys.stderr)
         return 130
+    except lifecycle.Terminated as exc:
+        print(f"symfunnel: terminated by signal {exc.signum}", file=sys.stderr)
+        return 128 + exc.signum
     except BrokenPipeError:
         return 0
     except Exception as exc:  # noqa: BLE001 - the contract: nothing escapes as a traceback
@@ -232,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"symfunnel: internal error: {type(exc).__name__}: {exc} "
               f"(set SYMFUNNEL_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
         return EXIT_INTERNAL
+    finally:
+        lifecycle.uninstall()
     return code
 
 

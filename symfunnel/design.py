@@ -7,7 +7,6 @@ reads these expressions and never re-derives them.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -192,22 +191,12 @@ def derive(scenario) -> Design:
 
 # --- evaluation ---------------------------------------------------------------------------------
 
-def _as_array(value, shape, what: str, file: str) -> np.ndarray:
-    try:
-        a = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("is not numeric", file=file, key=what, expected=f"numbers of shape {list(shape)}") from None
-    if a.size != int(np.prod(shape)):
-        raise InputError(f"has {a.size} numbers", file=file, key=what,
-                         expected=f"{int(np.prod(shape))} numbers (shape {list(shape)})")
-    if not np.all(np.isfinite(a)):
-        raise InputError("holds a non-finite number", file=file, key=what, expected="finite numbers")
-    if len(shape) == 2 and a.ndim == 2:
-        return a.reshape(shape)
-    return a.reshape(shape, order="F") if len(shape) == 2 else a.reshape(shape)
+def _as_array(value, shape, what: str, file: str | None, scalar_ok: bool = False) -> np.ndarray:
+    from .inputs import number_array
+    return number_array(value, tuple(shape), file=file, key=what, scalar_ok=scalar_ok)
 
 
-def point_inputs(design: Design, point: dict, *, file: str = "POINT.json", key: str = "") -> dict:
+def point_inputs(design: Design, point: dict, *, file: str | None = None, key: str = "") -> dict:
     """Base-input values of one point {t, q, dq[, x_esn, w_hat]} with the reference taken from the scenario."""
     n = design.n
     if not isinstance(point, dict):
@@ -227,12 +216,9 @@ def point_inputs(design: Design, point: dict, *, file: str = "POINT.json", key: 
     q = _as_array(point["q"], (n,), pre + "q", file)
     dq = _as_array(point["dq"], (n,), pre + "dq", file)
     N = design.sym["x_esn"].numel()
-    x = _as_array(point.get("x_esn", np.zeros(N)), (N,), pre + "x_esn", file)
+    x = _as_array(point.get("x_esn", [0.0] * N), (N,), pre + "x_esn", file)
     wshape = design.sym["w_hat"].shape
-    w = point.get("w_hat", np.zeros(wshape))
-    if np.ndim(w) == 0:
-        w = np.full(wshape, float(w))
-    w = _as_array(w, wshape, pre + "w_hat", file)
+    w = _as_array(point.get("w_hat", 0.0), wshape, pre + "w_hat", file, scalar_ok=True)
     qd, dqd, ddqd = (np.array(v).ravel() for v in design.reference(t))
     return dict(t=t, q=q, dq=dq, qd=qd, dqd=dqd, ddqd=ddqd, x_esn=x, w_hat=w)
 
@@ -252,13 +238,17 @@ def funnel_level(design: Design, inp: dict) -> tuple[int, list[str]]:
     return 2, []
 
 
-def evaluate(design: Design, point: dict, *, file: str = "POINT.json", key: str = "",
+def evaluate(design: Design, point: dict, *, file: str | None = None, key: str = "",
              warn=None) -> dict:
     """Every model matrix and design signal at one point; signals needing a funnel the point is outside are None."""
     inp = point_inputs(design, point, file=file, key=key)
     level, msgs = funnel_level(design, inp)
     for m in msgs:
-        (warn or (lambda s: print("warning: " + s, file=sys.stderr)))(m)
+        if warn is not None:
+            warn(m)
+        else:
+            import warnings
+            warnings.warn(m, stacklevel=2)
     names = [k for k in SIGNALS if k in design.signals] + ["x_esn_dot"]
     f = design.function("all_signals", BASE_INPUTS, names)
     vals = f(*[inp[k] for k in BASE_INPUTS])

@@ -199,18 +199,9 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """Load and validate a scenario (a path or a built-in name such as 'paper')."""
     path = resolve(name_or_path)
     file = str(path)
-    try:
-        text = path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"is not UTF-8 text ({exc.reason})", file=file, expected="a TOML file") from None
-    except OSError as exc:
-        raise InputError(f"cannot be read ({exc.strerror})", file=file, expected="a readable TOML file") from None
-    try:
-        raw = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"is not valid TOML: {exc}", file=file, expected="a TOML file") from None
-    except (RecursionError, MemoryError):
-        raise InputError("is nested too deeply", file=file, expected="a TOML file") from None
+    from .inputs import loads_toml, read_text
+    text = read_text(path, expected="a scenario TOML file")
+    raw = loads_toml(text, file=file)
     default_name = path.stem if str(name_or_path) not in BUILTIN else str(name_or_path)
     return from_dict(raw, file=file, base_dir=path.parent, default_name=default_name)
 

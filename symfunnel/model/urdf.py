@@ -43,10 +43,8 @@ def parse_urdf(path: str | pathlib.Path) -> Tree:
     """Read a URDF file into a Tree, checking every element the dynamics use; visuals and meshes are ignored."""
     path = pathlib.Path(path)
     file = str(path)
-    try:
-        text = path.read_bytes()
-    except OSError as e:
-        raise InputError(f"cannot be read: {e.strerror or e}", file=file, expected="a readable URDF file") from None
+    from ..inputs import read_input
+    text = read_input(path, expected="a URDF file")
     try:
         root = ET.fromstring(text)
     except ET.ParseError as e:
