@@ -195,6 +195,15 @@ def resolve(name_or_path: str | Path | None) -> Path:
                      expected="a path to a .toml file or one of " + ", ".join(BUILTIN))
 
 
+def is_builtin(path: str | Path) -> bool:
+    """Whether `path` is one of the scenario files shipped with symfunnel."""
+    try:
+        p = Path(path).resolve()
+    except OSError:
+        return False
+    return any(p == (DATA_DIR / f).resolve() for f in BUILTIN.values())
+
+
 def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """Load and validate a scenario (a path or a built-in name such as 'paper')."""
     path = resolve(name_or_path)
@@ -249,6 +258,9 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     plant = _plant(raw.get("plant", {}), n, file, model)
     sim = _simulation(raw.get("simulation", {}), file)
     audit = _audit(raw.get("audit", {}), n, file, model)
+    if model.kind == "matrices":
+        from .model.matrices_check import check_inertia_matrix
+        check_inertia_matrix(model, q0, audit.joint_lower, audit.joint_upper, file=file)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,

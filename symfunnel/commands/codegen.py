@@ -5,6 +5,10 @@ from __future__ import annotations
 import json
 
 
+#: The largest --points (memory grows linearly with it).
+MAX_POINTS = 100_000
+
+
 def register(sub, common) -> None:
     """Add the `codegen` subcommand."""
     sp = sub.add_parser("codegen", help="generate C or numpy-only Python for the controller (+ manifest.json)",
@@ -17,8 +21,8 @@ def register(sub, common) -> None:
     sp.add_argument("--check", action="store_true",
                     help="compile (C) or import (Python) the result and compare every function with CasADi at "
                     "random points inside the funnels; exit 1 above 1e-12 (C) or 1e-10 (Python)")
-    sp.add_argument("--points", type=int, default=1000, metavar="N", help="check points (default 1000, >= 1000)")
-    sp.add_argument("--seed", type=int, default=0, help="seed of the check points (default 0)")
+    sp.add_argument("--points", type=int, default=1000, metavar="N", help="check points (default 1000, 1000..100000)")
+    sp.add_argument("--seed", type=int, default=0, help="seed of the check points (default 0, >= 0)")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
     sp.set_defaults(func=run)
 
@@ -28,10 +32,10 @@ def run(args) -> int:
     from ..codegen import check_output, generate, write_output
     from ..codegen.check import FILL
     from ..design import derive
-    from ..errors import InputError
     from ..scenario import load_scenario
-    if args.points < 1000:
-        raise InputError(f"is {args.points}", key="--points", expected="at least 1000 check points")
+    from ..outputs import check_count
+    check_count(args.points, key="--points", minimum=1000, maximum=MAX_POINTS, what="a number of check points")
+    check_count(args.seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")
     sc = load_scenario(args.scenario)
     design = derive(sc)
     files = generate(design, args.lang)

@@ -41,6 +41,9 @@ def run(args) -> int:
         raise InputError(f"is {args.width:g}", key="--width", expected="a number >= 0")
     if args.out and not args.out.endswith(".npz"):
         raise InputError(f"is '{args.out}'", key="--out", expected="a file name ending in .npz")
+    if args.out:
+        from ..outputs import check_output_file
+        check_output_file(args.out)
     say = _progress(args.quiet)
     sc = _load(args)
     with warnings.catch_warnings(record=True) as caught:
