@@ -98,24 +98,42 @@ def _short(v) -> str:
 
 
 def _write_latex(d, names, path) -> None:
-    """LaTeX of each signal small enough to read (converted from SX), sizes for the rest."""
+    """A compilable LaTeX document (article + amsmath): each signal small enough to read as a displayed
+    equation (converted from SX), the operation count for the rest."""
     import sympy
 
     from .io import atomic_write
     from .sx2sympy import sx_to_sympy
-    lines = [f"% symfunnel derive --latex: scenario {d.scenario.name}", ""]
+    name = _tex_text(d.scenario.name)
+    body = []
     for k in names:
         f = d.function(k)
         ops = d.ops(k)
+        head = f"\\paragraph{{${_tex_name(k)}$ (\\texttt{{{_tex_text(k)}}}, {ops} operations)}}"
         if ops <= 400 and k not in ("Phi",):
             m = sx_to_sympy(d.signals[k], [d.sym[x] for x in d.inputs_of(k)])
-            tex = sympy.latex(m[0] if m.shape == (1, 1) else m)
-            lines.append(f"% {k}: {ops} operations")
-            lines.append(f"{_tex_name(k)} = {tex}")
+            tex = sympy.latex(m[0] if m.shape == (1, 1) else m, mat_delim="[")
+            body += [head, "\\begin{equation*}", f"{_tex_name(k)} = {tex}", "\\end{equation*}", ""]
         else:
-            lines.append(f"% {k}: {ops} operations ({f.n_instructions()} tape instructions); too large to print")
-        lines.append("")
+            body += [head, f"Too large to print ({f.n_instructions()} tape instructions).", ""]
+    lines = [f"% symfunnel derive --latex: scenario {d.scenario.name}",
+             "\\documentclass[10pt]{article}",
+             "\\usepackage[a4paper,landscape,margin=1.5cm]{geometry}",
+             "\\usepackage{amsmath}",
+             "\\setcounter{MaxMatrixCols}{200}",
+             "\\allowdisplaybreaks",
+             "\\begin{document}",
+             f"\\section*{{Signals of scenario \\texttt{{{name}}}}}",
+             "Derived by symfunnel (CasADi SX, converted to sympy). Long expressions may run past the margin.",
+             "", *body, "\\end{document}", ""]
     atomic_write(path, "\n".join(lines))
+
+
+def _tex_text(s: str) -> str:
+    """Escape plain text for LaTeX."""
+    table = {"\\": r"\textbackslash{}", "{": r"\{", "}": r"\}", "_": r"\_", "%": r"\%", "$": r"\$",
+             "#": r"\#", "&": r"\&", "^": r"\^{}", "~": r"\~{}"}
+    return "".join(table.get(c, c) for c in s)
 
 
 def _tex_name(k: str) -> str:
@@ -124,7 +142,7 @@ def _tex_name(k: str) -> str:
              "Phi": r"\Phi", "w_hat_dot": r"\dot{\hat W}", "x_esn_dot": r"\dot x_{esn}"}
     if k in table:
         return table[k]
-    return k
+    return r"\mathrm{" + k.replace("_", r"\_") + "}" if "_" in k else k
 
 
 # --- audit ----------------------------------------------------------------------------------------

@@ -106,7 +106,9 @@ def _table(s: dict) -> None:
         for r in c["runs"]:
             rows.append((f"convergence w = {r['width']:g}", f"max |q - q(w={c['reference_width']:g})| = "
                                                              f"{_fmt(r['max_abs_q_diff_vs_smallest'], '.3g')}"))
-        rows.append(("observed rate", _fmt(c["observed_rates"], ".3g")))
+        rate = (_fmt(c["observed_rates"], ".3g") + " (1 expected: the smoothing error is O(w))"
+                if c["observed_rates"] else "n/a: the differences are zero (no smoothed term was active)")
+        rows.append(("observed rate", rate))
     width = max(len(r[0]) for r in rows)
     for k, v in rows:
         print(f"  {k:<{width}}  {v}")
