@@ -47,6 +47,9 @@ def cmd_derive(args) -> int:
     """`symfunnel derive`: signals with size and free variables; --eval values at points; --latex formulas."""
     from .design import derive, evaluate
     from .names import SIGNALS, compress_names
+    if args.latex:
+        from .outputs import check_output_file
+        check_output_file(args.latex, key="--latex")
     sc = _load(args)
     d = derive(sc)
     if args.eval:

@@ -55,6 +55,15 @@ def test_out_under_a_file_or_device_fails_before_the_work(tmp_path, capsys, cmd)
     one_error_line(capsys, "Not a directory")
 
 
+@pytest.mark.parametrize("target", ["dir", "under_file"])
+def test_latex_output_is_checked_first(tmp_path, capsys, target):
+    f = tmp_path / "file"
+    f.write_text("")
+    path = tmp_path if target == "dir" else f / "x.tex"
+    assert main(["derive", "--latex", str(path)]) == 2
+    one_error_line(capsys, "--latex")
+
+
 def test_device_as_out_is_refused():
     from symfunnel.outputs import check_output_file
     with pytest.raises(InputError, match="not a regular file"):
