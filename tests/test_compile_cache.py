@@ -69,9 +69,13 @@ def test_damaged_entry_is_rebuilt_with_one_warning(tmp_path, cc, damage, why):
 def test_unwritable_cache_builds_in_a_temporary_directory(tmp_path, cc):
     blocker = tmp_path / "file"
     blocker.write_text("")                          # a cache path below a regular file cannot be created
-    with pytest.warns(RuntimeWarning, match="not writable"):
+    with pytest.warns(RuntimeWarning, match="not writable") as rec:
         b = _build(blocker / "cache")
+        other = compile_cached({"g.c": "double g(void) { return 4.0; }\n"}, ["g.c"], "libg.so",
+                               build.SHARED_FLAGS, cache=blocker / "cache")
+    assert len(rec) == 1                            # one warning per process and cache directory
     assert _call(b.path, 0.25) == 1.5 and not str(b.path).startswith(str(tmp_path))
+    assert other.path.parent.parent == b.path.parent.parent
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only directory anyway")

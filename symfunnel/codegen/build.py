@@ -115,8 +115,10 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         root.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
     except OSError as exc:
-        warnings.warn(f"compile cache {root} is not writable ({exc.strerror or exc}); building in a temporary "
-                      "directory instead", RuntimeWarning, stacklevel=2)
+        if str(root) not in _WARNED:            # once per process and cache directory
+            _WARNED.add(str(root))
+            warnings.warn(f"compile cache {root} is not writable ({exc.strerror or exc}); building in a "
+                          "temporary directory instead", RuntimeWarning, stacklevel=2)
         root = _private_root()
         entry, target = root / key[:32], root / key[:32] / output
         tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
@@ -237,6 +239,7 @@ def _discard(entry: Path, root: Path) -> bool:
 
 
 _PRIVATE: list[Path] = []
+_WARNED: set[str] = set()
 
 
 def _private_root() -> Path:
