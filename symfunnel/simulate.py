@@ -156,7 +156,8 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
         ext_dae = ca.external("symfunnel_ode", str(lib))
         ext_out = ca.external("symfunnel_outputs", str(lib))
     except RuntimeError as exc:
-        warnings.warn(f"loading {lib} failed ({exc}); simulating on the CasADi virtual machine",
+        from .sim_hints import error_line
+        warnings.warn(f"loading {lib} failed ({error_line(str(exc))}); simulating on the CasADi virtual machine",
                       RuntimeWarning, stacklevel=2)
         return vm
     _LOADED[digest] = (ext_dae, ext_out, str(lib))

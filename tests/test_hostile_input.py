@@ -157,3 +157,17 @@ def test_cli_prints_a_warning_as_one_line(tmp_path):
     assert r.returncode == 0
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("symfunnel: warning: point outside funnel e1"), r.stderr
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this platform")
+@pytest.mark.parametrize("kind", ["fifo", "directory", "device"])
+def test_urdf_that_is_not_a_regular_file(tmp_path, kind):
+    target = {"fifo": "r.urdf", "directory": "r.urdf", "device": "/dev/zero"}[kind]
+    if kind == "fifo":
+        os.mkfifo(tmp_path / target)
+    elif kind == "directory":
+        (tmp_path / target).mkdir()
+    s = tmp_path / "s.toml"
+    s.write_text(f'[model]\ntype = "urdf"\npath = "{target}"\n[reference]\nq = "0"\n[initial]\nq = 0.0\n')
+    what = {"fifo": "FIFO", "directory": "is a directory", "device": "character device"}[kind]
+    assert_one_line(run_cli("derive", str(s), timeout=60), what, "expected a URDF file")

@@ -51,7 +51,7 @@ def run(args) -> int:
         res = simulate(sc, t_final=args.t_final, integrator=args.integrator, width=args.width, progress=say,
                        wall_limit=args.wall_limit, jit=not args.no_jit)
     for w in caught:
-        print(f"symfunnel: warning: {w.message}", file=sys.stderr)
+        print("symfunnel: warning: " + " ".join(str(w.message).split()), file=sys.stderr)
     if args.convergence:
         res.convergence = convergence_study(sc, t_final=args.t_final, integrator=args.integrator, progress=say)
     summary = res.summary()
