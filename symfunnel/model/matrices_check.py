@@ -59,8 +59,11 @@ def _sympy_differs(M, q, pairs) -> bool:
     """True only when sympy simplifies some M[i][j] - M[j][i] to a nonzero expression free of doubt (a number)."""
     import sympy
 
-    from ..checks.audit import _Timeout, time_limit
     from ..sx2sympy import sx_to_sympy
+    try:
+        from ..checks.audit import _Timeout, time_limit
+    except ImportError:         # the audit's helpers moved: stay with the sampled agreement
+        return False
     diffs = ca.vertcat(*[M[i, j] - M[j, i] for i, j in pairs])
     if ca.Function("d", [q], [diffs]).n_instructions() > 2000:
         return False
