@@ -146,7 +146,8 @@ def test_compiler_timeout_kills_it_and_its_children(tmp_path, monkeypatch):
     assert list(cache.iterdir()) == []                        # the temporary build directory is gone
 
 
-def test_sigterm_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path, sig):
     cache = tmp_path / "cache"
     prog = textwrap.dedent(f"""
         import sys
@@ -157,13 +158,15 @@ def test_sigterm_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path):
             compile_cached({SRC!r}, ["f.c"], "libf.so", SHARED_FLAGS, cache={str(cache)!r}, timeout=300)
         except lifecycle.Terminated:
             sys.exit(143)
+        except KeyboardInterrupt:
+            sys.exit(130)
         """)
     env = {**os.environ, "CC": str(_slow_cc(tmp_path))}
     p = subprocess.Popen([sys.executable, "-c", prog], env=env)
     cc_pid = _wait_for(tmp_path / "cc.pid")
     child = _wait_for(tmp_path / "child.pid")
-    p.send_signal(signal.SIGTERM)
-    assert p.wait(timeout=30) == 143
+    p.send_signal(sig)
+    assert p.wait(timeout=30) == (143 if sig == signal.SIGTERM else 130)
     assert _wait_dead(cc_pid) and _wait_dead(child)
     assert list(cache.iterdir()) == []
 
