@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
@@ -16,16 +15,9 @@ EXIT_INTERNAL = 3
 # --- derive ---------------------------------------------------------------------------------------
 
 def _read_points(path: str):
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
-    except FileNotFoundError:
-        raise InputError("no such file", file=path, expected="a JSON point file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot be read ({exc})", file=path, expected="a JSON point file") from None
-    except (json.JSONDecodeError, RecursionError) as exc:
-        raise InputError(f"is not valid JSON ({exc})", file=path,
-                         expected='{"t": ..., "q": [...], "dq": [...]} or a list of such objects') from None
+    from .inputs import loads_json, read_text
+    expected = '{"t": ..., "q": [...], "dq": [...]} or a list of such objects'
+    data = loads_json(read_text(path, expected="a JSON point file"), file=path, expected=expected)
     return data
 
 
@@ -34,6 +26,9 @@ def cmd_derive(args) -> int:
     from .design import evaluate
     from .names import compress_names
     from .pipeline import Run
+    if args.latex:
+        from .outputs import check_output_file
+        check_output_file(args.latex, key="--latex")
     sc = _load(args)
     d = Run(sc).design
     if args.eval:
@@ -87,24 +82,42 @@ def _short(v) -> str:
 
 
 def _write_latex(d, names, path) -> None:
-    """LaTeX of each signal small enough to read (converted from SX), sizes for the rest."""
+    """A compilable LaTeX document (article + amsmath): each signal small enough to read as a displayed
+    equation (converted from SX), the operation count for the rest."""
     import sympy
 
     from .io import atomic_write
     from .sx.tosympy import sx_to_sympy
-    lines = [f"% symfunnel derive --latex: scenario {d.scenario.name}", ""]
+    name = _tex_text(d.scenario.name)
+    body = []
     for k in names:
         f = d.function(k)
         ops = d.ops(k)
+        head = f"\\paragraph{{${_tex_name(k)}$ (\\texttt{{{_tex_text(k)}}}, {ops} operations)}}"
         if ops <= 400 and k not in ("Phi",):
             m = sx_to_sympy(d.signals[k], [d.sym[x] for x in d.inputs_of(k)])
-            tex = sympy.latex(m[0] if m.shape == (1, 1) else m)
-            lines.append(f"% {k}: {ops} operations")
-            lines.append(f"{_tex_name(k)} = {tex}")
+            tex = sympy.latex(m[0] if m.shape == (1, 1) else m, mat_delim="[")
+            body += [head, "\\begin{equation*}", f"{_tex_name(k)} = {tex}", "\\end{equation*}", ""]
         else:
-            lines.append(f"% {k}: {ops} operations ({f.n_instructions()} tape instructions); too large to print")
-        lines.append("")
+            body += [head, f"Too large to print ({f.n_instructions()} tape instructions).", ""]
+    lines = [f"% symfunnel derive --latex: scenario {d.scenario.name}",
+             "\\documentclass[10pt]{article}",
+             "\\usepackage[a4paper,landscape,margin=1.5cm]{geometry}",
+             "\\usepackage{amsmath}",
+             "\\setcounter{MaxMatrixCols}{200}",
+             "\\allowdisplaybreaks",
+             "\\begin{document}",
+             f"\\section*{{Signals of scenario \\texttt{{{name}}}}}",
+             "Derived by symfunnel (CasADi SX, converted to sympy). Long expressions may run past the margin.",
+             "", *body, "\\end{document}", ""]
     atomic_write(path, "\n".join(lines))
+
+
+def _tex_text(s: str) -> str:
+    """Escape plain text for LaTeX."""
+    table = {"\\": r"\textbackslash{}", "{": r"\{", "}": r"\}", "_": r"\_", "%": r"\%", "$": r"\$",
+             "#": r"\#", "&": r"\&", "^": r"\^{}", "~": r"\~{}"}
+    return "".join(table.get(c, c) for c in s)
 
 
 def _tex_name(k: str) -> str:
@@ -113,7 +126,7 @@ def _tex_name(k: str) -> str:
              "Phi": r"\Phi", "w_hat_dot": r"\dot{\hat W}", "x_esn_dot": r"\dot x_{esn}"}
     if k in table:
         return table[k]
-    return k
+    return r"\mathrm{" + k.replace("_", r"\_") + "}" if "_" in k else k
 
 
 # --- audit ----------------------------------------------------------------------------------------
@@ -192,8 +205,10 @@ def _version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; bad input ends in one line and exit 2, failed checks exit 1, never a traceback."""
+    from . import lifecycle
     parser = build_parser()
     args = parser.parse_args(argv)
+    lifecycle.install()
     try:
         code = args.func(args)
     except InputError as exc:
@@ -205,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("symfunnel: interrupted", file=sys.stderr)
         return 130
+    except lifecycle.Terminated as exc:
+        print(f"symfunnel: terminated by signal {exc.signum}", file=sys.stderr)
+        return 128 + exc.signum
     except BrokenPipeError:
         return 0
     except Exception as exc:  # noqa: BLE001 - the contract: nothing escapes as a traceback
@@ -213,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"symfunnel: internal error: {type(exc).__name__}: {exc} "
               f"(set SYMFUNNEL_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
         return EXIT_INTERNAL
+    finally:
+        lifecycle.uninstall()
     return code
 
 

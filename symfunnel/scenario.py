@@ -4,15 +4,9 @@ from __future__ import annotations
 
 import math
 import re
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 from . import validate as V
 from .errors import InputError
@@ -213,22 +207,22 @@ def resolve(name_or_path: str | Path | None) -> Path:
                      expected="a path to a .toml file or one of " + ", ".join(BUILTIN))
 
 
+def is_builtin(path: str | Path) -> bool:
+    """Whether `path` is one of the scenario files shipped with symfunnel."""
+    try:
+        p = Path(path).resolve()
+    except OSError:
+        return False
+    return any(p == (DATA_DIR / f).resolve() for f in BUILTIN.values())
+
+
 def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """Load and validate a scenario (a path or a built-in name such as 'paper')."""
     path = resolve(name_or_path)
     file = str(path)
-    try:
-        text = path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"is not UTF-8 text ({exc.reason})", file=file, expected="a TOML file") from None
-    except OSError as exc:
-        raise InputError(f"cannot be read ({exc.strerror})", file=file, expected="a readable TOML file") from None
-    try:
-        raw = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"is not valid TOML: {exc}", file=file, expected="a TOML file") from None
-    except (RecursionError, MemoryError):
-        raise InputError("is nested too deeply", file=file, expected="a TOML file") from None
+    from .inputs import loads_toml, read_text
+    text = read_text(path, expected="a scenario TOML file")
+    raw = loads_toml(text, file=file)
     default_name = path.stem if str(name_or_path) not in BUILTIN else str(name_or_path)
     return from_dict(raw, file=file, base_dir=path.parent, default_name=default_name)
 
@@ -276,6 +270,9 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     plant = _plant(raw.get("plant", {}), n, file, model)
     sim = _simulation(raw.get("simulation", {}), file)
     audit = _audit(raw.get("audit", {}), n, file, model)
+    if model.kind == "matrices":
+        from .model.matrices_check import check_inertia_matrix
+        check_inertia_matrix(model, q0, audit.joint_lower, audit.joint_upper, file=file)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
     design = _design(raw.get("design", {}), raw.get("approximator", {}), file)
     expectations = _expectations(raw.get("expect", []), n, claims, file)

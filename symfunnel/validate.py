@@ -65,7 +65,11 @@ def as_float(value: Any, *, file: str, key: str, minimum: float | None = None,
     """Check one value is a finite number within bounds."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"is a {type_name(value)}", file=file, key=key, expected="a number")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:
+        raise InputError(f"is an integer of {len(str(value))} digits", file=file, key=key,
+                         expected="a number of magnitude below 1.8e308") from None
     if not math.isfinite(v):
         raise InputError(f"is {v}", file=file, key=key, expected="a finite number")
     bound = _bounds_text(minimum, maximum, strict_min, strict_max)

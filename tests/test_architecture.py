@@ -16,13 +16,13 @@ PKG = Path(__file__).resolve().parent.parent / "symfunnel"
 #: layers, lowest first; a module may import its own layer and the ones below
 LAYERS = [
     ("ground", ["errors", "io", "validate", "names", "registry", "expr", "sx", "family", "esn", "plant",
-                "integrators"]),
+                "integrators", "inputs", "outputs", "lifecycle", "sim_hints"]),
     ("model", ["model"]),
     ("scenario", ["scenario"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
     ("stages", ["simulate", "codegen", "checks"]),
-    ("pipeline", ["pipeline", "mutation"]),
+    ("pipeline", ["pipeline"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__"]),
 ]
 

@@ -143,10 +143,13 @@ def test_cli_exit_codes(tmp_path, capsys):
 
 def test_smoothing_convergence(paper):
     c = convergence_study(paper, derive(paper), [1e-1, 1e-2], t_final=2.0)
+    widths = [r["width"] for r in c["runs"]]
     diffs = [r["max_abs_q_diff_vs_smallest"] for r in c["runs"]]
-    assert c["reference_width"] == 1e-3
-    assert diffs[0] > diffs[1] > 0 and diffs[-1] == 0
-    assert all(rate > 0.5 for rate in c["observed_rates"])
+    assert widths == [1e-1, 1e-2, 1e-3] and c["reference_width"] == pytest.approx(1e-4)   # never itself
+    assert diffs[0] > diffs[1] > diffs[2] > 0
+    expected = [np.log(diffs[i] / diffs[i + 1]) / np.log(widths[i] / widths[i + 1]) for i in range(2)]
+    np.testing.assert_allclose(c["observed_rates"], expected, rtol=1e-12)
+    assert all(rate > 0.3 for rate in c["observed_rates"])
 
 
 @pytest.mark.parametrize("name", ["sim_fast_sine", "sim_offset_cosine"])

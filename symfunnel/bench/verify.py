@@ -10,7 +10,7 @@ from . import result
 
 def run(progress) -> list[dict]:
     """Results verify.mutation_score (paper, arm7: the lower) and verify.mutants_wall_s."""
-    from ..mutation import run_mutants
+    from ..pipeline import run_mutants
     from ..scenario import load_scenario
     scores, walls, rows = {}, {}, {}
     for name in ("paper", "arm7"):

@@ -7,9 +7,6 @@ sampled verdict stands and says how many points it rests on.
 
 from __future__ import annotations
 
-import contextlib
-import signal
-import threading
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -17,6 +14,7 @@ import numpy as np
 
 from ..design import Design
 from ..model.base import christoffel_C
+from ..sx.proof import _Timeout, sympy_is_zero, time_limit  # noqa: F401 - re-exported for the audit's users
 from .sampling import eval_mapped, funnel_states, joint_states, point_of
 
 
@@ -60,51 +58,6 @@ class CheckResult:
 
 
 # --- sympy with a time limit --------------------------------------------------------------------
-
-class _Timeout(Exception):
-    pass
-
-
-@contextlib.contextmanager
-def time_limit(seconds: float):
-    """Raise _Timeout inside the block after `seconds` (main thread only; elsewhere no limit is applied)."""
-    if seconds <= 0 or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise _Timeout()
-
-    old = signal.signal(signal.SIGALRM, handler)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
-
-
-def sympy_is_zero(expr: ca.SX, inputs: list[ca.SX], timeout: float, max_ops: int = 3000):
-    """True if sympy proves every entry of `expr` identically zero, False if it simplifies to nonzero, None if undecided.
-
-    The returned second value is the simplified sympy matrix (or None).
-    """
-    import sympy
-
-    from ..sx.tosympy import sx_to_sympy
-    f = ca.Function("f", inputs, [expr])
-    if f.n_instructions() > max_ops:
-        return None, None
-    try:
-        with time_limit(timeout):
-            m = sx_to_sympy(expr, inputs)
-            simp = m.applyfunc(lambda e: sympy.simplify(sympy.expand_trig(e)) if e != 0 else e)
-    except (_Timeout, RecursionError, MemoryError, NotImplementedError):
-        return None, None
-    if all(e == 0 for e in simp):
-        return True, simp
-    return None, simp
-
 
 def _fmt_vec(v) -> str:
     return "[" + ", ".join(f"{x:.4g}" for x in np.ravel(v)) + "]"

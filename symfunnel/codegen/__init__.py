@@ -158,7 +158,9 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a directory", file=str(out), key="--out",
                          expected="a directory (created when missing)")
-    parent = out.absolute().parent
+    # The temporary directory lives inside an existing out_dir (it may be a mount point: renames never cross
+    # file systems), else beside it so that the whole directory can be renamed into place.
+    parent = out.absolute() if out.is_dir() else out.absolute().parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))

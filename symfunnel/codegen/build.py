@@ -1,26 +1,39 @@
 """Compile generated C once and cache the result by a hash of its sources, the compiler and the flags.
 
 The cache lives in $SYMFUNNEL_CACHE, else $XDG_CACHE_HOME/symfunnel, else ~/.cache/symfunnel. An entry is built
-in a temporary directory and renamed into place, so concurrent runs never see half-built files.
+in a temporary directory and renamed into place, so concurrent runs never see half-built files. Each entry records
+the size and sha256 of its output (entry.json); an entry that does not match (truncated, emptied, altered, or from
+before the record existed) is rebuilt with one warning instead of being loaded. When the cache directory cannot be
+written, the output is built in a private temporary directory (removed at exit), again with one warning. The
+compiler runs in its own process group under a time limit ($SYMFUNNEL_COMPILE_TIMEOUT seconds, default 600); on
+timeout, Ctrl-C or SIGTERM the whole group (gcc and its cc1/as/ld children) is killed and the temporary files removed.
 """
 
 from __future__ import annotations
 
+import atexit
 import hashlib
+import json
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["Built", "cache_dir", "find_compiler", "compile_cached", "SHARED_FLAGS"]
+__all__ = ["Built", "cache_dir", "find_compiler", "compile_cached", "verify_entry", "run_compiler", "SHARED_FLAGS"]
 
 #: Flags for the shared library the checks load through ctypes.
 SHARED_FLAGS = ("-std=c99", "-O2", "-fPIC", "-shared")
+
+#: The record of an entry's output, written last into the entry before it is renamed into place.
+RECORD = "entry.json"
+DEFAULT_TIMEOUT = 600.0
 
 
 @dataclass(frozen=True)
@@ -75,12 +88,13 @@ def _key(sources: dict[str, str | bytes], flags: tuple[str, ...], output: str, c
 
 def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], output: str,
                    flags: tuple[str, ...] | list[str], *, libs: tuple[str, ...] = ("-lm",),
-                   cache: Path | None = None, on_build=None) -> Built:
+                   cache: Path | None = None, on_build=None, timeout: float | None = None) -> Built:
     """Compile `compile_files` (names in `sources`) into `output` with `flags`, once per distinct input.
 
     The key is sha256 over the compiler and its version, the flags, the output name and every source file's
     name and text (headers included). A compiler failure raises RuntimeError with its diagnostics.
     `on_build(message)` is called just before the compiler runs (not on a cache hit), for progress output.
+    `timeout` (default `compile_timeout()`) bounds the compiler's run; a damaged entry is rebuilt with a warning.
     """
     flags = tuple(flags)
     cc = find_compiler()
@@ -88,10 +102,26 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
     root = Path(cache) if cache is not None else cache_dir()
     entry = root / key[:32]
     target = entry / output
-    if target.exists():
-        return Built(target, key, True)
-    root.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
+    if entry.exists():
+        problem = verify_entry(entry, output)
+        if problem is None:
+            return Built(target, key, True)
+        warnings.warn(f"compile cache entry {entry} is damaged ({problem}); rebuilding it", RuntimeWarning,
+                      stacklevel=2)
+        if not _discard(entry, root):
+            root = _private_root()
+            entry, target = root / key[:32], root / key[:32] / output
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
+    except OSError as exc:
+        if str(root) not in _WARNED:            # once per process and cache directory
+            _WARNED.add(str(root))
+            warnings.warn(f"compile cache {root} is not writable ({exc.strerror or exc}); building in a "
+                          "temporary directory instead", RuntimeWarning, stacklevel=2)
+        root = _private_root()
+        entry, target = root / key[:32], root / key[:32] / output
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
     try:
         for name, data in sources.items():
             mode = "wb" if isinstance(data, bytes) else "w"
@@ -100,13 +130,14 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         cmd = [cc, *flags, "-o", output, *compile_files, *libs]
         if on_build is not None:
             on_build(f"compiling {output} (one-time; cached in {root})")
-        proc = subprocess.run(cmd, cwd=tmp, capture_output=True, text=True)
-        if proc.returncode != 0 or proc.stderr.strip():
-            raise RuntimeError(f"compiling {output} failed ({' '.join(cmd)}):\n{proc.stderr.strip()}")
+        returncode, err = run_compiler(cmd, cwd=tmp, timeout=compile_timeout() if timeout is None else timeout)
+        if returncode != 0 or err.strip():
+            raise RuntimeError(f"compiling {output} failed ({' '.join(cmd)}):\n{err.strip()}")
+        _write_record(tmp, output)
         try:
             os.rename(tmp, entry)
         except OSError:
-            if not target.exists():     # lost a race with a broken entry: rebuild next time
+            if verify_entry(entry, output) is not None:     # lost a race with a broken entry: rebuild next time
                 raise
             shutil.rmtree(tmp, ignore_errors=True)
             return Built(target, key, True)
@@ -114,3 +145,107 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return Built(target, key, False)
+
+
+def compile_timeout() -> float:
+    """The compiler's time limit in seconds: $SYMFUNNEL_COMPILE_TIMEOUT, else 600."""
+    try:
+        v = float(os.environ.get("SYMFUNNEL_COMPILE_TIMEOUT", DEFAULT_TIMEOUT))
+    except ValueError:
+        raise InputError(f"is '{os.environ['SYMFUNNEL_COMPILE_TIMEOUT']}'", key="SYMFUNNEL_COMPILE_TIMEOUT",
+                         expected="a number of seconds > 0") from None
+    if not v > 0:
+        raise InputError(f"is {v:g}", key="SYMFUNNEL_COMPILE_TIMEOUT", expected="a number of seconds > 0")
+    return v
+
+
+def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str]:
+    """Run `cmd` in its own process group; kill the whole group on timeout or any exception (Ctrl-C, SIGTERM)."""
+    proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        _kill_group(proc)
+        raise RuntimeError(f"compiling with {cmd[0]} took longer than {timeout:g} s and was stopped "
+                           "(raise $SYMFUNNEL_COMPILE_TIMEOUT if the code is large)") from None
+    except BaseException:
+        _kill_group(proc)
+        raise
+    return proc.returncode, (out or "") + (err or "")
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    """SIGKILL the process group led by `proc` (the compiler and every child it started) and reap `proc`."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    try:
+        proc.communicate(timeout=10)
+    except (subprocess.TimeoutExpired, OSError, ValueError):
+        pass
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _write_record(directory: Path, output: str) -> None:
+    path = directory / output
+    rec = {"output": output, "size": path.stat().st_size, "sha256": _sha256(path)}
+    with open(directory / RECORD, "w", encoding="utf-8") as fh:
+        json.dump(rec, fh)
+
+
+def verify_entry(entry: Path, output: str) -> str | None:
+    """None when `entry` holds `output` with the size and sha256 its record names; else what is wrong."""
+    target = entry / output
+    try:
+        with open(entry / RECORD, encoding="utf-8") as fh:
+            rec = json.load(fh)
+        size, digest = int(rec["size"]), str(rec["sha256"])
+    except FileNotFoundError:
+        return "no integrity record"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "unreadable integrity record"
+    try:
+        actual = target.stat().st_size
+    except OSError:
+        return f"{output} is missing"
+    if actual != size:
+        return f"{output} is {actual} bytes, recorded {size}"
+    try:
+        if _sha256(target) != digest:
+            return f"{output} does not match its recorded sha256"
+    except OSError as exc:
+        return f"{output} cannot be read ({exc.strerror or exc})"
+    return None
+
+
+def _discard(entry: Path, root: Path) -> bool:
+    """Move a damaged entry aside and delete it; False when the cache cannot be changed."""
+    try:
+        aside = Path(tempfile.mkdtemp(prefix=".discard.", dir=root))
+        os.rename(entry, aside / "entry")
+    except OSError:
+        return False
+    shutil.rmtree(aside, ignore_errors=True)
+    return True
+
+
+_PRIVATE: list[Path] = []
+_WARNED: set[str] = set()
+
+
+def _private_root() -> Path:
+    """A per-process cache directory in the system's temporary directory, removed when the process exits."""
+    if not _PRIVATE:
+        d = Path(tempfile.mkdtemp(prefix="symfunnel-cache-"))
+        _PRIVATE.append(d)
+        atexit.register(shutil.rmtree, d, True)
+    return _PRIVATE[0]

@@ -157,8 +157,18 @@ def _signature(entry: dict) -> str:
 
 
 def _doc(text: str) -> str:
-    """Escape text for a triple-quoted docstring."""
-    return text.replace("\\", "\\\\").replace('"""', '\\"\\"\\"')
+    """Escape text for a triple-quoted docstring: backslashes, quotes, and control characters (e.g. NUL)."""
+    text = text.replace("\\", "\\\\").replace('"""', '\\"\\"\\"')
+    return "".join(_escape_char(c) for c in text)
+
+
+def _escape_char(c: str) -> str:
+    """`c`, or its escape sequence when it may not appear literally in Python source (NUL, CR, other controls)."""
+    o = ord(c)
+    if c == "\n" or c == "\t" or (32 <= o < 127) or (o >= 160 and c not in "\u2028\u2029"
+                                                     and not 0xD800 <= o < 0xE000):
+        return c
+    return f"\\x{o:02x}" if o < 256 else f"\\u{o:04x}"
 
 
 def _literal(x: float) -> str:

@@ -6,6 +6,10 @@ import json
 from pathlib import Path
 
 
+#: The largest --points (memory grows linearly with it).
+MAX_POINTS = 100_000
+
+
 def register(sub, common) -> None:
     """Add the `codegen` subcommand."""
     sp = sub.add_parser("codegen", help="generate C or numpy-only Python for the controller (+ manifest.json)",
@@ -18,8 +22,8 @@ def register(sub, common) -> None:
     sp.add_argument("--check", action="store_true",
                     help="compile (C) or import (Python) the result and compare every function with CasADi at "
                     "random points inside the funnels; exit 1 above 1e-12 (C) or 1e-10 (Python)")
-    sp.add_argument("--points", type=int, default=1000, metavar="N", help="check points (default 1000, >= 1000)")
-    sp.add_argument("--seed", type=int, default=0, help="seed of the check points (default 0)")
+    sp.add_argument("--points", type=int, default=1000, metavar="N", help="check points (default 1000, 1000..100000)")
+    sp.add_argument("--seed", type=int, default=0, help="seed of the check points (default 0, >= 0)")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
     sp.set_defaults(func=run)
 
@@ -30,9 +34,10 @@ def run(args) -> int:
     from ..codegen.check import FILL
     from ._common import _progress
     from ..errors import InputError
+    from ..outputs import check_count
     from ..pipeline import Run
-    if args.points < 1000:
-        raise InputError(f"is {args.points}", key="--points", expected="at least 1000 check points")
+    check_count(args.points, key="--points", minimum=1000, maximum=MAX_POINTS, what="a number of check points")
+    check_count(args.seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("exists and is not a directory", key="--out", expected="a directory (created when missing)")
     run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))

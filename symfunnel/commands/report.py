@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 
+#: The largest --samples (memory grows linearly with it: about 1 kB per sample).
+MAX_SAMPLES = 1_000_000
+
+
 def register(sub, common) -> None:
     """Add the `report` subcommand."""
     sp = sub.add_parser("report", help="everything in one self-contained HTML file (default reports/<scenario>.html)")
     common(sp)
-    sp.add_argument("--out", metavar="PATH", help="where to write the report (default: reports/<scenario>.html)")
+    sp.add_argument("--out", metavar="PATH",
+                    help="where to write the report (default: reports/<built-in name or file stem>.html)")
     sp.add_argument("--t-final", type=float, metavar="T", help="simulate to T seconds (default: the scenario's)")
     sp.add_argument("--samples", type=int, default=10000, metavar="K",
-                    help="states sampled inside the funnels for the falsification (default 10000)")
+                    help="states sampled inside the funnels for the falsification (default 10000, at most 1000000)")
     sp.add_argument("--figures", metavar="DIR",
                     help="also write every figure as PNG and PDF into DIR (created if missing)")
     sp.add_argument("--no-codegen", action="store_true", help="leave out the code-generation section")
@@ -21,13 +26,13 @@ def register(sub, common) -> None:
 def run(args) -> int:
     """Write the report and print its path. Failed checks are shown in the report; the exit code is still 0."""
     from ._common import _load, _progress
-    from ..errors import InputError
+    from ..outputs import check_count, check_output_file
     from ..pipeline import Run, RunOptions
-    from ..report import build_report
-    if args.samples < 1:
-        raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
+    from ..report import build_report, default_path
+    check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     figures = figures_dir(args.figures) if args.figures is not None else None
     sc = _load(args)
+    check_output_file(args.out if args.out is not None else default_path(sc))
     run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), _progress(args.quiet))
     path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants, figures_dir=figures)
     print(path)

@@ -43,6 +43,9 @@ def run(args) -> int:
         raise InputError(f"is {args.width:g}", key="--width", expected="a number >= 0")
     if args.out and not args.out.endswith(".npz"):
         raise InputError(f"is '{args.out}'", key="--out", expected="a file name ending in .npz")
+    if args.out:
+        from ..outputs import check_output_file
+        check_output_file(args.out)
     say = _progress(args.quiet)
     sc = _load(args)
     run = Run(sc, RunOptions(t_final=args.t_final, integrator=args.integrator, width=args.width,
@@ -51,7 +54,7 @@ def run(args) -> int:
         warnings.simplefilter("always")
         res = run.simulation
     for w in caught:
-        print(f"symfunnel: warning: {w.message}", file=sys.stderr)
+        print("symfunnel: warning: " + " ".join(str(w.message).split()), file=sys.stderr)
     if args.convergence:
         res.convergence = convergence_study(sc, run.design, t_final=args.t_final, integrator=args.integrator,
                                             progress=say)
@@ -107,7 +110,9 @@ def _table(s: dict) -> None:
         for r in c["runs"]:
             rows.append((f"convergence w = {r['width']:g}", f"max |q - q(w={c['reference_width']:g})| = "
                                                              f"{_fmt(r['max_abs_q_diff_vs_smallest'], '.3g')}"))
-        rows.append(("observed rate", _fmt(c["observed_rates"], ".3g")))
+        rate = (_fmt(c["observed_rates"], ".3g") + " (1 expected: the smoothing error is O(w))"
+                if c["observed_rates"] else "n/a: the differences are zero (no smoothed term was active)")
+        rows.append(("observed rate", rate))
     width = max(len(r[0]) for r in rows)
     for k, v in rows:
         print(f"  {k:<{width}}  {v}")

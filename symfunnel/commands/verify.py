@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 
+#: The largest --samples (memory grows linearly with it: about 1 kB per sample).
+MAX_SAMPLES = 1_000_000
+
+
 def register(sub, common) -> None:
     """Add the `verify` subcommand."""
     sp = sub.add_parser("verify", help="funnel, Lyapunov and boundedness checks on simulated trajectories")
@@ -10,7 +14,7 @@ def register(sub, common) -> None:
     sp.add_argument("--json", action="store_true", help="machine-readable output")
     sp.add_argument("--t-final", type=float, metavar="T", help="simulate to T seconds (default: the scenario's)")
     sp.add_argument("--samples", type=int, default=10000, metavar="K",
-                    help="states sampled inside the funnels for the falsification (default 10000)")
+                    help="states sampled inside the funnels for the falsification (default 10000, at most 1000000)")
     sp.add_argument("--mutants", action="store_true",
                     help="mutation testing: run the design's seeded errors through the same checks; print the score")
     sp.set_defaults(func=run)
@@ -39,14 +43,13 @@ def print_checks(checks, indent: str = "  ") -> None:
 def run(args) -> int:
     """Run every check; print a table (or JSON); exit 1 exactly when an outcome is not the declared one."""
     from ._common import _dump, _load, _progress
-    from ..errors import InputError
+    from ..outputs import check_count
     from ..pipeline import Run, RunOptions
-    if args.samples < 1:
-        raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
+    check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     sc = _load(args)
     say = _progress(args.quiet or args.json)
     if args.mutants:
-        from ..mutation import run_mutants
+        from ..pipeline import run_mutants
         out = run_mutants(sc, t_final=args.t_final, samples=min(args.samples, 2000), progress=say)
         if args.json:
             print(_dump(out))

@@ -7,7 +7,6 @@ design variant declares (`Design.states`: x_esn and w_hat for the paper's ESN de
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -128,22 +127,12 @@ def count_ops(f: ca.Function) -> int:
 
 # --- evaluation ---------------------------------------------------------------------------------
 
-def _as_array(value, shape, what: str, file: str) -> np.ndarray:
-    try:
-        a = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("is not numeric", file=file, key=what, expected=f"numbers of shape {list(shape)}") from None
-    if a.size != int(np.prod(shape)):
-        raise InputError(f"has {a.size} numbers", file=file, key=what,
-                         expected=f"{int(np.prod(shape))} numbers (shape {list(shape)})")
-    if not np.all(np.isfinite(a)):
-        raise InputError("holds a non-finite number", file=file, key=what, expected="finite numbers")
-    if len(shape) == 2 and a.ndim == 2:
-        return a.reshape(shape)
-    return a.reshape(shape, order="F") if len(shape) == 2 else a.reshape(shape)
+def _as_array(value, shape, what: str, file: str | None, scalar_ok: bool = False) -> np.ndarray:
+    from ..inputs import number_array
+    return number_array(value, tuple(shape), file=file, key=what, scalar_ok=scalar_ok)
 
 
-def point_inputs(design: Design, point: dict, *, file: str = "POINT.json", key: str = "") -> dict:
+def point_inputs(design: Design, point: dict, *, file: str | None = None, key: str = "") -> dict:
     """Input values of one point {t, q, dq[, controller states]} with the reference taken from the scenario."""
     n = design.n
     states = dict(design.states)
@@ -162,11 +151,10 @@ def point_inputs(design: Design, point: dict, *, file: str = "POINT.json", key: 
     t = float(_as_array(point["t"], (1,), pre + "t", file)[0])
     out = dict(t=t, q=_as_array(point["q"], (n,), pre + "q", file), dq=_as_array(point["dq"], (n,), pre + "dq", file))
     for name, shape in states.items():
-        shape = shape if shape[1] > 1 else (shape[0],)
-        v = point.get(name, np.zeros(shape))
-        if np.ndim(v) == 0 and len(shape) == 2:
-            v = np.full(shape, float(v))
-        out[name] = _as_array(v, shape, pre + name, file)
+        matrix = shape[1] > 1
+        shape = shape if matrix else (shape[0],)
+        out[name] = _as_array(point.get(name, 0.0 if matrix else [0.0] * shape[0]), shape, pre + name, file,
+                              scalar_ok=matrix)
     out["qd"], out["dqd"], out["ddqd"] = (np.array(v).ravel() for v in design.reference(t))
     return out
 
@@ -186,13 +174,17 @@ def funnel_level(design: Design, inp: dict) -> tuple[int, list[str]]:
     return 2, []
 
 
-def evaluate(design: Design, point: dict, *, file: str = "POINT.json", key: str = "",
+def evaluate(design: Design, point: dict, *, file: str | None = None, key: str = "",
              warn=None) -> dict:
     """Every model matrix and design signal at one point; signals needing a funnel the point is outside are None."""
     inp = point_inputs(design, point, file=file, key=key)
     level, msgs = funnel_level(design, inp)
     for m in msgs:
-        (warn or (lambda s: print("warning: " + s, file=sys.stderr)))(m)
+        if warn is not None:
+            warn(m)
+        else:
+            import warnings
+            warnings.warn(m, stacklevel=2)
     info = design.signal_info
     names = list(info)
     f = design.function("all_signals", design.inputs, names)

@@ -203,6 +203,10 @@ def get_joint_range(table: dict, n: int, *, file: str, prefix: str) -> list[tupl
 
 # ---------------------------------------------------------------- tree -> bodies
 
+#: The most movable joints of a URDF/DH/planar tree (the symbolic M grows like n^3; 50 covers humanoids).
+MAX_JOINTS = 50
+
+
 def bodies_from_tree(tree: Tree) -> list[Body]:
     """Check the tree's structure and mass, merge fixed joints and list the movable joints depth-first (children in document order)."""
     file = tree.file
@@ -236,7 +240,23 @@ def bodies_from_tree(tree: Tree) -> list[Body]:
     # per body (-1: the fixed base): lumped mass, first moment and inertia about the body frame origin
     lumped = {-1: [0.0, np.zeros(3), np.zeros((3, 3))]}
 
-    def visit(link_name: str, body: int, R: np.ndarray, p: np.ndarray) -> None:
+    # Depth-first with an explicit stack (a chain of thousands of links must not hit Python's recursion limit);
+    # children are pushed in reverse so that they are visited in document order. An entry is (link, body it
+    # belongs to, its frame in that body) or, for a movable joint, (joint, parent body, joint frame).
+    stack: list = [("link", roots[0], -1, np.eye(3), np.zeros(3))]
+    while stack:
+        what, name_or_joint, body, R, p = stack.pop()
+        if what == "joint":
+            j = name_or_joint
+            bodies.append(Body(joint=j, parent=body, R0=R, p0=p, mass=0.0, h=np.zeros(3), I=np.zeros((3, 3))))
+            if len(bodies) > MAX_JOINTS:
+                raise InputError(f"has more than {MAX_JOINTS} movable joints", file=file, key="robot",
+                                 expected=f"at most {MAX_JOINTS} revolute, continuous or prismatic joints")
+            k = len(bodies) - 1
+            lumped[k] = [0.0, np.zeros(3), np.zeros((3, 3))]
+            stack.append(("link", j.child, k, np.eye(3), np.zeros(3)))
+            continue
+        link_name = name_or_joint
         visited.add(link_name)
         lk = links[link_name]
         acc = lumped[body]
@@ -245,19 +265,10 @@ def bodies_from_tree(tree: Tree) -> list[Body]:
             acc[0] += lk.mass
             acc[1] = acc[1] + lk.mass * c
             acc[2] = acc[2] + R @ lk.inertia @ R.T - lk.mass * skew(c) @ skew(c)
-        for j in children[link_name]:
+        for j in reversed(children[link_name]):
             Rj = snap_rotation(R @ j.R)
             pj = R @ j.p + p
-            if j.type == "fixed":
-                visit(j.child, body, Rj, pj)
-            else:
-                bodies.append(Body(joint=j, parent=body, R0=Rj, p0=pj, mass=0.0, h=np.zeros(3),
-                                   I=np.zeros((3, 3))))
-                k = len(bodies) - 1
-                lumped[k] = [0.0, np.zeros(3), np.zeros((3, 3))]
-                visit(j.child, k, np.eye(3), np.zeros(3))
-
-    visit(roots[0], -1, np.eye(3), np.zeros(3))
+            stack.append(("link", j.child, body, Rj, pj) if j.type == "fixed" else ("joint", j, body, Rj, pj))
     unreached = [name for name in links if name not in visited]
     if unreached:
         raise InputError(f"link '{unreached[0]}' is not connected to the root '{roots[0]}' "

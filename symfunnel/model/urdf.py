@@ -23,7 +23,7 @@ def build_urdf(table: dict, *, file: str, base_dir: pathlib.Path, prefix: str = 
     check_keys(table, KEYS, file=file, prefix=prefix, required=("path",))
     rel = get_str(table, "path", file=file, prefix=prefix)
     path = pathlib.Path(base_dir) / rel
-    if not path.is_file():
+    if not path.exists():       # a directory, FIFO or device is refused by parse_urdf's reader, by name
         raise InputError(f"URDF file '{path}' does not exist", file=file, key=join(prefix, "path"),
                          expected="a path to a URDF file, relative to the scenario file's directory")
     gravity = get_vector(table, "gravity", (0.0, 0.0, -9.81), file=file, prefix=prefix)
@@ -43,10 +43,8 @@ def parse_urdf(path: str | pathlib.Path) -> Tree:
     """Read a URDF file into a Tree, checking every element the dynamics use; visuals and meshes are ignored."""
     path = pathlib.Path(path)
     file = str(path)
-    try:
-        text = path.read_bytes()
-    except OSError as e:
-        raise InputError(f"cannot be read: {e.strerror or e}", file=file, expected="a readable URDF file") from None
+    from ..inputs import read_input
+    text = read_input(path, expected="a URDF file")
     try:
         root = ET.fromstring(text)
     except ET.ParseError as e:

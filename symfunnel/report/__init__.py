@@ -17,8 +17,11 @@ __all__ = ["build_report", "render_report", "default_path"]
 
 
 def default_path(scenario) -> Path:
-    """reports/<scenario name>.html, relative to the working directory."""
-    return Path("reports") / f"{scenario.name}.html"
+    """reports/<SCENARIO>.html: a built-in's name, else the scenario file's stem (so a copy of a built-in that
+    keeps its `name` does not overwrite the built-in's report); relative to the working directory."""
+    from ..scenario import is_builtin
+    stem = scenario.name if is_builtin(scenario.path) else Path(scenario.path).stem
+    return Path("reports") / f"{stem or scenario.name}.html"
 
 
 def render_report(run, *, codegen: bool = True, mutants: bool = True, figures_dir=None) -> str:

@@ -1,0 +1,232 @@
+"""`symfunnel init [--urdf FILE] [--out FILE]`: write a commented scenario that runs as written.
+
+Without --urdf: a 2-link planar arm under gravity. With --urdf: the URDF's movable joints, a reference that swings
+each joint gently around the middle of its range, an initial state a little off the reference, and funnels that
+contain the initial errors (e2's initial funnel width is set from the derived e2(0), with a factor 2 to spare).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+#: e1(0): every joint starts this far from the reference (rad, or m for prismatic joints).
+OFFSET = 0.02
+#: The reference swings each joint by at most this much around its home position (rad; prismatic: m).
+SWING, SWING_PRISMATIC = 0.2, 0.05
+
+
+def register(sub, common) -> None:
+    """Add the `init` subcommand."""
+    sp = sub.add_parser("init", help="write a commented starting scenario (a 2-link arm, or from a URDF)",
+                        description="Write a scenario TOML file, with every section commented, that derives, "
+                                    "audits and simulates as written; edit it from there (docs/scenario.md).")
+    sp.add_argument("--urdf", metavar="FILE", help="build the scenario around this URDF's movable joints")
+    sp.add_argument("--out", metavar="FILE", default="scenario.toml",
+                    help="the scenario file to write (default scenario.toml; never overwritten without --force)")
+    sp.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    sp.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+    sp.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Write the scenario, check that it loads and that its funnels contain the initial state; print its path."""
+    from ..errors import InputError
+    from ..io import atomic_write
+    from ..outputs import check_output_file
+    out = Path(args.out)
+    if out.suffix != ".toml":
+        raise InputError(f"is '{out}'", key="--out", expected="a file name ending in .toml")
+    check_output_file(out)
+    if out.exists() and not args.force:
+        raise InputError("exists", file=str(out), key="--out", expected="a new file (or --force to overwrite it)")
+    name = _name(out.stem)
+    text = scenario_from_urdf(args.urdf, out, name) if args.urdf else scenario_two_link(name, out)
+    atomic_write(out, text)
+    print(out)
+    return 0
+
+
+def _name(stem: str) -> str:
+    """A valid scenario name from a file stem."""
+    import re
+    s = re.sub(r"[^A-Za-z0-9_.-]", "_", stem)[:64]
+    return s or "scenario"
+
+
+def scenario_two_link(name: str, out: Path) -> str:
+    """A planar 2-link arm under gravity, with friction, a dead zone and a 10 % mass error in the plant."""
+    return f'''# A scenario written by `symfunnel init`: a planar 2-link arm under gravity. Every key is described in
+# docs/scenario.md. Units are SI: lengths in m, masses in kg, angles in rad, time in s, torques in N m.
+# Try: symfunnel derive {_toml_text(str(out))}; symfunnel audit ...; symfunnel simulate ...
+name = "{name}"
+title = "Funnel control of a planar 2-link arm (symfunnel init)"
+
+[model]
+type = "planar"                   # joints revolute about z, links in the x-y plane
+gravity = [0.0, -9.81, 0.0]       # m/s^2, in the base frame
+links = [
+    {{ mass = 1.0, length = 0.5 }},   # kg, m; centre of mass at length/2, inertia mass*length^2/12 (defaults)
+    {{ mass = 0.8, length = 0.4 }},
+]
+
+[reference]
+q = ["0.3*sin(t)", "0.2*sin(1.5*t)"]   # q_d(t) in rad; dq_d and ddq_d are derived symbolically
+
+[initial]
+q = [{OFFSET}, -{OFFSET}]               # rad: a little off the reference, so the funnels have work to do
+dq = 0.0                          # rad/s
+
+[funnel.e1]                       # F1(t) = phi0 exp(-a t) + phi_inf, in rad; must contain |e1(0)| = {OFFSET}
+phi0 = 0.2
+phi_inf = 0.01
+a = 1.0                           # 1/s
+
+[funnel.e2]                       # F2(t) for the velocity-level error e2 = dq - alpha2, in rad/s
+phi0 = 2.0
+phi_inf = 0.1
+a = 1.0
+
+[controller]
+k1 = 5.0                          # gain of the virtual control alpha2
+k2 = 10.0                         # gain of the torque loop
+
+[adaptation]
+gamma = 10.0                      # Gamma = gamma I
+sigma = 0.02                      # sigma-modification (leakage)
+
+[esn]                             # echo state network that learns what the model does not know
+size = 30
+seed = 1
+
+[plant]                           # the simulated arm: what the controller does not know
+viscous = 0.5                     # N m s/rad
+coulomb = 0.2                     # N m
+mass_scale = 1.1                  # the true arm is 10 % heavier than the model
+
+[plant.dead_zone]                 # actuator dead zone (eq. 2 of the paper), N m
+b_l = -0.3
+b_r = 0.3
+
+[simulation]
+t_final = 10.0                    # s
+dt = 0.01                         # s, output grid
+'''
+
+
+def _fmt(x: float) -> str:
+    return repr(round(float(x), 6))
+
+
+def scenario_from_urdf(urdf: str, out: Path, name: str) -> str:
+    """A scenario around a URDF's movable joints: gentle swings around mid-range, funnels containing e(0)."""
+    from ..model.rigid import bodies_from_tree
+    from ..model.urdf import parse_urdf
+    tree = parse_urdf(urdf)
+    bodies = bodies_from_tree(tree)
+    n = len(bodies)
+    rel = Path(os.path.relpath(Path(urdf).absolute(), out.absolute().parent)).as_posix()
+    home, amp, q0, joints = [], [], [], []
+    for b in bodies:
+        j = b.joint
+        prismatic = j.type == "prismatic"
+        d = 0.5 if prismatic else math.pi
+        lo = j.lower if j.lower is not None and math.isfinite(j.lower) and j.type != "continuous" else -d
+        hi = j.upper if j.upper is not None and math.isfinite(j.upper) and j.type != "continuous" else d
+        if not lo < hi:
+            lo, hi = lo - 0.1, lo + 0.1
+        h = 0.5 * (lo + hi)
+        a = min(SWING_PRISMATIC if prismatic else SWING, 0.2 * (hi - lo))
+        off = min(OFFSET, 0.1 * (hi - lo))
+        home.append(h)
+        amp.append(a)
+        q0.append(h + off)
+        joints.append(f"{j.name} ({j.type}, range [{lo:.4g}, {hi:.4g}])")
+    ref = [(f"{_fmt(h)} + " if round(h, 6) != 0 else "") + f"{_fmt(a)}*sin({_fmt(0.5 + 0.1 * (i % 5))}*t)"
+           for i, (h, a) in enumerate(zip(home, amp))]
+    phi0_e2 = _e2_funnel(Path(urdf).absolute().as_posix(), name, ref, q0, n)
+    joint_lines = "\n".join(f"#   q{i + 1}: {s}" for i, s in enumerate(joints))
+    ref_lines = ",\n     ".join(f'"{r}"' for r in ref)
+    return f'''# A scenario written by `symfunnel init --urdf`: the funnel design on the movable joints of
+#   {_toml_text(rel)}
+# Every key is described in docs/scenario.md. Units are SI: m, kg, s; angles in rad (prismatic joints: m);
+# torques in N m (prismatic: N).
+# Coordinates, in the URDF's depth-first joint order:
+{joint_lines}
+# Try: symfunnel derive {_toml_text(str(out))}; symfunnel audit ...; symfunnel simulate ...
+name = "{name}"
+title = "Funnel control of the {n}-joint robot {_toml_text(Path(urdf).name)} (symfunnel init)"
+
+[model]
+type = "urdf"
+path = {json.dumps(rel)}   # relative to this file
+gravity = [0.0, 0.0, -9.81]       # m/s^2, in the base frame
+
+[reference]
+# every joint swings gently around the middle of its range (rad or m; t in s)
+q = [{ref_lines}]
+
+[initial]
+q = [{", ".join(_fmt(x) for x in q0)}]   # {OFFSET} off the reference at t = 0
+dq = 0.0
+
+[funnel.e1]                       # F1(t) = phi0 exp(-a t) + phi_inf; contains |e1(0)| <= {OFFSET}
+phi0 = 0.1
+phi_inf = 0.01
+a = 1.0                           # 1/s
+
+[funnel.e2]                       # F2(t) for e2 = dq - alpha2; phi0 is twice the largest |e2(0)| (+ 0.1)
+phi0 = {_fmt(phi0_e2)}
+phi_inf = 0.05
+a = 1.0
+
+[controller]
+k1 = 5.0
+k2 = 10.0
+
+[adaptation]
+gamma = 2.0                       # Gamma = gamma I; larger adapts faster and makes the loop stiffer
+sigma = 0.05
+
+[esn]
+size = 20
+seed = 1
+inputs = ["q", "dq", "e1", "e2"]
+
+[plant]                           # what the controller does not know
+viscous = 0.2                     # N m s/rad per joint
+coulomb = 0.1                     # N m
+mass_scale = 1.05                 # the true robot is 5 % heavier than its URDF
+
+[simulation]
+t_final = 5.0                     # s
+dt = 0.01                         # s
+'''
+
+
+def _toml_text(s: str) -> str:
+    """`s` safe inside a TOML string or comment (quotes, backslashes and control characters replaced)."""
+    return "".join(c if c.isprintable() and c not in '"\\' else "_" for c in s)
+
+
+def _e2_funnel(urdf: str, name: str, ref: list[str], q0: list[float], n: int) -> float:
+    """2 max|e2(0)| + 0.1 for this reference and initial state (e2(0) = dq(0) - alpha2(0), from the design)."""
+    import tempfile
+
+    import numpy as np
+
+    from ..design import derive, evaluate
+    from ..scenario import load_scenario
+    probe = (f'name = "{name}"\n[model]\ntype = "urdf"\npath = {json.dumps(urdf)}\n'
+             f'[reference]\nq = [{", ".join(chr(34) + r + chr(34) for r in ref)}]\n'
+             f'[initial]\nq = [{", ".join(_fmt(x) for x in q0)}]\n'
+             '[funnel.e1]\nphi0 = 0.1\nphi_inf = 0.01\n[funnel.e2]\nphi0 = 1e6\n[esn]\nsize = 1\n')
+    with tempfile.TemporaryDirectory(prefix="symfunnel-init-") as tmp:
+        p = Path(tmp) / "probe.toml"
+        p.write_text(probe, encoding="utf-8")
+        d = derive(load_scenario(p))
+    vals = evaluate(d, {"t": 0.0, "q": q0, "dq": [0.0] * n}, warn=lambda s: None)
+    e2 = np.abs(np.asarray(vals["e2"], dtype=float))
+    return float(2 * np.max(e2) + 0.1)

@@ -1,0 +1,53 @@
+"""Output paths checked before the work starts, so a bad `--out` costs one line, not a finished computation."""
+
+from __future__ import annotations
+
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+from .errors import InputError
+
+
+def check_output_file(path: str | os.PathLike, *, key: str = "--out") -> Path:
+    """Check that a file can be written at `path` (atomically, beside it); InputError naming it otherwise.
+
+    Refused: an existing directory or non-regular file (a device would be replaced by the rename), a parent that
+    is a file, and a directory where no file can be created (read-only, no permission, full).
+    """
+    p = Path(path)
+    expected = "a writable file path"
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        st = None
+    except NotADirectoryError:
+        st = None                           # a parent is a file: reported below
+    except OSError as exc:
+        raise InputError(f"cannot be used ({exc.strerror or exc})", file=str(p), key=key, expected=expected) from None
+    if st is not None and stat.S_ISDIR(st.st_mode):
+        raise InputError("is a directory", file=str(p), key=key, expected="a file path (not a directory)")
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        raise InputError("exists and is not a regular file", file=str(p), key=key, expected=expected)
+    parent = p.absolute().parent
+    probe = parent
+    while not (probe.exists() or probe.is_symlink()):               # the nearest existing ancestor decides whether parents can be made
+        probe = probe.parent
+    if not probe.is_dir():
+        raise InputError(f"cannot be created: {probe} is not a directory (Not a directory)", file=str(p), key=key, expected=expected)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".probe", dir=probe)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise InputError(f"cannot be written ({exc.strerror or exc} in {probe})", file=str(p), key=key,
+                         expected=expected) from None
+    return p
+
+
+def check_count(value: int, *, key: str, minimum: int, maximum: int, what: str) -> int:
+    """An integer option within [minimum, maximum] (the maximum keeps memory use bounded)."""
+    if not minimum <= value <= maximum:
+        raise InputError(f"is {value}", key=key, expected=f"{what} between {minimum} and {maximum}")
+    return value

@@ -1,0 +1,54 @@
+"""Proofs on SX with sympy under a time limit: the symbolic half of the audit, usable from any layer."""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+
+import casadi as ca
+
+
+class _Timeout(Exception):
+    pass
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float):
+    """Raise _Timeout inside the block after `seconds` (main thread only; elsewhere no limit is applied)."""
+    if seconds <= 0 or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Timeout()
+
+    old = signal.signal(signal.SIGALRM, handler)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def sympy_is_zero(expr: ca.SX, inputs: list[ca.SX], timeout: float, max_ops: int = 3000):
+    """True if sympy proves every entry of `expr` identically zero, False if it simplifies to nonzero, None if undecided.
+
+    The returned second value is the simplified sympy matrix (or None).
+    """
+    import sympy
+
+    from .tosympy import sx_to_sympy
+    f = ca.Function("f", inputs, [expr])
+    if f.n_instructions() > max_ops:
+        return None, None
+    try:
+        with time_limit(timeout):
+            m = sx_to_sympy(expr, inputs)
+            simp = m.applyfunc(lambda e: sympy.simplify(sympy.expand_trig(e)) if e != 0 else e)
+    except (_Timeout, RecursionError, MemoryError, NotImplementedError):
+        return None, None
+    if all(e == 0 for e in simp):
+        return True, simp
+    return None, simp

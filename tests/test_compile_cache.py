@@ -1,0 +1,189 @@
+"""The compile cache: verified entries, rebuilt when damaged; an unwritable cache; the compiler killed on
+timeout and on SIGTERM together with its children; no temporary files left behind."""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from symfunnel.codegen import build
+from symfunnel.codegen.build import RECORD, compile_cached, find_compiler, verify_entry
+
+SRC = {"f.c": "double f(double x) { return 2.0 * x + 1.0; }\n"}
+
+
+def _build(cache, **kw):
+    return compile_cached(SRC, ["f.c"], "libf.so", build.SHARED_FLAGS, cache=cache, **kw)
+
+
+def _call(path: Path, x: float) -> float:
+    lib = ctypes.CDLL(str(path))
+    lib.f.restype, lib.f.argtypes = ctypes.c_double, [ctypes.c_double]
+    return lib.f(x)
+
+
+@pytest.fixture(scope="module")
+def cc():
+    try:
+        return find_compiler()
+    except Exception:
+        pytest.skip("no C compiler")
+
+
+def test_entry_records_size_and_sha256(tmp_path, cc):
+    import hashlib
+    b = _build(tmp_path)
+    assert not b.cached and _call(b.path, 3.0) == 7.0
+    rec = json.loads((b.path.parent / RECORD).read_text())
+    data = b.path.read_bytes()
+    assert rec["size"] == len(data) and rec["sha256"] == hashlib.sha256(data).hexdigest()
+    assert _build(tmp_path).cached and verify_entry(b.path.parent, "libf.so") is None
+
+
+@pytest.mark.parametrize("damage, why", [
+    (lambda p: p.write_bytes(p.read_bytes()[:1000]), "bytes, recorded"),     # truncated: was a Bus error
+    (lambda p: p.write_bytes(b""), "0 bytes"),                               # empty: was a CasADi dump
+    (lambda p: p.write_bytes(bytes([p.read_bytes()[0] ^ 1]) + p.read_bytes()[1:]), "sha256"),
+    (lambda p: (p.parent / RECORD).unlink(), "no integrity record"),
+    (lambda p: p.unlink(), "missing"),
+])
+def test_damaged_entry_is_rebuilt_with_one_warning(tmp_path, cc, damage, why):
+    b = _build(tmp_path)
+    damage(b.path)
+    with pytest.warns(RuntimeWarning, match=why) as rec:
+        again = _build(tmp_path)
+    assert len(rec) == 1 and not again.cached and again.path == b.path
+    assert verify_entry(again.path.parent, "libf.so") is None and _call(again.path, -1.5) == -2.0
+    assert [p.name for p in tmp_path.iterdir()] == [b.path.parent.name]      # nothing aside, no temp dirs
+
+
+def test_unwritable_cache_builds_in_a_temporary_directory(tmp_path, cc):
+    blocker = tmp_path / "file"
+    blocker.write_text("")                          # a cache path below a regular file cannot be created
+    with pytest.warns(RuntimeWarning, match="not writable") as rec:
+        b = _build(blocker / "cache")
+        other = compile_cached({"g.c": "double g(void) { return 4.0; }\n"}, ["g.c"], "libg.so",
+                               build.SHARED_FLAGS, cache=blocker / "cache")
+    assert len(rec) == 1                            # one warning per process and cache directory
+    assert _call(b.path, 0.25) == 1.5 and not str(b.path).startswith(str(tmp_path))
+    assert other.path.parent.parent == b.path.parent.parent
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only directory anyway")
+def test_read_only_cache_directory(tmp_path, cc):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        with pytest.warns(RuntimeWarning, match="not writable"):
+            b = _build(ro)
+        assert _call(b.path, 1.0) == 3.0
+    finally:
+        ro.chmod(0o755)
+
+
+def _slow_cc(tmp_path: Path) -> Path:
+    """A fake compiler that starts a child (as gcc starts cc1) and waits; both write their pids."""
+    script = tmp_path / "slowcc"
+    script.write_text(textwrap.dedent(f"""\
+        #!/bin/sh
+        if [ "$1" = "--version" ]; then echo slowcc 1.0; exit 0; fi
+        echo $$ > {tmp_path}/cc.pid
+        sleep 300 &
+        echo $! > {tmp_path}/child.pid
+        wait
+        """))
+    script.chmod(0o755)
+    return script
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:        # a zombie is dead for our purpose
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return True
+
+
+def _wait_for(path: Path, seconds: float = 20.0) -> int:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if path.exists() and path.read_text().strip():
+            return int(path.read_text())
+        time.sleep(0.05)
+    raise AssertionError(f"{path} never appeared")
+
+
+def _wait_dead(pid: int, seconds: float = 10.0) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if not _alive(pid):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_compiler_timeout_kills_it_and_its_children(tmp_path, monkeypatch):
+    monkeypatch.setenv("CC", str(_slow_cc(tmp_path)))
+    cache = tmp_path / "cache"
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match="longer than 1 s"):
+        _build(cache, timeout=1.0)
+    assert time.monotonic() - t0 < 30
+    assert _wait_dead(_wait_for(tmp_path / "cc.pid")) and _wait_dead(_wait_for(tmp_path / "child.pid"))
+    assert list(cache.iterdir()) == []                        # the temporary build directory is gone
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path, sig):
+    cache = tmp_path / "cache"
+    prog = textwrap.dedent(f"""
+        import sys
+        from symfunnel import lifecycle
+        from symfunnel.codegen.build import compile_cached, SHARED_FLAGS
+        lifecycle.install()
+        try:
+            compile_cached({SRC!r}, ["f.c"], "libf.so", SHARED_FLAGS, cache={str(cache)!r}, timeout=300)
+        except lifecycle.Terminated:
+            sys.exit(143)
+        except KeyboardInterrupt:
+            sys.exit(130)
+        """)
+    env = {**os.environ, "CC": str(_slow_cc(tmp_path))}
+    p = subprocess.Popen([sys.executable, "-c", prog], env=env)
+    cc_pid = _wait_for(tmp_path / "cc.pid")
+    child = _wait_for(tmp_path / "child.pid")
+    p.send_signal(sig)
+    assert p.wait(timeout=30) == (143 if sig == signal.SIGTERM else 130)
+    assert _wait_dead(cc_pid) and _wait_dead(child)
+    assert list(cache.iterdir()) == []
+
+
+def test_truncated_closed_loop_library_is_repaired(tmp_path):
+    """End to end: a truncated symfunnel_cl.so (formerly 'Bus error' on every run) costs one warning line."""
+    env = {**os.environ, "SYMFUNNEL_CACHE": str(tmp_path)}
+    cmd = [sys.executable, "-m", "symfunnel.cli", "simulate", "--t-final", "0.1", "--json", "-q"]
+    first = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert first.returncode == 0, first.stderr
+    libs = list(tmp_path.glob("*/symfunnel_cl.so"))
+    if not libs:
+        pytest.skip("no C compiler: the closed loop ran on the CasADi virtual machine")
+    libs[0].write_bytes(libs[0].read_bytes()[:4096])
+    second = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert second.returncode == 0, second.stderr
+    lines = second.stderr.strip().splitlines()
+    assert len(lines) == 1 and "damaged" in lines[0] and lines[0].startswith("symfunnel: warning:")
+    assert json.loads(second.stdout)["code"] == "compiled"
+    assert json.loads(second.stdout)["min_margin_e1"] == json.loads(first.stdout)["min_margin_e1"]
