@@ -64,6 +64,8 @@ class DeadZoneSpec:
     b_r: list[float]
     left: Expression
     right: Expression
+    left_scale: list[float] | None = None   # per joint factor on the left branch (its slope); None = 1
+    right_scale: list[float] | None = None
 
 
 @dataclass
@@ -77,6 +79,7 @@ class PlantSpec:
     mass_scale: float
     parameters: dict[str, float]
     coriolis: str = "christoffel"        # the plant's C: "christoffel" (physical, from M) or "model" (as given)
+    disturbance_scale: list[float] | None = None   # per joint factor on the disturbance; None = 1
 
 
 @dataclass
@@ -376,13 +379,14 @@ def _esn(table: Any, file: str) -> ESNSpec:
 
 def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
     p = "plant"
-    V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters", "coriolis"],
-                 file=file, prefix=p)
+    V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters", "coriolis",
+                         "disturbance_scale"], file=file, prefix=p)
     coriolis = V.get_str(table, "coriolis", "christoffel", file=file, prefix=p, choices=["christoffel", "model"])
     viscous = V.per_joint(table, "viscous", n, 0.0, file=file, prefix=p, minimum=0)
     coulomb = V.per_joint(table, "coulomb", n, 0.0, file=file, prefix=p, minimum=0)
     names = {"t"} | set(model.coordinates) | {"d" + c for c in model.coordinates}
     disturbance = _expr_list(table, "disturbance", n, file, p, names, default="0")
+    d_scale = V.per_joint(table, "disturbance_scale", n, 1.0, file=file, prefix=p, minimum=0)
     mass_scale = V.get_float(table, "mass_scale", 1.0, file=file, prefix=p, minimum=0, strict_min=True)
     params_raw = table.get("parameters", {})
     V.check_keys(params_raw, model.p_names, file=file, prefix="plant.parameters")
@@ -391,16 +395,19 @@ def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
     if "dead_zone" in table:
         t = table["dead_zone"]
         q = "plant.dead_zone"
-        V.check_keys(t, ["b_l", "b_r", "left", "right"], file=file, prefix=q, required=["b_l", "b_r"])
+        V.check_keys(t, ["b_l", "b_r", "left", "right", "left_scale", "right_scale"], file=file, prefix=q,
+                     required=["b_l", "b_r"])
         b_l = V.per_joint(t, "b_l", n, file=file, prefix=q, maximum=0, strict_max=True)
         b_r = V.per_joint(t, "b_r", n, file=file, prefix=q, minimum=0, strict_min=True)
         left = parse_expression(V.get_str(t, "left", "u - b_l", file=file, prefix=q), {"u", "b_l", "b_r"},
                                 file=file, key=q + ".left")
         right = parse_expression(V.get_str(t, "right", "u - b_r", file=file, prefix=q), {"u", "b_l", "b_r"},
                                  file=file, key=q + ".right")
-        dz = DeadZoneSpec(b_l, b_r, left, right)
+        scales = [V.per_joint(t, k, n, 1.0, file=file, prefix=q, minimum=0, strict_min=True)
+                  for k in ("left_scale", "right_scale")]
+        dz = DeadZoneSpec(b_l, b_r, left, right, *scales)
         _check_dead_zone(dz, n, file)
-    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params, coriolis)
+    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params, coriolis, d_scale)
 
 
 def _check_dead_zone(dz: DeadZoneSpec, n: int, file: str) -> None:
