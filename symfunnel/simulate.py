@@ -375,13 +375,16 @@ def _grid(t_final: float, dt: float) -> tuple[int, float]:
 
 
 def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None, progress=None,
-             wall_limit=None, closed_loop=None, jit: bool = True, params=None, x0=None) -> SimResult:
+             wall_limit=None, closed_loop=None, jit: bool = True, params=None, x0=None,
+             fixed_chunks: bool = False) -> SimResult:
     """Simulate a scenario's closed loop; never raises for a breach, a timeout or an integrator failure.
 
     Returns a SimResult whose status is 'ok', 'breach', 'initial_outside', 'timeout' or 'failed', with the
     trajectory up to where the run stopped. Bad settings raise InputError. `params` (name -> value, names of
     `closedloop.plant_parameters`) and `x0` (public state order) override the closed loop's plant quantities and
-    initial state without recompiling: a campaign runs every variant on one compiled loop.
+    initial state without recompiling: a campaign runs every variant on one compiled loop. `fixed_chunks`
+    integrates in the chunks a fast machine chooses (25 points, then 500) whatever the wall time, so that the
+    result does not depend on the machine's speed (CVODES restarts at every chunk).
     """
     say = progress or (lambda s: None)
     sc = scenario
@@ -509,7 +512,7 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
             remaining = max(limit - (time.perf_counter() - start), 1e-3)
             target = min(0.5, remaining / 4)
             want = target / max(per_point, 1e-9)
-            K = max([c for c in CHUNK_SIZES if c <= want] or [1])
+            K = CHUNK_SIZES[-1] if fixed_chunks else max([c for c in CHUNK_SIZES if c <= want] or [1])
             now = time.perf_counter()
             if now - last_report > 2.0:
                 say(f"t = {k * h:.3g} / {tf:g} s")
