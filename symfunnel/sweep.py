@@ -269,10 +269,9 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
     if client is not None:
         from distributed import as_completed
         pending = deque(chunks)
-        ac = as_completed()
-        for _ in range(min(window, len(pending))):
-            c = pending.popleft()
-            ac.add(client.submit(run_chunk, job, c, pure=False, retries=3))
+        first = [client.submit(run_chunk, job, pending.popleft(), pure=False, retries=3)
+                 for _ in range(min(window, len(pending)))]
+        ac = as_completed(first, loop=client.loop)
         for fut in ac:
             rows = fut.result()
             on_rows(rows)

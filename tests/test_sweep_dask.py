@@ -1,0 +1,77 @@
+"""`symfunnel sweep --scheduler` on a real dask.distributed cluster started here (scheduler + 2 workers, 127.0.0.1)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from symfunnel.scenario import load_scenario
+from symfunnel.sweep import make_job, run_chunk, sweep
+
+from .test_sweep import _campaign_file, _same
+
+pytestmark = pytest.mark.slow
+DASK = str(Path(sys.executable).with_name("dask"))
+
+
+def _start(args, log):
+    return subprocess.Popen([DASK, *args], start_new_session=True, stdout=log, stderr=subprocess.STDOUT,
+                            env=dict(os.environ))
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    """A scheduler and two single-threaded workers (no nanny, so a killed worker stays dead); torn down after."""
+    sf = tmp_path / "scheduler.json"
+    log = open(tmp_path / "dask.log", "w")
+    procs = [_start(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
+                     str(sf)], log)]
+    try:
+        deadline = time.monotonic() + 60
+        while not sf.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert sf.exists(), "the scheduler did not start"
+        address = json.loads(sf.read_text())["address"]
+        for k in range(2):
+            procs.append(_start(["worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard",
+                                 "--name", f"w{k}"], log))
+        from distributed import Client
+        with Client(address, timeout="20s") as c:
+            c.wait_for_workers(2, timeout=60)
+        yield address, procs
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=30)
+        log.close()
+
+
+def test_dask_rows_identical_and_lost_worker_retried(cluster, tmp_path):
+    address, procs = cluster
+    sc = load_scenario(_campaign_file(tmp_path, runs=12, t_final=0.4))
+    ref = run_chunk(make_job(sc), range(12))
+    killed = []
+
+    def progress(msg):
+        # after the first finished chunk, kill worker w1 with its work in flight: dask reschedules it
+        if msg.startswith("sweep: ") and not killed:
+            os.killpg(procs[2].pid, signal.SIGKILL)
+            killed.append(msg)
+
+    out = tmp_path / "dask"
+    res = sweep(sc, scheduler=address, out=out, chunk_size=1, progress=progress)
+    assert killed and procs[2].wait(timeout=30) is not None
+    rows = pq.read_table(str(out / "results.parquet")).to_pylist()
+    assert [r["run"] for r in rows] == list(range(12))
+    _same(rows, ref)
+    assert res.summary["workers"] == 2
+    assert (out / "worst.toml").exists()
