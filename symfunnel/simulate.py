@@ -63,6 +63,7 @@ class Compiled:
     source_hash: str | None = None
     maps: dict = field(default_factory=dict, repr=False)
     pvals: np.ndarray | None = None  # the plant parameters of the run this copy is bound to (see `bind`)
+    integrators: dict = field(default_factory=dict, repr=False)
 
     def bind(self, pvals) -> "Compiled":
         """This compiled loop bound to one run's plant parameters (shares the code and the output maps)."""
@@ -278,13 +279,14 @@ class _Runner:
         self.cl, self.comp, self.method, self.h, self.sim = cl, comp, method, h, sim
         self.perm = comp.perm
         self.inv = np.argsort(comp.perm)
-        self._integrators: dict = {}
+        # integrators are shared by every run on this compiled loop (a campaign builds them once)
+        self._integrators: dict = comp.integrators
         self.stats = {"steps": 0, "rhs_evaluations": 0, "jacobian_evaluations": 0, "error_test_failures": 0}
 
     def integrator(self, K: int, h: float | None = None):
         """An integrator over the relative output grid h, 2h, ..., K h (p = the chunk's start time)."""
         h = self.h if h is None else h
-        key = (K, h)
+        key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps)
         if key not in self._integrators:
             sim = self.sim
             grid = [h * (k + 1) for k in range(K)]
@@ -376,7 +378,7 @@ def _grid(t_final: float, dt: float) -> tuple[int, float]:
 
 def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None, progress=None,
              wall_limit=None, closed_loop=None, jit: bool = True, params=None, x0=None,
-             fixed_chunks: bool = False) -> SimResult:
+             fixed_chunks: bool = False, lyapunov: bool = True) -> SimResult:
     """Simulate a scenario's closed loop; never raises for a breach, a timeout or an integrator failure.
 
     Returns a SimResult whose status is 'ok', 'breach', 'initial_outside', 'timeout' or 'failed', with the
@@ -384,7 +386,8 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
     `closedloop.plant_parameters`) and `x0` (public state order) override the closed loop's plant quantities and
     initial state without recompiling: a campaign runs every variant on one compiled loop. `fixed_chunks`
     integrates in the chunks a fast machine chooses (25 points, then 500) whatever the wall time, so that the
-    result does not depend on the machine's speed (CVODES restarts at every chunk).
+    result does not depend on the machine's speed (CVODES restarts at every chunk). `lyapunov=False` skips the
+    W* estimate and V (signals 'V', extras 'W_star'), which a campaign does not need.
     """
     say = progress or (lambda s: None)
     sc = scenario
@@ -460,7 +463,8 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
             breach = b
             message = (f"initial error outside funnel {b['funnel']} at joint {b['joint']}: "
                        f"|{b['funnel']}(0)| = {b['abs_error']:.6g} >= F{b['funnel'][1]}(0) = {b['boundary']:.6g}")
-        return _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list)
+        return _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list,
+                       lyapunov)
 
     sim_start = time.perf_counter()
     k = 0                      # grid index reached
@@ -523,7 +527,8 @@ def simulate(scenario, *, t_final=None, integrator=None, width=None, design=None
         message = (f"wall-clock limit of {limit:g} s reached at t = {tr:.6g} s of {tf:g} s; the trajectory so "
                    f"far is kept (raise simulation.wall_limit, or check the scenario for stiffness)")
     stats["sim_wall_time"] = time.perf_counter() - sim_start
-    return _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list)
+    return _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list,
+                       lyapunov)
 
 
 def _locate_within(runner: _Runner, comp: Compiled, n: int, ts: float, xs: np.ndarray, h: float) -> dict:
@@ -644,7 +649,7 @@ def _count_events(sc, o: dict, dq: np.ndarray) -> dict:
 
 
 def _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start,
-            O_list=None) -> SimResult:
+            O_list=None, lyapunov: bool = True) -> SimResult:
     O_list = list(O_list or [])
     segs = []
     for i, (ta, Xa) in enumerate(zip(t_list, X_list)):
@@ -668,17 +673,18 @@ def _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner
     gamma = float(sc.gamma)
     extras = {}
     # V needs the ideal weights W*, which no scenario gives: the one estimate of checks.lyapunov (fitted on this run)
-    from .checks.lyapunov import estimate_w_star, regressor_values
-    W_star, _ = estimate_w_star(cl, t, X, o["f_true"])
-    if t.size:
-        fit = o["f_true"] - regressor_values(cl.design, parts["x_esn"]) @ W_star
-        resid = np.sqrt(np.nanmean(fit ** 2, axis=0))
-    else:
-        resid = np.zeros(cl.n)
-    dW = W_star[None, :, :] - parts["w_hat"] if t.size else np.zeros((0,) + W_star.shape)
-    signals["V"] = o["V_z"] + np.sum(dW ** 2, axis=(1, 2)) / (2 * gamma)
-    extras["W_star"] = W_star
-    extras["W_star_residual"] = resid
+    if lyapunov:
+        from .checks.lyapunov import estimate_w_star, regressor_values
+        W_star, _ = estimate_w_star(cl, t, X, o["f_true"])
+        if t.size:
+            fit = o["f_true"] - regressor_values(cl.design, parts["x_esn"]) @ W_star
+            resid = np.sqrt(np.nanmean(fit ** 2, axis=0))
+        else:
+            resid = np.zeros(cl.n)
+        dW = W_star[None, :, :] - parts["w_hat"] if t.size else np.zeros((0,) + W_star.shape)
+        signals["V"] = o["V_z"] + np.sum(dW ** 2, axis=(1, 2)) / (2 * gamma)
+        extras["W_star"] = W_star
+        extras["W_star_residual"] = resid
     wall = time.perf_counter() - start
     stats.update(runner.stats)
     ev = _count_events(sc, o, parts["dq"])

@@ -15,6 +15,7 @@ import json
 import math
 import os
 import shutil
+import threading
 import time
 import warnings
 from collections import deque
@@ -45,7 +46,7 @@ class Job:
     fingerprint: str
 
 
-_STATE: dict = {}        # fingerprint -> (scenario, closed loop), per process
+_STATE: dict = {}        # (fingerprint, thread) -> (scenario, closed loop, compile time, cache hit)
 
 
 def make_job(scenario, *, runs: int | None = None) -> Job:
@@ -63,7 +64,9 @@ def make_job(scenario, *, runs: int | None = None) -> Job:
 
 
 def _state(job: Job):
-    st = _STATE.get(job.fingerprint)
+    # one closed loop per thread: CasADi function objects are not for concurrent calls (dask --nthreads > 1)
+    key = (job.fingerprint, threading.get_ident())
+    st = _STATE.get(key)
     if st is None:
         from .closedloop import build_closed_loop
         from .scenario import from_dict
@@ -75,7 +78,7 @@ def _state(job: Job):
             t0 = time.perf_counter()
             comp = compile_closed_loop(cl)
         cl.__dict__.setdefault("_compiled", {})[(True, True)] = comp
-        st = _STATE[job.fingerprint] = (sc, cl, time.perf_counter() - t0, comp.cached)
+        st = _STATE[key] = (sc, cl, time.perf_counter() - t0, comp.cached)
     return st
 
 
@@ -118,7 +121,8 @@ def run_chunk(job: Job, run_ids) -> list[dict]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
-                r = simulate(sc, t_final=job.t_final, closed_loop=cl, params=params, x0=x0, fixed_chunks=True)
+                r = simulate(sc, t_final=job.t_final, closed_loop=cl, params=params, x0=x0, fixed_chunks=True,
+                             lyapunov=False)
             except Exception as exc:  # noqa: BLE001 - one bad run must not stop a campaign: its row says failed
                 rows.append(_failed_row(rid, camp.columns, v, exc))
                 continue
