@@ -258,11 +258,14 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
     total, done = len(todo), 0
     t0 = time.perf_counter()
     last = 0.0
+    first = None            # (time, runs) when the first chunk came back: the workers had started by then
 
     def tick(k):
-        nonlocal done, last
+        nonlocal done, last, first
         done += k
         now = time.perf_counter()
+        if first is None:
+            first = (now, done)
         if now - last > 1.0 or done == total:
             rate = done / max(now - t0, 1e-9)
             eta = (total - done) / rate if rate > 0 else float("inf")
@@ -273,9 +276,9 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
     if client is not None:
         from distributed import as_completed
         pending = deque(chunks)
-        first = [client.submit(run_chunk, job, pending.popleft(), pure=False, retries=3)
-                 for _ in range(min(window, len(pending)))]
-        ac = as_completed(first, loop=client.loop)
+        futs = [client.submit(run_chunk, job, pending.popleft(), pure=False, retries=3)
+                for _ in range(min(window, len(pending)))]
+        ac = as_completed(futs, loop=client.loop)
         for fut in ac:
             rows = fut.result()
             on_rows(rows)
@@ -297,9 +300,14 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
                     tick(len(rows))
                     if pending:
                         running.add(pool.submit(run_chunk, job, pending.popleft()))
-    wall = time.perf_counter() - t0
+    end = time.perf_counter()
+    wall = end - t0
+    steady = None
+    if first is not None and done > first[1] and end > first[0]:
+        steady = (done - first[1]) / (end - first[0])
     return {"wall": wall, "runs": total, "workers": workers,
-            "runs_per_second": total / wall if wall > 0 and total else None}
+            "runs_per_second": total / wall if wall > 0 and total else None,
+            "steady_runs_per_second": steady}
 
 
 # --- summary, worst case ---------------------------------------------------------------------------------
@@ -435,6 +443,7 @@ def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume
     s = summarize(table, camp.columns)
     summary = {k: s[k] for k in ("runs", "breaches", "breach_probability", "ci95", "worst_run")}
     summary.update({"runs_per_second": ex["runs_per_second"], "workers": ex["workers"],
+                    "steady_runs_per_second": ex["steady_runs_per_second"],
                     "scenario": scenario.name, "design": camp.sweep.design, "seed": camp.sweep.seed,
                     "t_final": job.t_final, "failed": s["failed"], "compile_time": info["compile_time"],
                     "compile_cache_hit": info["cache_hit"], "wall_time": time.perf_counter() - t0,
