@@ -164,3 +164,26 @@ def test_resume_refuses_another_campaign(reference, tmp_path):
     with pytest.raises(InputError, match="different campaign"):
         sweep(sc, workers=1, out=out, runs=3, resume=True)
     assert sweep(sc, workers=1, out=out, runs=2, resume=True).summary["runs"] == 2
+
+
+def test_report_sweep_section(reference, tmp_path, capsys):
+    """report --sweep DIR: a self-contained page with the three figures; the breach region's axes are the
+    quantities that decide breaches (here the initial position, which alone sets e1(0))."""
+    from symfunnel.cli import main
+    from symfunnel.report.html import no_network_references
+    from symfunnel.report.sweep import correlation_ratio, load_sweep, strongest_pair
+    sc, job, ref = reference
+    out = tmp_path / "rep"
+    sweep(sc, workers=2, out=out, runs=40)
+    assert main(["report", "--sweep", str(out)]) == 0
+    page = (out / "sweep.html").read_text()
+    assert page.count("<svg") == 3 and not no_network_references(page)
+    assert "Clopper-Pearson" in page
+    _, cols = load_sweep(out)
+    assert strongest_pair(cols)[0] == "initial.q"
+    # eta^2 against an independent case: y = x^2 on symmetric x is fully explained, unrelated noise is not
+    x = np.linspace(-1, 1, 400)
+    assert correlation_ratio(x, x ** 2, bins=20) > 0.95
+    assert correlation_ratio(x, np.random.default_rng(0).normal(size=400)) < 0.1
+    assert main(["report", "--sweep", str(tmp_path / "nothing")]) == 2
+    assert not (tmp_path / "nothing").exists()

@@ -12,6 +12,8 @@ def register(sub, common) -> None:
     sp.add_argument("--samples", type=int, default=10000, metavar="K",
                     help="states sampled inside the funnels for the falsification (default 10000)")
     sp.add_argument("--no-codegen", action="store_true", help="leave out the code-generation section")
+    sp.add_argument("--sweep", metavar="DIR", help="the robustness-campaign section of a `symfunnel sweep` "
+                                                   "directory alone (default --out: DIR/sweep.html)")
     sp.set_defaults(func=run)
 
 
@@ -22,6 +24,10 @@ def run(args) -> int:
     from ..report import build_report
     if args.samples < 1:
         raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
+    if args.sweep:
+        from ..report.sweep import write_sweep_page
+        print(write_sweep_page(args.sweep, args.out))
+        return 0
     sc = _load(args)
     say = _progress(args.quiet)
     path = build_report(sc, args.out, t_final=args.t_final, samples=args.samples, codegen=not args.no_codegen,
