@@ -50,6 +50,19 @@ def baseline_loop(sc, runs: int) -> float:
     return runs / (time.perf_counter() - t0)
 
 
+def cpu_per_run(sc, runs: int) -> dict:
+    """CPU and wall seconds per campaign run in this process (after one warm-up run), and the process's peak RSS."""
+    import resource
+
+    from ..sweep import make_job, run_chunk
+    job = make_job(sc)
+    run_chunk(job, [0])
+    t, c = time.perf_counter(), time.process_time()
+    run_chunk(job, range(1, runs + 1))
+    return {"cpu_s_per_run": (time.process_time() - c) / runs, "wall_s_per_run": (time.perf_counter() - t) / runs,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
 def run(progress=None) -> list[dict]:
     """Measure the campaign throughput (cores, 1 and 2 workers), the simulate loop and the one compile time."""
     from ..sweep import sweep
@@ -75,6 +88,8 @@ def run(progress=None) -> list[dict]:
                 os.environ.pop("SYMFUNNEL_CACHE", None)
             else:
                 os.environ["SYMFUNNEL_CACHE"] = old_cache
+    say("sweep: CPU time per run in one process")
+    one = cpu_per_run(sc, max(2, runs // 4))
     base_runs = max(2, runs // 4)
     say(f"sweep baseline: a loop of {base_runs} simulate() calls on scenario variants")
     base_rps = baseline_loop(sc, base_runs)
@@ -86,6 +101,7 @@ def run(progress=None) -> list[dict]:
     info = {"runs": runs, "t_final": tf, "workers": cores, "baseline_runs": base_runs,
             "extrapolated_10000_runs_s": 10000 / rps, "target_10000_runs_s": 600.0,
             "runs_per_second_with_startup": out[cores]["runs_per_second"], "breaches": out[cores]["breaches"],
+            "one_process": one, "load_average_1min": os.getloadavg()[0],
             "note": "steady rate after the workers started; 10,000-run time extrapolated from it"}
     return [
         result("sweep.runs_per_second", rps, "runs/s", "loop of symfunnel.simulate calls, one process", base_rps,
