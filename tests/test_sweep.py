@@ -16,7 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from symfunnel.scenario import DATA_DIR, load_scenario
-from symfunnel.sweep import clopper_pearson, make_job, run_chunk, sweep
+from symfunnel.campaign import clopper_pearson, make_job, run_chunk, sweep
 from symfunnel.toml_write import dumps
 
 # |q0| beyond F1(0) = 0.19 starts outside the funnel (a breach at t = 0): a breach region known in advance
@@ -25,9 +25,10 @@ UNCS = [{"key": "initial.q", "dist": "uniform", "low": -0.3, "high": 0.3},
         {"key": "plant.dead_zone.b_r", "dist": "uniform", "low": 0.5, "high": 2.0, "per_joint": True}]
 
 
-def _campaign_file(tmp_path, runs=10, t_final=0.4, design="sobol"):
+def _campaign_file(tmp_path, runs=10, t_final=0.4, design="sobol", q0=0.3):
     raw = copy.deepcopy(load_scenario("paper").raw)
-    raw["uncertainty"] = UNCS
+    raw["uncertainty"] = copy.deepcopy(UNCS)
+    raw["uncertainty"][0].update(low=-q0, high=q0)
     raw["sweep"] = {"runs": runs, "design": design, "seed": 4, "t_final": t_final}
     f = tmp_path / "campaign.toml"
     f.write_text(dumps(raw), encoding="utf-8")
@@ -101,7 +102,7 @@ def test_summary_and_worst_scenario_replays(reference, tmp_path):
     assert min(r["min_margin_e1"]) == pytest.approx(row["min_margin_e1"], abs=1e-12)
     # a run that stays inside: its replay through a written scenario gives the same row, to the last digit
     ok = next(x for x in ref if x["status"] == "ok")
-    from symfunnel.sweep import worst_scenario
+    from symfunnel.campaign import worst_scenario
     (tmp_path / "ok.toml").write_text(worst_scenario(job, sc.campaign, ok["run"], sc.n))
     r = simulate(load_scenario(tmp_path / "ok.toml")).summary()
     assert r["status"] == "ok" and r["t_end"] == ok["t_end"]
@@ -127,9 +128,12 @@ def test_clopper_pearson_against_binomial_tails():
 
 
 @pytest.mark.slow
-def test_killed_sweep_resumes_without_duplicates(reference, tmp_path):
-    sc, job, ref = reference
-    f = _campaign_file(tmp_path, runs=10, t_final=0.4)
+def test_killed_sweep_resumes_without_duplicates(tmp_path):
+    # runs that stay inside (small initial errors) and last 2 s each, so that the kill lands mid-campaign
+    f = _campaign_file(tmp_path, runs=10, t_final=2.0, q0=0.005)
+    sc = load_scenario(f)
+    ref = run_chunk(make_job(sc), range(10))
+    assert {r["status"] for r in ref} == {"ok"}
     out = tmp_path / "k"
     cmd = [sys.executable, "-m", "symfunnel.cli", "sweep", str(f), "--out", str(out), "--workers", "1", "-q"]
     # chunks of one run each (10 runs / (8 * 1 worker)), so some are on disk before the kill
@@ -138,7 +142,7 @@ def test_killed_sweep_resumes_without_duplicates(reference, tmp_path):
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             parts = list((out / ".results.parts").glob("*.parquet")) if (out / ".results.parts").is_dir() else []
-            if len(parts) >= 2 or p.poll() is not None:
+            if len(parts) >= 2 or (out / "results.parquet").exists() or p.poll() is not None:
                 break
             time.sleep(0.05)
         os.killpg(p.pid, signal.SIGKILL)
@@ -146,7 +150,7 @@ def test_killed_sweep_resumes_without_duplicates(reference, tmp_path):
         p.wait(timeout=30)
     assert p.returncode != 0, "the sweep finished before it could be killed"
     assert not (out / "summary.json").exists()
-    from symfunnel.sweep import ResultStore
+    from symfunnel.campaign import ResultStore
     before = ResultStore(out, sc.campaign.columns).done()
     assert 0 < len(before) < 10
     r = subprocess.run(cmd + ["--resume", "--json"], capture_output=True, text=True, timeout=300)

@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from symfunnel.scenario import load_scenario
-from symfunnel.sweep import make_job, run_chunk, sweep
+from symfunnel.campaign import make_job, run_chunk, sweep
 
 from .test_sweep import _campaign_file, _same
 

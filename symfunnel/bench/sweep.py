@@ -38,7 +38,7 @@ def baseline_loop(sc, runs: int) -> float:
     """Runs per second of one process calling simulate() on each run's scenario (load, derive, build, run)."""
     from ..scenario import from_dict
     from ..simulate import simulate
-    from ..sweep import make_job, worst_scenario
+    from ..campaign import make_job, worst_scenario
     from .. import scenario as S
     job = make_job(sc)
     t0 = time.perf_counter()
@@ -54,7 +54,7 @@ def cpu_per_run(sc, runs: int) -> dict:
     """CPU and wall seconds per campaign run in this process (after one warm-up run), and the process's peak RSS."""
     import resource
 
-    from ..sweep import make_job, run_chunk
+    from ..campaign import make_job, run_chunk
     job = make_job(sc)
     run_chunk(job, [0])
     t, c = time.perf_counter(), time.process_time()
@@ -65,7 +65,7 @@ def cpu_per_run(sc, runs: int) -> dict:
 
 def run(progress=None) -> list[dict]:
     """Measure the campaign throughput (cores, 1 and 2 workers), the simulate loop and the one compile time."""
-    from ..sweep import sweep
+    from ..campaign import sweep
     say = progress or (lambda s: None)
     runs = int(os.environ.get("SYMFUNNEL_BENCH_SWEEP_RUNS", 24))
     tf = float(os.environ.get("SYMFUNNEL_BENCH_T_FINAL", 20.0))
