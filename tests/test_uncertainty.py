@@ -139,3 +139,22 @@ def test_per_joint_columns_and_values(paper):
     v = c.values(range(16))
     assert v.shape == (16, 3) and not np.allclose(v[:, 1], v[:, 2])
     assert math.isclose(float(np.min(v[:, 1:])), 10.0, abs_tol=1.0) and float(np.max(v[:, 1:])) < 20.0
+
+
+def test_dead_zone_key_needs_a_dead_zone(paper):
+    from symfunnel.errors import InputError
+    raw = _with(paper, [{"key": "plant.dead_zone.left_scale", "dist": "uniform", "low": 0.5, "high": 1.5}])
+    del raw["plant"]["dead_zone"]
+    with pytest.raises(InputError, match="has no dead zone"):
+        from_dict(raw, file="x.toml", base_dir=DATA_DIR)
+
+
+def test_bad_workers_and_out_file(paper, tmp_path, capsys):
+    assert "--workers" in _cli_error(paper, tmp_path, capsys, [MASS], {"runs": 2}, extra=["--workers", "0"])
+    f = tmp_path / "campaign.toml"
+    f.write_text(dumps(_with(paper, [MASS], {"runs": 2})), encoding="utf-8")
+    target = tmp_path / "a-file"
+    target.write_text("x")
+    assert main(["sweep", str(f), "--out", str(target), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "a-file" in err and "a directory" in err and target.read_text() == "x"
