@@ -13,6 +13,10 @@ types in; `plant.coriolis = "model"` takes the model's C instead), friction = vi
 width w, see `symfunnel.plant`), d the disturbance expressions. ddq is obtained by an LDL^T factorisation of M_p
 written out in SX (n^3/6 operations, no symbolic blow-up for n ~ 7, no pivoting needed as M_p is positive definite).
 
+The plant's uncertain quantities (mass scale, parameters, friction, disturbance scale, dead-zone breakpoints and
+branch scales; layout `plant_parameters`) are the symbols p of `xdot_p` / `signals_p`, which `simulate` compiles
+once and evaluates at any p; `xdot`, `signals`, `f` and `outputs` are the same loop at this scenario's p.
+
 The nominal model under tau accelerates by ddq_nom = v - W_hat^T Phi (`signals['ddq']`), so the true unknown term
 the ESN estimates is f_true = ddq_plant - ddq_nom and its estimate is w_phi = W_hat^T Phi.
 """

@@ -46,7 +46,7 @@ def cluster(tmp_path):
         from distributed import Client
         with Client(address, timeout="20s") as c:
             c.wait_for_workers(2, timeout=60)
-        yield address, procs
+        yield address, procs, tmp_path / "dask.log"
     finally:
         for p in reversed(procs):
             if p.poll() is None:
@@ -56,8 +56,9 @@ def cluster(tmp_path):
 
 
 def test_dask_rows_identical_and_lost_worker_retried(cluster, tmp_path):
-    address, procs = cluster
-    sc = load_scenario(_campaign_file(tmp_path, runs=12, t_final=0.4))
+    address, procs, log = cluster
+    # runs that stay inside and last 1 s each: work is left for the lost worker's share when it dies
+    sc = load_scenario(_campaign_file(tmp_path, runs=12, t_final=1.0, q0=0.005))
     ref = run_chunk(make_job(sc), range(12))
     killed = []
 
@@ -74,4 +75,7 @@ def test_dask_rows_identical_and_lost_worker_retried(cluster, tmp_path):
     assert [r["run"] for r in rows] == list(range(12))
     _same(rows, ref)
     assert res.summary["workers"] == 2
+    assert {r["status"] for r in rows} == {"ok"}
+    removed = [ln for ln in log.read_text().splitlines() if "Remove worker" in ln]
+    assert removed and "name: w1" in removed[0]       # the scheduler lost w1 during the campaign
     assert (out / "worst.toml").exists()
