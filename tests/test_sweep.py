@@ -191,3 +191,13 @@ def test_report_sweep_section(reference, tmp_path, capsys):
     assert correlation_ratio(x, np.random.default_rng(0).normal(size=400)) < 0.1
     assert main(["report", "--sweep", str(tmp_path / "nothing")]) == 2
     assert not (tmp_path / "nothing").exists()
+
+
+def test_cli_json_is_summary_and_progress_shows_rate(tmp_path, capsys):
+    from symfunnel.cli import main
+    f = _campaign_file(tmp_path, runs=4, t_final=0.2)
+    out = tmp_path / "cli"
+    assert main(["sweep", str(f), "--out", str(out), "--workers", "1", "--json"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out) == json.loads((out / "summary.json").read_text())
+    assert "runs/s" in cap.err and "s left" in cap.err and "compiled once" in cap.err
