@@ -9,7 +9,6 @@ function of (seed, i) (and, for a Latin hypercube, of the campaign's size), so a
 from __future__ import annotations
 
 import functools
-import math
 import warnings
 from dataclasses import dataclass, field
 from typing import Any

@@ -9,13 +9,12 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from symfunnel.scenario import DATA_DIR, load_scenario
+from symfunnel.scenario import load_scenario
 from symfunnel.campaign import clopper_pearson, make_job, run_chunk, sweep
 from symfunnel.toml_write import dumps
 

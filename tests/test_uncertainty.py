@@ -158,3 +158,12 @@ def test_bad_workers_and_out_file(paper, tmp_path, capsys):
     assert main(["sweep", str(f), "--out", str(target), "-q"]) == 2
     err = capsys.readouterr().err
     assert "a-file" in err and "a directory" in err and target.read_text() == "x"
+
+
+def test_toml_writer_round_trips_through_tomllib(paper):
+    """What worst.toml is written with loads back (tomllib) to the same document, floats to the last digit."""
+    import tomllib
+    doc = copy.deepcopy(paper.raw)
+    doc["odd keys"] = {"a.b": 1, "ü": "quote \" backslash \\ tab \t newline \n del \x7f é", "x": [1.0 / 3, -0.0, 1e300]}
+    doc["nested"] = [{"k": 1, "sub": {"v": [[1, 2], [3]]}}, {"k": 2, "flag": False, "inf": float("inf")}]
+    assert tomllib.loads(dumps(doc)) == doc
