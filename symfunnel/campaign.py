@@ -226,8 +226,8 @@ class ResultStore:
 
 # --- execution -------------------------------------------------------------------------------------------
 
-def connect(address: str, timeout: float = 10.0):
-    """A dask.distributed client of a running scheduler; InputError naming the address when it cannot be reached."""
+def connect(address: str, timeout: float = 10.0, worker_timeout: float = 30.0):
+    """A dask.distributed client of a running scheduler with workers; InputError naming the address otherwise."""
     try:
         from distributed import Client
     except ImportError:  # pragma: no cover - a regular dependency
@@ -236,11 +236,18 @@ def connect(address: str, timeout: float = 10.0):
     if not (isinstance(address, str) and "://" in address):
         raise InputError(f"is '{address}'", key="--scheduler", expected="an address such as tcp://HOST:PORT")
     try:
-        return Client(address, timeout=f"{timeout:g}s", set_as_default=False)
+        client = Client(address, timeout=f"{timeout:g}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
         raise InputError(f"cannot reach the scheduler at {address} ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0] if str(exc) else 'no answer'})", key="--scheduler",
                          expected="the address of a running dask scheduler (tcp://HOST:PORT)") from None
+    try:
+        client.wait_for_workers(1, timeout=worker_timeout)
+    except (TimeoutError, OSError):
+        client.close()
+        raise InputError(f"the scheduler at {address} has no workers (waited {worker_timeout:g} s)",
+                         key="--scheduler", expected="a scheduler with `dask worker` processes attached") from None
+    return client
 
 
 def _chunks(ids: list[int], size: int) -> list[list[int]]:

@@ -27,19 +27,38 @@ def _start(args, log):
                             env=dict(os.environ))
 
 
+def _scheduler(tmp_path, log):
+    sf = tmp_path / "scheduler.json"
+    p = _start(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(sf)], log)
+    deadline = time.monotonic() + 60
+    while not sf.exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return p, (json.loads(sf.read_text())["address"] if sf.exists() else None)
+
+
+def test_scheduler_without_workers_is_refused(tmp_path):
+    from symfunnel.campaign import connect
+    from symfunnel.errors import InputError
+    with open(tmp_path / "dask.log", "w") as log:
+        p, address = _scheduler(tmp_path, log)
+        try:
+            assert address, "the scheduler did not start"
+            with pytest.raises(InputError, match="has no workers") as exc:
+                connect(address, worker_timeout=1.0)
+            assert address in str(exc.value)
+        finally:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=30)
+
+
 @pytest.fixture
 def cluster(tmp_path):
     """A scheduler and two single-threaded workers (no nanny, so a killed worker stays dead); torn down after."""
-    sf = tmp_path / "scheduler.json"
     log = open(tmp_path / "dask.log", "w")
-    procs = [_start(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
-                     str(sf)], log)]
+    p, address = _scheduler(tmp_path, log)
+    procs = [p]
     try:
-        deadline = time.monotonic() + 60
-        while not sf.exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert sf.exists(), "the scheduler did not start"
-        address = json.loads(sf.read_text())["address"]
+        assert address, "the scheduler did not start"
         for k in range(2):
             procs.append(_start(["worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard",
                                  "--name", f"w{k}"], log))
