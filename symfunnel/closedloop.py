@@ -15,6 +15,10 @@ types in; `plant.coriolis = "model"` takes the model's C instead), friction = vi
 width w, see `symfunnel.plant`), d the disturbance expressions. ddq is obtained by an LDL^T factorisation of M_p
 written out in SX (n^3/6 operations, no symbolic blow-up for n ~ 7, no pivoting needed as M_p is positive definite).
 
+The plant's uncertain quantities (mass scale, parameters, friction, disturbance scale, dead-zone breakpoints and
+branch scales; layout `plant_parameters`) are the symbols p of `xdot_p` / `signals_p`, which `simulate` compiles
+once and evaluates at any p; `xdot`, `signals`, `f` and `outputs` are the same loop at this scenario's p.
+
 The nominal model under tau accelerates by ddq_nom = v - W_hat^T Phi (`signals['ddq']`), so the true unknown term
 the ESN estimates is f_true = ddq_plant - ddq_nom and its estimate is w_phi = W_hat^T Phi.
 """
@@ -52,6 +56,12 @@ class ClosedLoop:
     x0: np.ndarray
     signals: dict = field(default_factory=dict, repr=False)   # name -> SX in (t, x), the outputs' expressions
     plant_parts: dict = field(default_factory=dict, repr=False)
+    # the same loop with the plant's uncertain quantities as parameters p (layout: plant_parameters)
+    p: ca.SX = field(default=None, repr=False)
+    p_names: list = field(default_factory=list, repr=False)
+    p0: np.ndarray = field(default=None, repr=False)        # this scenario's values of p
+    xdot_p: ca.SX = field(default=None, repr=False)         # right-hand side in (t, x, p)
+    signals_p: dict = field(default_factory=dict, repr=False)   # logged signals in (t, x, p)
 
     @property
     def nx(self) -> int:
@@ -106,7 +116,8 @@ class ClosedLoop:
 
 
 def dead_zone_branches(scenario) -> tuple[list, list]:
-    """Per joint, the dead zone's left and right branch as callables u -> D(u) (scenario expressions, SX)."""
+    """Per joint, the dead zone's left and right branch as callables u -> D(u) (scenario expressions times their
+    scales, SX), for the checks that need the branches one by one (the input-gain assumption)."""
     dz = scenario.plant.dead_zone
     u = ca.SX.sym("u")
     left, right = [], []
@@ -114,44 +125,98 @@ def dead_zone_branches(scenario) -> tuple[list, list]:
         envj = {"u": u, "b_l": dz.b_l[j], "b_r": dz.b_r[j]}
         fl = ca.Function("left", [u], [ca.SX(dz.left.to_casadi(envj))])
         fr = ca.Function("right", [u], [ca.SX(dz.right.to_casadi(envj))])
-        left.append(lambda v, fl=fl: fl(v))
-        right.append(lambda v, fr=fr: fr(v))
+        ls = 1.0 if dz.left_scale is None else np.broadcast_to(np.asarray(dz.left_scale, float), (scenario.n,))[j]
+        rs = 1.0 if dz.right_scale is None else np.broadcast_to(np.asarray(dz.right_scale, float), (scenario.n,))[j]
+        left.append(lambda v, fl=fl, s=ls: s * fl(v))
+        right.append(lambda v, fr=fr, s=rs: s * fr(v))
     return left, right
 
 
-def plant_acceleration(scenario, q, dq, t, tau, width: float) -> dict:
-    """The true plant's ddq under commanded torque tau, with its parts (SX in q, dq, t, tau)."""
+def plant_parameters(scenario) -> tuple[list[str], np.ndarray]:
+    """Names and values of the plant's quantities the compiled closed loop takes as its parameter vector p.
+
+    Names are scenario keys, per-joint entries as key[j] (1-based): plant.mass_scale, plant.parameters.<name>,
+    plant.viscous[j], plant.coulomb[j], plant.disturbance_scale[j] and, with a dead zone,
+    plant.dead_zone.{b_l, b_r, left_scale, right_scale}[j]. The layout depends on the scenario's structure only,
+    so every variant of a scenario's values runs on the same compiled code.
+    """
+    pl = scenario.plant
+    n = scenario.model.n
+    names, vals = ["plant.mass_scale"], [float(pl.mass_scale)]
+    pv = scenario.model.parameter_dict() if scenario.model.p.numel() else {}
+    pv.update(pl.parameters)
+    for k in scenario.model.p_names:
+        names.append(f"plant.parameters.{k}")
+        vals.append(float(pv[k]))
+
+    def joints(key, v):
+        a = np.broadcast_to(np.asarray(1.0 if v is None else v, dtype=float), (n,))
+        names.extend(f"{key}[{j + 1}]" for j in range(n))
+        vals.extend(float(x) for x in a)
+    joints("plant.viscous", pl.viscous)
+    joints("plant.coulomb", pl.coulomb)
+    joints("plant.disturbance_scale", pl.disturbance_scale)
+    dz = pl.dead_zone
+    if dz is not None:
+        joints("plant.dead_zone.b_l", dz.b_l)
+        joints("plant.dead_zone.b_r", dz.b_r)
+        joints("plant.dead_zone.left_scale", dz.left_scale)
+        joints("plant.dead_zone.right_scale", dz.right_scale)
+    return names, np.array(vals, dtype=float)
+
+
+def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
+    """The true plant's ddq under commanded torque tau, with its parts (SX in q, dq, t, tau, and p if given).
+
+    `p` (SX, laid out as `plant_parameters`) makes the plant's uncertain quantities symbols; without it they are
+    the scenario's numbers.
+    """
     from . import plant as P
     from .model.base import christoffel_C
     model = scenario.model
     pl = scenario.plant
     n = model.n
-    # plant parameters: the model's values overridden by plant.parameters, then scaled by mass_scale
+    names, values = plant_parameters(scenario)
+    entries = [p[i] for i in range(len(names))] if p is not None else [float(v) for v in values]
+    par = dict(zip(names, entries))
+
+    def joints(key):
+        return [par[f"{key}[{j + 1}]"] for j in range(n)]
+
     M, G = model.M, model.G
     # The true plant is physical: its Coriolis matrix comes from M (Christoffel symbols), whatever C the
     # controller's model was given, unless the scenario asks for the model's C (plant.coriolis = "model").
     C = christoffel_C(M, model.q, model.dq) if pl.coriolis == "christoffel" and model.C_source == "given" else model.C
     if model.p.numel():
-        vals = model.parameter_dict()
-        vals.update(pl.parameters)
-        pv = ca.DM([vals[k] for k in model.p_names])
+        pv = ca.vertcat(*[par[f"plant.parameters.{k}"] for k in model.p_names])
         M, C, G = (ca.substitute(E, model.p, pv) for E in (M, C, G))
     # the model's q/dq are the design's; substitute ours in case they differ
-    M, C, G = (ca.substitute(E, ca.vertcat(model.q, model.dq), ca.vertcat(q, dq)) for E in (M, C, G))
-    s = float(pl.mass_scale)
+    M, C, G = (ca.substitute(E, ca.vertcat(model.q, model.dq), ca.vertcat(q, dq))
+               for E in (M, C, G))
+    s = par["plant.mass_scale"]
     M, C, G = s * M, s * C, s * G
-    fric = P.friction(dq, pl.viscous, pl.coulomb, width)
+    fric = ca.vertcat(*joints("plant.viscous")) * dq + ca.vertcat(*joints("plant.coulomb")) * P.sign(dq, width)
     env = {"t": t}
     for i, c in enumerate(model.coordinates):
         env[c] = q[i]
         env["d" + c] = dq[i]
-    dist = ca.vertcat(*[ca.SX(e.to_casadi(env)) for e in pl.disturbance])
+    ds = joints("plant.disturbance_scale")
+    dist = ca.vertcat(*[ds[j] * ca.SX(e.to_casadi(env)) for j, e in enumerate(pl.disturbance)])
     dz = pl.dead_zone
     if dz is None:
         tau_applied = tau
     else:
-        left, right = dead_zone_branches(scenario)
-        tau_applied = P.dead_zone(tau, dz.b_l, dz.b_r, left, right, width)
+        b_l, b_r = joints("plant.dead_zone.b_l"), joints("plant.dead_zone.b_r")
+        ls, rs = joints("plant.dead_zone.left_scale"), joints("plant.dead_zone.right_scale")
+        out = []
+        for j in range(n):
+            # eq. 2 as in plant.dead_zone: each branch evaluated only inside its own domain (smooth ramp)
+            ur = b_r[j] + P.ramp(tau[j] - b_r[j], width)
+            ul = b_l[j] - P.ramp(b_l[j] - tau[j], width)
+            right = ca.SX(dz.right.to_casadi({"u": ur, "b_l": b_l[j], "b_r": b_r[j]}))
+            left = ca.SX(dz.left.to_casadi({"u": ul, "b_l": b_l[j], "b_r": b_r[j]}))
+            out.append(rs[j] * right + ls[j] * left)
+        tau_applied = ca.vertcat(*out)
     rhs = tau_applied - ca.mtimes(C, dq) - G - fric - dist
     ddq = ca.solve(M, rhs) if n == 1 else ldl_solve(M, rhs)
     return {"ddq": ddq, "M": M, "C": C, "G": G, "friction": fric, "disturbance": dist, "tau_applied": tau_applied}
@@ -182,11 +247,12 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
     subbed = ca.substitute([S[k] for k in names], [ref_syms], [ref_t])
     sg = dict(zip(names, subbed))
     tau = sg["tau"]
-    plant = plant_acceleration(scenario, q, dq, t, tau, w)
+    p_names, p0 = plant_parameters(scenario)
+    p = ca.SX.sym("p", len(p_names))
+    plant = plant_acceleration(scenario, q, dq, t, tau, w, p=p)
     ddq = plant["ddq"]
     x = ca.vertcat(q, dq, *[ca.vec(sym[k]) for k in states])
-    xdot = ca.vertcat(dq, ddq, *[ca.vec(sg[f"{k}_dot"]) for k in states])
-    f = ca.Function("closed_loop", [t, x], [xdot], ["t", "x"], ["xdot"], {"cse": True})
+    xdot_p = ca.vertcat(dq, ddq, *[ca.vec(sg[f"{k}_dot"]) for k in states])
 
     w_hat = sym["w_hat"] if "w_hat" in sym else ca.SX(0, n)
     w_phi = ca.mtimes(w_hat.T, sg["Phi"]) if d.n_regressor else ca.SX.zeros(n, 1)
@@ -198,7 +264,16 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
         "ddq": ddq, "ddq_nom": sg["ddq"], "f_true": f_true, "w_phi": w_phi,
         "m1": (sg["F1"] - ca.fabs(sg["e1"])) / sg["F1"], "m2": (sg["F2"] - ca.fabs(sg["e2"])) / sg["F2"],
     }
-    outs = {k: ca.SX(outs[k]) for k in OUTPUT_NAMES}
+    outs_p = {k: ca.SX(outs[k]) for k in OUTPUT_NAMES}
+    parts_p = {k: ca.SX(v) for k, v in plant.items()}
+    # the nominal loop in (t, x): p replaced by this scenario's values, for every consumer that takes (t, x)
+    pk = list(parts_p)
+    nom = ca.substitute([xdot_p] + [outs_p[k] for k in OUTPUT_NAMES] + [parts_p[k] for k in pk], [p],
+                        [ca.DM(p0)])
+    xdot = nom[0]
+    outs = dict(zip(OUTPUT_NAMES, nom[1:1 + len(OUTPUT_NAMES)]))
+    plant = dict(zip(pk, nom[1 + len(OUTPUT_NAMES):]))
+    f = ca.Function("closed_loop", [t, x], [xdot], ["t", "x"], ["xdot"], {"cse": True})
     outputs = ca.Function("closed_loop_outputs", [t, x], [outs[k] for k in OUTPUT_NAMES], ["t", "x"],
                           list(OUTPUT_NAMES), {"cse": True})
 
@@ -210,4 +285,5 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
         warnings.warn("smoothing_width = 0: exact sign friction and dead-zone kinks; CVODES may stall on them",
                       RuntimeWarning, stacklevel=2)
     return ClosedLoop(design=d, scenario=sc, n=n, N=N, width=w, t=t, x=x, xdot=xdot, f=f, outputs=outputs,
-                      x0=x0, signals=outs, plant_parts=plant)
+                      x0=x0, signals=outs, plant_parts=plant, p=p, p_names=p_names, p0=p0, xdot_p=xdot_p,
+                      signals_p=outs_p)

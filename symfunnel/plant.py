@@ -17,10 +17,14 @@ Bounds of the approximations (all sharp, all checked by tests/test_plant.py):
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import casadi as ca
 import numpy as np
+
+from .errors import InputError
+from .expr import Expression
 
 Branch = Callable[[ca.SX], ca.SX]
 
@@ -232,3 +236,36 @@ def dead_zone_slope_bounds(left: Sequence[Branch], right: Sequence[Branch], b_l,
         both = np.concatenate([sr, sl])
         lo[i], hi[i] = float(np.min(both)), float(np.max(both))
     return lo, hi
+
+
+@dataclass
+class DeadZoneSpec:
+    """Asymmetric dead zone of eq. 2: branch expressions in u, b_l and b_r, per joint breakpoints."""
+
+    b_l: list[float]
+    b_r: list[float]
+    left: Expression
+    right: Expression
+    left_scale: list[float] | None = None   # per joint factor on the left branch (its slope); None = 1
+    right_scale: list[float] | None = None
+
+
+def check_dead_zone_spec(dz: DeadZoneSpec, n: int, file: str) -> None:
+    """Branches must vanish at their breakpoints and increase beyond them (eq. 2-4), decided numerically."""
+    u = ca.SX.sym("u")
+    for j in range(n):
+        env = {"u": u, "b_l": dz.b_l[j], "b_r": dz.b_r[j]}
+        for side, expr, b, span in (("right", dz.right, dz.b_r[j], 1.0), ("left", dz.left, dz.b_l[j], -1.0)):
+            e = expr.to_casadi(env)
+            f = ca.Function("f", [u], [e, ca.jacobian(e, u)])
+            at_b = float(f(b)[0])
+            if not math.isfinite(at_b) or abs(at_b) > 1e-9 * max(1.0, abs(b)):
+                raise InputError(f"gives {at_b:g} at u = {b:g} for joint {j + 1}", file=file,
+                                 key=f"plant.dead_zone.{side}",
+                                 expected="a branch that is 0 at its breakpoint (continuous dead zone)")
+            for s in (0.0, 0.5, 1.0, 5.0, 50.0):
+                slope = float(f(b + span * s)[1])
+                if not math.isfinite(slope) or slope <= 0:
+                    raise InputError(f"has slope {slope:g} at u = {b + span * s:g} for joint {j + 1}",
+                                     file=file, key=f"plant.dead_zone.{side}",
+                                     expected="an increasing branch (positive slope, eq. 3-4)")

@@ -17,6 +17,8 @@ from .family.transforms import TRANSFORMS
 from .family.variants import VARIANTS
 from .integrators import INTEGRATORS
 from .model import MODEL_TYPES
+from .plant import DeadZoneSpec
+from .plant import check_dead_zone_spec as _check_dead_zone
 from .names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
 
 DATA_DIR = Path(__file__).parent / "data"
@@ -24,7 +26,7 @@ BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
             "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims", "design",
-            "approximator", "expect"]
+            "approximator", "expect", "uncertainty", "sweep"]
 ESN_INPUTS = list(ESNApproximator.INPUTS)
 
 
@@ -58,16 +60,6 @@ class Expectation:
 
 
 @dataclass
-class DeadZoneSpec:
-    """Asymmetric dead zone of eq. 2: branch expressions in u, b_l and b_r, per joint breakpoints."""
-
-    b_l: list[float]
-    b_r: list[float]
-    left: Expression
-    right: Expression
-
-
-@dataclass
 class PlantSpec:
     """What the true plant has and the controller does not know."""
 
@@ -78,6 +70,7 @@ class PlantSpec:
     mass_scale: float
     parameters: dict[str, float]
     coriolis: str = "christoffel"        # the plant's C: "christoffel" (physical, from M) or "model" (as given)
+    disturbance_scale: list[float] | None = None   # per joint factor on the disturbance; None = 1
 
 
 @dataclass
@@ -178,6 +171,7 @@ class Scenario:
     design: DesignSpec = field(default_factory=DesignSpec)
     expectations: list[Expectation] = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
+    campaign: Any = None            # uncertainty.Campaign of [[uncertainty]] / [sweep], None without them
 
     @property
     def n(self) -> int:
@@ -276,12 +270,14 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
     design = _design(raw.get("design", {}), raw.get("approximator", {}), file)
     expectations = _expectations(raw.get("expect", []), n, claims, file)
+    from .uncertainty import parse_campaign
+    campaign = parse_campaign(raw, file=file, n=n, model=model, plant=plant)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
-                    design=design, expectations=expectations, raw=raw)
+                    design=design, expectations=expectations, raw=raw, campaign=campaign)
 
 
 # --- sections -------------------------------------------------------------------------------------
@@ -392,13 +388,14 @@ def _esn(table: Any, file: str) -> ESNSpec:
 
 def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
     p = "plant"
-    V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters", "coriolis"],
-                 file=file, prefix=p)
+    V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters", "coriolis",
+                         "disturbance_scale"], file=file, prefix=p)
     coriolis = V.get_str(table, "coriolis", "christoffel", file=file, prefix=p, choices=["christoffel", "model"])
     viscous = V.per_joint(table, "viscous", n, 0.0, file=file, prefix=p, minimum=0)
     coulomb = V.per_joint(table, "coulomb", n, 0.0, file=file, prefix=p, minimum=0)
     names = {"t"} | set(model.coordinates) | {"d" + c for c in model.coordinates}
     disturbance = _expr_list(table, "disturbance", n, file, p, names, default="0")
+    d_scale = V.per_joint(table, "disturbance_scale", n, 1.0, file=file, prefix=p, minimum=0)
     mass_scale = V.get_float(table, "mass_scale", 1.0, file=file, prefix=p, minimum=0, strict_min=True)
     params_raw = table.get("parameters", {})
     V.check_keys(params_raw, model.p_names, file=file, prefix="plant.parameters")
@@ -407,38 +404,19 @@ def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
     if "dead_zone" in table:
         t = table["dead_zone"]
         q = "plant.dead_zone"
-        V.check_keys(t, ["b_l", "b_r", "left", "right"], file=file, prefix=q, required=["b_l", "b_r"])
+        V.check_keys(t, ["b_l", "b_r", "left", "right", "left_scale", "right_scale"], file=file, prefix=q,
+                     required=["b_l", "b_r"])
         b_l = V.per_joint(t, "b_l", n, file=file, prefix=q, maximum=0, strict_max=True)
         b_r = V.per_joint(t, "b_r", n, file=file, prefix=q, minimum=0, strict_min=True)
         left = parse_expression(V.get_str(t, "left", "u - b_l", file=file, prefix=q), {"u", "b_l", "b_r"},
                                 file=file, key=q + ".left")
         right = parse_expression(V.get_str(t, "right", "u - b_r", file=file, prefix=q), {"u", "b_l", "b_r"},
                                  file=file, key=q + ".right")
-        dz = DeadZoneSpec(b_l, b_r, left, right)
+        scales = [V.per_joint(t, k, n, 1.0, file=file, prefix=q, minimum=0, strict_min=True)
+                  for k in ("left_scale", "right_scale")]
+        dz = DeadZoneSpec(b_l, b_r, left, right, *scales)
         _check_dead_zone(dz, n, file)
-    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params, coriolis)
-
-
-def _check_dead_zone(dz: DeadZoneSpec, n: int, file: str) -> None:
-    """Branches must vanish at their breakpoints and increase beyond them (eq. 2-4), decided numerically."""
-    import casadi as ca
-    u = ca.SX.sym("u")
-    for j in range(n):
-        env = {"u": u, "b_l": dz.b_l[j], "b_r": dz.b_r[j]}
-        for side, expr, b, span in (("right", dz.right, dz.b_r[j], 1.0), ("left", dz.left, dz.b_l[j], -1.0)):
-            e = expr.to_casadi(env)
-            f = ca.Function("f", [u], [e, ca.jacobian(e, u)])
-            at_b = float(f(b)[0])
-            if not math.isfinite(at_b) or abs(at_b) > 1e-9 * max(1.0, abs(b)):
-                raise InputError(f"gives {at_b:g} at u = {b:g} for joint {j + 1}", file=file,
-                                 key=f"plant.dead_zone.{side}",
-                                 expected="a branch that is 0 at its breakpoint (continuous dead zone)")
-            for s in (0.0, 0.5, 1.0, 5.0, 50.0):
-                slope = float(f(b + span * s)[1])
-                if not math.isfinite(slope) or slope <= 0:
-                    raise InputError(f"has slope {slope:g} at u = {b + span * s:g} for joint {j + 1}",
-                                     file=file, key=f"plant.dead_zone.{side}",
-                                     expected="an increasing branch (positive slope, eq. 3-4)")
+    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params, coriolis, d_scale)
 
 
 def _simulation(table: Any, file: str) -> SimulationSpec:

@@ -20,6 +20,7 @@ How a run works (docs/simulation.md has the long version):
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -51,8 +52,8 @@ _LOADED: dict = {}           # source hash -> (ode, outputs) externals loaded in
 class Compiled:
     """The integrator's DAE function and the logged-signals function, compiled or on the VM."""
 
-    dae: ca.Function                 # dyn_in -> dyn_out, states permuted, p = [chunk start time]
-    outputs: ca.Function             # (t, x) -> OUTPUT_NAMES, public state order
+    dae: ca.Function                 # dyn_in -> dyn_out, states permuted, p = [chunk start time; plant p]
+    outputs: ca.Function             # (t, x, p) -> OUTPUT_NAMES, public state order
     perm: np.ndarray                 # integrator state i = public state perm[i]
     mode: str                        # "compiled" or "vm"
     compile_time: float = 0.0
@@ -60,6 +61,12 @@ class Compiled:
     library: str | None = None
     source_hash: str | None = None
     maps: dict = field(default_factory=dict, repr=False)
+    pvals: np.ndarray | None = None  # the plant parameters of the run this copy is bound to (see `bind`)
+    integrators: dict = field(default_factory=dict, repr=False)
+
+    def bind(self, pvals) -> "Compiled":
+        """This compiled loop bound to one run's plant parameters (shares the code and the output maps)."""
+        return dataclasses.replace(self, pvals=np.asarray(pvals, dtype=float).reshape(-1))
 
 
 def _permutation(cl: ClosedLoop) -> np.ndarray:
@@ -71,9 +78,10 @@ def _permutation(cl: ClosedLoop) -> np.ndarray:
 
 
 def _dae_function(cl: ClosedLoop, perm: np.ndarray) -> ca.Function:
-    p = ca.SX.sym("t0")
+    t0 = ca.SX.sym("t0")
+    p = ca.vertcat(t0, cl.p)
     xi = cl.x[list(perm)]
-    ode = ca.substitute(cl.xdot, cl.t, cl.t + p)[list(perm)]
+    ode = ca.substitute(cl.xdot_p, cl.t, cl.t + t0)[list(perm)]
     empty = ca.SX(0, 1)
     return ca.Function("symfunnel_ode", [cl.t, xi, ca.SX.sym("z", 0, 1), p, ca.SX.sym("u", 0, 1)],
                        [ode, empty, empty, empty], ca.dyn_in(), ca.dyn_out(), {"cse": True})
@@ -121,8 +129,8 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     say = progress or (lambda s: None)
     perm = _permutation(cl)
     dae = _dae_function(cl, perm)
-    outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x], [cl.signals[k] for k in OUTPUT_NAMES],
-                          ["t", "x"], list(OUTPUT_NAMES), {"cse": True})
+    outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x, cl.p], [cl.signals_p[k] for k in OUTPUT_NAMES],
+                          ["t", "x", "p"], list(OUTPUT_NAMES), {"cse": True})
     vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm")
     if not jit or os.environ.get("SYMFUNNEL_NO_JIT"):
         return vm
@@ -273,13 +281,14 @@ class _Runner:
         self.cl, self.comp, self.method, self.h, self.sim = cl, comp, method, h, sim
         self.perm = comp.perm
         self.inv = np.argsort(comp.perm)
-        self._integrators: dict = {}
+        # integrators are shared by every run on this compiled loop (a campaign builds them once)
+        self._integrators: dict = comp.integrators
         self.stats = {"steps": 0, "rhs_evaluations": 0, "jacobian_evaluations": 0, "error_test_failures": 0}
 
     def integrator(self, K: int, h: float | None = None):
         """An integrator over the relative output grid h, 2h, ..., K h (p = the chunk's start time)."""
         h = self.h if h is None else h
-        key = (K, h)
+        key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps)
         if key not in self._integrators:
             sim = self.sim
             grid = [h * (k + 1) for k in range(K)]
@@ -292,7 +301,7 @@ class _Runner:
         """States (K, n_x), public order, at t0 + h, ..., t0 + K h; RuntimeError when the integrator fails."""
         F = self.integrator(K, h)
         try:
-            xf = F(x0=x0[self.perm], p=t0)["xf"]
+            xf = F(x0=x0[self.perm], p=np.concatenate([[t0], self.comp.pvals]))["xf"]
         except RuntimeError as exc:
             from .sim_hints import error_line
             self.last_error = error_line(str(exc))
@@ -317,7 +326,7 @@ def _outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> dict:
     fm = comp.maps.get(T)
     if fm is None:
         fm = comp.maps[T] = comp.outputs.map(T)
-    vals = fm(t.reshape(1, -1), X.T)
+    vals = fm(t.reshape(1, -1), X.T, comp.pvals)
     out = {}
     for k, v in zip(OUTPUT_NAMES, vals):
         out[k] = np.asarray(v).T
@@ -360,11 +369,16 @@ def _grid(t_final: float, dt: float) -> tuple[int, float]:
 
 
 def simulate(scenario, design, *, t_final=None, integrator=None, width=None, progress=None,
-             wall_limit=None, closed_loop=None, jit: bool = True) -> SimResult:
+             wall_limit=None, closed_loop=None, jit: bool = True, params=None, x0=None,
+             fixed_chunks: bool = False) -> SimResult:
     """Simulate a scenario's closed loop; never raises for a breach, a timeout or an integrator failure.
 
     Returns a SimResult whose status is 'ok', 'breach', 'initial_outside', 'timeout' or 'failed', with the
-    trajectory up to where the run stopped. Bad settings raise InputError.
+    trajectory up to where the run stopped. Bad settings raise InputError. `params` (name -> value, names of
+    `closedloop.plant_parameters`) and `x0` (public state order) override the closed loop's plant quantities and
+    initial state without recompiling: a campaign runs every variant on one compiled loop. `fixed_chunks`
+    integrates in the chunks a fast machine chooses (25 points, then 500) whatever the wall time, so that the
+    result does not depend on the machine's speed (CVODES restarts at every chunk).
     """
     say = progress or (lambda s: None)
     sc = scenario
@@ -400,6 +414,15 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
         comp = compile_closed_loop(cl, progress=say, jit=jit, approx_jacobian=approx)
         cl.__dict__.setdefault("_compiled", {})[(jit, approx)] = comp
     compile_time = time.perf_counter() - start
+    pv = cl.p0.copy()
+    if params:
+        index = {k: i for i, k in enumerate(cl.p_names)}
+        for k, v in params.items():
+            if k not in index:
+                raise InputError("is not a plant parameter of this closed loop", key=k,
+                                 expected="one of " + ", ".join(cl.p_names))
+            pv[index[k]] = float(v)
+    comp = comp.bind(pv)
 
     M, h = _grid(float(tf), sim.dt)
     n = cl.n
@@ -413,7 +436,7 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
     runner = _Runner(cl, comp, method, h, sim)
 
     # initial point
-    x0 = cl.x0.copy()
+    x0 = cl.x0.copy() if x0 is None else np.asarray(x0, dtype=float).reshape(cl.nx).copy()
     t_list = [np.array([0.0])]
     X_list = [x0[None, :]]
     o0 = _outputs(comp, n, np.array([0.0]), x0[None, :])
@@ -481,7 +504,10 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
             # restarts at chunk boundaries); only a chunk that would overrun the wall-clock limit is shrunk.
             per_point = spent / Kc
             remaining = max(limit - (time.perf_counter() - start), 1e-3)
-            K = CHUNK_SIZES[min(CHUNK_SIZES.index(K) + 1, len(CHUNK_SIZES) - 1)] if K in CHUNK_SIZES else 1
+            if fixed_chunks:
+                K = CHUNK_SIZES[-1]
+            else:
+                K = CHUNK_SIZES[min(CHUNK_SIZES.index(K) + 1, len(CHUNK_SIZES) - 1)] if K in CHUNK_SIZES else 1
             if per_point * K > remaining / 4:
                 K = max([c for c in CHUNK_SIZES if per_point * c <= remaining / 4] or [1])
             now = time.perf_counter()

@@ -16,13 +16,13 @@ PKG = Path(__file__).resolve().parent.parent / "symfunnel"
 #: layers, lowest first; a module may import its own layer and the ones below
 LAYERS = [
     ("ground", ["errors", "io", "validate", "names", "registry", "expr", "sx", "family", "esn", "plant",
-                "integrators", "inputs", "outputs", "lifecycle", "sim_hints"]),
+                "integrators", "inputs", "outputs", "lifecycle", "sim_hints", "uncertainty", "toml_write"]),
     ("model", ["model"]),
     ("scenario", ["scenario"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
     ("stages", ["simulate", "codegen", "checks"]),
-    ("pipeline", ["pipeline"]),
+    ("pipeline", ["pipeline", "campaign"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__"]),
 ]
 

@@ -20,6 +20,8 @@ def register(sub, common) -> None:
                     help="also write every figure as PNG and PDF into DIR (created if missing)")
     sp.add_argument("--no-codegen", action="store_true", help="leave out the code-generation section")
     sp.add_argument("--no-mutants", action="store_true", help="leave out the mutation score")
+    sp.add_argument("--sweep", metavar="DIR", help="the robustness-campaign section of a `symfunnel sweep` "
+                                                   "directory alone (default --out: DIR/sweep.html)")
     sp.set_defaults(func=run)
 
 
@@ -30,6 +32,10 @@ def run(args) -> int:
     from ..pipeline import Run, RunOptions
     from ..report import build_report, default_path
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
+    if args.sweep:
+        from ..report.sweep import write_sweep_page
+        print(write_sweep_page(args.sweep, args.out))
+        return 0
     figures = figures_dir(args.figures) if args.figures is not None else None
     sc = _load(args)
     check_output_file(args.out if args.out is not None else default_path(sc))

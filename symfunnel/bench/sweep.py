@@ -1,0 +1,119 @@
+"""Bench area `sweep`: robustness campaigns of the paper's closed loop on one compiled loop, in the same run as a
+plain loop of `symfunnel.simulate` calls on scenario variants (what a user would otherwise write).
+
+Ids: `sweep.runs_per_second` (campaign throughput with the machine's cores; baseline: the simulate loop in one
+process; `extrapolated_10000_runs_s` says how long the issue's 10,000-run target would take at that rate),
+`sweep.scaling_2_workers` (throughput of 2 workers over 1 worker, same campaign) and `sweep.compile_time` (the one
+compilation of a campaign, in a fresh cache). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS (default 24 runs per campaign),
+$SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from . import result
+
+UNCERTAINTY = [
+    {"key": "plant.mass_scale", "dist": "uniform", "low": 0.8, "high": 1.2},
+    {"key": "plant.coulomb", "dist": "uniform", "low": 4.0, "high": 8.0, "per_joint": True},
+    {"key": "plant.dead_zone.b_r", "dist": "uniform", "low": 0.5, "high": 2.0},
+]
+
+
+def campaign(runs: int, t_final: float):
+    """The paper scenario with three [[uncertainty]] tables and a [sweep] of `runs` runs of `t_final` s."""
+    from ..scenario import DATA_DIR, from_dict, load_scenario
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["uncertainty"] = copy.deepcopy(UNCERTAINTY)
+    raw["sweep"] = {"runs": runs, "design": "sobol", "seed": 0, "t_final": t_final}
+    return from_dict(raw, file=str(DATA_DIR / "paper_2dof.toml"), base_dir=DATA_DIR, default_name="paper")
+
+
+def baseline_loop(sc, runs: int) -> float:
+    """Runs per second of one process calling simulate() on each run's scenario (load, derive, build, run)."""
+    from ..scenario import from_dict
+    from ..simulate import simulate
+    from ..campaign import make_job, worst_scenario
+    from ..design import derive
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+        import tomli as tomllib
+    job = make_job(sc)
+    t0 = time.perf_counter()
+    for i in range(runs):
+        text = worst_scenario(job, sc.campaign, i, sc.n)
+        raw = tomllib.loads(text)
+        variant = from_dict(raw, file=sc.file, base_dir=Path(job.base_dir), default_name="variant")
+        simulate(variant, derive(variant), t_final=job.t_final)
+    return runs / (time.perf_counter() - t0)
+
+
+def cpu_per_run(sc, runs: int) -> dict:
+    """CPU and wall seconds per campaign run in this process (after one warm-up run), and the process's peak RSS."""
+    import resource
+
+    from ..campaign import make_job, run_chunk
+    job = make_job(sc)
+    run_chunk(job, [0])
+    t, c = time.perf_counter(), time.process_time()
+    run_chunk(job, range(1, runs + 1))
+    return {"cpu_s_per_run": (time.process_time() - c) / runs, "wall_s_per_run": (time.perf_counter() - t) / runs,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def run(progress=None) -> list[dict]:
+    """Measure the campaign throughput (cores, 1 and 2 workers), the simulate loop and the one compile time."""
+    from ..campaign import sweep
+    say = progress or (lambda s: None)
+    runs = int(os.environ.get("SYMFUNNEL_BENCH_SWEEP_RUNS", 24))
+    tf = float(os.environ.get("SYMFUNNEL_BENCH_T_FINAL", 20.0))
+    sc = campaign(runs, tf)
+    cores = os.cpu_count() or 1
+    out = {}
+    old_cache = os.environ.get("SYMFUNNEL_CACHE")
+    with tempfile.TemporaryDirectory(prefix="symfunnel-bench-sweep-") as tmp:
+        os.environ["SYMFUNNEL_CACHE"] = str(Path(tmp) / "cache")     # a fresh cache: the compile is real
+        try:
+            from .. import simulate as simmod
+            simmod._LOADED.clear()
+            for w in sorted({cores, 1, 2}):
+                say(f"sweep: {runs} runs of {tf:g} s with {w} worker(s)")
+                res = sweep(sc, workers=w, out=Path(tmp) / f"w{w}")
+                out[w] = res.summary
+            compiled = len(list((Path(tmp) / "cache").rglob("*.so")))
+        finally:
+            if old_cache is None:
+                os.environ.pop("SYMFUNNEL_CACHE", None)
+            else:
+                os.environ["SYMFUNNEL_CACHE"] = old_cache
+    say("sweep: CPU time per run in one process")
+    one = cpu_per_run(sc, max(2, runs // 4))
+    base_runs = max(2, runs // 4)
+    say(f"sweep baseline: a loop of {base_runs} simulate() calls on scenario variants")
+    base_rps = baseline_loop(sc, base_runs)
+    # steady rate: after the first chunk came back (worker start-up, a fixed cost, excluded), see sweep.execute
+    def steady(w):
+        return out[w]["steady_runs_per_second"] or out[w]["runs_per_second"]
+    rps = steady(cores)
+    first = out[min(out)]
+    info = {"runs": runs, "t_final": tf, "workers": cores, "baseline_runs": base_runs,
+            "extrapolated_10000_runs_s": 10000 / rps, "target_10000_runs_s": 600.0,
+            "runs_per_second_with_startup": out[cores]["runs_per_second"], "breaches": out[cores]["breaches"],
+            "one_process": one, "load_average_1min": os.getloadavg()[0],
+            "note": "steady rate after the workers started; 10,000-run time extrapolated from it"}
+    return [
+        result("sweep.runs_per_second", rps, "runs/s", "loop of symfunnel.simulate calls, one process", base_rps,
+               rps / base_rps, **info),
+        result("sweep.scaling_2_workers", steady(2) / steady(1), "x", "1 worker", 1.0, steady(2) / steady(1),
+               runs_per_second_1=steady(1), runs_per_second_2=steady(2),
+               target=1.7, runs=runs, t_final=tf),
+        result("sweep.compile_time", first["compile_time"], "s", None, None, None,
+               compilations=compiled, campaigns=len(out), runs_per_campaign=runs,
+               cache_hit_first=first["compile_cache_hit"]),
+    ]

@@ -1,0 +1,463 @@
+"""Robustness campaigns: many runs of one scenario's closed loop, compiled once, over its `[[uncertainty]]`.
+
+Each run's drawn values are a pure function of (seed, run id) (`symfunnel.uncertainty`) and its row a pure
+function of those values (fixed integration chunks, one compiled loop), so rows are identical whatever executes
+them: a local process pool or a dask.distributed cluster, with any number of workers. Finished chunks of rows are
+written at once as small Parquet files beside `results.parquet`, which is rewritten (atomically) from them every
+few seconds and at the end: a killed sweep loses at most its runs in flight and `resume` completes it.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import os
+import shutil
+import threading
+import time
+import warnings
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .io import atomic_path, atomic_write, json_safe
+
+ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "timeout": "failed", "failed": "failed"}
+RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau"]
+PARTS = ".results.parts"
+FLUSH_SECONDS = 10.0
+
+
+@dataclass(frozen=True)
+class Job:
+    """Everything a worker needs to run chunks of a campaign (picklable; the closed loop is built once per process)."""
+
+    raw: dict
+    file: str
+    base_dir: str
+    name: str
+    t_final: float
+    runs: int
+    fingerprint: str
+
+
+_STATE: dict = {}        # (fingerprint, thread) -> (scenario, closed loop, compile time, cache hit)
+
+
+def make_job(scenario, *, runs: int | None = None) -> Job:
+    """The campaign of a scenario with its `[[uncertainty]]` (InputError without one)."""
+    c = scenario.campaign
+    if c is None or not c.uncertainties:
+        raise InputError("has no [[uncertainty]] table", file=scenario.file, key="uncertainty",
+                         expected="at least one [[uncertainty]] table for a sweep")
+    n_runs = c.sweep.runs if runs is None else runs
+    tf = float(c.sweep.t_final if c.sweep.t_final is not None else scenario.simulation.t_final)
+    raw = copy.deepcopy(scenario.raw)
+    blob = json.dumps({"raw": raw, "runs": n_runs, "t_final": tf}, sort_keys=True, default=str)
+    fp = hashlib.sha256(blob.encode()).hexdigest()[:20]
+    return Job(raw, scenario.file, str(Path(scenario.file).resolve().parent), scenario.name, tf, n_runs, fp)
+
+
+def _state(job: Job):
+    # one closed loop per thread: CasADi function objects are not for concurrent calls (dask --nthreads > 1)
+    key = (job.fingerprint, threading.get_ident())
+    st = _STATE.get(key)
+    if st is None:
+        from .closedloop import build_closed_loop
+        from .design import derive
+        from .scenario import from_dict
+        from .simulate import compile_closed_loop
+        sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cl = build_closed_loop(sc, derive(sc))
+            t0 = time.perf_counter()
+            comp = compile_closed_loop(cl)
+        cl.__dict__.setdefault("_compiled", {})[(True, True)] = comp
+        st = _STATE[key] = (sc, cl, time.perf_counter() - t0, comp.cached)
+    return st
+
+
+def prepare(job: Job) -> dict:
+    """Build and compile the campaign's closed loop in this process; its one compile (or cache load) time."""
+    _, cl, compile_time, cached = _state(job)
+    return {"compile_time": compile_time, "cache_hit": cached, "parameters": len(cl.p_names)}
+
+
+def row_of(result, run: int, columns: list[str], values) -> dict:
+    """One results row of a simulated run."""
+    s = result.signals
+    m1 = float(np.min(s["m1"])) if s["m1"].size else math.nan
+    m2 = float(np.min(s["m2"])) if s["m2"].size else math.nan
+    b = result.breach
+    if b is not None:
+        if b["funnel"] == "e1":
+            m1 = min(m1, b["margin"]) if not math.isnan(m1) else b["margin"]
+        else:
+            m2 = min(m2, b["margin"]) if not math.isnan(m2) else b["margin"]
+    tau = float(np.max(np.abs(s["tau"]))) if s["tau"].size and np.isfinite(s["tau"]).all() else math.nan
+    row = {"run": int(run)}
+    row.update({c: float(v) for c, v in zip(columns, values)})
+    row.update({"status": ROW_STATUS[result.status], "t_end": float(result.t[-1]) if result.t.size else 0.0,
+                "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau})
+    return row
+
+
+def run_chunk(job: Job, run_ids) -> list[dict]:
+    """Rows of the given runs (the unit of work of the pool and of dask)."""
+    from .simulate import simulate
+    from .uncertainty import run_inputs
+    sc, cl, _, _ = _state(job)
+    camp = sc.campaign
+    ids = [int(i) for i in run_ids]
+    vals = camp.values(ids, job.runs)
+    rows = []
+    for rid, v in zip(ids, vals):
+        params, x0 = run_inputs(camp, cl, v)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                r = simulate(sc, cl.design, t_final=job.t_final, closed_loop=cl, params=params, x0=x0,
+                             fixed_chunks=True)
+            except Exception as exc:  # noqa: BLE001 - one bad run must not stop a campaign: its row says failed
+                rows.append(_failed_row(rid, camp.columns, v, exc))
+                continue
+        rows.append(row_of(r, rid, camp.columns, v))
+    return rows
+
+
+def _failed_row(rid, columns, values, exc) -> dict:
+    row = {"run": int(rid)}
+    row.update({c: float(v) for c, v in zip(columns, values)})
+    row.update({"status": "failed", "t_end": 0.0, "min_margin_e1": math.nan, "min_margin_e2": math.nan,
+                "max_abs_tau": math.nan})
+    return row
+
+
+# --- results on disk -------------------------------------------------------------------------------------
+
+def _schema(columns):
+    import pyarrow as pa
+    fields = [pa.field("run", pa.int64())] + [pa.field(c, pa.float64()) for c in columns]
+    fields += [pa.field("status", pa.string())] + [pa.field(c, pa.float64()) for c in RESULT_COLUMNS[1:]]
+    return pa.schema(fields)
+
+
+def _table(rows, columns):
+    import pyarrow as pa
+    schema = _schema(columns)
+    return pa.Table.from_pylist(rows, schema=schema)
+
+
+def _write_parquet(table, path: Path) -> None:
+    import pyarrow.parquet as pq
+    with atomic_path(path) as tmp:
+        pq.write_table(table, str(tmp))
+
+
+class ResultStore:
+    """results.parquet of a sweep directory, fed by finished chunks (each written at once) and merged periodically."""
+
+    def __init__(self, out: Path, columns: list[str]):
+        self.out = Path(out)
+        self.columns = columns
+        self.parts = self.out / PARTS
+        self.final = self.out / "results.parquet"
+        self._count = 0
+        self._last_merge = time.monotonic()
+
+    def read(self):
+        """Every row written so far (results.parquet and unmerged chunks), one per run, sorted by run."""
+        import pyarrow as pa
+        import pyarrow.compute as pc
+        import pyarrow.parquet as pq
+        tables = []
+        if self.final.exists():
+            tables.append(pq.read_table(str(self.final)))
+        if self.parts.is_dir():
+            for p in sorted(self.parts.glob("*.parquet")):
+                try:
+                    tables.append(pq.read_table(str(p)))
+                except Exception:  # noqa: BLE001 - a chunk cut short by a kill: its runs are simply redone
+                    continue
+        if not tables:
+            return _table([], self.columns)
+        schema = _schema(self.columns)
+        t = pa.concat_tables([x.select(schema.names).cast(schema) for x in tables])
+        t = t.take(pc.sort_indices(t, sort_keys=[("run", "ascending")]))
+        runs = t.column("run").to_numpy()
+        keep = np.ones(runs.size, dtype=bool)
+        keep[1:] = runs[1:] != runs[:-1]
+        return t.filter(pa.array(keep))
+
+    def done(self) -> set[int]:
+        """Run ids already on disk."""
+        return set(int(r) for r in self.read().column("run").to_numpy())
+
+    def add(self, rows: list[dict]) -> None:
+        """Write one finished chunk at once; merge into results.parquet every FLUSH_SECONDS."""
+        if rows:
+            self._count += 1
+            name = f"part-{os.getpid()}-{time.time_ns()}-{self._count}.parquet"
+            _write_parquet(_table(rows, self.columns), self.parts / name)
+        if time.monotonic() - self._last_merge > FLUSH_SECONDS:
+            self.merge()
+
+    def merge(self):
+        """Rewrite results.parquet from everything written so far (atomically), then drop the merged chunks."""
+        merged = list(self.parts.glob("*.parquet")) if self.parts.is_dir() else []
+        t = self.read()
+        _write_parquet(t, self.final)
+        for p in merged:
+            p.unlink(missing_ok=True)
+        self._last_merge = time.monotonic()
+        return t
+
+    def clear(self) -> None:
+        """Forget a previous sweep in this directory (a fresh start)."""
+        shutil.rmtree(self.parts, ignore_errors=True)
+        for name in ("results.parquet", "summary.json", "worst.toml", "campaign.json"):
+            (self.out / name).unlink(missing_ok=True)
+
+
+# --- execution -------------------------------------------------------------------------------------------
+
+def connect(address: str, timeout: float = 10.0, worker_timeout: float = 30.0):
+    """A dask.distributed client of a running scheduler with workers; InputError naming the address otherwise."""
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - a regular dependency
+        raise InputError("needs the 'distributed' package", key="--scheduler",
+                         expected="pip install distributed") from None
+    if not (isinstance(address, str) and "://" in address):
+        raise InputError(f"is '{address}'", key="--scheduler", expected="an address such as tcp://HOST:PORT")
+    try:
+        client = Client(address, timeout=f"{timeout:g}s", set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"cannot reach the scheduler at {address} ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else 'no answer'})", key="--scheduler",
+                         expected="the address of a running dask scheduler (tcp://HOST:PORT)") from None
+    try:
+        client.wait_for_workers(1, timeout=worker_timeout)
+    except (TimeoutError, OSError):
+        client.close()
+        raise InputError(f"the scheduler at {address} has no workers (waited {worker_timeout:g} s)",
+                         key="--scheduler", expected="a scheduler with `dask worker` processes attached") from None
+    return client
+
+
+def _chunks(ids: list[int], size: int) -> list[list[int]]:
+    return [ids[i:i + size] for i in range(0, len(ids), size)]
+
+
+def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None, chunk_size=None,
+            progress=None) -> dict:
+    """Run `todo` (run ids) on a local process pool or a dask client, calling on_rows(rows) as chunks finish."""
+    say = progress or (lambda s: None)
+    if client is not None:
+        workers = max(1, len(client.scheduler_info().get("workers", {})))
+    size = chunk_size or int(min(32, max(1, len(todo) // (8 * workers))))
+    chunks = _chunks(todo, size)
+    total, done = len(todo), 0
+    t0 = time.perf_counter()
+    last = 0.0
+    first = None            # (time, runs) when the first chunk came back: the workers had started by then
+
+    def tick(k):
+        nonlocal done, last, first
+        done += k
+        now = time.perf_counter()
+        if first is None:
+            first = (now, done)
+        if now - last > 1.0 or done == total:
+            rate = done / max(now - t0, 1e-9)
+            eta = (total - done) / rate if rate > 0 else float("inf")
+            say(f"sweep: {done}/{total} runs, {rate:.2f} runs/s, about {eta:.0f} s left")
+            last = now
+
+    window = 4 * workers
+    if client is not None:
+        from distributed import as_completed
+        pending = deque(chunks)
+        futs = [client.submit(run_chunk, job, pending.popleft(), pure=False, retries=3)
+                for _ in range(min(window, len(pending)))]
+        ac = as_completed(futs, loop=client.loop)
+        for fut in ac:
+            rows = fut.result()
+            on_rows(rows)
+            tick(len(rows))
+            if pending:
+                ac.add(client.submit(run_chunk, job, pending.popleft(), pure=False, retries=3))
+    elif chunks:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+            pending = deque(chunks)
+            running = {pool.submit(run_chunk, job, pending.popleft())
+                       for _ in range(min(window, len(pending)))}
+            while running:
+                finished, running = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                for fut in finished:
+                    rows = fut.result()
+                    on_rows(rows)
+                    tick(len(rows))
+                    if pending:
+                        running.add(pool.submit(run_chunk, job, pending.popleft()))
+    end = time.perf_counter()
+    wall = end - t0
+    steady = None
+    if first is not None and done > first[1] and end > first[0]:
+        steady = (done - first[1]) / (end - first[0])
+    return {"wall": wall, "runs": total, "workers": workers,
+            "runs_per_second": total / wall if wall > 0 and total else None,
+            "steady_runs_per_second": steady}
+
+
+# --- summary, worst case ---------------------------------------------------------------------------------
+
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> list[float]:
+    """Exact (Clopper-Pearson) confidence interval of a binomial proportion k/n."""
+    from scipy.stats import beta
+    if n <= 0:
+        return [0.0, 1.0]
+    a = 1.0 - level
+    lo = 0.0 if k == 0 else float(beta.ppf(a / 2, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1 - a / 2, k + 1, n - k))
+    return [lo, hi]
+
+
+def _quantiles(a: np.ndarray) -> dict:
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return {}
+    qs = np.quantile(a, [0.0, 0.01, 0.05, 0.5, 0.95, 0.99, 1.0])
+    return dict(zip(["min", "p01", "p05", "median", "p95", "p99", "max"], (float(x) for x in qs)),
+                mean=float(np.mean(a)))
+
+
+def summarize(table, columns: list[str]) -> dict:
+    """The campaign's figures from its results table (contract keys first)."""
+    d = table.to_pydict()
+    status = np.array(d["status"], dtype=object)
+    m = np.fmin(np.array(d["min_margin_e1"], float), np.array(d["min_margin_e2"], float))
+    runs = len(status)
+    breaches = int(np.sum(status == "breach"))
+    failed = int(np.sum(status == "failed"))
+    decided = runs - failed
+    worst = None
+    if np.isfinite(m).any():
+        # lowest min margin; ties (e.g. both at the initial e2 margin) go to the lower sum of the two margins
+        total = np.array(d["min_margin_e1"], float) + np.array(d["min_margin_e2"], float)
+        order = np.lexsort((np.nan_to_num(total, nan=np.inf), np.nan_to_num(m, nan=np.inf)))
+        i = int(order[0])
+        worst = {"run": int(d["run"][i]), "status": str(status[i]), "min_margin": float(m[i]),
+                 "min_margin_e1": float(d["min_margin_e1"][i]), "min_margin_e2": float(d["min_margin_e2"][i]),
+                 "max_abs_tau": float(d["max_abs_tau"][i]), "values": {c: float(d[c][i]) for c in columns}}
+    return {"runs": runs, "breaches": breaches,
+            "breach_probability": breaches / decided if decided else None,
+            "ci95": clopper_pearson(breaches, decided),
+            "worst_run": worst["run"] if worst else None,
+            "failed": failed, "worst": worst,
+            "min_margin": _quantiles(m), "max_abs_tau": _quantiles(np.array(d["max_abs_tau"], float))}
+
+
+def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
+    """A complete scenario (TOML text) that `symfunnel simulate` replays to run `run` of the campaign."""
+    from .toml_write import dumps
+    from .uncertainty import scenario_edits
+    values = campaign.values([run], job.runs)[0]
+    raw = copy.deepcopy(job.raw)
+    raw.pop("uncertainty", None)
+    raw.pop("sweep", None)
+    for key, v in scenario_edits(campaign, n, values).items():
+        *path, leaf = key.split(".")
+        t = raw
+        for p in path:
+            t = t.setdefault(p, {})
+        t[leaf] = v
+    model = raw.get("model", {})
+    if isinstance(model.get("path"), str):
+        model["path"] = str((Path(job.base_dir) / model["path"]).resolve())
+    raw["name"] = f"{job.name}-worst"[:64]
+    raw["title"] = f"{raw.get('title', job.name)} - worst run {run} of a sweep"
+    raw.setdefault("simulation", {})["t_final"] = float(job.t_final)
+    return dumps(raw)
+
+
+@dataclass
+class SweepResult:
+    """A finished (or resumed) campaign: summary figures and where the files are."""
+
+    summary: dict
+    out: Path
+    table: object = field(repr=False, default=None)
+
+    def to_json(self) -> dict:
+        """The `--json` output (= summary.json)."""
+        return json_safe(self.summary)
+
+
+def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume=False, progress=None,
+          chunk_size=None) -> SweepResult:
+    """Run a scenario's campaign; write results.parquet, summary.json and worst.toml into `out`."""
+    from .uncertainty import check_runs
+    say = progress or (lambda s: None)
+    if runs is not None:
+        check_runs(runs, file=None, key="--runs")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise InputError(f"is {workers}", key="--workers", expected="an integer >= 1")
+    job = make_job(scenario, runs=runs)
+    camp = scenario.campaign
+    out = Path(out) if out is not None else Path("reports") / f"{scenario.name}-sweep"
+    if out.exists() and not out.is_dir():
+        raise InputError("is a file", file=str(out), key="--out", expected="a directory")
+    client = connect(scheduler) if scheduler else None
+    try:
+        store = ResultStore(out, camp.columns)
+        meta = {"fingerprint": job.fingerprint, "scenario": scenario.name, "runs": job.runs,
+                "design": camp.sweep.design, "seed": camp.sweep.seed, "t_final": job.t_final,
+                "columns": camp.columns}
+        meta_path = out / "campaign.json"
+        if resume and meta_path.exists():
+            old = json.loads(meta_path.read_text(encoding="utf-8"))
+            if old.get("fingerprint") != job.fingerprint:
+                raise InputError("holds a different campaign (scenario, runs or horizon changed)", file=str(out),
+                                 key="--resume", expected="the same scenario and --runs as the interrupted sweep")
+        elif not resume:
+            store.clear()
+        say(f"sweep of {scenario.name}: {job.runs} runs ({camp.sweep.design}, seed {camp.sweep.seed}) of "
+            f"{job.t_final:g} s over {', '.join(camp.columns)}")
+        t0 = time.perf_counter()
+        info = prepare(job)
+        say(f"closed loop compiled once in {info['compile_time']:.2f} s "
+            f"({'cache hit' if info['cache_hit'] else 'compiled'}); {info['parameters']} plant parameters")
+        atomic_write(meta_path, json.dumps(meta, indent=2))
+        done = store.done() if resume else set()
+        todo = [i for i in range(job.runs) if i not in done]
+        if resume:
+            say(f"resume: {len(done)} runs on disk, {len(todo)} to go")
+        w = workers or os.cpu_count() or 1
+        ex = execute(job, todo, store.add, workers=w, client=client, chunk_size=chunk_size, progress=say)
+    finally:
+        if client is not None:
+            client.close()
+    table = store.merge()
+    shutil.rmtree(store.parts, ignore_errors=True)
+    s = summarize(table, camp.columns)
+    summary = {k: s[k] for k in ("runs", "breaches", "breach_probability", "ci95", "worst_run")}
+    summary.update({"runs_per_second": ex["runs_per_second"], "workers": ex["workers"],
+                    "steady_runs_per_second": ex["steady_runs_per_second"],
+                    "scenario": scenario.name, "design": camp.sweep.design, "seed": camp.sweep.seed,
+                    "t_final": job.t_final, "failed": s["failed"], "compile_time": info["compile_time"],
+                    "compile_cache_hit": info["cache_hit"], "wall_time": time.perf_counter() - t0,
+                    "columns": camp.columns, "worst": s["worst"], "min_margin": s["min_margin"],
+                    "max_abs_tau": s["max_abs_tau"], "out": str(out)})
+    if s["worst_run"] is not None:
+        atomic_write(out / "worst.toml", worst_scenario(job, camp, s["worst_run"], scenario.n))
+    atomic_write(out / "summary.json", json.dumps(json_safe(summary), indent=2, allow_nan=False))
+    return SweepResult(summary, out, table)

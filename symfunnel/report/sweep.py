@@ -1,0 +1,200 @@
+"""The report's robustness-campaign section: figures and figures-with-text from a sweep directory.
+
+    from symfunnel.report.sweep import load_sweep, sweep_section, write_sweep_page
+    section = sweep_section("reports/paper-sweep")     # dict: summary, table rows, SVG figures
+
+`write_sweep_page` writes the section alone as a self-contained HTML file (`symfunnel report --sweep DIR`); the full
+report can embed `sweep_section(...)` the same way as its other sections.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .figures import _plt, _with_rc
+
+STATUS_COLORS = {"ok": "C0", "breach": "crimson", "failed": "0.5"}
+FIXED = ("run", "status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau")
+
+
+def load_sweep(directory) -> tuple[dict, dict]:
+    """(summary.json, results.parquet as column -> numpy array) of a sweep directory; InputError if incomplete."""
+    d = Path(directory)
+    summary_path, results = d / "summary.json", d / "results.parquet"
+    for p in (summary_path, results):
+        if not p.is_file():
+            raise InputError("is missing", file=str(p), key="--sweep",
+                             expected="a directory written by `symfunnel sweep` (summary.json, results.parquet)")
+    try:
+        summary = json.loads(summary_path.read_text(encoding="utf-8"))
+        import pyarrow.parquet as pq
+        table = pq.read_table(str(results)).to_pydict()
+    except Exception as exc:  # noqa: BLE001 - a damaged file is bad input, not a crash
+        raise InputError(f"cannot be read ({type(exc).__name__})", file=str(d), key="--sweep",
+                         expected="summary.json and results.parquet written by `symfunnel sweep`") from None
+    cols = {k: np.asarray(v, dtype=object if k == "status" else float) for k, v in table.items()}
+    return summary, cols
+
+
+def parameters(cols: dict) -> list[str]:
+    """The uncertain columns of a results table."""
+    return [k for k in cols if k not in FIXED]
+
+
+def min_margin(cols: dict) -> np.ndarray:
+    """Per run, the smaller of the two funnels' minimum margins (<= 0: breach)."""
+    return np.fmin(cols["min_margin_e1"], cols["min_margin_e2"])
+
+
+@_with_rc
+def margin_histograms(cols: dict) -> str:
+    """Histograms of the minimum margins of e1 and e2 over the runs, with the breach line at 0."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(9.0, 2.6), constrained_layout=True)
+    for ax, key, title in ((axes[0], "min_margin_e1", "min margin e1"), (axes[1], "min_margin_e2", "min margin e2"),
+                           (axes[2], "max_abs_tau", "peak |tau|")):
+        a = cols[key][np.isfinite(cols[key])]
+        if key != "max_abs_tau":
+            a = np.maximum(a, -1.0)       # deep breaches (down to -1e3) pile up at -1: the figure is about [0, 1]
+        if a.size:
+            ax.hist(a, bins=min(40, max(5, a.size // 5)), color="C0" if key != "max_abs_tau" else "C2")
+        if key != "max_abs_tau":
+            ax.axvline(0.0, color="crimson", lw=1, ls="--")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("1 - |e|/F (clipped at -1)" if key != "max_abs_tau" else "max over joints and time")
+    axes[0].set_ylabel("runs")
+    fig.suptitle("Distributions over the campaign (breach: margin <= 0)", fontsize=10)
+    return fig
+
+
+@_with_rc
+def margin_vs_parameters(cols: dict) -> str:
+    """The minimum margin of each run against each uncertain parameter, coloured by status."""
+    plt = _plt()
+    ps = parameters(cols)
+    k = max(1, len(ps))
+    ncol = min(3, k)
+    nrow = int(np.ceil(k / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.0 * ncol, 2.4 * nrow), squeeze=False, sharey=True,
+                             constrained_layout=True)
+    m = min_margin(cols)
+    for i, p in enumerate(ps):
+        ax = axes[i // ncol][i % ncol]
+        for st, c in STATUS_COLORS.items():
+            sel = cols["status"] == st
+            if sel.any():
+                ax.scatter(cols[p][sel], m[sel], s=6, color=c, label=st)
+        ax.axhline(0.0, color="crimson", lw=0.8, ls="--")
+        if np.nanmin(m, initial=0.0) < -1.0:
+            ax.set_yscale("symlog", linthresh=1.0)      # deep breaches reach -1e3; keep [0, 1] readable
+        ax.set_xlabel(p, fontsize=8)
+    for j in range(len(ps), nrow * ncol):
+        axes[j // ncol][j % ncol].set_visible(False)
+    axes[0][0].set_ylabel("min margin")
+    axes[0][0].legend(fontsize=7, loc="best")
+    fig.suptitle("Minimum funnel margin against each uncertain quantity", fontsize=10)
+    return fig
+
+
+def correlation_ratio(x: np.ndarray, y: np.ndarray, bins: int = 10) -> float:
+    """eta^2: the share of y's variance explained by x's quantile bins (catches non-monotone effects, e.g. |x|)."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size < 4 or np.ptp(x) == 0 or np.var(y) == 0:
+        return 0.0
+    k = int(max(2, min(bins, x.size // 4)))
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, k + 1)))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+    between = sum(np.sum(idx == b) * (np.mean(y[idx == b]) - np.mean(y)) ** 2 for b in np.unique(idx))
+    return float(between / (x.size * np.var(y)))
+
+
+def strongest_pair(cols: dict) -> list[str]:
+    """The (up to) two uncertain columns that explain most of the minimum margin's variance (correlation ratio).
+
+    The margin enters by its ranks: deep breaches give margins of -1e3 that would otherwise decide alone.
+    """
+    from scipy.stats import rankdata
+    ps = parameters(cols)
+    m = min_margin(cols)
+    m = np.where(np.isfinite(m), rankdata(np.nan_to_num(m, nan=0.0)), np.nan)
+    scores = [correlation_ratio(cols[p], m) for p in ps]
+    order = np.argsort(scores, kind="stable")[::-1]
+    return [ps[i] for i in order[:2]]
+
+
+@_with_rc
+def breach_region(cols: dict) -> str:
+    """Runs in the plane of the two quantities that matter most, breaches marked: where the funnel breaks."""
+    plt = _plt()
+    pair = strongest_pair(cols)
+    fig, ax = plt.subplots(figsize=(4.6, 3.6))
+    if len(pair) == 1:
+        x, y = cols[pair[0]], min_margin(cols)
+        ax.set_xlabel(pair[0])
+        ax.set_ylabel("min margin")
+    else:
+        x, y = cols[pair[0]], cols[pair[1]]
+        ax.set_xlabel(pair[0])
+        ax.set_ylabel(pair[1])
+    for st, c in STATUS_COLORS.items():
+        sel = cols["status"] == st
+        if sel.any():
+            ax.scatter(x[sel], y[sel], s=10 if st == "ok" else 18, color=c, marker="o" if st == "ok" else "x",
+                       label=f"{st} ({int(sel.sum())})")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title("Breach region", fontsize=10)
+    return fig
+
+
+def sweep_section(directory) -> dict:
+    """The campaign's summary, its worst run and the figures (SVG), for a report template."""
+    summary, cols = load_sweep(directory)
+    return {"available": True, "directory": str(directory), "summary": summary,
+            "parameters": parameters(cols),
+            "figures": {"histograms": margin_histograms(cols), "margin_vs_parameters": margin_vs_parameters(cols),
+                        "breach_region": breach_region(cols)}}
+
+
+def render_section(sec: dict) -> str:
+    """The section as an HTML fragment (figures inline)."""
+    s = sec["summary"]
+    e = html.escape
+    lo, hi = s["ci95"]
+    p = s.get("breach_probability")
+    rows = [("runs", s["runs"]), ("breaches", s["breaches"]), ("failed runs", s.get("failed", "-")),
+            ("breach probability", "-" if p is None else f"{p:.4g}"),
+            ("95% interval (Clopper-Pearson)", f"[{lo:.4g}, {hi:.4g}]"),
+            ("design / seed", f"{s.get('design', '-')} / {s.get('seed', '-')}"),
+            ("horizon per run", f"{s.get('t_final', '-')} s"),
+            ("worst run", s.get("worst_run")),
+            ("throughput", f"{s.get('runs_per_second') or 0:.3g} runs/s on {s.get('workers')} workers")]
+    w = s.get("worst") or {}
+    if w:
+        rows.append(("worst run's values", ", ".join(f"{k} = {v:.6g}" for k, v in w.get("values", {}).items())))
+        rows.append(("worst run's min margin", f"{w.get('min_margin'):.4g} ({w.get('status')}); replay: "
+                                               f"symfunnel simulate worst.toml"))
+    table = "".join(f"<tr><th>{e(str(k))}</th><td>{e(str(v))}</td></tr>" for k, v in rows)
+    f = sec["figures"]
+    return (f"<section id='sweep'><h2>Robustness campaign</h2><table>{table}</table>"
+            f"<figure>{f['histograms']}</figure><figure>{f['margin_vs_parameters']}</figure>"
+            f"<figure>{f['breach_region']}</figure></section>")
+
+
+def write_sweep_page(directory, out=None) -> Path:
+    """Write the section as a self-contained HTML page (default DIR/sweep.html), atomically; returns its path."""
+    from ..io import atomic_write
+    sec = sweep_section(directory)
+    title = html.escape(f"symfunnel sweep: {sec['summary'].get('scenario', '')}")
+    page = (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{title}</title><style>"
+            "body{font-family:sans-serif;max-width:60em;margin:1em auto}th{text-align:left;padding-right:1em}"
+            "svg{max-width:100%;height:auto}</style></head><body>"
+            f"<h1>{title}</h1>{render_section(sec)}</body></html>")
+    path = Path(out) if out is not None else Path(directory) / "sweep.html"
+    atomic_write(path, page)
+    return path
