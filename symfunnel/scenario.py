@@ -23,7 +23,8 @@ DATA_DIR = Path(__file__).parent / "data"
 BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
-            "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims"]
+            "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims",
+            "implementation"]
 ESN_INPUTS = ["q", "dq", "e1", "e2", "qd", "dqd", "ddqd", "alpha2", "alpha2_dot"]
 IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 RESERVED = {"t", "u", "pi", "e"} | set(SIGNALS) | set(CONSTANTS) | {"x_esn", "w_hat", "q", "dq"}
@@ -166,6 +167,7 @@ class Scenario:
     audit: AuditSpec
     claims: list[Claim]
     raw: dict = field(repr=False, default_factory=dict)
+    implementation: Any = None      # ImplementationSpec, or None: the continuous-time controller
 
     @property
     def n(self) -> int:
@@ -259,12 +261,16 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     sim = _simulation(raw.get("simulation", {}), file)
     audit = _audit(raw.get("audit", {}), n, file, model)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
+    impl = None
+    if "implementation" in raw:
+        from .implementation import parse_implementation
+        impl = parse_implementation(raw["implementation"], n=n, file=file, raw_model=raw["model"], base_dir=base_dir)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
-                    raw=raw)
+                    raw=raw, implementation=impl)
 
 
 # --- sections -------------------------------------------------------------------------------------

@@ -19,6 +19,10 @@ def register(sub, common) -> None:
                     "random points inside the funnels; exit 1 above 1e-12 (C) or 1e-10 (Python)")
     sp.add_argument("--points", type=int, default=1000, metavar="N", help="check points (default 1000, >= 1000)")
     sp.add_argument("--seed", type=int, default=0, help="seed of the check points (default 0)")
+    sp.add_argument("--prefix", metavar="P", help="C: start every exported symbol with P (a C identifier prefix); "
+                    "the step API is then Pstate, Pinit, Pstep (default: historical names, symfunnel_step)")
+    sp.add_argument("--rate", type=float, metavar="HZ", help="C: sample rate the generated step advances the "
+                    "controller state by (default: [implementation].rate_hz, else 1000)")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
     sp.set_defaults(func=run)
 
@@ -32,9 +36,17 @@ def run(args) -> int:
     from ..scenario import load_scenario
     if args.points < 1000:
         raise InputError(f"is {args.points}", key="--points", expected="at least 1000 check points")
+    from ..codegen.step import valid_prefix
+    from ..implementation import check_rate
+    if args.prefix is not None and not valid_prefix(args.prefix):
+        raise InputError(f"is '{args.prefix}'", key="--prefix",
+                         expected="a C identifier prefix: a letter or '_' then letters, digits, '_' (at most 32; "
+                         "not '__' or '_' + capital)")
+    if args.rate is not None:
+        check_rate(args.rate, file=None, key="--rate")
     sc = load_scenario(args.scenario)
     design = derive(sc)
-    files = generate(design, args.lang)
+    files = generate(design, args.lang, prefix=args.prefix, rate_hz=args.rate)
     paths = write_output(files, args.out)
     summary = {"scenario": sc.name, "language": args.lang, "out": str(args.out),
                "files": [{"name": p.name, "bytes": len(files[p.name].encode("utf-8"))} for p in paths]}

@@ -1,0 +1,314 @@
+"""Sampled-data simulation of the deployed controller: the generated C step function in a zero-order-hold loop.
+
+At each sample t_k = k h (h = 1/rate_hz) the measurements q + noise, dq + noise (q quantised to the encoder
+resolution) go to the compiled `symfunnel_step` of the files `codegen --lang c` writes (loaded with ctypes), so
+the code verified is the code shipped. Its torque is held over the period (one period later with
+delay_samples = 1; zero torque before the first one arrives) and the true plant (dead zone, friction,
+disturbance, the plant's M, C, G: `closedloop.plant_acceleration`) is integrated over the period by CasADi's
+fixed-step `rk` integrator, expanded to SX and compiled to C. Funnel margins 1 - |e|/F are those of the true
+state at the samples (between samples they are not observed).
+
+API::
+
+    res = simulate_sampled(scenario, rate_hz=2000.0)    # SampledResult: t, q, dq, tau, margins, breach
+    res.ok, res.min_margin, res.saturated_fraction
+    checks = implementation_checks(scenario, res)      # implementation.containment / .saturation
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["SampledResult", "StepLibrary", "simulate_sampled", "implementation_checks", "plant_step_function",
+           "step_library", "plant_substeps"]
+
+_dp = ctypes.POINTER(ctypes.c_double)
+
+
+@dataclass
+class SampledResult:
+    """One sampled-data run: states at the samples, the held torques, the true margins, and its status."""
+
+    scenario: str
+    rate_hz: float
+    t: np.ndarray                  # (K+1,) sample times
+    q: np.ndarray                  # (K+1, n) true joint positions at the samples
+    dq: np.ndarray                 # (K+1, n)
+    tau: np.ndarray                # (K, n) torque applied over [t_k, t_k+1) (after delay; saturated by the step)
+    margins: np.ndarray            # (K+1, 2n) true 1 - |e|/F at the samples: e1 columns, then e2
+    status: str                    # "ok" | "breach" | "failed"
+    message: str
+    breach: dict | None
+    tau_max: tuple | None
+    wall_time: float
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """True when the run reached its final time inside both funnels."""
+        return self.status == "ok"
+
+    @property
+    def min_margin(self) -> float:
+        """The smallest true funnel margin over samples, joints and both funnels (-inf when it failed)."""
+        m = self.margins[np.all(np.isfinite(self.margins), axis=1)]
+        return float(m.min()) if m.size and self.status != "failed" else -math.inf
+
+    @property
+    def saturated_fraction(self) -> list[float] | None:
+        """Per joint, the fraction of the run's time its torque sat at tau_max (None without a limit)."""
+        if self.tau_max is None or self.tau.shape[0] == 0:
+            return None
+        tm = np.asarray(self.tau_max)
+        return (np.abs(self.tau) >= tm * (1 - 1e-12)).mean(axis=0).tolist()
+
+    def summary(self) -> dict:
+        """Plain data for JSON output."""
+        n = self.q.shape[1]
+        m = self.margins
+        return {"scenario": self.scenario, "rate_hz": self.rate_hz, "status": self.status, "message": self.message,
+                "t_end": float(self.t[-1]), "samples": int(self.tau.shape[0]),
+                "min_margin_e1": np.nanmin(m[:, :n], axis=0).tolist() if m.size else None,
+                "min_margin_e2": np.nanmin(m[:, n:], axis=0).tolist() if m.size else None,
+                "max_abs_tau": np.max(np.abs(self.tau), axis=0).tolist() if self.tau.size else None,
+                "tau_max": None if self.tau_max is None else list(self.tau_max),
+                "saturated_fraction": self.saturated_fraction, "breach": self.breach,
+                "wall_time": self.wall_time,
+                "realtime_factor": float(self.t[-1] / self.wall_time) if self.wall_time > 0 else None,
+                **self.stats}
+
+
+class StepLibrary:
+    """The compiled step API (`<P>state_size`, `<P>init`, `<P>step`) of generated C, called through ctypes."""
+
+    def __init__(self, path, prefix: str, n: int, n_esn: int, n_w: int):
+        self.lib = ctypes.CDLL(str(path))
+        self.n, self.n_esn, self.n_w = n, n_esn, n_w
+        self._size = getattr(self.lib, prefix + "state_size")
+        self._init = getattr(self.lib, prefix + "init")
+        self._step = getattr(self.lib, prefix + "step")
+        self._size.restype = ctypes.c_int
+        self._init.restype = ctypes.c_int
+        self._step.restype = ctypes.c_int
+        self._step.argtypes = [ctypes.c_void_p, ctypes.c_double, _dp, _dp, _dp]
+        self.state = np.zeros((self._size() + 7) // 8)            # doubles first: aligned storage
+        self._state_p = self.state.ctypes.data
+        self.q, self.dq, self.tau = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._ptrs = tuple(a.ctypes.data_as(_dp) for a in (self.q, self.dq, self.tau))
+        self.init()
+
+    def init(self) -> int:
+        """Pinit: the scenario's initial controller state."""
+        return self._init(ctypes.c_void_p(self._state_p))
+
+    @property
+    def x_esn(self) -> np.ndarray:
+        """A view of the state's reservoir (writable)."""
+        return self.state[:self.n_esn]
+
+    @property
+    def w_hat(self) -> np.ndarray:
+        """A view of the state's weights, column-major (writable)."""
+        return self.state[self.n_esn:self.n_esn + self.n_w]
+
+    @property
+    def margin(self) -> np.ndarray:
+        """The margins of the last step: e1 then e2 per joint."""
+        o = self.n_esn + self.n_w
+        return self.state[o:o + 2 * self.n]
+
+    def step(self, t: float, q, dq) -> tuple[int, np.ndarray]:
+        """Pstep at (t, q, dq): (return code, tau)."""
+        self.q[:] = q
+        self.dq[:] = dq
+        rc = self._step(self._state_p, t, *self._ptrs)
+        return rc, self.tau.copy()
+
+
+def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
+    """Compile (cached) the generated C pair of `files` as a shared library and wrap its step API."""
+    import json
+
+    from .codegen import c_names
+    from .codegen.build import SHARED_FLAGS, compile_cached
+    base = c_names(files)[0]
+    api = json.loads(files["manifest.json"])["c_api"]["step"]
+    built = compile_cached({base + ".c": files[base + ".c"], base + ".h": files[base + ".h"]}, [base + ".c"],
+                           f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
+    nr, n = design.sym["w_hat"].shape
+    return StepLibrary(built.path, api["prefix"], design.n, int(design.sym["x_esn"].numel()), nr * n)
+
+
+def plant_substeps(scenario, h: float) -> int:
+    """RK4 steps per period: h / substeps stays inside RK4's stability interval for the stiffest plant term.
+
+    That term is the smoothed Coulomb friction (slope coulomb / smoothing_width) plus viscous friction, over the
+    smallest eigenvalue of M(q0): rate lambda; 1.5 / lambda keeps h*lambda well under RK4's 2.78; at most 1e-3 s.
+    """
+    sc = scenario
+    pl = sc.plant
+    w = sc.simulation.smoothing_width
+    slope = max(v + (c / w if w > 0 else 0.0) for v, c in zip(pl.viscous, pl.coulomb)) if sc.n else 0.0
+    M = np.array(ca.Function("M", [sc.model.q], [sc.model.numeric(sc.model.M)])(sc.q0)) * pl.mass_scale
+    lam = slope / max(float(np.linalg.eigvalsh(0.5 * (M + M.T)).min()), 1e-12)
+    h_max = min(1e-3, 1.5 / lam if lam > 0 else 1e-3)
+    return max(1, int(math.ceil(h / h_max - 1e-9)))
+
+
+def plant_step_function(scenario, h: float, substeps: int, name: str = "sfs_plant") -> ca.Function:
+    """(t0, x = [q; dq], tau) -> x at t0 + h with tau held: CasADi's rk integrator, expanded to SX."""
+    from .closedloop import plant_acceleration
+    n = scenario.n
+    q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
+    t, t0, tau = ca.SX.sym("t"), ca.SX.sym("t0"), ca.SX.sym("tau", n)
+    ddq = plant_acceleration(scenario, q, dq, t0 + t, tau, scenario.simulation.smoothing_width)["ddq"]
+    x = ca.vertcat(q, dq)
+    p = ca.vertcat(t0, tau)
+    # simplify: the fixed-step scheme as a plain expression graph, which expands to SX and generates C
+    F = ca.integrator("plant", "rk", {"x": x, "p": p, "t": t, "ode": ca.vertcat(dq, ddq)}, 0.0, h,
+                      {"number_of_finite_elements": substeps, "simplify": True}).expand()
+    X, T0, U = ca.SX.sym("x", 2 * n), ca.SX.sym("t0"), ca.SX.sym("tau", n)
+    xf = F(x0=X, p=ca.vertcat(T0, U))["xf"]
+    return ca.Function(name, [T0, X, U], [xf], ["t0", "x", "tau"], ["xf"], {"cse": True})
+
+
+class _CFun:
+    """A generated CasADi C function with fixed argument buffers: fill .inputs, call, read .outputs (no copies)."""
+
+    def __init__(self, path, name: str, f: ca.Function):
+        lib = ctypes.CDLL(str(path))
+        self._lib = lib
+        self._f = getattr(lib, name)
+        self._f.restype = ctypes.c_int
+        self.inputs = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
+        self.outputs = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
+        self._arg = (_dp * max(1, f.sz_arg()))(*[a.ctypes.data_as(_dp) for a in self.inputs])
+        self._res = (_dp * max(1, f.sz_res()))(*[a.ctypes.data_as(_dp) for a in self.outputs])
+        self._iw = (ctypes.c_int * max(1, f.sz_iw()))()
+        self._w = (ctypes.c_double * max(1, f.sz_w()))()
+
+    def __call__(self) -> int:
+        return self._f(self._arg, self._res, self._iw, self._w, 0)
+
+
+def _compiled(f: ca.Function, on_build=None) -> _CFun:
+    """Generate C for one SX function, compile it (cached) and load it."""
+    import tempfile
+    from pathlib import Path
+
+    from .codegen.build import SHARED_FLAGS, compile_cached
+    with tempfile.TemporaryDirectory(prefix="symfunnel-plant-") as tmp:
+        cg = ca.CodeGenerator(f.name() + ".c", {"with_header": False, "casadi_int": "int"})
+        cg.add(f)
+        cg.generate(tmp + "/")
+        src = Path(tmp, f.name() + ".c").read_text()
+    built = compile_cached({f.name() + ".c": src}, [f.name() + ".c"], f"lib{f.name()}.so", SHARED_FLAGS,
+                           on_build=on_build)
+    return _CFun(built.path, f.name(), f)
+
+
+def _margin_function(design) -> ca.Function:
+    """(t, q, dq) -> true margins [1 - |e1|/F1; 1 - |e2|/F2] with the scenario's reference."""
+    s, S = design.sym, design.signals
+    ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
+    ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
+    m = ca.vertcat(1 - ca.fabs(S["e1"]) / S["F1"], 1 - ca.fabs(S["e2"]) / S["F2"])
+    m = ca.substitute([m], ref_syms, ref_t)[0]
+    return ca.Function("margins", [s["t"], s["q"], s["dq"]], [m])
+
+
+def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float | None = None, design=None,
+                     progress=None, stop_on_breach: bool = True, controller=None) -> SampledResult:
+    """Run the sampled-data loop (see the module doc) to t_final; stops at the first sample outside a funnel.
+
+    `controller` replaces the compiled C step by any object with `init()` and `step(t, q, dq) -> (rc, tau)`
+    (the bench's CasADi-VM baseline).
+    """
+    from .codegen import generate
+    from .design import derive
+    from .implementation import implementation_of
+    say = progress or (lambda s: None)
+    sc = scenario
+    impl = implementation_of(sc, rate_hz) or implementation_of(sc, 1000.0)
+    design = design or derive(sc)
+    n = sc.n
+    h = 1.0 / impl.rate_hz
+    T = float(t_final if t_final is not None else sc.simulation.t_final)
+    K = int(math.floor(T * impl.rate_hz + 1e-9))
+    if controller is None:
+        files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
+        controller = step_library(design, files, on_build=say)
+    controller.init()
+    subs = plant_substeps(sc, h)
+    plant = _compiled(plant_step_function(sc, h, subs, name=f"sfs_plant_{sc.name.replace('-', '_').replace('.', '_')}"),
+                      on_build=say)
+    p_t, p_x, p_u = plant.inputs
+    xf = plant.outputs[0]
+    rng = np.random.default_rng(impl.seed)
+    nq = rng.standard_normal((K, n)) * impl.noise_q if impl.noise_q > 0 else np.zeros((K, n))
+    ndq = rng.standard_normal((K, n)) * impl.noise_dq if impl.noise_dq > 0 else np.zeros((K, n))
+    res = impl.encoder_resolution
+    Q = np.full((K + 1, n), np.nan)
+    DQ = np.full((K + 1, n), np.nan)
+    TAU = np.zeros((K, n))
+    x = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float)])
+    Q[0], DQ[0] = x[:n], x[n:]
+    pending = np.zeros(n)
+    status, message, k_end = "ok", f"reached t = {K * h:g} s inside both funnels", K
+    outside = None
+    start = time.perf_counter()
+    step = controller.step
+    for k in range(K):
+        t = k * h
+        qm = x[:n] + nq[k]
+        if res > 0:
+            qm = res * np.round(qm / res)
+        rc, tau = step(t, qm, x[n:] + ndq[k])
+        if rc < 0:
+            status, message, k_end = "failed", f"the step function returned {rc} at t = {t:g} s", k
+            break
+        if rc == 1 and outside is None:
+            outside = k
+        if impl.delay_samples:
+            tau, pending = pending, tau
+        TAU[k] = tau
+        p_t[0] = t
+        p_x[:] = x
+        p_u[:] = tau
+        plant()
+        x = xf.copy()
+        Q[k + 1], DQ[k + 1] = x[:n], x[n:]
+        if not np.all(np.isfinite(x)):
+            k_end = k + 1
+            if outside is None:        # after leaving a funnel this is the breach's consequence, found below
+                status, message = "failed", f"the plant state is not finite at t = {t + h:g} s"
+            break
+        if stop_on_breach and outside is not None and k - outside >= 1:
+            k_end = k + 1
+            break
+    wall = time.perf_counter() - start
+    tt = np.arange(k_end + 1) * h
+    Q, DQ, TAU = Q[:k_end + 1], DQ[:k_end + 1], TAU[:k_end]
+    mf = _margin_function(design).map(k_end + 1)
+    good = np.all(np.isfinite(Q), axis=1) & np.all(np.isfinite(DQ), axis=1)
+    M = np.full((k_end + 1, 2 * n), np.nan)
+    if good.any():
+        M[good] = np.array(mf(tt[None, :], np.nan_to_num(Q.T), np.nan_to_num(DQ.T))).T[good]
+    breach = None
+    bad = np.where(~(M > 0).all(axis=1) & good)[0]
+    if bad.size and status != "failed":
+        i = int(bad[0])
+        j = int(np.nanargmin(M[i]))
+        breach = {"time": float(tt[i]), "funnel": "e1" if j < n else "e2", "joint": j % n + 1,
+                  "margin": float(M[i, j])}
+        status = "breach"
+        message = f"left funnel {breach['funnel']} (joint {breach['joint']}) at t = {tt[i]:g} s"
+    return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
+                         {"plant_substeps": subs, "delay_samples": impl.delay_samples, "noise_q": impl.noise_q,
+                          "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution})
