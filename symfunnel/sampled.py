@@ -29,6 +29,8 @@ __all__ = ["SampledResult", "StepLibrary", "simulate_sampled", "implementation_c
            "step_library", "plant_substeps"]
 
 _dp = ctypes.POINTER(ctypes.c_double)
+#: First line of the step API's part of a generated .c file (templates/step.c).
+MARK = "/* ---- The deployed controller (see"
 
 
 @dataclass
@@ -123,6 +125,10 @@ class StepLibrary:
         o = self.n_esn + self.n_w
         return self.state[o:o + 2 * self.n]
 
+    def raw(self):
+        """(function, state pointer, (q, dq, tau) pointers): rc = function(state, t, *pointers) on the buffers."""
+        return self._step, self._state_p, self._ptrs
+
     def step(self, t: float, q, dq) -> tuple[int, np.ndarray]:
         """Pstep at (t, q, dq): (return code, tau)."""
         self.q[:] = q
@@ -139,8 +145,14 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
     from .codegen.build import SHARED_FLAGS, compile_cached
     base = c_names(files)[0]
     api = json.loads(files["manifest.json"])["c_api"]["step"]
-    built = compile_cached({base + ".c": files[base + ".c"], base + ".h": files[base + ".h"]}, [base + ".c"],
-                           f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
+    # The file's CasADi part does not depend on the rate (only the step API's constants after MARK do): compile
+    # it once to an object, then link the rest, so a rate search compiles the big part once.
+    text, hdr = files[base + ".c"], files[base + ".h"]
+    cut = text.index(MARK)
+    obj = compile_cached({"core.c": text[:cut]}, ["core.c"], "core.o",
+                         ("-std=c99", "-O2", "-fPIC", "-c"), libs=(), on_build=on_build)
+    built = compile_cached({"api.c": text[cut:], base + ".h": hdr, "core.o": obj.path.read_bytes()},
+                           ["api.c", "core.o"], f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
     nr, n = design.sym["w_hat"].shape
     return StepLibrary(built.path, api["prefix"], design.n, int(design.sym["x_esn"].numel()), nr * n)
 
@@ -227,8 +239,8 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
                      progress=None, stop_on_breach: bool = True, controller=None) -> SampledResult:
     """Run the sampled-data loop (see the module doc) to t_final; stops at the first sample outside a funnel.
 
-    `controller` replaces the compiled C step by any object with `init()` and `step(t, q, dq) -> (rc, tau)`
-    (the bench's CasADi-VM baseline).
+    `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
+    `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
     """
     from .codegen import generate
     from .design import derive
@@ -251,50 +263,58 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
     p_t, p_x, p_u = plant.inputs
     xf = plant.outputs[0]
     rng = np.random.default_rng(impl.seed)
-    nq = rng.standard_normal((K, n)) * impl.noise_q if impl.noise_q > 0 else np.zeros((K, n))
-    ndq = rng.standard_normal((K, n)) * impl.noise_dq if impl.noise_dq > 0 else np.zeros((K, n))
+    nq = rng.standard_normal((K, n)) * impl.noise_q if impl.noise_q > 0 else None
+    ndq = rng.standard_normal((K, n)) * impl.noise_dq if impl.noise_dq > 0 else None
     res = impl.encoder_resolution
-    Q = np.full((K + 1, n), np.nan)
-    DQ = np.full((K + 1, n), np.nan)
+    X = np.full((K + 1, 2 * n), np.nan)
     TAU = np.zeros((K, n))
-    x = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float)])
-    Q[0], DQ[0] = x[:n], x[n:]
+    p_x[:n], p_x[n:] = sc.q0, sc.dq0
+    X[0] = p_x
+    xq, xdq = p_x[:n], p_x[n:]
+    qbuf, dqbuf, taubuf = controller.q, controller.dq, controller.tau
+    stepf, sp, ptrs = controller.raw()
     pending = np.zeros(n)
     status, message, k_end = "ok", f"reached t = {K * h:g} s inside both funnels", K
     outside = None
     start = time.perf_counter()
-    step = controller.step
     for k in range(K):
         t = k * h
-        qm = x[:n] + nq[k]
+        # measurements into the step's input buffers: noise, then the encoder's quantisation of q
+        if nq is None:
+            qbuf[:] = xq
+        else:
+            np.add(xq, nq[k], out=qbuf)
         if res > 0:
-            qm = res * np.round(qm / res)
-        rc, tau = step(t, qm, x[n:] + ndq[k])
+            np.round(qbuf / res, out=qbuf)
+            qbuf *= res
+        if ndq is None:
+            dqbuf[:] = xdq
+        else:
+            np.add(xdq, ndq[k], out=dqbuf)
+        rc = stepf(sp, t, *ptrs)
         if rc < 0:
-            status, message, k_end = "failed", f"the step function returned {rc} at t = {t:g} s", k
+            k_end = k
+            if outside is None:        # e.g. a non-finite plant state after leaving a funnel: found below
+                status, message = "failed", f"the step function returned {rc} at t = {t:g} s"
             break
         if rc == 1 and outside is None:
             outside = k
         if impl.delay_samples:
-            tau, pending = pending, tau
-        TAU[k] = tau
+            p_u[:] = pending
+            pending[:] = taubuf
+        else:
+            p_u[:] = taubuf
+        TAU[k] = p_u
         p_t[0] = t
-        p_x[:] = x
-        p_u[:] = tau
         plant()
-        x = xf.copy()
-        Q[k + 1], DQ[k + 1] = x[:n], x[n:]
-        if not np.all(np.isfinite(x)):
-            k_end = k + 1
-            if outside is None:        # after leaving a funnel this is the breach's consequence, found below
-                status, message = "failed", f"the plant state is not finite at t = {t + h:g} s"
-            break
+        p_x[:] = xf
+        X[k + 1] = p_x
         if stop_on_breach and outside is not None and k - outside >= 1:
             k_end = k + 1
             break
     wall = time.perf_counter() - start
     tt = np.arange(k_end + 1) * h
-    Q, DQ, TAU = Q[:k_end + 1], DQ[:k_end + 1], TAU[:k_end]
+    Q, DQ, TAU = X[:k_end + 1, :n], X[:k_end + 1, n:], TAU[:k_end]
     mf = _margin_function(design).map(k_end + 1)
     good = np.all(np.isfinite(Q), axis=1) & np.all(np.isfinite(DQ), axis=1)
     M = np.full((k_end + 1, 2 * n), np.nan)
@@ -302,6 +322,8 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
         M[good] = np.array(mf(tt[None, :], np.nan_to_num(Q.T), np.nan_to_num(DQ.T))).T[good]
     breach = None
     bad = np.where(~(M > 0).all(axis=1) & good)[0]
+    if status == "ok" and not good.all() and not bad.size:
+        status, message = "failed", f"the plant state is not finite at t = {tt[-1]:g} s"
     if bad.size and status != "failed":
         i = int(bad[0])
         j = int(np.nanargmin(M[i]))
@@ -312,3 +334,42 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
                          {"plant_substeps": subs, "delay_samples": impl.delay_samples, "noise_q": impl.noise_q,
                           "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution})
+
+
+def implementation_checks(scenario, design=None, *, rate_hz: float | None = None, t_final: float | None = None,
+                          result: SampledResult | None = None, progress=None) -> list:
+    """`implementation.containment` and (with tau_max) `implementation.saturation`; [] without an implementation.
+
+    containment: the sampled loop around the compiled C step reaches t_final with every true margin > 0 at the
+    samples. saturation: the torque never sits at tau_max (the design's guarantees assume the torque it asks
+    for is applied); detail and evidence give the time fraction saturated per joint.
+    """
+    from .checks.audit import CheckResult
+    if result is None:
+        if getattr(scenario, "implementation", None) is None and rate_hz is None:
+            return []
+        (progress or (lambda s: None))("sampled-data run of the generated C step function")
+        result = simulate_sampled(scenario, rate_hz=rate_hz, t_final=t_final, design=design, progress=progress)
+    r = result
+    how = (f"sampled at {r.rate_hz:g} Hz, zero-order hold, delay {r.stats.get('delay_samples', 0)} sample(s), "
+           f"controller = compiled generated C step")
+    ev = r.summary()
+    ev.pop("breach", None)
+    if r.ok:
+        c = CheckResult("implementation.containment", "pass" if r.min_margin > 0 else "fail",
+                        f"{how}: reached t = {r.t[-1]:g} s; min margin {r.min_margin:.4g} at the samples",
+                        method="sampled-data simulation", margin=r.min_margin, evidence=ev)
+    else:
+        c = CheckResult("implementation.containment", "fail", f"{how}: {r.message}", method="sampled-data simulation",
+                        margin=r.breach["margin"] if r.breach else None, where=r.breach, evidence=ev)
+    out = [c]
+    if r.tau_max is not None:
+        frac = r.saturated_fraction or [0.0] * r.q.shape[1]
+        worst = max(frac)
+        detail = ("time fraction at tau_max per joint: " + ", ".join(f"{f:.3g}" for f in frac)
+                  + f" (tau_max = {', '.join(f'{v:g}' for v in r.tau_max)})")
+        out.append(CheckResult("implementation.saturation", "pass" if worst == 0.0 else "fail", detail,
+                               method="sampled-data simulation", margin=-worst,
+                               evidence={"saturated_fraction": frac, "tau_max": list(r.tau_max),
+                                         "max_abs_tau": ev["max_abs_tau"]}))
+    return out

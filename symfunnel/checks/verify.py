@@ -283,7 +283,7 @@ def check_bounded(res, design, L: LyapunovTrajectory | None) -> list[CheckResult
 # --- the driver ----------------------------------------------------------------------------------
 
 def verify(scenario, design=None, *, result=None, closed_loop=None, t_final=None, samples: int = 10000,
-           seed: int = 0, progress=None) -> Verification:
+           seed: int = 0, progress=None, rate_hz: float | None = None) -> Verification:
     """Simulate (unless `result` is given) and run every check; never raises for a failed claim."""
     from ..closedloop import build_closed_loop
     from ..design import derive
@@ -333,5 +333,7 @@ def verify(scenario, design=None, *, result=None, closed_loop=None, t_final=None
                     "lyapunov.bound.corrected", "lyapunov.falsification.paper", "lyapunov.falsification.corrected"):
             checks.append(CheckResult(cid, "skip", "no trajectory to evaluate on", method="simulation"))
     checks += check_bounded(result, design, L)
+    from ..sampled import implementation_checks       # [implementation] or --rate: the deployed controller
+    checks += implementation_checks(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=say)
     return Verification(scenario=scenario, design=design, closed_loop=cl, result=result, lyapunov=L,
                         falsification=fz, checks=checks, timings=timings)

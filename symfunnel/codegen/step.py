@@ -26,7 +26,7 @@ import math
 import casadi as ca
 import numpy as np
 
-__all__ = ["CLIP", "DEFAULT_RATE_HZ", "step_function", "etd_factor", "c_step_files", "valid_prefix"]
+__all__ = ["CLIP", "DEFAULT_RATE_HZ", "step_function", "step_core", "etd_factor", "etd_factors", "c_step_files", "valid_prefix"]
 
 #: Fraction of a funnel the state is projected onto before evaluating the design outside it.
 CLIP = 1.0 - 1e-3
@@ -47,11 +47,28 @@ def etd_factor(rate: float, h: float) -> float:
     return -math.expm1(-rate * h) / rate
 
 
-def step_function(design, rate_hz: float, tau_max=None, name: str = "step_core") -> ca.Function:
-    """One controller period as an SX Function (see the module doc), from the design's one graph."""
-    sc, s, S = design.scenario, design.sym, design.signals
+def etd_factors(scenario, rate_hz: float) -> tuple[float, float]:
+    """(phi(lambda_x), phi(lambda_w)) of the exponential Euler update at one period 1/rate_hz."""
     h = 1.0 / float(rate_hz)
+    es = scenario.esn
+    return etd_factor(es.leak / es.time_constant, h), etd_factor(float(scenario.gamma) * float(scenario.sigma), h)
+
+
+def step_function(design, rate_hz: float, tau_max=None, name: str = "step") -> ca.Function:
+    """One controller period at rate_hz as an SX Function (t, q, dq, x_esn, w_hat) -> step_core's outputs."""
+    core = step_core(design, tau_max)
+    ins = core.sx_in()[:5]
+    etd = ca.DM(list(etd_factors(design.scenario, rate_hz)))
+    return ca.Function(name, ins, core.call(ins + [etd]), core.name_in()[:5], core.name_out(),
+                       {"cse": True, "allow_duplicate_io_names": True})
+
+
+def step_core(design, tau_max=None, name: str = "step_core") -> ca.Function:
+    """(t, q, dq, x_esn, w_hat, etd) -> (tau, x_esn_next, w_hat_next, margin, qd): one period, the rate entering
+    only through etd = etd_factors(scenario, rate_hz), so that the compiled core serves every rate."""
+    s, S = design.sym, design.signals
     t, q, dq = s["t"], s["q"], s["dq"]
+    etd = ca.SX.sym("etd", 2)
     ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
     ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
 
@@ -73,13 +90,10 @@ def step_function(design, rate_hz: float, tau_max=None, name: str = "step_core")
     if tau_max is not None:
         tm = ca.DM(np.broadcast_to(np.asarray(tau_max, dtype=float), (design.n,)).copy())
         tau = ca.fmin(ca.fmax(tau, -tm), tm)
-    es = sc.esn
-    cx = etd_factor(es.leak / es.time_constant, h)
-    cw = etd_factor(float(sc.gamma) * float(sc.sigma), h)
-    x_next = s["x_esn"] + cx * xdot
-    w_next = s["w_hat"] + cw * wdot
-    return ca.Function(name, [t, q, dq, s["x_esn"], s["w_hat"]], [tau, x_next, w_next, margin, qd],
-                       ["t", "q", "dq", "x_esn", "w_hat"], ["tau", "x_esn_next", "w_hat_next", "margin", "qd"],
+    x_next = s["x_esn"] + etd[0] * xdot
+    w_next = s["w_hat"] + etd[1] * wdot
+    return ca.Function(name, [t, q, dq, s["x_esn"], s["w_hat"], etd], [tau, x_next, w_next, margin, qd],
+                       ["t", "q", "dq", "x_esn", "w_hat", "etd"], ["tau", "x_esn_next", "w_hat_next", "margin", "qd"],
                        {"cse": True, "allow_duplicate_io_names": True})
 
 
@@ -104,6 +118,7 @@ def c_step_files(design, *, prefix: str, fprefix: str, basename: str, rate_hz: f
                                                              np.broadcast_to(np.asarray(tau_max, float), (n,)))
                      + "] N m"),
         "@CLIP@": repr(CLIP),
+        "@ETD@": _c_array(etd_factors(design.scenario, rate_hz)),
     }
 
     def fill(text: str) -> str:
@@ -120,6 +135,7 @@ UNITS = {
     "e1": "rad", "z1": "-", "e2": "rad/s", "z2": "-", "alpha2": "rad/s", "alpha2_dot": "rad/s^2",
     "tau": "N m", "x_esn_dot": "1/s", "w_hat_dot": "rad/s^3 per regressor unit", "x_esn_next": "-",
     "w_hat_next": "rad/s^2 per regressor unit", "margin": "- (1 - |e|/F; e1 rows, then e2 rows)",
+    "etd": "s (exponential-Euler weights of x_esn_dot and w_hat_dot over one period)",
 }
 
 
@@ -159,7 +175,7 @@ def emit_controller_c(design, contract: list, *, prefix: str | None, basename: s
     sprefix = prefix if prefix is not None else "symfunnel_"
     funcs = [renamed(f, fprefix + f.name()) for f in contract]
     funcs.append(renamed(design.reference, fprefix + "reference"))
-    funcs.append(step_function(design, rate_hz, tau_max, fprefix + "step_core"))
+    funcs.append(step_core(design, tau_max, fprefix + "step_core"))
     files = emit_c(funcs, basename, prefix=prefix)
     from . import _initial
     x0, w0 = _initial(design)

@@ -11,6 +11,8 @@ def register(sub, common) -> None:
     sp.add_argument("--t-final", type=float, metavar="T", help="simulate to T seconds (default: the scenario's)")
     sp.add_argument("--samples", type=int, default=10000, metavar="K",
                     help="states sampled inside the funnels for the falsification (default 10000)")
+    sp.add_argument("--rate", type=float, metavar="HZ", help="verify the deployed controller sampled at HZ "
+                    "(overrides [implementation].rate_hz; adds the implementation.* checks)")
     sp.set_defaults(func=run)
 
 
@@ -21,9 +23,12 @@ def run(args) -> int:
     from ..errors import InputError
     if args.samples < 1:
         raise InputError(f"is {args.samples}", key="--samples", expected="an integer >= 1")
+    if args.rate is not None:
+        from ..implementation import check_rate
+        check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
     say = _progress(args.quiet or args.json)
-    v = verify(sc, t_final=args.t_final, samples=args.samples, progress=say)
+    v = verify(sc, t_final=args.t_final, samples=args.samples, progress=say, rate_hz=args.rate)
     failed = v.failed
     if args.json:
         print(_dump(v.to_json()))

@@ -8,6 +8,8 @@
 
 static const double @P@x_esn0_[@NESN@] = {@X0@};
 static const double @P@w_hat0_[@NW@] = {@W0@};
+/* exponential-Euler weights (1 - exp(-l h)) / l of x_esn_dot and w_hat_dot at h = 1/@RATE@ s */
+static const double @P@etd_[2] = {@ETD@};
 
 int @P@state_size(void) {
   return (int) sizeof(@P@state);
@@ -41,6 +43,7 @@ int @P@step(@P@state *s, double t, const double *q, const double *dq, double *ta
   arg[2] = dq;
   arg[3] = s->x_esn;
   arg[4] = s->w_hat;
+  arg[5] = @P@etd_;
   res[0] = tau_out;
   res[1] = x_next;
   res[2] = w_next;
