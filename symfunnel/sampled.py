@@ -158,10 +158,11 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
 
 
 def plant_substeps(scenario, h: float) -> int:
-    """RK4 steps per period: h / substeps stays inside RK4's stability interval for the stiffest plant term.
+    """RK4 steps per period (a power of 2): h / substeps inside RK4's stability interval for the stiffest term.
 
     That term is the smoothed Coulomb friction (slope coulomb / smoothing_width) plus viscous friction, over the
     smallest eigenvalue of M(q0): rate lambda; 1.5 / lambda keeps h*lambda well under RK4's 2.78; at most 1e-3 s.
+    Powers of 2 let a rate search reuse a few compiled plant steps.
     """
     sc = scenario
     pl = sc.plant
@@ -170,24 +171,29 @@ def plant_substeps(scenario, h: float) -> int:
     M = np.array(ca.Function("M", [sc.model.q], [sc.model.numeric(sc.model.M)])(sc.q0)) * pl.mass_scale
     lam = slope / max(float(np.linalg.eigvalsh(0.5 * (M + M.T)).min()), 1e-12)
     h_max = min(1e-3, 1.5 / lam if lam > 0 else 1e-3)
-    return max(1, int(math.ceil(h / h_max - 1e-9)))
+    need = max(1, int(math.ceil(h / h_max - 1e-9)))
+    return 1 << (need - 1).bit_length()
 
 
-def plant_step_function(scenario, h: float, substeps: int, name: str = "sfs_plant") -> ca.Function:
-    """(t0, x = [q; dq], tau) -> x at t0 + h with tau held: CasADi's rk integrator, expanded to SX."""
+def plant_step_function(scenario, substeps: int, name: str = "sfs_plant") -> ca.Function:
+    """([t0, h], x = [q; dq], tau) -> x at t0 + h with tau held: CasADi's rk integrator (RK4, `substeps` steps).
+
+    The ODE is integrated in s = (t - t0)/h over [0, 1], so one compiled function serves every period h.
+    """
     from .closedloop import plant_acceleration
     n = scenario.n
     q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
-    t, t0, tau = ca.SX.sym("t"), ca.SX.sym("t0"), ca.SX.sym("tau", n)
-    ddq = plant_acceleration(scenario, q, dq, t0 + t, tau, scenario.simulation.smoothing_width)["ddq"]
+    s, th, tau = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n)
+    ddq = plant_acceleration(scenario, q, dq, th[0] + th[1] * s, tau, scenario.simulation.smoothing_width)["ddq"]
     x = ca.vertcat(q, dq)
-    p = ca.vertcat(t0, tau)
-    # simplify: the fixed-step scheme as a plain expression graph, which expands to SX and generates C
-    F = ca.integrator("plant", "rk", {"x": x, "p": p, "t": t, "ode": ca.vertcat(dq, ddq)}, 0.0, h,
-                      {"number_of_finite_elements": substeps, "simplify": True}).expand()
-    X, T0, U = ca.SX.sym("x", 2 * n), ca.SX.sym("t0"), ca.SX.sym("tau", n)
-    xf = F(x0=X, p=ca.vertcat(T0, U))["xf"]
-    return ca.Function(name, [T0, X, U], [xf], ["t0", "x", "tau"], ["xf"], {"cse": True})
+    # simplify: the fixed-step scheme as a plain MX graph (a loop over the substeps' SX step), which generates
+    # compact C; expanding it to SX would unroll every substep and make large models slow to compile
+    F = ca.integrator("plant", "rk", {"x": x, "p": ca.vertcat(th, tau), "t": s,
+                                      "ode": th[1] * ca.vertcat(dq, ddq)}, 0.0, 1.0,
+                      {"number_of_finite_elements": substeps, "simplify": True})
+    X, TH, U = ca.MX.sym("x", 2 * n), ca.MX.sym("th", 2), ca.MX.sym("tau", n)
+    xf = F(x0=X, p=ca.vertcat(TH, U))["xf"]
+    return ca.Function(name, [TH, X, U], [xf], ["th", "x", "tau"], ["xf"])
 
 
 class _CFun:
@@ -210,7 +216,7 @@ class _CFun:
 
 
 def _compiled(f: ca.Function, on_build=None) -> _CFun:
-    """Generate C for one SX function, compile it (cached) and load it."""
+    """Generate C for one function, compile it (cached) and load it."""
     import tempfile
     from pathlib import Path
 
@@ -254,12 +260,15 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
     T = float(t_final if t_final is not None else sc.simulation.t_final)
     K = int(math.floor(T * impl.rate_hz + 1e-9))
     if controller is None:
-        files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
+        from .codegen import recorded_trajectory
+        traj = design.__dict__.get("_sampled_trajectory")   # only shipped beside the code: once per design
+        if traj is None:
+            traj = design.__dict__["_sampled_trajectory"] = recorded_trajectory(design)
+        files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max, trajectory=traj)
         controller = step_library(design, files, on_build=say)
     controller.init()
     subs = plant_substeps(sc, h)
-    plant = _compiled(plant_step_function(sc, h, subs, name=f"sfs_plant_{sc.name.replace('-', '_').replace('.', '_')}"),
-                      on_build=say)
+    plant = _compiled(plant_step_function(sc, subs, name=f"sfs_plant_{subs}"), on_build=say)
     p_t, p_x, p_u = plant.inputs
     xf = plant.outputs[0]
     rng = np.random.default_rng(impl.seed)
@@ -274,10 +283,17 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
     qbuf, dqbuf, taubuf = controller.q, controller.dq, controller.tau
     stepf, sp, ptrs = controller.raw()
     pending = np.zeros(n)
+    p_t[1] = h
     status, message, k_end = "ok", f"reached t = {K * h:g} s inside both funnels", K
     outside = None
     start = time.perf_counter()
-    for k in range(K):
+    if isinstance(controller, StepLibrary):
+        rc, k_end, outside = _c_loop(controller, plant, n, K, h, nq, ndq, res, impl.delay_samples, stop_on_breach,
+                                     X, TAU, say)
+        if rc < 0 and outside is None:
+            status, message = "failed", (f"the step function returned {rc} at t = {k_end * h:g} s" if rc > -100
+                                         else "the plant function failed")
+    for k in range(K if not isinstance(controller, StepLibrary) else 0):
         t = k * h
         # measurements into the step's input buffers: noise, then the encoder's quantisation of q
         if nq is None:
@@ -373,3 +389,27 @@ def implementation_checks(scenario, design=None, *, rate_hz: float | None = None
                                evidence={"saturated_fraction": frac, "tau_max": list(r.tau_max),
                                          "max_abs_tau": ev["max_abs_tau"]}))
     return out
+
+
+def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):
+    """Run the loop in C (templates/sampled_loop.c) with the compiled step and plant: (rc, k_end, outside)."""
+    from .codegen.build import SHARED_FLAGS, compile_cached
+    from .codegen.c import template
+    built = compile_cached({"sampled_loop.c": template("sampled_loop.c")}, ["sampled_loop.c"],
+                           "libsfs_loop.so", SHARED_FLAGS, on_build=say)
+    lib = ctypes.CDLL(str(built.path))
+    f = lib.sfs_loop
+    f.restype = ctypes.c_int
+    vp = ctypes.c_void_p
+    f.argtypes = [vp, vp, vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_long, ctypes.c_double, vp, vp,
+                  ctypes.c_double, ctypes.c_int, ctypes.c_int, vp, vp, vp, vp]
+    k_end, outside = ctypes.c_long(), ctypes.c_long()
+    step_ptr = ctypes.cast(controller._step, vp)
+    plant_ptr = ctypes.cast(plant._f, vp)
+    nqa = None if nq is None else np.ascontiguousarray(nq)
+    ndqa = None if ndq is None else np.ascontiguousarray(ndq)
+    rc = f(step_ptr, controller._state_p, plant_ptr, ctypes.addressof(plant._arg), ctypes.addressof(plant._res),
+           ctypes.addressof(plant._iw), ctypes.addressof(plant._w), n, K, h,
+           None if nqa is None else nqa.ctypes.data, None if ndqa is None else ndqa.ctypes.data, res, int(delay),
+           int(bool(stop)), X.ctypes.data, TAU.ctypes.data, ctypes.byref(k_end), ctypes.byref(outside))
+    return rc, int(k_end.value), (None if outside.value < 0 else int(outside.value))
