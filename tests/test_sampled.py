@@ -279,3 +279,30 @@ def test_rate_command_bad_margin_is_input_error(capsys):
     assert "--margin" in capsys.readouterr().err
     assert main(["simulate", "--rate", "0"]) == 2
     assert main(["verify", "--rate", "-3"]) == 2
+
+
+@needs_gcc
+def test_report_figures_draw_the_sampled_torque_and_the_rate_search(tmp_path):
+    from symfunnel.implementation_report import torque_figure
+    sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0\ntau_max = 450.0"))
+    res = S.simulate_sampled(sc, t_final=0.5)
+    fig = torque_figure(res, t_max=0.2)
+    steps = fig.axes[0].patches[0]                     # the stairs of joint 1
+    assert np.max(np.abs(steps.get_path().vertices[:, 1])) == pytest.approx(450.0)
+    fig2 = R.margin_rate_figure({"margin": 0.05, "min_rate_hz": 1200.0,
+                                 "tried": [{"rate_hz": 1000.0, "min_margin": -3.0},
+                                           {"rate_hz": 4000.0, "min_margin": 0.27}]})
+    assert fig2.axes[0].get_xscale() == "log"
+
+
+@needs_gcc
+@pytest.mark.slow
+def test_design_help_finds_the_inner_loop_gain_sets_the_minimum_rate(tmp_path):
+    """Computed, not asserted by hand: halving k2/phi_inf of e2 (phi_inf x 2 or k2 x 0.5) lowers the minimum rate."""
+    sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0", extra="t_final = 6.0"))
+    out = R.rate_sensitivity(sc)
+    by = {v["key"]: v for v in out["variations"]}
+    assert out["baseline"]["min_rate_hz"] is not None
+    assert by["funnel.e2.phi_inf"]["ratio"] < 0.9 and by["controller.k2"]["ratio"] < 0.9
+    for v in out["variations"]:
+        assert v["min_rate_hz"] is not None and v["tried"]
