@@ -31,11 +31,12 @@ def cache(tmp_path_factory):
         os.environ["SYMFUNNEL_CACHE"] = old
 
 
-def paper_with(tmp_path, implementation: str, extra: str = "", name: str = "impl.toml"):
-    """The paper scenario plus an [implementation] table (and extra TOML), as a file."""
+def paper_with(tmp_path, implementation: str, t_final: float | None = None, name: str = "impl.toml"):
+    """The paper scenario plus an [implementation] table (and another horizon), as a file."""
     text = (DATA_DIR / "paper_2dof.toml").read_text()
-    if extra:
-        text = text.replace("[simulation]\n", "[simulation]\n" + extra + "\n")
+    if t_final is not None:
+        assert "t_final = 20.0\n" in text
+        text = text.replace("t_final = 20.0\n", f"t_final = {t_final}\n")
     p = tmp_path / name
     p.write_text(text + "\n[implementation]\n" + implementation + "\n")
     return p
@@ -195,7 +196,7 @@ def test_sampled_loop_agrees_with_the_continuous_simulation_at_a_high_rate():
 @needs_gcc
 @pytest.mark.slow
 def test_verify_holds_at_twice_the_minimum_rate_and_fails_at_a_quarter(tmp_path, capsys):
-    p = paper_with(tmp_path, "rate_hz = 4000.0", extra="t_final = 6.0")
+    p = paper_with(tmp_path, "rate_hz = 4000.0", t_final=6.0)
     sc = load_scenario(p)
     r = R.min_rate(sc)
     rmin = r["min_rate_hz"]
@@ -297,12 +298,14 @@ def test_report_figures_draw_the_sampled_torque_and_the_rate_search(tmp_path):
 
 @needs_gcc
 @pytest.mark.slow
-def test_design_help_finds_the_inner_loop_gain_sets_the_minimum_rate(tmp_path):
-    """Computed, not asserted by hand: halving k2/phi_inf of e2 (phi_inf x 2 or k2 x 0.5) lowers the minimum rate."""
-    sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0", extra="t_final = 6.0"))
+def test_design_help_computes_the_minimum_rate_per_parameter(tmp_path):
+    """Computed, not asserted by hand; the one expectation is theory: a wider e2 funnel (phi_inf x 2) halves the
+    lower bound 1/F2 of mu2, the gain of both the torque's e2 term and the adaptation, so it lowers the rate."""
+    sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0", t_final=6.0))
     out = R.rate_sensitivity(sc)
     by = {v["key"]: v for v in out["variations"]}
     assert out["baseline"]["min_rate_hz"] is not None
-    assert by["funnel.e2.phi_inf"]["ratio"] < 0.9 and by["controller.k2"]["ratio"] < 0.9
+    assert by["funnel.e2.phi_inf"]["ratio"] < 0.9
     for v in out["variations"]:
         assert v["min_rate_hz"] is not None and v["tried"]
+        assert v["after"] == pytest.approx(v["before"] * v["factor"])

@@ -1,18 +1,19 @@
 """The deployed controller's one-period step as a CasADi Function, and the C `Pstep` API wrapped around it.
 
-`step_function(design, rate_hz, tau_max, name)` is (t, q, dq, x_esn, w_hat) -> (tau, x_esn_next, w_hat_next,
-margin, qd): the reference from the scenario's expressions, the torque of the design (saturated when tau_max is
-given), and x_esn, W_hat advanced by one period h = 1/rate_hz by the exponential Euler method (ETD1):
+`step_core(design, tau_max)` is (t, q, dq, x_esn, w_hat, etd) -> (tau, x_esn_next, w_hat_next, margin, qd)
+(`step_function(design, rate_hz)` the same with etd fixed at one rate): the reference from the scenario's
+expressions, the torque of the design (saturated when tau_max is given), and x_esn, W_hat advanced by one period
+h = 1/rate_hz by the exponential Euler method (ETD1):
 
     x+ = x + phi(lambda_x) * x_esn_dot,  lambda_x = leak / time_constant
     W+ = W + phi(lambda_w) * w_hat_dot,  lambda_w = Gamma * sigma,      phi(l) = (1 - exp(-l h)) / l  (h at l = 0)
 
 which integrates the linear decay parts (-lambda x, -Gamma sigma W) exactly and holds the input-driven parts over
-the period, as the zero-order hold holds the measurements. Why: x+ = a x + (1 - a) tanh(.) / leak with a = exp(-lambda_x h)
-in (0, 1) is a convex combination, so the reservoir stays in [-1/leak, 1/leak] at every h (explicit Euler leaves
-it, and diverges, for h > 2 time_constant / leak); W+ = b W + (1 - b)/sigma Phi (mu2 z2)^T with b in (0, 1] stays
-bounded for bounded Phi mu2 z2 at every h. The period's remaining limit is the loop through the plant
-(k2 / phi_inf of e2), which `symfunnel rate` measures.
+the period, as the zero-order hold holds the measurements. Why: x+ = a x + (1 - a) tanh(.) / leak with
+a = exp(-lambda_x h) in (0, 1) is a convex combination, so the reservoir stays in [-1/leak, 1/leak] at every h
+(explicit Euler leaves it, and diverges, for h > 2 time_constant / leak); W+ = b W + (1 - b)/sigma Phi (mu2 z2)^T
+with b in (0, 1] stays bounded for bounded Phi mu2 z2 at every h. The period's remaining limit is the loop through
+the plant (the e2 funnel's gains), which `symfunnel rate` measures.
 
 Outside a funnel the design's torque is not defined (F - |e| <= 0): the step then evaluates the design at the
 state projected onto CLIP times each funnel (identity inside, so tau equals the continuous controller's there) and
@@ -26,7 +27,8 @@ import math
 import casadi as ca
 import numpy as np
 
-__all__ = ["CLIP", "DEFAULT_RATE_HZ", "step_function", "step_core", "etd_factor", "etd_factors", "c_step_files", "valid_prefix"]
+__all__ = ["CLIP", "DEFAULT_RATE_HZ", "step_function", "step_core", "etd_factor", "etd_factors", "c_step_files",
+           "valid_prefix", "emit_controller_c", "step_settings"]
 
 #: Fraction of a funnel the state is projected onto before evaluating the design outside it.
 CLIP = 1.0 - 1e-3
