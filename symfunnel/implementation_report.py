@@ -14,7 +14,8 @@ __all__ = ["implementation_report", "torque_figure"]
 def implementation_report(scenario, design=None, *, margin: float = 0.05, sensitivity: bool = True,
                           t_final: float | None = None, progress=None) -> dict:
     """{"min_rate": rate.min_rate(...), "sensitivity": rate.rate_sensitivity(...) | None, "run": the sampled run's
-    summary at the scenario's rate (twice the minimum without [implementation]), "peak_tau", "tau_max"}."""
+    summary at the scenario's rate (twice the minimum without [implementation]), "peak_tau", "tau_max",
+    "effort_limits" (a URDF model's <limit effort>, else None)}: the peak torque beside the actuator limits."""
     from .design import derive
     from .rate import min_rate, rate_sensitivity
     from .sampled import simulate_sampled
@@ -29,9 +30,15 @@ def implementation_report(scenario, design=None, *, margin: float = 0.05, sensit
         run = res.summary()
         run["result"] = res
     sens = rate_sensitivity(scenario, margin=margin, t_final=t_final, baseline=r, progress=say) if sensitivity else None
+    effort = None
+    model = scenario.raw.get("model", {})
+    if model.get("type") == "urdf":
+        from .model.urdf import effort_limits
+        effort = effort_limits(scenario.path.parent / model["path"])
     return {"min_rate": r, "sensitivity": sens, "run": run,
             "peak_tau": None if run is None else run["max_abs_tau"],
-            "tau_max": None if impl is None or impl.tau_max is None else list(impl.tau_max)}
+            "tau_max": None if impl is None or impl.tau_max is None else list(impl.tau_max),
+            "effort_limits": effort}
 
 
 def torque_figure(sampled, continuous=None, t_max: float | None = None):

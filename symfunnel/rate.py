@@ -18,7 +18,7 @@ __all__ = ["min_rate", "rate_sensitivity", "margin_rate_figure", "VARIATIONS", "
 
 MAX_RATE_HZ = 1e6
 MIN_RATE_HZ = 1.0
-#: (dotted key, factor) of the design-help variations: the inner loop's gain is about k2 / phi_inf of e2.
+#: (dotted key, factor) of the design-help variations: the e2 loop's parameters (mu2 >= 1/F2 grows to 1/phi_inf).
 VARIATIONS = (("funnel.e2.phi_inf", 2.0), ("controller.k2", 0.5), ("funnel.e2.a", 0.5))
 
 
