@@ -309,3 +309,30 @@ def test_design_help_computes_the_minimum_rate_per_parameter(tmp_path):
     for v in out["variations"]:
         assert v["min_rate_hz"] is not None and v["tried"]
         assert v["after"] == pytest.approx(v["before"] * v["factor"])
+
+
+def test_rate_command_json_has_the_contract_keys(monkeypatch, capsys):
+    import json
+    monkeypatch.setattr(S, "simulate_sampled", _threshold_sim(lambda sc: 2500.0))
+    monkeypatch.setattr("symfunnel.design.derive", lambda sc: object())
+    assert main(["rate", "paper", "--json", "--margin", "0.1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"min_rate_hz", "margin", "tried"} and out["margin"] == 0.1
+    assert 2500.0 <= out["min_rate_hz"] <= 2500.0 * 1.05
+    assert all({"rate_hz", "status", "min_margin"} <= set(d) for d in out["tried"])
+    monkeypatch.setattr(S, "simulate_sampled", _threshold_sim(lambda sc: 5e6))   # nothing holds up to 1 MHz
+    assert main(["rate", "paper", "--json"]) == 1
+    assert json.loads(capsys.readouterr().out)["min_rate_hz"] is None
+
+
+@needs_gcc
+def test_simulate_rate_cli_writes_the_sampled_run_and_exits_1_on_a_breach(tmp_path, capsys):
+    import json
+    out = tmp_path / "run.npz"
+    assert main(["simulate", "paper", "--rate", "4000", "--t-final", "0.5", "--out", str(out), "-q", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["status"] == "ok" and s["rate_hz"] == 4000.0 and s["samples"] == 2000
+    data = np.load(out)
+    assert data["tau"].shape == (2000, 2) and data["q"].shape == (2001, 2)
+    assert main(["simulate", "paper", "--rate", "400", "-q"]) == 1
+    assert "breach" in capsys.readouterr().err
