@@ -336,3 +336,17 @@ def test_simulate_rate_cli_writes_the_sampled_run_and_exits_1_on_a_breach(tmp_pa
     assert data["tau"].shape == (2000, 2) and data["q"].shape == (2001, 2)
     assert main(["simulate", "paper", "--rate", "400", "-q"]) == 1
     assert "breach" in capsys.readouterr().err
+
+
+@needs_gcc
+@pytest.mark.slow
+def test_arm7_has_a_finite_minimum_rate_and_holds_at_twice_it(tmp_path):
+    text = (DATA_DIR / "arm7.toml").read_text()
+    shutil.copy(DATA_DIR / "arm7.urdf", tmp_path / "arm7.urdf")
+    text = re.sub(r"^t_final = .*$", "t_final = 4.0", text, count=1, flags=re.M)
+    assert "t_final = 4.0" in text
+    (tmp_path / "arm7.toml").write_text(text)
+    sc = load_scenario(tmp_path / "arm7.toml")
+    r = R.min_rate(sc, rel_tol=0.2)
+    assert r["min_rate_hz"] is not None and r["min_rate_hz"] < 1e5
+    assert S.implementation_checks(sc, rate_hz=2 * r["min_rate_hz"])[0].status == "pass"
