@@ -350,3 +350,24 @@ def test_arm7_has_a_finite_minimum_rate_and_holds_at_twice_it(tmp_path):
     r = R.min_rate(sc, rel_tol=0.2)
     assert r["min_rate_hz"] is not None and r["min_rate_hz"] < 1e5
     assert S.implementation_checks(sc, rate_hz=2 * r["min_rate_hz"])[0].status == "pass"
+
+
+@needs_gcc
+def test_the_c_loop_and_the_python_loop_apply_noise_quantisation_and_delay_alike(tmp_path):
+    """The fast loop in C (used with the compiled step) against the Python loop (checked above) on the same step."""
+    from symfunnel.codegen import generate
+    from symfunnel.design import derive
+    sc = load_scenario(paper_with(tmp_path, "rate_hz = 4000.0\nnoise_q = 1e-4\nnoise_dq = 1e-3\n"
+                                            "encoder_resolution = 1e-4\ndelay_samples = 1\nseed = 3"))
+    design = derive(sc)
+    lib = S.step_library(design, generate(design, "c", rate_hz=4000.0))
+
+    class Wrapped:                       # the same compiled step, but not a StepLibrary: the Python loop runs
+        q, dq, tau = lib.q, lib.dq, lib.tau
+        init, raw = lib.init, lib.raw
+    fast = S.simulate_sampled(sc, t_final=0.5, design=design, controller=lib)
+    slow = S.simulate_sampled(sc, t_final=0.5, design=design, controller=Wrapped())
+    assert fast.status == slow.status == "ok" and fast.tau.shape == (2000, 2)
+    np.testing.assert_allclose(fast.q, slow.q, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast.tau, slow.tau, rtol=1e-12, atol=1e-9)
+    np.testing.assert_array_equal(fast.tau[0], 0.0)                       # the delay
