@@ -153,7 +153,7 @@ def test_pstep_at_10khz_drives_an_independent_numpy_plant_inside_its_funnel():
     design = derive(sc)
     lib = S.step_library(design, generate(design, "c", rate_hz=10000.0))
     f = paper_arm_numpy()
-    h, T, sub = 1e-4, 6.0, 2
+    h, T, sub = 1e-4, 4.0, 2                       # past the transient: by 4 s F2 is within 2 % of phi_inf
     q, dq = np.zeros(2), np.zeros(2)
     worst = math.inf
     for k in range(int(round(T / h))):
