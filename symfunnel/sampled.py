@@ -383,7 +383,8 @@ def implementation_checks(scenario, design=None, *, rate_hz: float | None = None
         frac = r.saturated_fraction or [0.0] * r.q.shape[1]
         worst = max(frac)
         detail = ("time fraction at tau_max per joint: " + ", ".join(f"{f:.3g}" for f in frac)
-                  + f" (tau_max = {', '.join(f'{v:g}' for v in r.tau_max)})")
+                  + f" (tau_max = {', '.join(f'{v:g}' for v in r.tau_max)}; over the {r.tau.shape[0]} samples to "
+                  f"t = {r.t[-1]:g} s" + ("" if r.ok else ", where the run stopped") + ")")
         out.append(CheckResult("implementation.saturation", "pass" if worst == 0.0 else "fail", detail,
                                method="sampled-data simulation", margin=-worst,
                                evidence={"saturated_fraction": frac, "tau_max": list(r.tau_max),
