@@ -371,3 +371,16 @@ def test_the_c_loop_and_the_python_loop_apply_noise_quantisation_and_delay_alike
     np.testing.assert_allclose(fast.q, slow.q, rtol=0, atol=1e-12)
     np.testing.assert_allclose(fast.tau, slow.tau, rtol=1e-12, atol=1e-9)
     np.testing.assert_array_equal(fast.tau[0], 0.0)                       # the delay
+
+
+@needs_gcc
+def test_implementation_report_puts_the_peak_torque_beside_the_limits(tmp_path):
+    from symfunnel.implementation_report import implementation_report
+    sc = load_scenario(paper_with(tmp_path, "rate_hz = 3000.0\ntau_max = [600.0, 300.0]", t_final=2.0))
+    out = implementation_report(sc, sensitivity=False)
+    assert out["min_rate"]["min_rate_hz"] is not None and out["sensitivity"] is None
+    res = out["run"]["result"]
+    assert res.rate_hz == 3000.0
+    assert out["peak_tau"] == np.max(np.abs(res.tau), axis=0).tolist()
+    assert out["tau_max"] == [600.0, 300.0] and out["effort_limits"] is None
+    assert out["peak_tau"][0] > 500.0                     # the paper's start asks for ~502 N m on joint 1
