@@ -66,6 +66,10 @@ def run(args) -> int:
     print(f"wrote {len(paths)} files to {args.out} ({args.lang}, scenario {sc.name}):")
     for f in summary["files"]:
         print(f"  {f['name']:<28} {f['bytes']:>9} bytes")
+    if args.lang == "c":
+        step = json.loads(files["manifest.json"])["c_api"]["step"]
+        print(f"step function: {step['prefix']}step, one call every 1/{step['rate_hz']:g} s (the rate is baked in; "
+              f"`symfunnel rate` gives the lowest that keeps the funnels), tau_max {step['tau_max'] or 'none'}")
     if report is not None:
         what = "compiled and loaded" if args.lang == "c" else "imported"
         print(f"check: {what}; {report.points} random points inside the funnels (|e| <= {FILL} F); "
