@@ -34,6 +34,7 @@ class RunOptions:
     samples: int = 10000            # falsification states of verify
     seed: int = 0
     mutant: str | None = None       # derive the design with this seeded error (verify --mutants)
+    rate_hz: float | None = None    # verify the sampled-data controller at this rate (overrides [implementation])
 
 
 @dataclass
@@ -124,7 +125,7 @@ class Run:
         o = self.options
         return self._timed("verify", lambda: verify(
             self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, self.audit,
-            t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress))
+            t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress, rate_hz=o.rate_hz))
 
     @cached_property
     def mutation(self) -> dict:
@@ -148,13 +149,14 @@ class Run:
         from .codegen import trajectory_from_run
         return trajectory_from_run(self.design, self.closed_loop, self.simulation)
 
-    def code(self, lang: str) -> dict[str, str]:
-        """The generated files of one language ({name: text}), generated once per language."""
+    def code(self, lang: str, *, prefix: str | None = None, rate_hz: float | None = None) -> dict[str, str]:
+        """The generated files of one language ({name: text}), generated once per language and C options."""
         cache = self.__dict__.setdefault("_code", {})
-        if lang not in cache:
+        key = (lang, prefix, rate_hz)
+        if key not in cache:
             from .codegen import generate
-            cache[lang] = generate(self.design, lang, trajectory=self.code_trajectory)
-        return cache[lang]
+            cache[key] = generate(self.design, lang, trajectory=self.code_trajectory, prefix=prefix, rate_hz=rate_hz)
+        return cache[key]
 
 
 # --- mutation testing of the verifier ---------------------------------------------------------------------

@@ -26,7 +26,7 @@ BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
             "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims", "design",
-            "approximator", "expect", "uncertainty", "sweep"]
+            "approximator", "expect", "uncertainty", "sweep", "implementation"]
 ESN_INPUTS = list(ESNApproximator.INPUTS)
 
 
@@ -172,6 +172,7 @@ class Scenario:
     expectations: list[Expectation] = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
     campaign: Any = None            # uncertainty.Campaign of [[uncertainty]] / [sweep], None without them
+    implementation: Any = None      # ImplementationSpec, or None: the continuous-time controller
 
     @property
     def n(self) -> int:
@@ -272,12 +273,16 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     expectations = _expectations(raw.get("expect", []), n, claims, file)
     from .uncertainty import parse_campaign
     campaign = parse_campaign(raw, file=file, n=n, model=model, plant=plant)
+    impl = None
+    if "implementation" in raw:
+        from .implementation import parse_implementation
+        impl = parse_implementation(raw["implementation"], n=n, file=file, raw_model=raw["model"], base_dir=base_dir)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
-                    design=design, expectations=expectations, raw=raw, campaign=campaign)
+                    design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl)
 
 
 # --- sections -------------------------------------------------------------------------------------

@@ -18,12 +18,12 @@ LAYERS = [
     ("ground", ["errors", "io", "validate", "names", "registry", "expr", "sx", "family", "esn", "plant",
                 "integrators", "inputs", "outputs", "lifecycle", "sim_hints", "uncertainty", "toml_write"]),
     ("model", ["model"]),
-    ("scenario", ["scenario"]),
+    ("scenario", ["scenario", "implementation"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
-    ("stages", ["simulate", "codegen", "checks"]),
+    ("stages", ["simulate", "codegen", "checks", "sampled", "rate"]),
     ("pipeline", ["pipeline", "campaign"]),
-    ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__"]),
+    ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "implementation_report"]),
 ]
 
 

@@ -65,6 +65,19 @@ def contract_functions(design) -> list:
     return out
 
 
+def initial_trajectory(design) -> dict[str, np.ndarray]:
+    """The controller inputs at t = 0 from the scenario's initial state: one sample, no simulation."""
+    sc = design.scenario
+    init = design.variant.initial_states()
+    qd, dqd, ddqd = (np.array(v).reshape(-1, 1, 1) for v in design.reference(0.0))
+    col = lambda a: np.asarray(a, dtype=float).reshape(-1, 1, 1)  # noqa: E731
+    out = {"t": np.zeros((1, 1, 1)), "q": col(sc.q0), "dq": col(sc.dq0), "qd": qd, "dqd": dqd, "ddqd": ddqd}
+    for name, (r, c) in design.states:
+        out[name] = np.asarray(init[name], dtype=float).reshape(r, c, 1, order="F")
+    out["source"] = f"the initial state of scenario '{sc.name}' (t = 0; no recorded run)"
+    return out
+
+
 def trajectory_from_run(design, closed_loop, result, samples: int = 50, span: float = 2.0) -> dict[str, np.ndarray]:
     """Controller inputs at `samples` times of a simulated run's first `span` seconds, as (r, c, k) arrays.
 
@@ -121,21 +134,34 @@ def _manifest(design, functions, lang: str, files: dict[str, str]) -> str:
     return json.dumps(info, indent=2) + "\n"
 
 
-def generate(design, lang: str, *, trajectory: dict[str, np.ndarray]) -> dict[str, str]:
-    """Every output file of one language as {name: text}, manifest.json last; byte-identical for the same design."""
-    from .c import emit_c, support_files, trajectory_text
+def generate(design, lang: str, *, trajectory: dict[str, np.ndarray] | None = None, prefix: str | None = None,
+             rate_hz: float | None = None, tau_max=None) -> dict[str, str]:
+    """Every output file of one language as {name: text}, manifest.json last; byte-identical for the same design.
+
+    `trajectory` (controller inputs over time, see `trajectory_from_run`) is what `trajectory.txt` ships; without
+    one (a library build, e.g. the sampled-data loop) it holds the initial state alone. C only: `prefix` starts
+    every exported symbol (None: the historical names, see codegen.step), `rate_hz` is the period of the generated
+    step (default: [implementation].rate_hz, else step.DEFAULT_RATE_HZ) and `tau_max` its saturation (default:
+    [implementation].tau_max).
+    """
+    from .c import support_files, trajectory_text
     from .python import emit_python
     if lang not in LANGS:
         raise ValueError(f"unknown language {lang!r}; expected one of {LANGS}")
     functions = contract_functions(design)
     sc = design.scenario
-    traj = trajectory
+    traj = trajectory if trajectory is not None else initial_trajectory(design)
     traj_txt = trajectory_text(design.controller(), traj, header=(
         f"symfunnel recorded trajectory for scenario '{sc.name}': one sample per line\n"
         + str(traj.get("source", "supplied by the caller"))))
     if lang == "c":
-        files = emit_c(functions, BASENAME)
-        files.update(support_files(traj_txt))
+        from .step import emit_controller_c, step_settings
+        rate_hz, tau_max = step_settings(design, rate_hz, tau_max)
+        base = c_basename(prefix)
+        files = emit_controller_c(design, functions, prefix=prefix, basename=base, rate_hz=rate_hz, tau_max=tau_max)
+        sp = prefix if prefix is not None else "symfunnel_"
+        files.update(support_files(traj_txt, {"@BASENAME@": base, "@F@": prefix or "", "@P@": sp,
+                                              "@UP@": sp.upper()}))
     else:
         doc = (f"Funnel controller of scenario '{sc.name}' ({sc.title}).\n\n"
                "See manifest.json for the functions, their inputs and outputs.")
@@ -144,7 +170,28 @@ def generate(design, lang: str, *, trajectory: dict[str, np.ndarray]) -> dict[st
                  "run_trajectory.py": template("run_trajectory.py"),
                  "trajectory.txt": traj_txt}
     files["manifest.json"] = _manifest(design, functions, lang, files)
+    if lang == "c":
+        m = json.loads(files["manifest.json"])
+        m["c_api"].update({"source": base + ".c", "header": base + ".h", "function_prefix": prefix or "",
+                           "step": {"prefix": sp, "rate_hz": rate_hz,
+                                    "tau_max": None if tau_max is None else np.broadcast_to(
+                                        np.asarray(tau_max, float), (design.n,)).tolist(),
+                                    "functions": [sp + "state_size", sp + "init", sp + "step"],
+                                    "casadi_functions": [(prefix or "") + "reference",
+                                                         (prefix or "") + "step_core"]}})
+        files["manifest.json"] = json.dumps(m, indent=2) + "\n"
     return files
+
+
+def c_basename(prefix: str | None) -> str:
+    """Base name of the generated C pair: symfunnel_controller without a prefix, else <prefix>controller."""
+    return BASENAME if prefix is None else prefix + "controller"
+
+
+def c_names(files: dict[str, str]) -> tuple[str, str]:
+    """(basename, function prefix) of a generated C file set, from its manifest."""
+    api = json.loads(files["manifest.json"]).get("c_api", {})
+    return api.get("source", BASENAME + ".c")[:-2], api.get("function_prefix", "")
 
 
 def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path]:
@@ -200,8 +247,9 @@ def check_output(design, lang: str, files: dict[str, str], *, points: int = 1000
     if pts is None:
         pts = check.sample_points(design, points, seed, check.FILL if fill is None else fill)
     if lang == "c":
-        lib = check.c_library(files[BASENAME + ".c"], files[BASENAME + ".h"], BASENAME)
-        report = check.check_c(functions, lib.path, pts)
+        base, fprefix = c_names(files)
+        lib = check.c_library(files[base + ".c"], files[base + ".h"], base)
+        report = check.check_c(functions, lib.path, pts, prefix=fprefix)
         report.extra["main.c trajectory"] = _check_main(design, files)
         return report
     with tempfile.TemporaryDirectory(prefix="symfunnel-py-") as tmp:
@@ -227,8 +275,9 @@ def main_program(files: dict[str, str], flags=None):
     """Build main.c + the generated pair with the strict flags (cached); returns build.Built."""
     from .build import compile_cached
     from .c import STRICT_CFLAGS
-    src = {k: files[k] for k in (BASENAME + ".c", BASENAME + ".h", "main.c")}
-    return compile_cached(src, ["main.c", BASENAME + ".c"], "symfunnel_main", tuple(flags or STRICT_CFLAGS))
+    base = c_names(files)[0]
+    src = {k: files[k] for k in (base + ".c", base + ".h", "main.c")}
+    return compile_cached(src, ["main.c", base + ".c"], "symfunnel_main", tuple(flags or STRICT_CFLAGS))
 
 
 def _check_main(design, files: dict[str, str]) -> float:
@@ -241,6 +290,10 @@ def _check_main(design, files: dict[str, str]) -> float:
         rows = run_main(exe, p)
     inp = _trajectory_inputs(design, files["trajectory.txt"])
     tau = casadi_values(design.controller(), inp)[0]                  # (n, 1, k)
+    tau_max = json.loads(files["manifest.json"])["c_api"]["step"]["tau_max"]
+    if tau_max is not None:                                           # main.c's Pstep saturates
+        tm = np.asarray(tau_max, dtype=float)[:, None, None]
+        tau = np.clip(tau, -tm, tm)
     if rows.shape != (tau.shape[2], 1 + tau.shape[0]):
         return float("inf")
     return float(relative_error(rows[:, 1:].T[:, None, :], tau).max())

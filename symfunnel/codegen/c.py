@@ -68,16 +68,21 @@ def _silence_unused(code: str) -> str:
     return "\n".join(out)
 
 
-def emit_c(functions: Sequence[casadi.Function], basename: str = BASENAME) -> dict[str, str]:
+def emit_c(functions: Sequence[casadi.Function], basename: str = BASENAME,
+           prefix: str | None = None) -> dict[str, str]:
     """Return {basename.c: text, basename.h: text} for the functions, in order; deterministic.
 
-    Raises ValueError when the generated code would allocate memory (it must use static memory only).
+    `prefix` (CasADi's CodeGenerator option) names CasADi's own helpers (`<prefix>_fabs`, ...); without it they
+    are named after the basename. Raises ValueError when the generated code would allocate memory.
     """
     functions = list(functions)
     names = [f.name() for f in functions]
     if len(set(names)) != len(names):
         raise ValueError(f"function names must be unique, got {names}")
-    cg = casadi.CodeGenerator(basename + ".c", dict(CODEGEN_OPTIONS))
+    opts = dict(CODEGEN_OPTIONS)
+    if prefix:
+        opts["prefix"] = prefix
+    cg = casadi.CodeGenerator(basename + ".c", opts)
     for f in functions:
         cg.add(f)
     with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
@@ -96,9 +101,15 @@ def template(name: str) -> str:
     return resources.files("symfunnel.codegen").joinpath("templates", name).read_text(encoding="utf-8")
 
 
-def support_files(trajectory: str) -> dict[str, str]:
-    """main.c, bench.c, Makefile and trajectory.txt for the generated pair."""
-    out = {name: template(name) for name in _TEMPLATES}
+def support_files(trajectory: str, subs: dict[str, str] | None = None) -> dict[str, str]:
+    """main.c, bench.c, Makefile and trajectory.txt for the generated pair (placeholders @X@ filled from subs)."""
+    subs = subs or {"@BASENAME@": BASENAME, "@F@": "", "@P@": "symfunnel_", "@UP@": "SYMFUNNEL_"}
+    out = {}
+    for name in _TEMPLATES:
+        text = template(name)
+        for k, v in subs.items():
+            text = text.replace(k, v)
+        out[name] = text
     out["trajectory.txt"] = trajectory
     return out
 

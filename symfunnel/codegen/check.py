@@ -193,13 +193,13 @@ def c_library(c_source: str, h_source: str, basename: str):
                           f"lib{basename}.so", SHARED_FLAGS)
 
 
-def check_c(functions, lib_path: str | Path, pts: dict[str, np.ndarray]) -> CheckReport:
+def check_c(functions, lib_path: str | Path, pts: dict[str, np.ndarray], prefix: str = "") -> CheckReport:
     """Compare every function of the compiled library with CasADi at the points."""
     lib = CLibrary(lib_path)
     k = next(iter(pts.values())).shape[2]
     report = CheckReport("c", k)
     for f in functions:
-        cf = lib.function(f.name())
+        cf = lib.function(prefix + f.name())
         names = [f.name_in(i) for i in range(f.n_in())]
         got = [np.zeros((f.size1_out(j), f.size2_out(j), k)) for j in range(f.n_out())]
         for j in range(k):

@@ -24,6 +24,10 @@ def register(sub, common) -> None:
                     "random points inside the funnels; exit 1 above 1e-12 (C) or 1e-10 (Python)")
     sp.add_argument("--points", type=int, default=1000, metavar="N", help="check points (default 1000, 1000..100000)")
     sp.add_argument("--seed", type=int, default=0, help="seed of the check points (default 0, >= 0)")
+    sp.add_argument("--prefix", metavar="P", help="C: start every exported symbol with P (a C identifier prefix); "
+                    "the step API is then Pstate, Pinit, Pstep (default: historical names, symfunnel_step)")
+    sp.add_argument("--rate", type=float, metavar="HZ", help="C: sample rate the generated step advances the "
+                    "controller state by (default: [implementation].rate_hz, else 1000)")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
     sp.set_defaults(func=run)
 
@@ -36,13 +40,21 @@ def run(args) -> int:
     from ..errors import InputError
     from ..outputs import check_count
     from ..pipeline import Run
+    from ..codegen.step import valid_prefix
+    from ..implementation import check_rate
     check_count(args.points, key="--points", minimum=1000, maximum=MAX_POINTS, what="a number of check points")
     check_count(args.seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("exists and is not a directory", key="--out", expected="a directory (created when missing)")
+    if args.prefix is not None and not valid_prefix(args.prefix):
+        raise InputError(f"is '{args.prefix}'", key="--prefix",
+                         expected="a C identifier prefix: a letter or '_' then letters, digits, '_' (at most 32; "
+                         "not '__' or '_' + capital)")
+    if args.rate is not None:
+        check_rate(args.rate, file=None, key="--rate")
     run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
     sc, design = run.scenario, run.design
-    files = run.code(args.lang)
+    files = run.code(args.lang, prefix=args.prefix, rate_hz=args.rate)
     paths = write_output(files, args.out)
     summary = {"scenario": sc.name, "language": args.lang, "out": str(args.out),
                "files": [{"name": p.name, "bytes": len(files[p.name].encode("utf-8"))} for p in paths]}
@@ -62,6 +74,10 @@ def run(args) -> int:
     print(f"wrote {len(paths)} files to {args.out} ({args.lang}, scenario {sc.name}):")
     for f in summary["files"]:
         print(f"  {f['name']:<28} {f['bytes']:>9} bytes")
+    if args.lang == "c":
+        step = json.loads(files["manifest.json"])["c_api"]["step"]
+        print(f"step function: {step['prefix']}step, one call every 1/{step['rate_hz']:g} s (the rate is baked in; "
+              f"`symfunnel rate` gives the lowest that keeps the funnels), tau_max {step['tau_max'] or 'none'}")
     if report is not None:
         what = "compiled and loaded" if args.lang == "c" else "imported"
         print(f"check: {what}; {report.points} random points inside the funnels (|e| <= {FILL} F); "

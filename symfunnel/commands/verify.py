@@ -17,6 +17,8 @@ def register(sub, common) -> None:
                     help="states sampled inside the funnels for the falsification (default 10000, at most 1000000)")
     sp.add_argument("--mutants", action="store_true",
                     help="mutation testing: run the design's seeded errors through the same checks; print the score")
+    sp.add_argument("--rate", type=float, metavar="HZ", help="verify the deployed controller sampled at HZ "
+                    "(overrides [implementation].rate_hz; adds the implementation.* checks)")
     sp.set_defaults(func=run)
 
 
@@ -46,6 +48,9 @@ def run(args) -> int:
     from ..outputs import check_count
     from ..pipeline import Run, RunOptions
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
+    if args.rate is not None:
+        from ..implementation import check_rate
+        check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
     say = _progress(args.quiet or args.json)
     if args.mutants:
@@ -62,7 +67,7 @@ def run(args) -> int:
             print(f"mutation score {out['score']:.3f} ({out['killed']} killed of {out['total'] - out['equivalent']} "
                   f"non-equivalent mutants)")
         return 0
-    v = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), say).verification
+    v = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples, rate_hz=args.rate), say).verification
     if args.json:
         print(_dump(v.to_json()))
     else:

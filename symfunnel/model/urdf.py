@@ -174,3 +174,19 @@ def _parse_joint(el: ET.Element, file: str) -> Joint:
             lower = upper = None        # a zero-width range carries no sampling information
     return Joint(name=name, type=jtype, parent=ends["parent"], child=ends["child"], R=R, p=p, axis=axis,
                  lower=lower, upper=upper, where=where)
+
+
+def effort_limits(path: str | pathlib.Path) -> list[float | None]:
+    """Each movable joint's `<limit effort>` (N m or N) in the model's coordinate order; None where absent."""
+    tree = parse_urdf(path)
+    root = ET.fromstring(pathlib.Path(path).read_bytes())
+    effort: dict[str, float | None] = {}
+    for el in root.findall("joint"):
+        lim = el.find("limit")
+        value = None if lim is None else lim.get("effort")
+        try:
+            effort[el.get("name", "")] = None if value is None else float(value)
+        except ValueError:
+            raise InputError(f"has effort '{value}'", file=str(path), key=f"joint[{el.get('name')}]/limit@effort",
+                             expected="a number") from None
+    return [effort.get(name) for name in movable_joint_names(tree)]

@@ -1,0 +1,201 @@
+"""The deployed controller's one-period step as a CasADi Function, and the C `Pstep` API wrapped around it.
+
+`step_core(design, tau_max)` is (t, q, dq, x_esn, w_hat, etd) -> (tau, x_esn_next, w_hat_next, margin, qd)
+(`step_function(design, rate_hz)` the same with etd fixed at one rate): the reference from the scenario's
+expressions, the torque of the design (saturated when tau_max is given), and x_esn, W_hat advanced by one period
+h = 1/rate_hz by the exponential Euler method (ETD1):
+
+    x+ = x + phi(lambda_x) * x_esn_dot,  lambda_x = leak / time_constant
+    W+ = W + phi(lambda_w) * w_hat_dot,  lambda_w = Gamma * sigma,      phi(l) = (1 - exp(-l h)) / l  (h at l = 0)
+
+which integrates the linear decay parts (-lambda x, -Gamma sigma W) exactly and holds the input-driven parts over
+the period, as the zero-order hold holds the measurements. Why: x+ = a x + (1 - a) tanh(.) / leak with
+a = exp(-lambda_x h) in (0, 1) is a convex combination, so the reservoir stays in [-1/leak, 1/leak] at every h
+(explicit Euler leaves it, and diverges, for h > 2 time_constant / leak); W+ = b W + (1 - b)/sigma Phi (mu2 z2)^T
+with b in (0, 1] stays bounded for bounded Phi mu2 z2 at every h. The period's remaining limit is the loop through
+the plant (the e2 funnel's gains), which `symfunnel rate` measures.
+
+Outside a funnel the design's torque is not defined (F - |e| <= 0): the step then evaluates the design at the
+state projected onto CLIP times each funnel (identity inside, so tau equals the continuous controller's there) and
+reports it through `margin` = 1 - |e| / F per joint (e1 then e2, at the unprojected q, dq; < 0 outside).
+"""
+
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["CLIP", "DEFAULT_RATE_HZ", "step_function", "step_core", "etd_factor", "etd_factors", "c_step_files",
+           "valid_prefix", "emit_controller_c", "step_settings"]
+
+#: Fraction of a funnel the state is projected onto before evaluating the design outside it.
+CLIP = 1.0 - 1e-3
+#: Rate baked into the step when neither --rate nor [implementation].rate_hz gives one.
+DEFAULT_RATE_HZ = 1000.0
+
+
+def valid_prefix(prefix: str) -> bool:
+    """True for a prefix that makes valid, non-reserved C identifiers (not '__' or '_X' at the start)."""
+    import re
+    return bool(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,31}", prefix)) and not re.match(r"_[A-Z_]", prefix)
+
+
+def etd_factor(rate: float, h: float) -> float:
+    """phi = (1 - exp(-rate h)) / rate, the exponential-Euler weight of a linear decay `rate` over h (h at 0)."""
+    if rate == 0.0:
+        return h
+    return -math.expm1(-rate * h) / rate
+
+
+def etd_factors(scenario, rate_hz: float) -> tuple[float, float]:
+    """(phi(lambda_x), phi(lambda_w)) of the exponential Euler update at one period 1/rate_hz."""
+    h = 1.0 / float(rate_hz)
+    es = scenario.esn
+    return etd_factor(es.leak / es.time_constant, h), etd_factor(float(scenario.gamma) * float(scenario.sigma), h)
+
+
+def step_function(design, rate_hz: float, tau_max=None, name: str = "step") -> ca.Function:
+    """One controller period at rate_hz as an SX Function (t, q, dq, x_esn, w_hat) -> step_core's outputs."""
+    core = step_core(design, tau_max)
+    ins = core.sx_in()[:5]
+    etd = ca.DM(list(etd_factors(design.scenario, rate_hz)))
+    return ca.Function(name, ins, core.call(ins + [etd]), core.name_in()[:5], core.name_out(),
+                       {"cse": True, "allow_duplicate_io_names": True})
+
+
+def step_core(design, tau_max=None, name: str = "step_core") -> ca.Function:
+    """(t, q, dq, x_esn, w_hat, etd) -> (tau, x_esn_next, w_hat_next, margin, qd): one period, the rate entering
+    only through etd = etd_factors(scenario, rate_hz), so that the compiled core serves every rate."""
+    s, S = design.sym, design.signals
+    t, q, dq = s["t"], s["q"], s["dq"]
+    etd = ca.SX.sym("etd", 2)
+    ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
+    ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
+
+    def ref(e):
+        return ca.substitute([e], ref_syms, ref_t)[0]
+
+    F1, F2 = ref(S["F1"]), ref(S["F2"])
+    qd = ref_t[0]
+    e1 = q - qd
+    q_c = qd + ca.fmin(ca.fmax(e1, -CLIP * F1), CLIP * F1)
+    alpha2_c = ca.substitute(ref(S["alpha2"]), q, q_c)
+    e2 = dq - alpha2_c
+    dq_c = alpha2_c + ca.fmin(ca.fmax(e2, -CLIP * F2), CLIP * F2)
+    margin = ca.vertcat(1 - ca.fabs(e1) / F1, 1 - ca.fabs(e2) / F2)
+
+    outs = [ref(S[k]) for k in ("tau", "x_esn_dot", "w_hat_dot")]
+    outs = ca.substitute(outs, [ca.vertcat(q, dq)], [ca.vertcat(q_c, dq_c)])
+    tau, xdot, wdot = outs
+    if tau_max is not None:
+        tm = ca.DM(np.broadcast_to(np.asarray(tau_max, dtype=float), (design.n,)).copy())
+        tau = ca.fmin(ca.fmax(tau, -tm), tm)
+    x_next = s["x_esn"] + etd[0] * xdot
+    w_next = s["w_hat"] + etd[1] * wdot
+    return ca.Function(name, [t, q, dq, s["x_esn"], s["w_hat"], etd], [tau, x_next, w_next, margin, qd],
+                       ["t", "q", "dq", "x_esn", "w_hat", "etd"], ["tau", "x_esn_next", "w_hat_next", "margin", "qd"],
+                       {"cse": True, "allow_duplicate_io_names": True})
+
+
+def _c_array(values) -> str:
+    return ", ".join(repr(float(v)) for v in np.ravel(values)) or "0.0"
+
+
+def c_step_files(design, *, prefix: str, fprefix: str, basename: str, rate_hz: float, tau_max,
+                 x0: np.ndarray, w0: np.ndarray) -> tuple[str, str]:
+    """(C source, header section) of the Pstep API around the generated `<fprefix>step_core`."""
+    from .c import template
+    n = design.n
+    N = int(design.sym["x_esn"].numel())
+    nr = int(design.sym["w_hat"].shape[0])
+    sub = {
+        "@P@": prefix, "@F@": fprefix, "@BASENAME@": basename, "@UP@": prefix.upper(),
+        "@N@": str(n), "@NESN@": str(N), "@NREG@": str(nr), "@NW@": str(nr * n),
+        "@RATE@": repr(float(rate_hz)), "@SCENARIO@": design.scenario.name,
+        "@X0@": _c_array(x0), "@W0@": _c_array(np.asarray(w0).reshape(-1, order="F")),
+        "@TAUMAX@": ("no saturation (the scenario sets no tau_max)" if tau_max is None else
+                     "saturated at tau_max = [" + ", ".join(f"{v:g}" for v in
+                                                             np.broadcast_to(np.asarray(tau_max, float), (n,)))
+                     + "] N m"),
+        "@CLIP@": repr(CLIP),
+        "@ETD@": _c_array(etd_factors(design.scenario, rate_hz)),
+    }
+
+    def fill(text: str) -> str:
+        for k, v in sub.items():
+            text = text.replace(k, v)
+        return text
+    return fill(template("step.c")), fill(template("step.h"))
+
+
+#: Unit of every named input/output of the generated functions (revolute joints; prismatic: m for rad).
+UNITS = {
+    "t": "s", "q": "rad", "dq": "rad/s", "qd": "rad", "dqd": "rad/s", "ddqd": "rad/s^2", "x_esn": "-",
+    "w_hat": "rad/s^2 per regressor unit", "F1": "rad", "dF1": "rad/s", "F2": "rad/s", "dF2": "rad/s^2",
+    "e1": "rad", "z1": "-", "e2": "rad/s", "z2": "-", "alpha2": "rad/s", "alpha2_dot": "rad/s^2",
+    "tau": "N m", "x_esn_dot": "1/s", "w_hat_dot": "rad/s^3 per regressor unit", "x_esn_next": "-",
+    "w_hat_next": "rad/s^2 per regressor unit", "margin": "- (1 - |e|/F; e1 rows, then e2 rows)",
+    "etd": "s (exponential-Euler weights of x_esn_dot and w_hat_dot over one period)",
+}
+
+
+def renamed(f: ca.Function, name: str) -> ca.Function:
+    """The same SX function under another name (CSE on)."""
+    if f.name() == name:
+        return f
+    ins = f.sx_in()
+    return ca.Function(name, ins, f.call(ins), f.name_in(), f.name_out(),
+                       {"cse": True, "allow_duplicate_io_names": True})
+
+
+def _doc(functions) -> str:
+    lines = ["/* Generated functions (CasADi's C API: NAME(arg, res, iw, w, mem) with NAME_work, NAME_incref, ...).",
+             " * Every argument is a dense double array, matrices column-major; shape rows x cols, unit:"]
+    for f in functions:
+        lines.append(f" *   {f.name()}")
+        for kind, n_, name_, size in (("in ", f.n_in(), f.name_in, f.size_in),
+                                      ("out", f.n_out(), f.name_out, f.size_out)):
+            for i in range(n_):
+                r, c = size(i)
+                nm = name_(i)
+                lines.append(f" *     {kind} {i}: {nm:<11} {r} x {c:<3} [{UNITS.get(nm, '-')}]")
+    lines.append(" */")
+    return "\n".join(lines) + "\n"
+
+
+def emit_controller_c(design, contract: list, *, prefix: str | None, basename: str, rate_hz: float,
+                      tau_max) -> dict[str, str]:
+    """{basename.c, basename.h}: the contract functions, reference and step core (CasADi) plus the Pstep API.
+
+    prefix None keeps the historical names (functions unprefixed, helpers named after the basename) and names
+    the step API `symfunnel_*`; otherwise every exported symbol starts with prefix.
+    """
+    from .c import emit_c
+    fprefix = prefix or ""
+    sprefix = prefix if prefix is not None else "symfunnel_"
+    funcs = [renamed(f, fprefix + f.name()) for f in contract]
+    funcs.append(renamed(design.reference, fprefix + "reference"))
+    funcs.append(step_core(design, tau_max, fprefix + "step_core"))
+    files = emit_c(funcs, basename, prefix=prefix)
+    init = design.variant.initial_states()
+    x0, w0 = init["x_esn"], init["w_hat"]
+    src, hdr = c_step_files(design, prefix=sprefix, fprefix=fprefix, basename=basename, rate_hz=rate_hz,
+                            tau_max=tau_max, x0=x0, w0=w0)
+    guard = basename.upper() + "_H"
+    h = files[basename + ".h"]
+    files[basename + ".h"] = (f"#ifndef {guard}\n#define {guard}\n" + _doc(funcs) + h + hdr
+                              + f"\n#endif /* {guard} */\n")
+    files[basename + ".c"] = files[basename + ".c"] + src
+    return files
+
+
+def step_settings(design, rate_hz=None, tau_max=None) -> tuple[float, object]:
+    """(rate_hz, tau_max) of the generated step: the arguments, else the scenario's [implementation], else defaults."""
+    impl = getattr(design.scenario, "implementation", None)
+    if rate_hz is None:
+        rate_hz = impl.rate_hz if impl is not None else DEFAULT_RATE_HZ
+    if tau_max is None and impl is not None:
+        tau_max = impl.tau_max
+    return float(rate_hz), tau_max

@@ -1,0 +1,65 @@
+"""Data and figures of the deployed controller for the report: minimum rate, design help, torque beside the limits.
+
+`implementation_report(scenario)` returns plain data; `torque_figure` (sampled torque as stairs over the continuous
+one) and `rate.margin_rate_figure` (min margin against rate) draw it. The report's wiring is left to report/.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["implementation_report", "torque_figure"]
+
+
+def implementation_report(scenario, design=None, *, margin: float = 0.05, sensitivity: bool = True,
+                          t_final: float | None = None, progress=None) -> dict:
+    """{"min_rate": rate.min_rate(...), "sensitivity": rate.rate_sensitivity(...) | None, "run": the sampled run's
+    summary at the scenario's rate (twice the minimum without [implementation]), "peak_tau", "tau_max",
+    "effort_limits" (a URDF model's <limit effort>, else None)}: the peak torque beside the actuator limits."""
+    from .design import derive
+    from .rate import min_rate, rate_sensitivity
+    from .sampled import simulate_sampled
+    say = progress or (lambda s: None)
+    design = design or derive(scenario)
+    r = min_rate(scenario, margin=margin, design=design, t_final=t_final, progress=say)
+    impl = getattr(scenario, "implementation", None)
+    rate = impl.rate_hz if impl is not None else (2 * r["min_rate_hz"] if r["min_rate_hz"] else None)
+    run = None
+    if rate is not None:
+        res = simulate_sampled(scenario, rate_hz=rate, t_final=t_final, design=design)
+        run = res.summary()
+        run["result"] = res
+    sens = rate_sensitivity(scenario, margin=margin, t_final=t_final, baseline=r, progress=say) if sensitivity else None
+    effort = None
+    model = scenario.raw.get("model", {})
+    if model.get("type") == "urdf":
+        from .model.urdf import effort_limits
+        effort = effort_limits(scenario.path.parent / model["path"])
+    return {"min_rate": r, "sensitivity": sens, "run": run,
+            "peak_tau": None if run is None else run["max_abs_tau"],
+            "tau_max": None if impl is None or impl.tau_max is None else list(impl.tau_max),
+            "effort_limits": effort}
+
+
+def torque_figure(sampled, continuous=None, t_max: float | None = None):
+    """A matplotlib Figure per joint: the sampled run's held torque as stairs, the continuous run's torque over it."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    n = sampled.q.shape[1]
+    fig, axes = plt.subplots(n, 1, figsize=(6, 1.8 * n + 0.6), sharex=True, squeeze=False)
+    t = sampled.t
+    m = sampled.tau.shape[0] if t_max is None else int(min(sampled.tau.shape[0], np.searchsorted(t, t_max)))
+    for j, ax in enumerate(axes[:, 0]):
+        ax.stairs(sampled.tau[:m, j], t[:m + 1], baseline=None, label=f"sampled at {sampled.rate_hz:g} Hz (held)")
+        if continuous is not None:
+            tc = continuous.t if t_max is None else continuous.t[continuous.t <= t_max]
+            ax.plot(tc, continuous.signals["tau"][:tc.size, j], lw=0.8, label="continuous-time controller")
+        if sampled.tau_max is not None:
+            for s in (1, -1):
+                ax.axhline(s * sampled.tau_max[j], color="k", ls=":", lw=0.8)
+        ax.set_ylabel(f"tau{j + 1}")
+    axes[0, 0].legend(fontsize=7)
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,132 @@
+"""The minimum sample rate of the deployed controller, and which design parameters set it.
+
+`min_rate(scenario)` searches the lowest rate at which the sampled-data loop (`symfunnel.sampled`) keeps both
+funnels with margin >= M over the horizon: it brackets from the scenario's rate by factors of 4, then bisects on a
+log scale until the bracket is within `rel_tol`. It assumes that holding is monotone in the rate (every tried rate
+is listed, so a non-monotone case shows). `rate_sensitivity` re-runs the search for a few one-parameter changes
+of the inner loop (phi_inf and a of funnel e2, k2), to show which parameter sets the minimum rate.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+from .errors import InputError
+
+__all__ = ["min_rate", "rate_sensitivity", "margin_rate_figure", "VARIATIONS", "MAX_RATE_HZ"]
+
+MAX_RATE_HZ = 1e6
+MIN_RATE_HZ = 1.0
+#: (dotted key, factor) of the design-help variations: the e2 loop's parameters (mu2 >= 1/F2 grows to 1/phi_inf).
+VARIATIONS = (("funnel.e2.phi_inf", 2.0), ("controller.k2", 0.5), ("funnel.e2.a", 0.5))
+
+
+def min_rate(scenario, *, margin: float = 0.05, design=None, t_final: float | None = None, rel_tol: float = 0.05,
+             start: float | None = None, progress=None) -> dict:
+    """{"min_rate_hz": float | None, "margin", "tried": [{"rate_hz", "status", "min_margin", "holds"}]}."""
+    from .design import derive
+    from .sampled import simulate_sampled
+    if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
+        raise InputError(f"is {margin!r}", file=scenario.file, key="--margin", expected="a number in [0, 1)")
+    say = progress or (lambda s: None)
+    design = design or derive(scenario)
+    impl = getattr(scenario, "implementation", None)
+    r = float(start or (impl.rate_hz if impl is not None else 1000.0))
+    tried: list[dict] = []
+
+    def holds(rate: float) -> bool:
+        res = simulate_sampled(scenario, rate_hz=rate, t_final=t_final, design=design)
+        ok = res.ok and res.min_margin >= margin
+        m = res.min_margin
+        tried.append({"rate_hz": rate, "status": res.status, "min_margin": m if math.isfinite(m) else None,
+                      "holds": bool(ok)})
+        say(f"rate {rate:.6g} Hz: {res.status}, min margin {m:.3g} -> {'holds' if ok else 'does not hold'}")
+        return ok
+
+    lo = hi = None
+    if holds(r):
+        hi = r
+        while lo is None:
+            r2 = hi / 4
+            if r2 < MIN_RATE_HZ:
+                return {"min_rate_hz": hi, "margin": margin, "tried": tried}
+            if holds(r2):
+                hi = r2
+            else:
+                lo = r2
+    else:
+        lo = r
+        while hi is None:
+            r2 = min(lo * 4, MAX_RATE_HZ)
+            if holds(r2):
+                hi = r2
+            elif r2 >= MAX_RATE_HZ:
+                return {"min_rate_hz": None, "margin": margin, "tried": tried}
+            else:
+                lo = r2
+    while hi / lo > 1 + rel_tol:
+        mid = math.sqrt(lo * hi)
+        if holds(mid):
+            hi = mid
+        else:
+            lo = mid
+    return {"min_rate_hz": hi, "margin": margin, "tried": tried}
+
+
+def _varied(scenario, key: str, factor: float):
+    """The scenario with the number(s) at a dotted key of its TOML multiplied by factor, and the old value."""
+    from .scenario import from_dict
+    raw = copy.deepcopy(scenario.raw)
+    *path, last = key.split(".")
+    table = raw
+    for p in path:
+        table = table.setdefault(p, {})
+    defaults = {"funnel.e2.phi_inf": scenario.funnels["e2"].phi_inf, "funnel.e2.a": scenario.funnels["e2"].a,
+                "controller.k2": scenario.k2}
+    before = table.get(last, defaults[key])
+    table[last] = [v * factor for v in before] if isinstance(before, list) else before * factor
+    sc = from_dict(raw, file=scenario.file, base_dir=scenario.path.parent, default_name=scenario.name)
+    return sc, before, table[last]
+
+
+def rate_sensitivity(scenario, *, margin: float = 0.05, t_final: float | None = None, variations=VARIATIONS,
+                     baseline: dict | None = None, progress=None) -> dict:
+    """The minimum rate of the scenario and of each one-parameter variation, computed by `min_rate`.
+
+    Returns {"baseline": min_rate(...), "inner_loop_gain": [k2 / phi_inf of e2 per joint],
+    "variations": [{"key", "factor", "before", "after", "min_rate_hz", "ratio"}]}, ratio = variation / baseline.
+    """
+    say = progress or (lambda s: None)
+    base = baseline or min_rate(scenario, margin=margin, t_final=t_final, progress=say)
+    start = base["min_rate_hz"]
+    out = []
+    for key, factor in variations:
+        say(f"design help: {key} x {factor:g}")
+        sc, before, after = _varied(scenario, key, factor)
+        r = min_rate(sc, margin=margin, t_final=t_final, start=start, progress=say)
+        ratio = (r["min_rate_hz"] / start) if (r["min_rate_hz"] and start) else None
+        out.append({"key": key, "factor": factor, "before": before, "after": after,
+                    "min_rate_hz": r["min_rate_hz"], "ratio": ratio, "tried": r["tried"]})
+    gain = [k / p for k, p in zip(scenario.k2, scenario.funnels["e2"].phi_inf)]
+    return {"baseline": base, "inner_loop_gain": gain, "variations": out}
+
+
+def margin_rate_figure(result: dict):
+    """A matplotlib Figure of the min funnel margin against the tried rates (log axis), with M and the minimum."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    tried = sorted(result["tried"], key=lambda d: d["rate_hz"])
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    r = [d["rate_hz"] for d in tried]
+    m = [d["min_margin"] if d["min_margin"] is not None else float("nan") for d in tried]
+    ax.semilogx(r, [max(v, -1.0) for v in m], "o-", label="min margin 1 - |e|/F (clipped at -1)")
+    ax.axhline(result["margin"], color="k", ls="--", lw=1, label=f"required margin {result['margin']:g}")
+    if result.get("min_rate_hz"):
+        ax.axvline(result["min_rate_hz"], color="C3", lw=1, label=f"minimum rate {result['min_rate_hz']:.4g} Hz")
+    ax.set_xlabel("sample rate [Hz]")
+    ax.set_ylabel("min funnel margin")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,412 @@
+"""Sampled-data simulation of the deployed controller: the generated C step function in a zero-order-hold loop.
+
+At each sample t_k = k h (h = 1/rate_hz) the measurements q + noise, dq + noise (q quantised to the encoder
+resolution) go to the compiled `symfunnel_step` of the files `codegen --lang c` writes (loaded with ctypes), so
+the code verified is the code shipped. Its torque is held over the period (one period later with
+delay_samples = 1; zero torque before the first one arrives) and the true plant (dead zone, friction,
+disturbance, the plant's M, C, G: `closedloop.plant_acceleration`) is integrated over the period by CasADi's
+fixed-step `rk` integrator, expanded to SX and compiled to C. Funnel margins 1 - |e|/F are those of the true
+state at the samples (between samples they are not observed).
+
+API::
+
+    res = simulate_sampled(scenario, rate_hz=2000.0)    # SampledResult: t, q, dq, tau, margins, breach
+    res.ok, res.min_margin, res.saturated_fraction
+    checks = implementation_checks(scenario, res)      # implementation.containment / .saturation
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["SampledResult", "StepLibrary", "simulate_sampled", "implementation_checks", "plant_step_function",
+           "step_library", "plant_substeps"]
+
+_dp = ctypes.POINTER(ctypes.c_double)
+#: First line of the step API's part of a generated .c file (templates/step.c).
+MARK = "/* ---- The deployed controller (see"
+
+
+@dataclass
+class SampledResult:
+    """One sampled-data run: states at the samples, the held torques, the true margins, and its status."""
+
+    scenario: str
+    rate_hz: float
+    t: np.ndarray                  # (K+1,) sample times
+    q: np.ndarray                  # (K+1, n) true joint positions at the samples
+    dq: np.ndarray                 # (K+1, n)
+    tau: np.ndarray                # (K, n) torque applied over [t_k, t_k+1) (after delay; saturated by the step)
+    margins: np.ndarray            # (K+1, 2n) true 1 - |e|/F at the samples: e1 columns, then e2
+    status: str                    # "ok" | "breach" | "failed"
+    message: str
+    breach: dict | None
+    tau_max: tuple | None
+    wall_time: float
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """True when the run reached its final time inside both funnels."""
+        return self.status == "ok"
+
+    @property
+    def min_margin(self) -> float:
+        """The smallest true funnel margin over samples, joints and both funnels (-inf when it failed)."""
+        m = self.margins[np.all(np.isfinite(self.margins), axis=1)]
+        return float(m.min()) if m.size and self.status != "failed" else -math.inf
+
+    @property
+    def saturated_fraction(self) -> list[float] | None:
+        """Per joint, the fraction of the run's time its torque sat at tau_max (None without a limit)."""
+        if self.tau_max is None or self.tau.shape[0] == 0:
+            return None
+        tm = np.asarray(self.tau_max)
+        return (np.abs(self.tau) >= tm * (1 - 1e-12)).mean(axis=0).tolist()
+
+    def summary(self) -> dict:
+        """Plain data for JSON output."""
+        n = self.q.shape[1]
+        m = self.margins
+        return {"scenario": self.scenario, "rate_hz": self.rate_hz, "status": self.status, "message": self.message,
+                "t_end": float(self.t[-1]), "samples": int(self.tau.shape[0]),
+                "min_margin_e1": np.nanmin(m[:, :n], axis=0).tolist() if m.size else None,
+                "min_margin_e2": np.nanmin(m[:, n:], axis=0).tolist() if m.size else None,
+                "max_abs_tau": np.max(np.abs(self.tau), axis=0).tolist() if self.tau.size else None,
+                "tau_max": None if self.tau_max is None else list(self.tau_max),
+                "saturated_fraction": self.saturated_fraction, "breach": self.breach,
+                "wall_time": self.wall_time,
+                "realtime_factor": float(self.t[-1] / self.wall_time) if self.wall_time > 0 else None,
+                **self.stats}
+
+
+class StepLibrary:
+    """The compiled step API (`<P>state_size`, `<P>init`, `<P>step`) of generated C, called through ctypes."""
+
+    def __init__(self, path, prefix: str, n: int, n_esn: int, n_w: int):
+        self.lib = ctypes.CDLL(str(path))
+        self.n, self.n_esn, self.n_w = n, n_esn, n_w
+        self._size = getattr(self.lib, prefix + "state_size")
+        self._init = getattr(self.lib, prefix + "init")
+        self._step = getattr(self.lib, prefix + "step")
+        self._size.restype = ctypes.c_int
+        self._init.restype = ctypes.c_int
+        self._step.restype = ctypes.c_int
+        self._step.argtypes = [ctypes.c_void_p, ctypes.c_double, _dp, _dp, _dp]
+        self.state = np.zeros((self._size() + 7) // 8)            # doubles first: aligned storage
+        self._state_p = self.state.ctypes.data
+        self.q, self.dq, self.tau = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._ptrs = tuple(a.ctypes.data_as(_dp) for a in (self.q, self.dq, self.tau))
+        self.init()
+
+    def init(self) -> int:
+        """Pinit: the scenario's initial controller state."""
+        return self._init(ctypes.c_void_p(self._state_p))
+
+    @property
+    def x_esn(self) -> np.ndarray:
+        """A view of the state's reservoir (writable)."""
+        return self.state[:self.n_esn]
+
+    @property
+    def w_hat(self) -> np.ndarray:
+        """A view of the state's weights, column-major (writable)."""
+        return self.state[self.n_esn:self.n_esn + self.n_w]
+
+    @property
+    def margin(self) -> np.ndarray:
+        """The margins of the last step: e1 then e2 per joint."""
+        o = self.n_esn + self.n_w
+        return self.state[o:o + 2 * self.n]
+
+    def raw(self):
+        """(function, state pointer, (q, dq, tau) pointers): rc = function(state, t, *pointers) on the buffers."""
+        return self._step, self._state_p, self._ptrs
+
+    def step(self, t: float, q, dq) -> tuple[int, np.ndarray]:
+        """Pstep at (t, q, dq): (return code, tau)."""
+        self.q[:] = q
+        self.dq[:] = dq
+        rc = self._step(self._state_p, t, *self._ptrs)
+        return rc, self.tau.copy()
+
+
+def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
+    """Compile (cached) the generated C pair of `files` as a shared library and wrap its step API."""
+    import json
+
+    from .codegen import c_names
+    from .codegen.build import SHARED_FLAGS, compile_cached
+    base = c_names(files)[0]
+    api = json.loads(files["manifest.json"])["c_api"]["step"]
+    # The file's CasADi part does not depend on the rate (only the step API's constants after MARK do): compile
+    # it once to an object, then link the rest, so a rate search compiles the big part once.
+    text, hdr = files[base + ".c"], files[base + ".h"]
+    cut = text.index(MARK)
+    obj = compile_cached({"core.c": text[:cut]}, ["core.c"], "core.o",
+                         ("-std=c99", "-O2", "-fPIC", "-c"), libs=(), on_build=on_build)
+    built = compile_cached({"api.c": text[cut:], base + ".h": hdr, "core.o": obj.path.read_bytes()},
+                           ["api.c", "core.o"], f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
+    nr, n = design.sym["w_hat"].shape
+    return StepLibrary(built.path, api["prefix"], design.n, int(design.sym["x_esn"].numel()), nr * n)
+
+
+def plant_substeps(scenario, h: float) -> int:
+    """RK4 steps per period (a power of 2): h / substeps inside RK4's stability interval for the stiffest term.
+
+    That term is the smoothed Coulomb friction (slope coulomb / smoothing_width) plus viscous friction, over the
+    smallest eigenvalue of M(q0): rate lambda; 1.5 / lambda keeps h*lambda well under RK4's 2.78; at most 1e-3 s.
+    Powers of 2 let a rate search reuse a few compiled plant steps.
+    """
+    sc = scenario
+    pl = sc.plant
+    w = sc.simulation.smoothing_width
+    slope = max(v + (c / w if w > 0 else 0.0) for v, c in zip(pl.viscous, pl.coulomb)) if sc.n else 0.0
+    M = np.array(ca.Function("M", [sc.model.q], [sc.model.numeric(sc.model.M)])(sc.q0)) * pl.mass_scale
+    lam = slope / max(float(np.linalg.eigvalsh(0.5 * (M + M.T)).min()), 1e-12)
+    h_max = min(1e-3, 1.5 / lam if lam > 0 else 1e-3)
+    need = max(1, int(math.ceil(h / h_max - 1e-9)))
+    return 1 << (need - 1).bit_length()
+
+
+def plant_step_function(scenario, substeps: int, name: str = "sfs_plant") -> ca.Function:
+    """([t0, h], x = [q; dq], tau) -> x at t0 + h with tau held: CasADi's rk integrator (RK4, `substeps` steps).
+
+    The ODE is integrated in s = (t - t0)/h over [0, 1], so one compiled function serves every period h.
+    """
+    from .closedloop import plant_acceleration
+    n = scenario.n
+    q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
+    s, th, tau = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n)
+    ddq = plant_acceleration(scenario, q, dq, th[0] + th[1] * s, tau, scenario.simulation.smoothing_width)["ddq"]
+    x = ca.vertcat(q, dq)
+    # simplify: the fixed-step scheme as a plain MX graph (a loop over the substeps' SX step), which generates
+    # compact C; expanding it to SX would unroll every substep and make large models slow to compile
+    F = ca.integrator("plant", "rk", {"x": x, "p": ca.vertcat(th, tau), "t": s,
+                                      "ode": th[1] * ca.vertcat(dq, ddq)}, 0.0, 1.0,
+                      {"number_of_finite_elements": substeps, "simplify": True})
+    X, TH, U = ca.MX.sym("x", 2 * n), ca.MX.sym("th", 2), ca.MX.sym("tau", n)
+    xf = F(x0=X, p=ca.vertcat(TH, U))["xf"]
+    return ca.Function(name, [TH, X, U], [xf], ["th", "x", "tau"], ["xf"])
+
+
+class _CFun:
+    """A generated CasADi C function with fixed argument buffers: fill .inputs, call, read .outputs (no copies)."""
+
+    def __init__(self, path, name: str, f: ca.Function):
+        lib = ctypes.CDLL(str(path))
+        self._lib = lib
+        self._f = getattr(lib, name)
+        self._f.restype = ctypes.c_int
+        self.inputs = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
+        self.outputs = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
+        self._arg = (_dp * max(1, f.sz_arg()))(*[a.ctypes.data_as(_dp) for a in self.inputs])
+        self._res = (_dp * max(1, f.sz_res()))(*[a.ctypes.data_as(_dp) for a in self.outputs])
+        self._iw = (ctypes.c_int * max(1, f.sz_iw()))()
+        self._w = (ctypes.c_double * max(1, f.sz_w()))()
+
+    def __call__(self) -> int:
+        return self._f(self._arg, self._res, self._iw, self._w, 0)
+
+
+def _compiled(f: ca.Function, on_build=None) -> _CFun:
+    """Generate C for one function, compile it (cached) and load it."""
+    import tempfile
+    from pathlib import Path
+
+    from .codegen.build import SHARED_FLAGS, compile_cached
+    with tempfile.TemporaryDirectory(prefix="symfunnel-plant-") as tmp:
+        cg = ca.CodeGenerator(f.name() + ".c", {"with_header": False, "casadi_int": "int"})
+        cg.add(f)
+        cg.generate(tmp + "/")
+        src = Path(tmp, f.name() + ".c").read_text()
+    built = compile_cached({f.name() + ".c": src}, [f.name() + ".c"], f"lib{f.name()}.so", SHARED_FLAGS,
+                           on_build=on_build)
+    return _CFun(built.path, f.name(), f)
+
+
+def _margin_function(design) -> ca.Function:
+    """(t, q, dq) -> true margins [1 - |e1|/F1; 1 - |e2|/F2] with the scenario's reference."""
+    s, S = design.sym, design.signals
+    ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
+    ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
+    m = ca.vertcat(1 - ca.fabs(S["e1"]) / S["F1"], 1 - ca.fabs(S["e2"]) / S["F2"])
+    m = ca.substitute([m], ref_syms, ref_t)[0]
+    return ca.Function("margins", [s["t"], s["q"], s["dq"]], [m])
+
+
+def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float | None = None, design=None,
+                     progress=None, stop_on_breach: bool = True, controller=None) -> SampledResult:
+    """Run the sampled-data loop (see the module doc) to t_final; stops at the first sample outside a funnel.
+
+    `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
+    `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
+    """
+    from .codegen import generate
+    from .design import derive
+    from .implementation import implementation_of
+    say = progress or (lambda s: None)
+    sc = scenario
+    impl = implementation_of(sc, rate_hz) or implementation_of(sc, 1000.0)
+    design = design or derive(sc)
+    n = sc.n
+    h = 1.0 / impl.rate_hz
+    T = float(t_final if t_final is not None else sc.simulation.t_final)
+    K = int(math.floor(T * impl.rate_hz + 1e-9))
+    if controller is None:
+        files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
+        controller = step_library(design, files, on_build=say)
+    controller.init()
+    subs = plant_substeps(sc, h)
+    plant = _compiled(plant_step_function(sc, subs, name=f"sfs_plant_{subs}"), on_build=say)
+    p_t, p_x, p_u = plant.inputs
+    xf = plant.outputs[0]
+    rng = np.random.default_rng(impl.seed)
+    nq = rng.standard_normal((K, n)) * impl.noise_q if impl.noise_q > 0 else None
+    ndq = rng.standard_normal((K, n)) * impl.noise_dq if impl.noise_dq > 0 else None
+    res = impl.encoder_resolution
+    X = np.full((K + 1, 2 * n), np.nan)
+    TAU = np.zeros((K, n))
+    p_x[:n], p_x[n:] = sc.q0, sc.dq0
+    X[0] = p_x
+    xq, xdq = p_x[:n], p_x[n:]
+    qbuf, dqbuf, taubuf = controller.q, controller.dq, controller.tau
+    stepf, sp, ptrs = controller.raw()
+    pending = np.zeros(n)
+    p_t[1] = h
+    status, message, k_end = "ok", f"reached t = {K * h:g} s inside both funnels", K
+    outside = None
+    start = time.perf_counter()
+    if isinstance(controller, StepLibrary):
+        rc, k_end, outside = _c_loop(controller, plant, n, K, h, nq, ndq, res, impl.delay_samples, stop_on_breach,
+                                     X, TAU, say)
+        if rc < 0 and outside is None:
+            status, message = "failed", (f"the step function returned {rc} at t = {k_end * h:g} s" if rc > -100
+                                         else "the plant function failed")
+    for k in range(K if not isinstance(controller, StepLibrary) else 0):
+        t = k * h
+        # measurements into the step's input buffers: noise, then the encoder's quantisation of q
+        if nq is None:
+            qbuf[:] = xq
+        else:
+            np.add(xq, nq[k], out=qbuf)
+        if res > 0:
+            np.round(qbuf / res, out=qbuf)
+            qbuf *= res
+        if ndq is None:
+            dqbuf[:] = xdq
+        else:
+            np.add(xdq, ndq[k], out=dqbuf)
+        rc = stepf(sp, t, *ptrs)
+        if rc < 0:
+            k_end = k
+            if outside is None:        # e.g. a non-finite plant state after leaving a funnel: found below
+                status, message = "failed", f"the step function returned {rc} at t = {t:g} s"
+            break
+        if rc == 1 and outside is None:
+            outside = k
+        if impl.delay_samples:
+            p_u[:] = pending
+            pending[:] = taubuf
+        else:
+            p_u[:] = taubuf
+        TAU[k] = p_u
+        p_t[0] = t
+        plant()
+        p_x[:] = xf
+        X[k + 1] = p_x
+        if stop_on_breach and outside is not None and k - outside >= 1:
+            k_end = k + 1
+            break
+    wall = time.perf_counter() - start
+    tt = np.arange(k_end + 1) * h
+    Q, DQ, TAU = X[:k_end + 1, :n], X[:k_end + 1, n:], TAU[:k_end]
+    mf = _margin_function(design).map(k_end + 1)
+    good = np.all(np.isfinite(Q), axis=1) & np.all(np.isfinite(DQ), axis=1)
+    M = np.full((k_end + 1, 2 * n), np.nan)
+    if good.any():
+        M[good] = np.array(mf(tt[None, :], np.nan_to_num(Q.T), np.nan_to_num(DQ.T))).T[good]
+    breach = None
+    bad = np.where(~(M > 0).all(axis=1) & good)[0]
+    if status == "ok" and not good.all() and not bad.size:
+        status, message = "failed", f"the plant state is not finite at t = {tt[-1]:g} s"
+    if bad.size and status != "failed":
+        i = int(bad[0])
+        j = int(np.nanargmin(M[i]))
+        breach = {"time": float(tt[i]), "funnel": "e1" if j < n else "e2", "joint": j % n + 1,
+                  "margin": float(M[i, j])}
+        status = "breach"
+        message = f"left funnel {breach['funnel']} (joint {breach['joint']}) at t = {tt[i]:g} s"
+    return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
+                         {"plant_substeps": subs, "delay_samples": impl.delay_samples, "noise_q": impl.noise_q,
+                          "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution})
+
+
+def implementation_checks(scenario, design=None, *, rate_hz: float | None = None, t_final: float | None = None,
+                          result: SampledResult | None = None, progress=None) -> list:
+    """`implementation.containment` and (with tau_max) `implementation.saturation`; [] without an implementation.
+
+    containment: the sampled loop around the compiled C step reaches t_final with every true margin > 0 at the
+    samples. saturation: the torque never sits at tau_max (the design's guarantees assume the torque it asks
+    for is applied); detail and evidence give the time fraction saturated per joint.
+    """
+    from .checks.audit import CheckResult
+    if result is None:
+        if getattr(scenario, "implementation", None) is None and rate_hz is None:
+            return []
+        (progress or (lambda s: None))("sampled-data run of the generated C step function")
+        result = simulate_sampled(scenario, rate_hz=rate_hz, t_final=t_final, design=design, progress=progress)
+    r = result
+    how = (f"sampled at {r.rate_hz:g} Hz, zero-order hold, delay {r.stats.get('delay_samples', 0)} sample(s), "
+           f"controller = compiled generated C step")
+    ev = r.summary()
+    ev.pop("breach", None)
+    if r.ok:
+        c = CheckResult("implementation.containment", "pass" if r.min_margin > 0 else "fail",
+                        f"{how}: reached t = {r.t[-1]:g} s; min margin {r.min_margin:.4g} at the samples",
+                        method="sampled-data simulation", margin=r.min_margin, evidence=ev)
+    else:
+        c = CheckResult("implementation.containment", "fail", f"{how}: {r.message}", method="sampled-data simulation",
+                        margin=r.breach["margin"] if r.breach else None, where=r.breach, evidence=ev)
+    out = [c]
+    if r.tau_max is not None:
+        frac = r.saturated_fraction or [0.0] * r.q.shape[1]
+        worst = max(frac)
+        detail = ("time fraction at tau_max per joint: " + ", ".join(f"{f:.3g}" for f in frac)
+                  + f" (tau_max = {', '.join(f'{v:g}' for v in r.tau_max)}; over the {r.tau.shape[0]} samples to "
+                  f"t = {r.t[-1]:g} s" + ("" if r.ok else ", where the run stopped") + ")")
+        out.append(CheckResult("implementation.saturation", "pass" if worst == 0.0 else "fail", detail,
+                               method="sampled-data simulation", margin=-worst,
+                               evidence={"saturated_fraction": frac, "tau_max": list(r.tau_max),
+                                         "max_abs_tau": ev["max_abs_tau"]}))
+    return out
+
+
+def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):
+    """Run the loop in C (templates/sampled_loop.c) with the compiled step and plant: (rc, k_end, outside)."""
+    from .codegen.build import SHARED_FLAGS, compile_cached
+    from .codegen.c import template
+    built = compile_cached({"sampled_loop.c": template("sampled_loop.c")}, ["sampled_loop.c"],
+                           "libsfs_loop.so", SHARED_FLAGS, on_build=say)
+    lib = ctypes.CDLL(str(built.path))
+    f = lib.sfs_loop
+    f.restype = ctypes.c_int
+    vp = ctypes.c_void_p
+    f.argtypes = [vp, vp, vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_long, ctypes.c_double, vp, vp,
+                  ctypes.c_double, ctypes.c_int, ctypes.c_int, vp, vp, vp, vp]
+    k_end, outside = ctypes.c_long(), ctypes.c_long()
+    step_ptr = ctypes.cast(controller._step, vp)
+    plant_ptr = ctypes.cast(plant._f, vp)
+    nqa = None if nq is None else np.ascontiguousarray(nq)
+    ndqa = None if ndq is None else np.ascontiguousarray(ndq)
+    rc = f(step_ptr, controller._state_p, plant_ptr, ctypes.addressof(plant._arg), ctypes.addressof(plant._res),
+           ctypes.addressof(plant._iw), ctypes.addressof(plant._w), n, K, h,
+           None if nqa is None else nqa.ctypes.data, None if ndqa is None else ndqa.ctypes.data, res, int(delay),
+           int(bool(stop)), X.ctypes.data, TAU.ctypes.data, ctypes.byref(k_end), ctypes.byref(outside))
+    return rc, int(k_end.value), (None if outside.value < 0 else int(outside.value))
