@@ -248,6 +248,15 @@ class SimResult:
             out["convergence"] = self.convergence
         return json_safe(out)
 
+    def to_json(self) -> dict:
+        """The JSON summary (as `simulate --json`)."""
+        return self.summary()
+
+    def _repr_html_(self) -> str:
+        """A notebook line: status and message."""
+        import html
+        return f"<p>simulation <b>{html.escape(self.status)}</b>: {html.escape(self.message)}</p>"
+
     def save_npz(self, path, arrays: dict | None = None) -> Path:
         """Write the trajectory (time first; `arrays` adds e.g. V and W* of the Lyapunov stage) and the run's
         metadata to an .npz file, atomically."""
@@ -720,3 +729,8 @@ def convergence_study(scenario, design, widths=None, *, t_final=None, integrator
     return json_safe({"reference_width": ref_w, "runs": rows, "observed_rates": rates,
                          "note": "q difference against a reference run at a tenth of the smallest width; "
                                  "the smoothing error is O(w), so the rate should be near 1"})
+
+
+from ._callable import make_callable  # noqa: E402 - after the module body: calling this module is the API function
+
+make_callable(__name__, "simulate")

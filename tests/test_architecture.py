@@ -16,14 +16,15 @@ PKG = Path(__file__).resolve().parent.parent / "symfunnel"
 #: layers, lowest first; a module may import its own layer and the ones below
 LAYERS = [
     ("ground", ["errors", "io", "validate", "names", "registry", "expr", "sx", "family", "esn", "plant",
-                "integrators", "inputs", "outputs", "lifecycle", "sim_hints", "uncertainty", "toml_write"]),
+                "integrators", "inputs", "outputs", "lifecycle", "sim_hints", "uncertainty", "toml_write",
+                "_callable"]),
     ("model", ["model"]),
     ("scenario", ["scenario", "implementation"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
     ("stages", ["simulate", "codegen", "checks", "sampled", "rate"]),
     ("pipeline", ["pipeline", "campaign"]),
-    ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "implementation_report"]),
+    ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "implementation_report", "api"]),
 ]
 
 

@@ -65,6 +65,14 @@ class Verification:
         """The gate's verdict: 'pass' when every outcome is as the scenario declares."""
         return "fail" if self.unexpected else "pass"
 
+    def _repr_html_(self) -> str:
+        """A notebook table: the gate's verdict and every check."""
+        import html
+        rows = "".join(f"<tr><td>{html.escape(c.id)}</td><td>{c.status}</td><td>{c.expected}</td>"
+                       f"<td>{html.escape(c.detail)}</td></tr>" for c in self.checks)
+        return (f"<p>gate: <b>{self.status}</b></p><table><tr><th>check</th><th>status</th><th>expected</th>"
+                f"<th>detail</th></tr>{rows}</table>")
+
     def to_json(self) -> dict:
         """{"scenario", "status", "checks": [...], "simulation": summary, "lyapunov": {...}, "timings"}."""
         out = {"scenario": self.scenario.name, "status": self.status,

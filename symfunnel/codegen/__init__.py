@@ -414,3 +414,8 @@ def codegen_summary(design, trajectory: dict, *, points: int = 1000, timings: bo
         except Exception as exc:  # noqa: BLE001
             out["timings_error"] = f"{type(exc).__name__}: {exc}"
     return out
+
+
+from .._callable import make_callable  # noqa: E402 - after the module body: calling this module is the API function
+
+make_callable(__name__, "codegen")

@@ -87,3 +87,8 @@ def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True, f
     path = Path(out) if out is not None else default_path(run.scenario)
     atomic_write(path, text)
     return path
+
+
+from .._callable import make_callable  # noqa: E402 - after the module body: calling this module is the API function
+
+make_callable(__name__, "report")
