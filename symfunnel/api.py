@@ -114,12 +114,12 @@ def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix:
     return res
 
 
-def report(scenario, out=None, *, codegen: bool = True, mutants: bool = True, figures=None,
+def report(scenario, out=None, *, codegen: bool = True, mutants: bool = True, deployed: bool = True, figures=None,
            **options) -> ReportResult:
     """`symfunnel report`: writes the HTML report (default reports/<name>.html) and returns its path."""
     from .report import build_report
     return ReportResult(build_report(run(scenario, **options), out, codegen=codegen, mutants=mutants,
-                                     figures_dir=Path(figures) if figures is not None else None))
+                                     deployed=deployed, figures_dir=Path(figures) if figures is not None else None))
 
 
 def sweep(scenario, **options):

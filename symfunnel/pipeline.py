@@ -133,6 +133,14 @@ class Run:
         return self._timed("mutants", lambda: run_mutants(self.scenario, samples=min(self.options.samples, 2000),
                                                           seed=self.options.seed, progress=self.progress))
 
+    @cached_property
+    def implementation(self) -> dict:
+        """The deployed controller: minimum sample rate, the design help (which parameter sets it), the sampled run
+        at the scenario's rate (twice the minimum without [implementation]) and its peak torque beside the limits."""
+        from .implementation_report import implementation_report
+        return self._timed("implementation", lambda: implementation_report(
+            self.scenario, self.design, t_final=self.t_final, progress=self.progress))
+
     def trajectory_arrays(self) -> dict[str, np.ndarray]:
         """The simulated trajectory with V (from the one Lyapunov stage) and W*, for `simulate --out`."""
         res = self.simulation

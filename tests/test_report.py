@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 
 T_FINAL = 5.0          # shortened horizon for the test; `symfunnel report` itself runs the scenario's 20 s
-SECTIONS = ["overview", "scenario", "model", "derivation", "alpha2-dot", "simulation", "verification", "codegen",
-            "timings"]
+SECTIONS = ["overview", "gate", "findings", "scenario", "model", "derivation", "alpha2-dot", "simulation",
+            "verification", "deployed", "codegen", "timings"]
 
 
 @pytest.fixture(scope="module")
@@ -194,3 +194,15 @@ def test_first_contact_details(report_text, tree):
     a2d = next(el for el in tree.iter() if el.get("id") == "alpha2-dot-formula")
     rows = [el for el in a2d.iter() if (el.get("class") or "") == "eqn-rhs"]
     assert len(rows) >= 2
+
+
+def test_deployed_section_states_the_minimum_rate_and_what_sets_it(tree, report_path):
+    """Issue: the report states the minimum rate (every tried rate listed), what changes it (re-computed), and the
+    peak torque beside the limits; the figure of margin against rate is there."""
+    sec = next(el for el in tree.iter() if el.get("id") == "deployed")
+    text = " ".join("".join(sec.itertext()).split())
+    import re
+    m = re.search(r"minimum rate ([0-9.]+) Hz", text)
+    assert m and float(m.group(1)) > 0
+    assert "funnel.e2.phi_inf" in text and "controller.k2" in text and "peak |" in text
+    assert any(el.get("id") == "fig-margin-rate" for el in sec.iter())

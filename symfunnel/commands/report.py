@@ -20,6 +20,8 @@ def register(sub, common) -> None:
                     help="also write every figure as PNG and PDF into DIR (created if missing)")
     sp.add_argument("--no-codegen", action="store_true", help="leave out the code-generation section")
     sp.add_argument("--no-mutants", action="store_true", help="leave out the mutation score")
+    sp.add_argument("--no-deployed", action="store_true",
+                    help="leave out the deployed controller (minimum sample rate, design help, sampled torque)")
     sp.add_argument("--sweep", metavar="DIR", help="the robustness-campaign section of a `symfunnel sweep` "
                                                    "directory alone (default --out: DIR/sweep.html)")
     sp.set_defaults(func=run)
@@ -40,7 +42,8 @@ def run(args) -> int:
     sc = _load(args)
     check_output_file(args.out if args.out is not None else default_path(sc))
     run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), _progress(args.quiet))
-    path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants, figures_dir=figures)
+    path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants,
+                        deployed=not args.no_deployed, figures_dir=figures)
     print(path)
     return 0
 

@@ -24,7 +24,8 @@ def default_path(scenario) -> Path:
     return Path("reports") / f"{stem or scenario.name}.html"
 
 
-def render_report(run, *, codegen: bool = True, mutants: bool = True, figures_dir=None) -> str:
+def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: bool = True,
+                  figures_dir=None) -> str:
     """The report of a pipeline Run as HTML text (its stages are computed here if they were not yet); with
     figures_dir, every figure is also written there as PNG and PDF."""
     from . import html as H
@@ -46,6 +47,12 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, figures_di
     ctx["simulation"] = H.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
     ctx["verification"] = H.verification_section(verification)
+    if deployed:
+        t0 = time.perf_counter()
+        ctx["deployed"] = H.implementation_section(run, say)
+        timings.append(("deployed controller (rate search, design help)", time.perf_counter() - t0))
+    else:
+        ctx["deployed"] = {"available": False, "reason": "left out of this report (deployed=False)"}
     if codegen:
         t0 = time.perf_counter()
         ctx["codegen"] = H.codegen_section(run, say)
@@ -79,11 +86,12 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, figures_di
     return H.render(ctx)
 
 
-def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True, figures_dir=None) -> Path:
+def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True, deployed: bool = True,
+                 figures_dir=None) -> Path:
     """Write the report of a Run (default reports/<name>.html) atomically; returns the path. With figures_dir,
     every figure also goes there as figNN-ID.png and figNN-ID.pdf (each written atomically)."""
     from ..io import atomic_write
-    text = render_report(run, codegen=codegen, mutants=mutants, figures_dir=figures_dir)
+    text = render_report(run, codegen=codegen, mutants=mutants, deployed=deployed, figures_dir=figures_dir)
     path = Path(out) if out is not None else default_path(run.scenario)
     atomic_write(path, text)
     return path

@@ -464,6 +464,35 @@ def verification_section(v) -> dict:
             "n_skip": len(v.checks) - n_fail - n_pass}
 
 
+def implementation_section(run, progress) -> dict:
+    """The deployed controller: minimum rate with every tried rate, what sets it (re-computed for variations),
+    the sampled torque (stairs) over the continuous one, and the peak torque beside the actuator limits."""
+    from ..implementation_report import torque_figure
+    from ..rate import margin_rate_figure
+    progress("deployed controller: minimum sample rate, design help, sampled run")
+    try:
+        data = run.implementation
+    except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
+        return {"available": False, "reason": f"{type(exc).__name__}: {exc}"}
+    r = data["min_rate"]
+    figs = [("margin-rate", "Minimum funnel margin against the sample rate (every rate the search tried)",
+             FIG.to_svg(margin_rate_figure(r)))]
+    res = (data.get("run") or {}).get("result")
+    if res is not None:
+        figs.append(("torque-sampled", f"Sampled torque (held, {res.rate_hz:g} Hz) over the continuous-time "
+                     "controller's, first 0.5 s", FIG.to_svg(torque_figure(res, run.simulation, t_max=0.5))))
+    sens = data.get("sensitivity") or {}
+    rows = [{"key": v["key"], "factor": _fmt(v["factor"]), "before": _fmt(v["before"]), "after": _fmt(v["after"]),
+             "rate": _fmt(v["min_rate_hz"]), "ratio": _fmt(v["ratio"])} for v in sens.get("variations", [])]
+    return {"available": True, "min_rate": _fmt(r["min_rate_hz"]), "margin": _fmt(r["margin"]),
+            "tried": [(_fmt(d["rate_hz"]), d["status"], _fmt(d["min_margin"])) for d in r["tried"]],
+            "variations": rows, "gain": _fmt(sens.get("inner_loop_gain")),
+            "rate": _fmt(res.rate_hz) if res is not None else None,
+            "status": (data.get("run") or {}).get("status"), "peak_tau": _fmt(data.get("peak_tau")),
+            "tau_max": _fmt(data.get("tau_max")), "effort": _fmt(data.get("effort_limits")),
+            "declared": run.scenario.implementation is not None, "figures": figs}
+
+
 def codegen_section(run, progress) -> dict:
     """The code-generation summary of a Run: both languages generated, compiled/imported and cross-checked."""
     from ..codegen import codegen_summary
