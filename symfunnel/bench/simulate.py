@@ -51,23 +51,24 @@ def run_scipy(cl, t_final: float, method: str = "BDF"):
 
 def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> list[dict]:
     """Measure both sides on the paper scenario (override the horizon with $SYMFUNNEL_BENCH_T_FINAL)."""
-    from ..closedloop import build_closed_loop
-    from ..scenario import load_scenario
+    from ..pipeline import Run
     from ..simulate import simulate
     say = progress or (lambda s: None)
-    sc = load_scenario("paper")
+    pr = Run.load("paper")
+    sc, d = pr.scenario, pr.design
     tf = float(t_final or os.environ.get("SYMFUNNEL_BENCH_T_FINAL", sc.simulation.t_final))
-    cl = build_closed_loop(sc)
+    cl = pr.closed_loop
     say("simulate: first run (compiles the closed loop once, or loads it from the cache)")
     t0 = time.perf_counter()
-    first = simulate(sc, t_final=tf, closed_loop=cl, progress=say)
+    first = simulate(sc, d, t_final=tf, closed_loop=cl, progress=say)
     first_wall = time.perf_counter() - t0
-    walls, sims = [], []
+    walls, sims, integ = [], [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        r = simulate(sc, t_final=tf, closed_loop=cl)
+        r = simulate(sc, d, t_final=tf, closed_loop=cl)
         walls.append(time.perf_counter() - t0)
         sims.append(r.stats["sim_wall_time"])
+        integ.append(r.stats["integrate_time"])
     wall = float(np.median(walls))
     say(f"simulate: symfunnel {wall:.3f} s for {tf:g} s; now scipy solve_ivp (BDF) on the numpy RHS")
     base_wall, sol = run_scipy(cl, tf)
@@ -84,4 +85,7 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
                None, **info),
         result("simulate.speedup_vs_scipy", wall, "s", "scipy solve_ivp BDF, numpy RHS", base_wall,
                base_wall / wall, **info),
+        result("simulate.overhead_ratio", wall / float(np.median(integ)), "x", "time inside the integrator calls",
+               float(np.median(integ)), None, target=1.3, meets_target=bool(wall / float(np.median(integ)) <= 1.3),
+               note="simulate() wall time with a built closed loop over the time spent in CVODES itself"),
     ]
