@@ -35,6 +35,19 @@ def paper_design(paper_run):
     return paper_run.design
 
 
+def private_cache(tmp_path_factory):
+    """Generator for a module-scoped fixture: a fresh compile cache for the module (its hits and misses are its own),
+    the previous $SYMFUNNEL_CACHE restored afterwards."""
+    path = tmp_path_factory.mktemp("cache")
+    old = os.environ.get("SYMFUNNEL_CACHE")
+    os.environ["SYMFUNNEL_CACHE"] = str(path)
+    yield path
+    if old is None:
+        os.environ.pop("SYMFUNNEL_CACHE", None)
+    else:
+        os.environ["SYMFUNNEL_CACHE"] = old
+
+
 MINIMAL_2LINK = """
 [model]
 type = "matrices"

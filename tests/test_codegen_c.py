@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
 import subprocess
@@ -19,6 +18,8 @@ from symfunnel.codegen import build, check
 from symfunnel.codegen.c import STRICT_CFLAGS, parse_trajectory_output
 from symfunnel.scenario import load_scenario
 
+from .conftest import private_cache
+
 GCC = shutil.which("gcc")
 needs_gcc = pytest.mark.skipif(GCC is None, reason="gcc not available")
 BASE = cg.BASENAME
@@ -27,14 +28,7 @@ BASE = cg.BASENAME
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     """A private compile cache for this module (so cache hits and misses are ours)."""
-    path = tmp_path_factory.mktemp("cache")
-    old = os.environ.get("SYMFUNNEL_CACHE")
-    os.environ["SYMFUNNEL_CACHE"] = str(path)
-    yield path
-    if old is None:
-        os.environ.pop("SYMFUNNEL_CACHE", None)
-    else:
-        os.environ["SYMFUNNEL_CACHE"] = old
+    yield from private_cache(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 import re
 import shutil
 import subprocess
@@ -20,20 +19,15 @@ from symfunnel.design import derive
 from symfunnel.sampled import step_library
 from symfunnel.scenario import load_scenario
 
+from .conftest import private_cache
+
 GCC = shutil.which("gcc")
 needs_gcc = pytest.mark.skipif(GCC is None, reason="gcc not available")
 
 
 @pytest.fixture(scope="module", autouse=True)
 def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cache")
-    old = os.environ.get("SYMFUNNEL_CACHE")
-    os.environ["SYMFUNNEL_CACHE"] = str(path)
-    yield path
-    if old is None:
-        os.environ.pop("SYMFUNNEL_CACHE", None)
-    else:
-        os.environ["SYMFUNNEL_CACHE"] = old
+    yield from private_cache(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

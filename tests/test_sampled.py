@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 import re
 import shutil
 
@@ -16,19 +15,14 @@ from symfunnel.cli import main
 from symfunnel.errors import InputError
 from symfunnel.scenario import DATA_DIR, load_scenario
 
+from .conftest import private_cache
+
 needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not available")
 
 
 @pytest.fixture(scope="module", autouse=True)
 def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cache")
-    old = os.environ.get("SYMFUNNEL_CACHE")
-    os.environ["SYMFUNNEL_CACHE"] = str(path)
-    yield path
-    if old is None:
-        os.environ.pop("SYMFUNNEL_CACHE", None)
-    else:
-        os.environ["SYMFUNNEL_CACHE"] = old
+    yield from private_cache(tmp_path_factory)
 
 
 def paper_with(tmp_path, implementation: str, t_final: float | None = None, name: str = "impl.toml"):
