@@ -12,6 +12,7 @@ import sys
 import warnings
 
 _saved: dict = {}
+_pending: list[int] = []          # signals received (CasADi may swallow the exception raised for them)
 
 
 class Terminated(BaseException):
@@ -23,7 +24,16 @@ class Terminated(BaseException):
 
 
 def _raise(signum, frame):
+    _pending.append(signum)
     raise Terminated(signum)
+
+
+def reraise_interrupt(exc: BaseException) -> None:
+    """Re-raise a termination or Ctrl-C that a CasADi call turned into a RuntimeError ('... KeyboardInterrupt')."""
+    if _pending:
+        raise Terminated(_pending[-1]) from None
+    if "KeyboardInterrupt" in str(exc):
+        raise KeyboardInterrupt from None
 
 
 def _one_line(message, category, filename, lineno, file=None, line=None):

@@ -314,6 +314,8 @@ class _Runner:
         try:
             xf = F(x0=x0[self.perm], p=np.concatenate([[t0], self.comp.pvals]))["xf"]
         except RuntimeError as exc:
+            from .lifecycle import reraise_interrupt
+            reraise_interrupt(exc)                 # a signal during the integration is not an integrator failure
             from .sim_hints import error_line
             self.last_error = error_line(str(exc))
             raise

@@ -22,9 +22,9 @@ LAYERS = [
     ("scenario", ["scenario", "implementation"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
-    ("stages", ["simulate", "codegen", "checks", "sampled", "rate"]),
+    ("stages", ["simulate", "codegen", "checks", "sampled", "rate", "implementation_report"]),
     ("pipeline", ["pipeline", "campaign"]),
-    ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "implementation_report", "api"]),
+    ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "api"]),
 ]
 
 

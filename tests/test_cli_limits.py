@@ -167,3 +167,17 @@ def test_sigterm_stops_the_cli_with_one_line(tmp_path):
     assert p.returncode == 128 + signal.SIGTERM, err
     assert err.strip().splitlines() == [f"symfunnel: terminated by signal {int(signal.SIGTERM)}"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_sigterm_inside_the_integrator_is_not_an_integrator_failure(tmp_path):
+    """CasADi turns a signal during CVODES into RuntimeError('... KeyboardInterrupt'); the CLI still stops with 143."""
+    p = subprocess.Popen([sys.executable, "-m", "symfunnel", "simulate", "--t-final", "5000", "--out",
+                          str(tmp_path / "r.npz")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in p.stderr:
+        if "simulating the closed loop" in line:
+            break
+    time.sleep(1.0)                           # inside the integration by now (5000 s of simulated time)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 128 + signal.SIGTERM, err
+    assert list(tmp_path.iterdir()) == []
