@@ -12,7 +12,7 @@ from . import validate as V
 from .errors import InputError
 from .expr import Expression, parse_expression
 from .family.approximators import APPROXIMATORS, ESNApproximator
-from .family.funnels import FunnelSpec, parse_funnel
+from .family.funnels import FunnelSpec, check_positive, parse_funnel
 from .family.transforms import TRANSFORMS
 from .family.variants import VARIANTS
 from .integrators import INTEGRATORS
@@ -243,8 +243,8 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     funnel_raw = raw.get("funnel", {})
     V.check_keys(funnel_raw, ["e1", "e2"], file=file, prefix="funnel")
     funnels = {
-        "e1": _funnel(funnel_raw.get("e1", {}), n, file, "funnel.e1", (0.5, 0.02, 1.0)),
-        "e2": _funnel(funnel_raw.get("e2", {}), n, file, "funnel.e2", (2.0, 0.1, 1.0)),
+        "e1": _funnel(funnel_raw.get("e1", {}), n, file, "funnel.e1", (0.5, 0.02, 1.0), model.parameter_dict()),
+        "e2": _funnel(funnel_raw.get("e2", {}), n, file, "funnel.e2", (2.0, 0.1, 1.0), model.parameter_dict()),
     }
 
     ctl = raw.get("controller", {})
@@ -264,6 +264,8 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     x_esn0 = _x_esn0(init, esn.size, file)
     plant = _plant(raw.get("plant", {}), n, file, model)
     sim = _simulation(raw.get("simulation", {}), file)
+    for key, shape in funnels.items():
+        check_positive(shape, sim.t_final, file=file, key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))
     audit = _audit(raw.get("audit", {}), n, file, model)
     if model.kind == "matrices":
         from .model.matrices_check import check_inertia_matrix
@@ -339,8 +341,8 @@ def _x_esn0(init: dict, size: int, file: str) -> list[float]:
     return V.per_joint(init, "x_esn", size, 0.0, file=file, prefix="initial")
 
 
-def _funnel(table: Any, n: int, file: str, prefix: str, defaults):
-    return parse_funnel(table, n, file, prefix, defaults)
+def _funnel(table: Any, n: int, file: str, prefix: str, defaults, parameters: dict | None = None):
+    return parse_funnel(table, n, file, prefix, defaults, parameters)
 
 
 def _design(table: Any, approx: Any, file: str) -> DesignSpec:
@@ -572,8 +574,9 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
                     raise InputError("cannot be combined with 'funnel'", file=file, key=f"{p}.{k}",
                                      expected="either funnel + phi0/phi_inf/a, or signal + expression")
             fn = V.get_str(c, "funnel", file=file, prefix=p, choices=["e1", "e2"])
-            spec = _funnel({k: c[k] for k in ("phi0", "phi_inf", "a") if k in c}, n, file, p,
-                           (funnels[fn].phi0, funnels[fn].phi_inf, funnels[fn].a))
+            base = funnels[fn]
+            inherit = (base.phi0, base.phi_inf, base.a) if hasattr(base, "phi0") else None
+            spec = _funnel({k: c[k] for k in ("phi0", "phi_inf", "a") if k in c}, n, file, p, inherit)
             out.append(Claim(name, source, desc, "funnel", funnel=fn, spec=spec, expect=expect))
             continue
         for k in ("phi0", "phi_inf", "a"):
