@@ -11,7 +11,7 @@ from typing import Any
 from . import validate as V
 from .errors import InputError
 from .expr import Expression, parse_expression
-from .family.approximators import APPROXIMATORS, ESNApproximator
+from .family.approximators import APPROXIMATORS, ESNApproximator, RBFSpec, parse_rbf
 from .family.funnels import FunnelSpec, check_positive, parse_funnel
 from .family.transforms import TRANSFORMS
 from .family.variants import VARIANTS
@@ -26,7 +26,7 @@ BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
             "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims", "design",
-            "approximator", "expect", "uncertainty", "sweep", "implementation"]
+            "approximator", "expect", "uncertainty", "sweep", "implementation", "rbf"]
 ESN_INPUTS = list(ESNApproximator.INPUTS)
 
 
@@ -173,6 +173,7 @@ class Scenario:
     raw: dict = field(repr=False, default_factory=dict)
     campaign: Any = None            # uncertainty.Campaign of [[uncertainty]] / [sweep], None without them
     implementation: Any = None      # ImplementationSpec, or None: the continuous-time controller
+    rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
 
     @property
     def n(self) -> int:
@@ -272,6 +273,11 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
         check_inertia_matrix(model, q0, audit.joint_lower, audit.joint_upper, file=file)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
     design = _design(raw.get("design", {}), raw.get("approximator", {}), file)
+    _settings_match(raw, design.approximator, file)
+    rbf = None
+    if design.approximator == "rbf":
+        rbf = parse_rbf(raw.get("rbf", {}), n, file=file, joint_lower=audit.joint_lower,
+                        joint_upper=audit.joint_upper, velocity_range=audit.velocity_range)
     expectations = _expectations(raw.get("expect", []), n, claims, file)
     from .uncertainty import parse_campaign
     campaign = parse_campaign(raw, file=file, n=n, model=model, plant=plant)
@@ -284,7 +290,8 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
-                    design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl)
+                    design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl,
+                    rbf=rbf)
 
 
 # --- sections -------------------------------------------------------------------------------------
@@ -357,6 +364,15 @@ def _design(table: Any, approx: Any, file: str) -> DesignSpec:
     TRANSFORMS.get(out.transform, file=file, key="design.transform")
     APPROXIMATORS.get(out.approximator, file=file, key="approximator.type")
     return out
+
+
+def _settings_match(raw: dict, chosen: str, file: str) -> None:
+    """A settings section of another approximator type (e.g. `[rbf]` with type "esn") is an input error."""
+    for entry in APPROXIMATORS:
+        section = getattr(entry.obj, "SETTINGS", None)
+        if section and section in raw and entry.name != chosen:
+            raise InputError(f"gives settings of approximator '{entry.name}', but approximator.type is '{chosen}'",
+                             file=file, key=section, expected=f'approximator.type = "{entry.name}", or no [{section}]')
 
 
 def _esn(table: Any, file: str) -> ESNSpec:
