@@ -82,7 +82,8 @@ def _varied(scenario, key: str, factor: float):
     table = raw
     for p in path:
         table = table.setdefault(p, {})
-    defaults = {"funnel.e2.phi_inf": scenario.funnels["e2"].phi_inf, "funnel.e2.a": scenario.funnels["e2"].a,
+    e2 = scenario.funnels["e2"]
+    defaults = {"funnel.e2.phi_inf": getattr(e2, "phi_inf", None), "funnel.e2.a": getattr(e2, "a", None),
                 "controller.k2": scenario.k2}
     before = table.get(last, defaults[key])
     table[last] = [v * factor for v in before] if isinstance(before, list) else before * factor

@@ -32,8 +32,8 @@ class FunnelSpec:
     KEYS = ("phi0", "phi_inf", "a")
 
     @classmethod
-    def parse(cls, table: dict, n: int, file: str, prefix: str, defaults) -> "FunnelSpec":
-        """Validate `[funnel.eK]` with the exponential keys."""
+    def parse(cls, table: dict, n: int, file: str, prefix: str, defaults, parameters=None) -> "FunnelSpec":
+        """Validate `[funnel.eK]` with the exponential keys (`parameters`: unused, the keys are numbers)."""
         V.check_keys(table, cls.KEYS, file=file, prefix=prefix)
         if defaults is None:                      # nothing to inherit (e.g. a claim about an expression funnel)
             defaults = (V._MISSING,) * 3
@@ -153,6 +153,5 @@ def parse_funnel(table: Any, n: int, file: str, prefix: str, defaults, parameter
         other = next(k for k in b.obj.KEYS if k in table)
         raise InputError(f"cannot be combined with '{other}'", file=file, key=V.join(prefix, mine),
                          expected=f"either {' or '.join('/'.join(e.obj.KEYS) for e in chosen)}, not both")
-    if chosen and chosen[0].obj is ExpressionFunnel:
-        return ExpressionFunnel.parse(table, n, file, prefix, defaults, parameters)
-    return FunnelSpec.parse(table, n, file, prefix, defaults)
+    shape = chosen[0].obj if chosen else FunnelSpec            # no keys: the exponential with its defaults
+    return shape.parse(table, n, file, prefix, defaults, parameters)
