@@ -120,7 +120,7 @@ def rate_sensitivity(scenario, *, margin: float = 0.05, t_final: float | None = 
     if floor is None:
         from .family.funnels import extremes
         floor = extremes(shape, t_final or scenario.simulation.t_final)[0]
-    gain = [k / p for k, p in zip(scenario.k2, floor)]
+    gain = [float(k / p) for k, p in zip(scenario.k2, floor)]
     return {"baseline": base, "inner_loop_gain": gain, "variations": out}
 
 

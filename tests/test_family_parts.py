@@ -269,3 +269,17 @@ def test_ppc_scenario_verifies_and_kills_its_mutants(capsys):
     assert json.loads(capsys.readouterr().out)["status"] == "pass"
     assert main(["verify", path, "--mutants", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["score"] >= 0.9
+
+
+def test_rate_sensitivity_skips_phi_variations_of_an_expression_funnel(monkeypatch):
+    """The design help varies phi_inf and a of funnel e2 only when it has them; its inner-loop gain is k2/inf F2."""
+    import symfunnel.rate as rate
+    from symfunnel.scenario import load_scenario
+    sc = load_scenario(REPO / "derivations" / "ppc_log_rbf.toml")
+    seen = []
+    monkeypatch.setattr(rate, "min_rate", lambda s, **k: seen.append(s.k2) or {"min_rate_hz": 100.0, "tried": []})
+    out = rate.rate_sensitivity(sc, t_final=1.0)
+    status = {v["key"]: v.get("status") for v in out["variations"]}
+    assert status == {"funnel.e2.phi_inf": "skip", "funnel.e2.a": "skip", "controller.k2": None}
+    assert seen == [[10.0] * 3, [5.0] * 3]                  # the baseline, then k2 halved
+    assert out["inner_loop_gain"] == pytest.approx([10.0 / (2.8 * math.exp(-1.0) + 0.2)] * 3, rel=1e-6)
