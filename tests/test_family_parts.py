@@ -283,3 +283,20 @@ def test_rate_sensitivity_skips_phi_variations_of_an_expression_funnel(monkeypat
     assert status == {"funnel.e2.phi_inf": "skip", "funnel.e2.a": "skip", "controller.k2": None}
     assert seen == [[10.0] * 3, [5.0] * 3]                  # the baseline, then k2 halved
     assert out["inner_loop_gain"] == pytest.approx([10.0 / (2.8 * math.exp(-1.0) + 0.2)] * 3, rel=1e-6)
+
+
+@pytest.mark.parametrize("transform", ["funnel", "log"])
+def test_rbf_with_either_transformation_satisfies_its_identity_and_kills_its_mutants(write_scenario, transform):
+    from symfunnel.checks.theory import check_identity
+    from symfunnel.design import derive
+    from symfunnel.scenario import load_scenario
+    text = MINIMAL_2LINK.format(C="") + (f'\n[design]\ntransform = "{transform}"\n[approximator]\ntype = "rbf"\n'
+                                         '[rbf]\nsize = 8\n')
+    sc = load_scenario(write_scenario(text))
+    d = derive(sc)
+    assert d.states == [("w_hat", (9, 2))]
+    assert check_identity(d, np.random.default_rng(0), samples=300).status == "pass"
+    for m in d.variant.mutants():
+        bad = derive(sc, mutant=m.id)
+        assert (check_identity(bad, np.random.default_rng(0), samples=200).status == "fail"
+                or d.variant.equivalent(bad, m.id)), m.id
