@@ -82,7 +82,8 @@ def _varied(scenario, key: str, factor: float):
     table = raw
     for p in path:
         table = table.setdefault(p, {})
-    defaults = {"funnel.e2.phi_inf": scenario.funnels["e2"].phi_inf, "funnel.e2.a": scenario.funnels["e2"].a,
+    e2 = scenario.funnels["e2"]
+    defaults = {"funnel.e2.phi_inf": getattr(e2, "phi_inf", None), "funnel.e2.a": getattr(e2, "a", None),
                 "controller.k2": scenario.k2}
     before = table.get(last, defaults[key])
     table[last] = [v * factor for v in before] if isinstance(before, list) else before * factor
@@ -101,14 +102,25 @@ def rate_sensitivity(scenario, *, margin: float = 0.05, t_final: float | None = 
     base = baseline or min_rate(scenario, margin=margin, t_final=t_final, progress=say)
     start = base["min_rate_hz"]
     out = []
+    shape = scenario.funnels["e2"]
     for key, factor in variations:
+        if key.startswith("funnel.e2.") and not hasattr(shape, key.rsplit(".", 1)[1]):
+            out.append({"key": key, "factor": factor, "status": "skip", "before": None, "after": None,
+                        "min_rate_hz": None, "ratio": None, "tried": [],
+                        "reason": "funnel e2 is an expression F(t): it has no " + key.rsplit(".", 1)[1]})
+            continue
         say(f"design help: {key} x {factor:g}")
         sc, before, after = _varied(scenario, key, factor)
         r = min_rate(sc, margin=margin, t_final=t_final, start=start, progress=say)
         ratio = (r["min_rate_hz"] / start) if (r["min_rate_hz"] and start) else None
         out.append({"key": key, "factor": factor, "before": before, "after": after,
                     "min_rate_hz": r["min_rate_hz"], "ratio": ratio, "tried": r["tried"]})
-    gain = [k / p for k, p in zip(scenario.k2, scenario.funnels["e2"].phi_inf)]
+    # mu2 >= 1/F2 grows to 1/inf F2 (phi_inf for the exponential): the inner loop's largest gain
+    floor = getattr(shape, "phi_inf", None)
+    if floor is None:
+        from .family.funnels import extremes
+        floor = extremes(shape, t_final or scenario.simulation.t_final)[0]
+    gain = [float(k / p) for k, p in zip(scenario.k2, floor)]
     return {"baseline": base, "inner_loop_gain": gain, "variations": out}
 
 

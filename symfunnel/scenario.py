@@ -11,8 +11,8 @@ from typing import Any
 from . import validate as V
 from .errors import InputError
 from .expr import Expression, parse_expression
-from .family.approximators import APPROXIMATORS, ESNApproximator
-from .family.funnels import FunnelSpec, parse_funnel
+from .family.approximators import APPROXIMATORS, ESNApproximator, RBFSpec, parse_rbf
+from .family.funnels import FunnelSpec, check_positive, parse_funnel
 from .family.transforms import TRANSFORMS
 from .family.variants import VARIANTS
 from .integrators import INTEGRATORS
@@ -26,7 +26,7 @@ BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
             "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims", "design",
-            "approximator", "expect", "uncertainty", "sweep", "implementation"]
+            "approximator", "expect", "uncertainty", "sweep", "implementation", "rbf"]
 ESN_INPUTS = list(ESNApproximator.INPUTS)
 
 
@@ -173,6 +173,7 @@ class Scenario:
     raw: dict = field(repr=False, default_factory=dict)
     campaign: Any = None            # uncertainty.Campaign of [[uncertainty]] / [sweep], None without them
     implementation: Any = None      # ImplementationSpec, or None: the continuous-time controller
+    rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
 
     @property
     def n(self) -> int:
@@ -243,8 +244,8 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     funnel_raw = raw.get("funnel", {})
     V.check_keys(funnel_raw, ["e1", "e2"], file=file, prefix="funnel")
     funnels = {
-        "e1": _funnel(funnel_raw.get("e1", {}), n, file, "funnel.e1", (0.5, 0.02, 1.0)),
-        "e2": _funnel(funnel_raw.get("e2", {}), n, file, "funnel.e2", (2.0, 0.1, 1.0)),
+        "e1": _funnel(funnel_raw.get("e1", {}), n, file, "funnel.e1", (0.5, 0.02, 1.0), model.parameter_dict()),
+        "e2": _funnel(funnel_raw.get("e2", {}), n, file, "funnel.e2", (2.0, 0.1, 1.0), model.parameter_dict()),
     }
 
     ctl = raw.get("controller", {})
@@ -264,12 +265,19 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     x_esn0 = _x_esn0(init, esn.size, file)
     plant = _plant(raw.get("plant", {}), n, file, model)
     sim = _simulation(raw.get("simulation", {}), file)
+    for key, shape in funnels.items():
+        check_positive(shape, sim.t_final, file=file, key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))
     audit = _audit(raw.get("audit", {}), n, file, model)
     if model.kind == "matrices":
         from .model.matrices_check import check_inertia_matrix
         check_inertia_matrix(model, q0, audit.joint_lower, audit.joint_upper, file=file)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
     design = _design(raw.get("design", {}), raw.get("approximator", {}), file)
+    _settings_match(raw, design.approximator, file)
+    rbf = None
+    if design.approximator == "rbf":
+        rbf = parse_rbf(raw.get("rbf", {}), n, file=file, joint_lower=audit.joint_lower,
+                        joint_upper=audit.joint_upper, velocity_range=audit.velocity_range)
     expectations = _expectations(raw.get("expect", []), n, claims, file)
     from .uncertainty import parse_campaign
     campaign = parse_campaign(raw, file=file, n=n, model=model, plant=plant)
@@ -282,7 +290,8 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
-                    design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl)
+                    design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl,
+                    rbf=rbf)
 
 
 # --- sections -------------------------------------------------------------------------------------
@@ -339,8 +348,8 @@ def _x_esn0(init: dict, size: int, file: str) -> list[float]:
     return V.per_joint(init, "x_esn", size, 0.0, file=file, prefix="initial")
 
 
-def _funnel(table: Any, n: int, file: str, prefix: str, defaults):
-    return parse_funnel(table, n, file, prefix, defaults)
+def _funnel(table: Any, n: int, file: str, prefix: str, defaults, parameters: dict | None = None):
+    return parse_funnel(table, n, file, prefix, defaults, parameters)
 
 
 def _design(table: Any, approx: Any, file: str) -> DesignSpec:
@@ -355,6 +364,15 @@ def _design(table: Any, approx: Any, file: str) -> DesignSpec:
     TRANSFORMS.get(out.transform, file=file, key="design.transform")
     APPROXIMATORS.get(out.approximator, file=file, key="approximator.type")
     return out
+
+
+def _settings_match(raw: dict, chosen: str, file: str) -> None:
+    """A settings section of another approximator type (e.g. `[rbf]` with type "esn") is an input error."""
+    for entry in APPROXIMATORS:
+        section = getattr(entry.obj, "SETTINGS", None)
+        if section and section in raw and entry.name != chosen:
+            raise InputError(f"gives settings of approximator '{entry.name}', but approximator.type is '{chosen}'",
+                             file=file, key=section, expected=f'approximator.type = "{entry.name}", or no [{section}]')
 
 
 def _esn(table: Any, file: str) -> ESNSpec:
@@ -572,8 +590,9 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
                     raise InputError("cannot be combined with 'funnel'", file=file, key=f"{p}.{k}",
                                      expected="either funnel + phi0/phi_inf/a, or signal + expression")
             fn = V.get_str(c, "funnel", file=file, prefix=p, choices=["e1", "e2"])
-            spec = _funnel({k: c[k] for k in ("phi0", "phi_inf", "a") if k in c}, n, file, p,
-                           (funnels[fn].phi0, funnels[fn].phi_inf, funnels[fn].a))
+            base = funnels[fn]
+            inherit = (base.phi0, base.phi_inf, base.a) if hasattr(base, "phi0") else None
+            spec = _funnel({k: c[k] for k in ("phi0", "phi_inf", "a") if k in c}, n, file, p, inherit)
             out.append(Claim(name, source, desc, "funnel", funnel=fn, spec=spec, expect=expect))
             continue
         for k in ("phi0", "phi_inf", "a"):

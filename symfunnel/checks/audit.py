@@ -228,6 +228,14 @@ def _pd_by_intervals(Mn: ca.SX, q: ca.SX, lo, hi, timeout: float, max_n: int = 4
 
 # --- funnels --------------------------------------------------------------------------------------
 
+def _admitting(shape, abs_e: np.ndarray):
+    """(the smallest phi0 per joint that would admit |e(0)|, or None without phi0; a hint per joint)."""
+    if not hasattr(shape, "phi_inf"):
+        return None, lambda i: f"F(0) must exceed {abs_e[i]:.6g} to admit it"
+    need = [max(float(abs_e[i]) - shape.phi_inf[i], 0.0) for i in range(len(abs_e))]
+    return need, lambda i: f"phi0 > {need[i]:.6g} would admit it"
+
+
 def funnel_initial(design: Design, funnels=None) -> tuple[bool, str, dict, float]:
     """|e_i(0)| < F_i(0) for e1 then e2, with the smallest phi0 that would admit the initial error."""
     sc = design.scenario
@@ -241,11 +249,12 @@ def funnel_initial(design: Design, funnels=None) -> tuple[bool, str, dict, float
     margin1 = (F1 - np.abs(e1)) / F1
     bad = [i for i in range(n) if not abs(e1[i]) < F1[i]]
     if bad:
-        need = [max(abs(e1[i]) - funnels["e1"].phi_inf[i], 0.0) for i in range(n)]
-        ev["phi0_needed_e1"] = need
+        need, hint = _admitting(funnels["e1"], np.abs(e1))
+        if need is not None:
+            ev["phi0_needed_e1"] = need
         i = bad[0]
         return False, (f"funnel e1 infeasible at t = 0: joint {i + 1} has |e1(0)| = {abs(e1[i]):.6g} >= "
-                       f"F1(0) = {F1[i]:.6g}; phi0 > {need[i]:.6g} would admit it"), ev, float(np.min(margin1))
+                       f"F1(0) = {F1[i]:.6g}; {hint(i)}"), ev, float(np.min(margin1))
     a2 = np.array(design.function("alpha2", ["t", "q", "qd", "dqd"])(0.0, q0, qd, dqd)).ravel()
     e2 = dq0 - a2
     F2 = np.array(funnels["e2"].value(0.0))
@@ -254,27 +263,35 @@ def funnel_initial(design: Design, funnels=None) -> tuple[bool, str, dict, float
     bad = [i for i in range(n) if not abs(e2[i]) < F2[i]]
     margin = float(min(np.min(margin1), np.min(margin2)))
     if bad:
-        need = [max(abs(e2[i]) - funnels["e2"].phi_inf[i], 0.0) for i in range(n)]
-        ev["phi0_needed_e2"] = need
+        need, hint = _admitting(funnels["e2"], np.abs(e2))
+        if need is not None:
+            ev["phi0_needed_e2"] = need
         i = bad[0]
         return False, (f"funnel e2 infeasible at t = 0: joint {i + 1} has |e2(0)| = |dq(0) - alpha2(0)| = "
-                       f"{abs(e2[i]):.6g} >= F2(0) = {F2[i]:.6g}; phi0 > {need[i]:.6g} would admit it"), ev, margin
+                       f"{abs(e2[i]):.6g} >= F2(0) = {F2[i]:.6g}; {hint(i)}"), ev, margin
     return True, (f"|e1(0)| = {_fmt_vec(np.abs(e1))} < F1(0) = {_fmt_vec(F1)} and |e2(0)| = "
                   f"{_fmt_vec(np.abs(e2))} < F2(0) = {_fmt_vec(F2)}"), ev, margin
 
 
 def check_funnel_parameters(design: Design) -> CheckResult:
-    """funnel.parameters: the conditions stated with eq. 16 (phi0 >= phi_inf > 0) and a >= 0."""
-    bad = []
+    """funnel.parameters: the conditions stated with eq. 16 (phi0 >= phi_inf > 0) and a >= 0, for exponential
+    funnels (a funnel given as an expression has no phi0: its positivity was checked at load)."""
+    bad, checked = [], []
     for key, f in design.scenario.funnels.items():
+        if not hasattr(f, "phi0"):
+            continue
+        checked.append(key)
         for i in range(design.n):
             if not f.phi0[i] >= f.phi_inf[i] > 0:
                 bad.append(f"{key} joint {i + 1}: phi0 = {f.phi0[i]:g}, phi_inf = {f.phi_inf[i]:g}")
+    if not checked:
+        return CheckResult("funnel.parameters", "skip", "no funnel has phi0/phi_inf (both are expressions F(t), "
+                           "whose positivity on [0, t_final] is checked when the scenario loads)", method="exact")
     if bad:
         return CheckResult("funnel.parameters", "fail", "phi0 >= phi_inf > 0 (eq. 16) violated: " + "; ".join(bad),
                            method="exact")
-    return CheckResult("funnel.parameters", "pass", "phi0 >= phi_inf > 0 for every funnel and joint (eq. 16)",
-                       method="exact")
+    return CheckResult("funnel.parameters", "pass", f"phi0 >= phi_inf > 0 for every joint of funnel "
+                       f"{' and '.join(checked)} (eq. 16)", method="exact")
 
 
 def check_funnel_initial(design: Design) -> CheckResult:

@@ -65,6 +65,22 @@ def step_function(design, rate_hz: float, tau_max=None, name: str = "step") -> c
                        {"cse": True, "allow_duplicate_io_names": True})
 
 
+def step_states(design) -> tuple[ca.SX, ca.SX]:
+    """(x_esn, w_hat) of the step API: the design's own, or a placeholder that stays 0 (one reservoir unit, one
+    weight row) for a design without a reservoir or without weights, so the C state struct keeps its layout."""
+    s = design.sym
+    return (s["x_esn"] if "x_esn" in s else ca.SX.sym("x_esn", 1, 1),
+            s["w_hat"] if "w_hat" in s else ca.SX.sym("w_hat", 1, design.n))
+
+
+def step_initial(design) -> tuple[np.ndarray, np.ndarray]:
+    """(x_esn(0), W_hat(0)) of the step API, zeros for a placeholder (see `step_states`)."""
+    init = design.variant.initial_states()
+    x, w = step_states(design)
+    return (np.asarray(init.get("x_esn", np.zeros(x.shape[0])), dtype=float),
+            np.asarray(init.get("w_hat", np.zeros(w.shape)), dtype=float))
+
+
 def step_core(design, tau_max=None, name: str = "step_core") -> ca.Function:
     """(t, q, dq, x_esn, w_hat, etd) -> (tau, x_esn_next, w_hat_next, margin, qd): one period, the rate entering
     only through etd = etd_factors(scenario, rate_hz), so that the compiled core serves every rate."""
@@ -86,15 +102,17 @@ def step_core(design, tau_max=None, name: str = "step_core") -> ca.Function:
     dq_c = alpha2_c + ca.fmin(ca.fmax(e2, -CLIP * F2), CLIP * F2)
     margin = ca.vertcat(1 - ca.fabs(e1) / F1, 1 - ca.fabs(e2) / F2)
 
-    outs = [ref(S[k]) for k in ("tau", "x_esn_dot", "w_hat_dot")]
+    x_esn, w_hat = step_states(design)
+    dots = [S.get(k + "_dot", ca.SX.zeros(*v.shape)) for k, v in (("x_esn", x_esn), ("w_hat", w_hat))]
+    outs = [ref(e) for e in [S["tau"], *dots]]
     outs = ca.substitute(outs, [ca.vertcat(q, dq)], [ca.vertcat(q_c, dq_c)])
     tau, xdot, wdot = outs
     if tau_max is not None:
         tm = ca.DM(np.broadcast_to(np.asarray(tau_max, dtype=float), (design.n,)).copy())
         tau = ca.fmin(ca.fmax(tau, -tm), tm)
-    x_next = s["x_esn"] + etd[0] * xdot
-    w_next = s["w_hat"] + etd[1] * wdot
-    return ca.Function(name, [t, q, dq, s["x_esn"], s["w_hat"], etd], [tau, x_next, w_next, margin, qd],
+    x_next = x_esn + etd[0] * xdot
+    w_next = w_hat + etd[1] * wdot
+    return ca.Function(name, [t, q, dq, x_esn, w_hat, etd], [tau, x_next, w_next, margin, qd],
                        ["t", "q", "dq", "x_esn", "w_hat", "etd"], ["tau", "x_esn_next", "w_hat_next", "margin", "qd"],
                        {"cse": True, "allow_duplicate_io_names": True})
 
@@ -108,11 +126,14 @@ def c_step_files(design, *, prefix: str, fprefix: str, basename: str, rate_hz: f
     """(C source, header section) of the Pstep API around the generated `<fprefix>step_core`."""
     from .c import template
     n = design.n
-    N = int(design.sym["x_esn"].numel())
-    nr = int(design.sym["w_hat"].shape[0])
+    x_esn, w_hat = step_states(design)
+    N = int(x_esn.numel())
+    nr = int(w_hat.shape[0])
     sub = {
         "@P@": prefix, "@F@": fprefix, "@BASENAME@": basename, "@UP@": prefix.upper(),
         "@N@": str(n), "@NESN@": str(N), "@NREG@": str(nr), "@NW@": str(nr * n),
+        "@RESN@": str(int(design.sym["x_esn"].numel()) if "x_esn" in design.sym else 0),
+        "@RREG@": str(int(design.sym["w_hat"].shape[0]) if "w_hat" in design.sym else 0),
         "@RATE@": repr(float(rate_hz)), "@SCENARIO@": design.scenario.name,
         "@X0@": _c_array(x0), "@W0@": _c_array(np.asarray(w0).reshape(-1, order="F")),
         "@TAUMAX@": ("no saturation (the scenario sets no tau_max)" if tau_max is None else
@@ -179,8 +200,7 @@ def emit_controller_c(design, contract: list, *, prefix: str | None, basename: s
     funcs.append(renamed(design.reference, fprefix + "reference"))
     funcs.append(step_core(design, tau_max, fprefix + "step_core"))
     files = emit_c(funcs, basename, prefix=prefix)
-    init = design.variant.initial_states()
-    x0, w0 = init["x_esn"], init["w_hat"]
+    x0, w0 = step_initial(design)
     src, hdr = c_step_files(design, prefix=sprefix, fprefix=fprefix, basename=basename, rate_hz=rate_hz,
                             tau_max=tau_max, x0=x0, w0=w0)
     guard = basename.upper() + "_H"

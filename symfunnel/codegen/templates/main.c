@@ -16,8 +16,8 @@
 #include "@BASENAME@.h"
 
 #define N @UP@N_JOINTS
-#define NX @UP@N_ESN
-#define NW (@UP@N_REGRESSOR * @UP@N_JOINTS)
+#define NX @UP@ROW_ESN
+#define NW (@UP@ROW_REGRESSOR * @UP@N_JOINTS)
 #define ROW (1 + 5 * N + NX + NW)
 
 static double row[ROW];
@@ -65,8 +65,8 @@ int main(int argc, char *argv[]) {
       break;
     }
     if (!loop) {                       /* restore the recorded controller state */
-      memcpy(s.x_esn, row + 1 + 5 * N, sizeof s.x_esn);
-      memcpy(s.w_hat, row + 1 + 5 * N + NX, sizeof s.w_hat);
+      memcpy(s.x_esn, row + 1 + 5 * N, NX * sizeof(double));
+      memcpy(s.w_hat, row + 1 + 5 * N + NX, NW * sizeof(double));
     }
     rc = @P@step(&s, row[0], row + 1, row + 1 + N, tau);   /* t, q, dq: the measurements */
     if (rc < 0) {

@@ -23,6 +23,10 @@
 #define @UP@N_JOINTS @N@
 #define @UP@N_ESN @NESN@
 #define @UP@N_REGRESSOR @NREG@
+/* entries of x_esn and rows of w_hat in a recorded trajectory row (0: the design has none; the state then
+   keeps a one-entry placeholder that stays 0) */
+#define @UP@ROW_ESN @RESN@
+#define @UP@ROW_REGRESSOR @RREG@
 #define @UP@RATE_HZ @RATE@
 
 typedef struct {
