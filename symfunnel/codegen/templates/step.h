@@ -1,6 +1,6 @@
 
 /* ---- The deployed controller: one call per sample period ------------------------------------------------
- * Scenario '@SCENARIO@', @N@ joints, @NESN@ reservoir units, rate @RATE@ Hz (period 1/@RATE@ s); torque
+ * Scenario '@SCENARIO@', @N@ joints, @RESN@ reservoir units, rate @RATE@ Hz (period 1/@RATE@ s); torque
  * @TAUMAX@.
  *
  *   @P@state s;                      fixed size, no pointers: copy it, store it, put it in static memory
