@@ -41,6 +41,7 @@ class Mutant:
 
 MUTANTS = (
     Mutant("drop_cross_term", "v without the coupling term -mu1 z1 r2/mu2"),
+    Mutant("flip_cross_term", "v with +mu1 z1 r2/mu2 (the coupling term's sign)"),
     Mutant("drop_dF1_term", "alpha2 without (dF1/F1) e1"),
     Mutant("drop_dF2_term", "v without (dF2/F2) e2"),
     Mutant("flip_k1", "alpha2 with +k1 z1"),
@@ -182,7 +183,7 @@ class Backstepping:
         a2dot = {"zero_alpha2_dot": 0, "half_alpha2_dot": 0.5 * s["alpha2_dot"]}.get(mut, s["alpha2_dot"])
         ff2 = 0 if mut == "drop_dF2_term" else s["dF2"] / s["F2"] * s["e2"]
         k2_sign = -1 if mut == "flip_k2" else 1
-        cross = 0 if mut == "drop_cross_term" else s["mu1"] * s["z1"] * s["r2"] / s["mu2"]
+        cross = {"drop_cross_term": 0, "flip_cross_term": -1}.get(mut, 1) * s["mu1"] * s["z1"] * s["r2"] / s["mu2"]
         s["v"] = a2dot + ff2 - k2_sign * k2 * s["z2"] - cross
         estimate = ca.mtimes(w_hat.T, s["Phi"]) if nr else ca.SX.zeros(n, 1)
         inner = s["v"] - (0 if mut == "drop_estimate_in_tau" else estimate)

@@ -185,9 +185,11 @@ def scenario_section(sc) -> dict:
         ("funnel F2(t)", _funnel_text(f2, sc.n)),
         ("gains k1, k2", f"{_fmt(sc.k1)}, {_fmt(sc.k2)}"),
         ("adaptation gamma, sigma, W_hat(0)", f"{sc.gamma:g}, {sc.sigma:g}, {sc.w_hat0:g}"),
-        ("ESN", f"N = {sc.esn.size}, leak {sc.esn.leak:g}, time constant {sc.esn.time_constant:g} s, spectral radius "
-                f"{sc.esn.spectral_radius:g}, sparsity {sc.esn.sparsity:g}, seed {sc.esn.seed}, inputs "
-                f"{', '.join(sc.esn.inputs)}"),
+        ("design", f"{sc.design.variant}, transformation {sc.design.transform}, approximator "
+                   f"{sc.design.approximator}"),
+        *([("ESN", f"N = {sc.esn.size}, leak {sc.esn.leak:g}, time constant {sc.esn.time_constant:g} s, spectral "
+                   f"radius {sc.esn.spectral_radius:g}, sparsity {sc.esn.sparsity:g}, seed {sc.esn.seed}, inputs "
+                   f"{', '.join(sc.esn.inputs)}")] if sc.design.approximator == "esn" else []),
         ("plant (unknown to the controller)",
          f"viscous {_fmt(pl.viscous)}, Coulomb {_fmt(pl.coulomb)}, disturbance "
          f"{', '.join(e.text for e in pl.disturbance)}, mass scale {pl.mass_scale:g}"
