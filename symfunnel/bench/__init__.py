@@ -1,7 +1,7 @@
 """`symfunnel bench`: performance figures, each measured side by side with a baseline in the same run.
 
 Each area module (`symfunnel.bench.<area>`) exposes `run(progress) -> list[dict]` returning results of the form
-{"id", "value", "unit", "baseline", "baseline_value", "ratio"} (design.md section 2); ratio = baseline time /
+{"id", "value", "unit", "baseline", "baseline_value", "ratio"} (`bench --json`); ratio = baseline time /
 symfunnel time, higher is better.
 """
 

@@ -43,7 +43,7 @@ class CheckResult:
         return self.status in ("pass", "fail") and self.status != self.expected
 
     def to_json(self) -> dict:
-        """The JSON form of design.md sections 2 and 7 (id, status, expected, detail, plus method, margin, where...)."""
+        """The JSON form of `audit --json` (id, status, expected, detail, plus method, margin, where, evidence)."""
         out = {"id": self.id, "status": self.status, "expected": self.expected, "detail": self.detail,
                "method": self.method}
         if self.reason:
