@@ -322,11 +322,11 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     before = ev.evaluate(vars_, user)
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
     seen: dict[tuple, Candidate] = {}
-    best = [before]
+    best: list[Candidate | None] = [None]          # the best candidate inside the bounds
 
     def record(c: Candidate) -> float:
         s = _score(c, spec.objective, ref)
-        if s < _score(best[0], spec.objective, ref):
+        if best[0] is None or s < _score(best[0], spec.objective, ref):
             best[0] = c
         return s
 
@@ -349,8 +349,11 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
             + f" | best {'feasible' if b.feasible else 'infeasible'} {_score(b, spec.objective, ref):.4g}")
         return s
 
-    seen[tuple(round(x, 10) for x in user)] = before
-    record(before)
+    if all(v.lo <= x <= v.hi for v, x in zip(vars_, user)):
+        seen[tuple(round(x, 10) for x in user)] = before
+        record(before)
+    else:
+        say("the user's values lie outside the bounds: the search starts from them clipped into the bounds")
     z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
     starts = [z_user]
     sob = qmc.Sobol(d, scramble=True, seed=0).random(SOBOL_STARTS)
@@ -371,7 +374,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     except _OutOfTime as exc:
         stopped = str(exc)
         say(stopped + ": the best design so far is the result")
-    b = best[0]
+    b = best[0] or before
     notes = [stopped] if stopped else []
     tuned = apply(scenario.raw, vars_, b.xs)
     changes = []
