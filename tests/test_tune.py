@@ -184,3 +184,19 @@ def test_tuned_design_is_robust_to_the_mass_scale(tmp_path, capsys):
         r2["plant"]["mass_scale"] = m
         r = simulate_sampled(load_scenario(write(tmp_path, r2, f"m{m}.toml")))
         assert r.ok and r.min_margin >= 0.05 and max(r.saturated_fraction) == 0.0
+
+
+def test_continuous_time_tune_without_implementation(tmp_path, capsys):
+    # no [implementation]: candidates are judged by the continuous simulation; no torque limit, so no saturation
+    raw = paper_doc(t_final=1.0, tune={"parameters": ["controller.k2"], "objective": "ise"}, implementation={})
+    src = write(tmp_path, raw)
+    code = main(["tune", str(src), "--json", "--max-evals", "3", "-q"])
+    res = json.loads(capsys.readouterr().out)
+    assert code in (0, 1) and res["evaluations"] == 3
+    assert set(res["constraints"]["values"]) == {"containment"}
+    from symfunnel.pipeline import Run
+    sim = Run(load_scenario(src)).simulation                # the user's design: ise = integral of |e1|^2 dt
+    e1 = np.asarray(sim.signals["e1"]).reshape(len(sim.t), -1)
+    ise = float(np.sum(0.5 * (np.sum(e1[1:] ** 2, 1) + np.sum(e1[:-1] ** 2, 1)) * np.diff(sim.t)))
+    assert res["objective"]["before"] == pytest.approx(ise, rel=1e-6)
+    assert res["objective"]["after"] <= res["objective"]["before"] * (1 + 1e-12) or res["status"] == "infeasible"
