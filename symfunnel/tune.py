@@ -3,8 +3,8 @@
 Constraints of a candidate (each a number g >= 0 when it holds, on the nominal plant and on N uncertainty samples):
 `containment` (both funnels kept with margin >= M over the horizon: the sampled loop around the compiled C step
 when the scenario has `[implementation]`, else the continuous simulation; a run that leaves a funnel early scores
-lower the earlier it leaves) and `saturation` (|tau| below tau_max: 1 - peak/tau_max, minus the saturated time
-fraction). The objective (peak torque, integral squared e1, or the minimum sample rate) is minimised over the
+lower the earlier it leaves) and `saturation` (|tau| below tau_max: 1 - max over joints of peak |tau_i|/tau_max_i
+when the torque never saturates, else minus the saturated time fraction). The objective (peak torque, integral squared e1, or the minimum sample rate) is minimised over the
 feasible candidates. Method: the sampled-data loop (zero-order hold, saturation, the stop at a breach) makes the
 constraints piecewise constant in the parameters, so gradients are meaningless; the search is derivative-free:
 the user's values and a few Sobol points are evaluated, then Nelder-Mead (on a penalty: any infeasible candidate
@@ -206,7 +206,7 @@ class Evaluator:
 
     def _containment(self, ok: bool, min_margin: float, t_end: float) -> float:
         """min margin - M; a run that stopped early loses the fraction of the horizon it did not reach."""
-        m = min_margin if math.isfinite(min_margin) else -1.0
+        m = max(min_margin, -1.0) if math.isfinite(min_margin) else -1.0     # a diverged run: -1, not -1e6
         if ok:
             return m - self.spec.margin
         return min(m, 0.0) - self.spec.margin - max(0.0, 1.0 - t_end / self.T)
@@ -218,7 +218,8 @@ class Evaluator:
         peak = float(np.max(np.abs(res.tau))) if res.tau.size else 0.0
         if res.tau_max is not None:
             frac = max(res.saturated_fraction or [0.0])
-            g["saturation"] = (1.0 - peak / min(res.tau_max)) - frac if frac == 0 else -frac
+            use = float(np.max(np.abs(res.tau) / np.asarray(res.tau_max))) if res.tau.size else 0.0
+            g["saturation"] = 1.0 - use if frac == 0 else -frac
         n = sc.n
         k = res.tau.shape[0]
         qd = np.asarray(design.reference.map(k + 1)(res.t.reshape(1, -1))[0]).T if k else np.zeros((1, n))
@@ -320,6 +321,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     say(f"method: {METHOD} ({WHY})")
     user = [v.user_x() for v in vars_]
     before = ev.evaluate(vars_, user)
+    say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
+        + ", ".join(f"{k} {g:+.3g}" for k, g in before.constraints.items()))
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
     seen: dict[tuple, Candidate] = {}
     best: list[Candidate | None] = [None]          # the best candidate inside the bounds
