@@ -200,3 +200,20 @@ def test_continuous_time_tune_without_implementation(tmp_path, capsys):
     ise = float(np.sum(0.5 * (np.sum(e1[1:] ** 2, 1) + np.sum(e1[:-1] ** 2, 1)) * np.diff(sim.t)))
     assert res["objective"]["before"] == pytest.approx(ise, rel=1e-6)
     assert res["objective"]["after"] <= res["objective"]["before"] * (1 + 1e-12) or res["status"] == "infeasible"
+
+
+@needs_gcc
+def test_a_design_that_fails_verify_gate_is_not_reported_ok(tmp_path, monkeypatch):
+    from symfunnel import tune as T
+    calls = []
+
+    def failing_gate(scenario, progress=None):
+        calls.append(scenario)
+        return {"status": "fail", "unexpected": ["lyapunov.decay"]}
+    monkeypatch.setattr(T, "verify_gate", failing_gate)
+    sc = load_scenario(write(tmp_path, paper_doc()))
+    r = T.tune(sc, max_evaluations=9)
+    feasible = r.constraints["values"]["containment"] >= 0
+    assert feasible and r.status == "infeasible" and "verify.lyapunov.decay" in r.binding
+    assert 1 <= len(calls) <= T.GATE_TRIES and len(r.notes) == 1 + len(calls)     # the best feasible ones, in turn
+    assert len({(s.k1[0], s.k2[0], s.funnels["e2"].phi_inf[0]) for s in calls}) == len(calls)
