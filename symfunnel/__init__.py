@@ -13,7 +13,7 @@ from .errors import CheckFailed, InputError, SymfunnelError
 
 __version__ = "0.1.0"
 
-__all__ = ["InputError", "CheckFailed", "SymfunnelError", "load_scenario", "derive", "evaluate", "audit"]
+__all__ = ["InputError", "CheckFailed", "SymfunnelError", "load_scenario", "derive", "evaluate", "audit", "tune"]
 
 
 def __getattr__(name):  # lazy: keep `import symfunnel` cheap for the CLI's cold start
@@ -29,4 +29,7 @@ def __getattr__(name):  # lazy: keep `import symfunnel` cheap for the CLI's cold
     if name == "audit":
         from .checks.audit import audit
         return audit
+    if name == "tune":
+        from .tune import tune
+        return tune
     raise AttributeError(name)

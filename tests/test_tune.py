@@ -217,3 +217,23 @@ def test_a_design_that_fails_verify_gate_is_not_reported_ok(tmp_path, monkeypatc
     assert feasible and r.status == "infeasible" and "verify.lyapunov.decay" in r.binding
     assert 1 <= len(calls) <= T.GATE_TRIES and len(r.notes) == 1 + len(calls)     # the best feasible ones, in turn
     assert len({(s.k1[0], s.k2[0], s.funnels["e2"].phi_inf[0]) for s in calls}) == len(calls)
+
+
+@needs_gcc
+def test_min_rate_objective_is_the_rate_search_of_the_tuned_design(tmp_path, capsys):
+    import symfunnel as sf
+    from symfunnel.rate import min_rate
+    raw = paper_doc(t_final=1.0, tune={"objective": "min_rate", "parameters": ["controller.k2", "funnel.e2.phi_inf"],
+                                       "bounds": {"controller.k2": [1.0, 10.0], "funnel.e2.phi_inf": [0.05, 0.5]}})
+    sc = load_scenario(write(tmp_path, raw))
+    r = sf.tune(sc, max_evaluations=3, gate=False)
+    assert r.status == "ok" and r.objective["name"] == "min_rate"
+    tuned = load_scenario(write(tmp_path, r.tuned_raw, "tuned.toml"))
+    # independently: the tuned design holds at its reported minimum rate and not at a third of it
+    res = min_rate(tuned, margin=0.05, rel_tol=0.1, start=1000.0)
+    assert res["min_rate_hz"] == pytest.approx(r.objective["after"], rel=1e-9)
+    from symfunnel.sampled import simulate_sampled
+    ok = simulate_sampled(tuned, rate_hz=r.objective["after"])
+    assert ok.ok and ok.min_margin >= 0.05
+    low = simulate_sampled(tuned, rate_hz=r.objective["after"] / 3)
+    assert not (low.ok and low.min_margin >= 0.05)
