@@ -30,6 +30,6 @@ def __getattr__(name):  # lazy: keep `import symfunnel` cheap for the CLI's cold
         from .checks.audit import audit
         return audit
     if name == "tune":
-        from .tune import tune
+        from .tuning import tune
         return tune
     raise AttributeError(name)

@@ -64,6 +64,9 @@ def test_paper_at_1khz_200nm_is_tuned_into_a_design_that_holds(tmp_path, capsys)
     peak = float(np.max(np.abs(after.tau)))
     assert peak < 200.0 and max(after.saturated_fraction) == 0.0
     assert res["objective"]["after"] == pytest.approx(peak, rel=1e-9)
+    side = res["comparison"]["tuned"]
+    assert side["min_margin"] == pytest.approx(after.min_margin, rel=1e-9) and side["peak_torque"] == peak
+    assert res["comparison"]["original"]["feasible"] is False and side["feasible"] is True
     assert res["objective"]["before"] == pytest.approx(float(np.max(np.abs(before.tau))), rel=1e-9)
 
 
@@ -87,7 +90,7 @@ def test_infeasible_bounds_exit_1_with_the_binding_constraint(tmp_path, capsys):
 
 @needs_gcc
 def test_saturation_and_containment_constraints_match_an_independent_run(tmp_path):
-    from symfunnel.tune import Evaluator, variables
+    from symfunnel.tuning import Evaluator, variables
     sc = load_scenario(write(tmp_path, paper_doc()))
     ev = Evaluator(sc, sc.tune)
     vs = variables(sc, sc.tune)
@@ -138,7 +141,7 @@ def test_min_rate_needs_an_implementation(tmp_path, capsys):
 
 
 def test_shared_and_per_joint_coordinates(tmp_path):
-    from symfunnel.tune import apply, variables
+    from symfunnel.tuning import apply, variables
     raw = paper_doc(tune={"parameters": ["controller.k2", "adaptation.gamma"]})
     raw["controller"]["k2"] = [10.0, 4.0]
     sc = load_scenario(write(tmp_path, raw))
@@ -156,7 +159,7 @@ def test_shared_and_per_joint_coordinates(tmp_path):
 
 
 def test_scenario_approach_confidence():
-    from symfunnel.tune import scenario_confidence
+    from symfunnel.tuning import scenario_confidence
     # the classical figure: 59 violation-free samples give P(violation) <= 5 % with 95 % confidence, 58 do not
     assert scenario_confidence(59) >= 0.95 > scenario_confidence(58)
     assert scenario_confidence(20, 0.1) == pytest.approx(1 - 0.9 ** 20)
@@ -176,6 +179,7 @@ def test_tuned_design_is_robust_to_the_mass_scale(tmp_path, capsys):
     res = json.loads(capsys.readouterr().out)
     assert code == 0 and res["uncertainty_samples"] == 4
     assert res["confidence_eps_0.05"] == pytest.approx(1 - 0.95 ** 4)
+    assert res["comparison"]["tuned"]["sample_violations"] == 0 and res["comparison"]["tuned"]["samples"] == 4
     tuned = load_scenario(out)
     s = sweep(tuned, runs=8, workers=1, out=tmp_path / "sweep").summary     # continuous-time campaign
     assert s["breaches"] == 0 and s["failed"] == 0
@@ -204,7 +208,7 @@ def test_continuous_time_tune_without_implementation(tmp_path, capsys):
 
 @needs_gcc
 def test_a_design_that_fails_verify_gate_is_not_reported_ok(tmp_path, monkeypatch):
-    from symfunnel import tune as T
+    from symfunnel import tuning as T
     calls = []
 
     def failing_gate(scenario, progress=None):

@@ -30,7 +30,7 @@ def run(args) -> int:
     from ..errors import InputError
     from ..io import atomic_write
     from ..toml_write import dumps
-    from ..tune import tune
+    from ..tuning import tune
     from ._common import _dump, _load, _progress
     if not (math.isfinite(args.wall_limit) and args.wall_limit > 0):
         raise InputError(f"is {args.wall_limit:g}", key="--wall-limit", expected="a number of seconds > 0")
@@ -56,6 +56,17 @@ def run(args) -> int:
         print(f"  objective {o['name']}: {fmt(o['before'])} -> {fmt(o['after'])}")
         for c in r.changes:
             print(f"  {c['key']}: {c['before']:.6g} -> {c['after']:.6g}")
+        cmp_ = r.comparison
+        if cmp_:
+            print(f"  {'':<22}{'original':>14}{'tuned':>14}")
+            for k, label in (("feasible", "feasible"), ("reached_horizon", "reached horizon"), ("peak_torque", "peak |tau| [N m]"), ("ise", "ISE e1 [rad^2 s]"),
+                             ("min_margin", "min funnel margin"), ("min_rate_hz", "min rate [Hz]"),
+                             ("sample_violations", "violating samples")):
+                a, b = cmp_["original"].get(k), cmp_["tuned"].get(k)
+                if a is None and b is None:
+                    continue
+                cell = (lambda v: "-" if v is None else (str(v) if isinstance(v, (bool, int)) else f"{v:.4g}"))
+                print(f"  {label:<22}{cell(a):>14}{cell(b):>14}")
         for k, g in r.constraints["values"].items():
             print(f"  constraint {k}: {g:+.4g} ({'holds' if g >= 0 else 'violated'}; worst on "
                   f"{r.constraints['worst_run'].get(k, 'nominal')})")

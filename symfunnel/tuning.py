@@ -190,6 +190,7 @@ class Evaluator:
             from .codegen import generate
             from .sampled import step_library
             ctrl = step_library(design, generate(design, "c", rate_hz=self.impl.rate_hz, tau_max=self.impl.tau_max))
+        violated = 0
         for label, r in self.plants(raw):
             psc = sc if label == "nominal" else self.scenario(r)
             g, f = (self._sampled(psc, design, ctrl) if ctrl is not None else self._continuous(psc, design))
@@ -199,6 +200,10 @@ class Evaluator:
                     worst[k] = label
             if label == "nominal":
                 figs = f
+            else:
+                violated += any(v < 0 for v in g.values())
+        if self.samples:
+            figs["sample_violations"] = violated
         if self.spec.objective == "min_rate" and cons["containment"] >= 0:
             from .rate import min_rate
             r = min_rate(sc, margin=self.spec.margin, design=design, t_final=self.T, rel_tol=0.1,
@@ -292,6 +297,7 @@ class TuneResult:
     gate: dict
     tuned_raw: dict
     notes: list[str]
+    comparison: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The `--json` output of the contract (plus details)."""
@@ -300,7 +306,7 @@ class TuneResult:
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
                           "wall_s": self.wall_s, "evaluations": self.evaluations, "constraints": self.constraints,
                           "uncertainty_samples": self.samples, "confidence_eps_0.05": self.confidence,
-                          "gate": self.gate, "notes": self.notes})
+                          "gate": self.gate, "notes": self.notes, "comparison": self.comparison})
 
 
 def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,
@@ -416,7 +422,22 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         constraints={"margin": spec.margin, "values": b.constraints, "before": before.constraints,
                      "worst_run": b.worst_run, "before_feasible": before.feasible},
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
-        gate=gate_info, tuned_raw=tuned, notes=notes)
+        gate=gate_info, tuned_raw=tuned, notes=notes,
+        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
+
+
+def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
+    """One column of the original/tuned comparison: torque, margin, saturation, violations among the samples."""
+    g = c.constraints
+    held = g.get("containment", -1) >= -spec.margin         # reached the horizon inside both funnels
+    out = {"feasible": c.feasible, "reached_horizon": held, "peak_torque": c.figures.get("peak_torque"),
+           "ise": c.figures.get("ise") if held else None, "min_margin": g["containment"] + spec.margin if held else None,
+           "saturation": g.get("saturation"), "min_rate_hz": c.figures.get("min_rate")}
+    if ev.samples:
+        k = c.figures.get("sample_violations")
+        out["sample_violations"] = k
+        out["samples"] = len(ev.samples)
+    return out
 
 
 def verify_gate(scenario, progress=None) -> dict:
