@@ -18,11 +18,11 @@ LAYERS = [
     ("ground", ["errors", "io", "validate", "names", "registry", "expr", "sx", "family", "esn", "plant",
                 "integrators", "inputs", "outputs", "lifecycle", "sim_hints", "uncertainty", "toml_write"]),
     ("model", ["model"]),
-    ("scenario", ["scenario", "implementation"]),
+    ("scenario", ["scenario", "implementation", "tune_spec"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
     ("stages", ["simulate", "codegen", "checks", "sampled", "rate"]),
-    ("pipeline", ["pipeline", "campaign"]),
+    ("pipeline", ["pipeline", "campaign", "tuning"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "implementation_report"]),
 ]
 
