@@ -115,12 +115,11 @@ def scenario_confidence(n: int, eps: float = 0.05) -> float:
 
 @dataclass
 class Candidate:
-    """One evaluated design: its values, constraint values (>= 0 holds), objective figures and penalty."""
+    """One evaluated design: its values, constraint values (>= 0 holds) and objective figures."""
 
     xs: list[float]
     constraints: dict[str, float]
     figures: dict[str, float]
-    penalty: float
     note: str = ""
     worst_run: dict = field(default_factory=dict)
 
@@ -254,14 +253,14 @@ class Evaluator:
         return g, {"peak_torque": peak, "ise": ise}
 
     def evaluate(self, vars_: list[Variable], xs) -> Candidate:
-        """Simulate one candidate and score it (penalty: objective ratio when feasible, INFEASIBLE + violation)."""
+        """Simulate one candidate (a candidate the scenario's validation rejects gets the constraint `valid` < 0)."""
         self.count += 1
         raw = apply(self.sc.raw, vars_, xs)
         try:
             cons, figs, worst = self.run(raw)
         except InputError as exc:       # e.g. a funnel that no longer contains e2(0): not a design at all
-            return Candidate(list(xs), {"valid": -1.0}, {}, 2 * INFEASIBLE, note=exc.reason)
-        return Candidate(list(xs), cons, figs, 0.0, worst_run=worst)
+            return Candidate(list(xs), {"valid": -1.0}, {}, note=exc.reason)
+        return Candidate(list(xs), cons, figs, worst_run=worst)
 
 
 def _score(c: Candidate, objective: str, ref: dict) -> float:
