@@ -4,12 +4,13 @@ Constraints of a candidate (each a number g >= 0 when it holds, on the nominal p
 `containment` (both funnels kept with margin >= M over the horizon: the sampled loop around the compiled C step
 when the scenario has `[implementation]`, else the continuous simulation; a run that leaves a funnel early scores
 lower the earlier it leaves) and `saturation` (|tau| below tau_max: 1 - max over joints of peak |tau_i|/tau_max_i
-when the torque never saturates, else minus the saturated time fraction). The objective (peak torque, integral squared e1, or the minimum sample rate) is minimised over the
-feasible candidates. Method: the sampled-data loop (zero-order hold, saturation, the stop at a breach) makes the
-constraints piecewise constant in the parameters, so gradients are meaningless; the search is derivative-free:
-the user's values and a few Sobol points are evaluated, then Nelder-Mead (on a penalty: any infeasible candidate
-ranks behind every feasible one) runs from the best starts over log-scaled parameters until it converges or the
-wall-clock limit is reached. The best design then goes through verify's gate.
+when the torque never saturates, else minus the saturated time fraction). The objective (peak torque, integral
+squared e1, or the minimum sample rate) is minimised over the feasible candidates. Method: the sampled-data loop
+(zero-order hold, saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so
+gradients are meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated,
+then Nelder-Mead (on a penalty: any infeasible candidate ranks behind every feasible one) runs from the best starts
+over log-scaled parameters until it converges or the wall-clock limit is reached. The best feasible designs then go
+through verify's gate in turn.
 """
 
 from __future__ import annotations
@@ -322,9 +323,11 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     ev = Evaluator(scenario, spec, t_final=t_final, progress=say)
     vars_ = variables(scenario, spec)
     d = len(vars_)
+    loop = (f"sampled loop at {scenario.implementation.rate_hz:g} Hz" if scenario.implementation
+            else "continuous-time loop")
     say(f"tune {scenario.name}: {d} coordinate(s) ({', '.join(v.name for v in vars_)}), objective "
         f"{spec.objective}, margin {spec.margin:g}, {len(ev.samples)} uncertainty sample(s) + nominal, horizon "
-        f"{ev.T:g} s, {'sampled loop at ' + format(scenario.implementation.rate_hz, 'g') + ' Hz' if scenario.implementation else 'continuous-time loop'}")
+        f"{ev.T:g} s, {loop}")
     say(f"method: {METHOD} ({WHY})")
     user = [v.user_x() for v in vars_]
     before = ev.evaluate(vars_, user)
@@ -430,7 +433,8 @@ def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
     g = c.constraints
     held = g.get("containment", -1) >= -spec.margin         # reached the horizon inside both funnels
     out = {"feasible": c.feasible, "reached_horizon": held, "peak_torque": c.figures.get("peak_torque"),
-           "ise": c.figures.get("ise") if held else None, "min_margin": g["containment"] + spec.margin if held else None,
+           "ise": c.figures.get("ise") if held else None,
+           "min_margin": g["containment"] + spec.margin if held else None,
            "saturation": g.get("saturation"), "min_rate_hz": c.figures.get("min_rate")}
     if ev.samples:
         k = c.figures.get("sample_violations")

@@ -59,7 +59,8 @@ def run(args) -> int:
         cmp_ = r.comparison
         if cmp_:
             print(f"  {'':<22}{'original':>14}{'tuned':>14}")
-            for k, label in (("feasible", "feasible"), ("reached_horizon", "reached horizon"), ("peak_torque", "peak |tau| [N m]"), ("ise", "ISE e1 [rad^2 s]"),
+            for k, label in (("feasible", "feasible"), ("reached_horizon", "reached horizon"),
+                             ("peak_torque", "peak |tau| [N m]"), ("ise", "ISE e1 [rad^2 s]"),
                              ("min_margin", "min funnel margin"), ("min_rate_hz", "min rate [Hz]"),
                              ("sample_violations", "violating samples")):
                 a, b = cmp_["original"].get(k), cmp_["tuned"].get(k)
