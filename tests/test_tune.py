@@ -241,3 +241,16 @@ def test_min_rate_objective_is_the_rate_search_of_the_tuned_design(tmp_path, cap
     assert ok.ok and ok.min_margin >= 0.05
     low = simulate_sampled(tuned, rate_hz=r.objective["after"] / 3)
     assert not (low.ok and low.min_margin >= 0.05)
+
+
+@pytest.mark.parametrize("argv,key", [(["--wall-limit", "0"], "--wall-limit"), (["--max-evals", "0"], "--max-evals"),
+                                      (["--t-final", "-1"], "--t-final")])
+def test_bad_options_exit_2_before_any_work(tmp_path, capsys, argv, key):
+    assert main(["tune", "paper", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("symfunnel: error:") and f"'{key}'" in err and err.count("\n") == 0
+
+
+def test_out_that_is_a_directory_exits_2(tmp_path, capsys):
+    assert main(["tune", "paper", "--out", str(tmp_path)]) == 2
+    assert "'--out'" in capsys.readouterr().err
