@@ -15,10 +15,10 @@ from .errors import CheckFailed, InputError, SymfunnelError
 __version__ = "0.1.0"
 
 __all__ = ["InputError", "CheckFailed", "SymfunnelError", "load_scenario", "derive", "evaluate", "audit", "simulate",
-           "verify", "codegen", "report", "sweep", "run", "Run"]
+           "verify", "codegen", "report", "sweep", "tune", "run", "Run"]
 
 _LAZY = {"load_scenario": "scenario", "derive": "design", "evaluate": "design", "Run": "pipeline",
-         "audit": "api", "verify": "api", "sweep": "api", "run": "api"}
+         "audit": "api", "verify": "api", "sweep": "api", "run": "api", "tune": "tuning"}
 #: command names that are also module names: the (callable) module is the API function, see _callable.py
 _CALLABLE_MODULES = ("simulate", "codegen", "report")
 

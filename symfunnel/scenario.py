@@ -26,7 +26,7 @@ BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
             "funnel", "controller", "adaptation", "esn", "plant", "simulation", "audit", "claims", "design",
-            "approximator", "expect", "uncertainty", "sweep", "implementation", "rbf"]
+            "approximator", "expect", "uncertainty", "sweep", "implementation", "rbf", "tune"]
 ESN_INPUTS = list(ESNApproximator.INPUTS)
 
 
@@ -174,6 +174,7 @@ class Scenario:
     campaign: Any = None            # uncertainty.Campaign of [[uncertainty]] / [sweep], None without them
     implementation: Any = None      # ImplementationSpec, or None: the continuous-time controller
     rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
+    tune: Any = None                # tune_spec.TuneSpec of [tune], or None
 
     @property
     def n(self) -> int:
@@ -285,13 +286,17 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     if "implementation" in raw:
         from .implementation import parse_implementation
         impl = parse_implementation(raw["implementation"], n=n, file=file, raw_model=raw["model"], base_dir=base_dir)
+    tune = None
+    if "tune" in raw:
+        from .tune_spec import parse_tune
+        tune = parse_tune(raw["tune"], file=file, has_implementation=impl is not None, funnels=funnels)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
                     design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl,
-                    rbf=rbf)
+                    rbf=rbf, tune=tune)
 
 
 # --- sections -------------------------------------------------------------------------------------

@@ -19,11 +19,11 @@ LAYERS = [
                 "integrators", "inputs", "outputs", "lifecycle", "sim_hints", "uncertainty", "toml_write",
                 "_callable"]),
     ("model", ["model"]),
-    ("scenario", ["scenario", "implementation"]),
+    ("scenario", ["scenario", "implementation", "tune_spec"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
     ("stages", ["simulate", "codegen", "checks", "sampled", "rate", "implementation_report"]),
-    ("pipeline", ["pipeline", "campaign"]),
+    ("pipeline", ["pipeline", "campaign", "tuning"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "api"]),
 ]
 

@@ -1,0 +1,49 @@
+"""Bench area `tune`: `symfunnel tune` on the paper deployed at 1 kHz with |tau| <= 200 N m, beside one verify.
+
+Id: `tune.wall_s` (wall time of the whole tune: search plus verify's gate on the result, at the default 240 s
+limit; target <= 300 s). Baseline, measured in the same run: one `verify --rate 1000` of the paper's own design
+(the check a user runs by hand per guess). Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import time
+
+from . import result
+
+TARGET_S = 300.0
+
+
+def scenario(t_final: float | None = None):
+    """The paper with `[implementation] rate_hz = 1000, tau_max = 200` and `[tune]` (objective peak_torque)."""
+    from ..scenario import DATA_DIR, from_dict, load_scenario
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["implementation"] = {"rate_hz": 1000.0, "tau_max": 200.0}
+    raw["tune"] = {"objective": "peak_torque"}
+    if t_final is not None:
+        raw["simulation"]["t_final"] = float(t_final)
+    return from_dict(raw, file=str(DATA_DIR / "paper_2dof.toml"), base_dir=DATA_DIR, default_name="paper")
+
+
+def run(progress) -> list[dict]:
+    """The tune of the paper at 1 kHz, 200 N m, and a single verify of the printed design as the baseline."""
+    import warnings
+
+    from ..pipeline import Run, RunOptions
+    from ..tuning import tune
+    tf = os.environ.get("SYMFUNNEL_BENCH_T_FINAL")
+    sc = scenario(float(tf) if tf else None)
+    progress("tune: baseline, one verify of the printed design at 1 kHz")
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        v = Run(sc, RunOptions(rate_hz=1000.0)).verification
+    one = time.perf_counter() - t0
+    progress("tune: symfunnel tune (search + verify's gate)")
+    r = tune(sc, progress=progress)
+    return [result("tune.wall_s", r.wall_s, "s", "one verify --rate 1000 of the printed design", one, one / r.wall_s,
+                   target_s=TARGET_S, meets_target=bool(r.wall_s <= TARGET_S), status=r.status,
+                   evaluations=r.evaluations, objective=r.objective, gate=r.gate["status"],
+                   baseline_status=v.status, scenario=sc.name, t_final=sc.simulation.t_final)]

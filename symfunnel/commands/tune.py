@@ -1,0 +1,85 @@
+"""`symfunnel tune [SCENARIO] [--out FILE.toml] [--json]`: gains and inner funnel for the `[tune]` constraints."""
+
+from __future__ import annotations
+
+import math
+
+
+def register(sub, common) -> None:
+    """Add the `tune` subcommand."""
+    sp = sub.add_parser("tune", help="search gains and the e2 funnel that keep both funnels with a margin within the "
+                                     "torque limit (reference and e1 funnel fixed)",
+                        description="Derivative-free search (Nelder-Mead, multi-start) over the [tune] parameters; "
+                        "the best design goes through verify's gate. Exit 0 ok, 1 infeasible, 2 bad input.")
+    common(sp)
+    sp.add_argument("--out", metavar="FILE.toml", help="write the tuned scenario (with a [[deviations]] entry per "
+                                                       "change)")
+    sp.add_argument("--json", action="store_true", help="machine-readable output")
+    sp.add_argument("--wall-limit", type=float, default=240.0, metavar="S",
+                    help="stop the search after S seconds of wall time (default 240)")
+    sp.add_argument("--t-final", type=float, metavar="T", help="horizon of each candidate's runs (default: the "
+                                                             "scenario's)")
+    sp.add_argument("--max-evals", type=int, metavar="K", help="stop the search after K candidate evaluations")
+    sp.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Tune, write --out atomically, print a summary (or JSON); exit 1 when no feasible design was found."""
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..io import atomic_write
+    from ..toml_write import dumps
+    from ..tuning import tune
+    from ._common import _dump, _load, _progress
+    if not (math.isfinite(args.wall_limit) and args.wall_limit > 0):
+        raise InputError(f"is {args.wall_limit:g}", key="--wall-limit", expected="a number of seconds > 0")
+    if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
+        raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
+    if args.max_evals is not None and args.max_evals < 1:
+        raise InputError(f"is {args.max_evals}", key="--max-evals", expected="an integer >= 1")
+    if args.out is not None and Path(args.out).is_dir():
+        raise InputError("is a directory", file=args.out, key="--out", expected="a .toml file path")
+    sc = _load(args)
+    say = _progress(args.quiet or args.json)
+    r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals)
+    if args.out is not None:
+        atomic_write(args.out, dumps(r.tuned_raw))
+    if args.json:
+        print(_dump(r.to_json()))
+    else:
+        o = r.objective
+        fmt = (lambda v: "-" if v is None else f"{v:.6g}")
+        print(f"tune {sc.name}: {r.status.upper()} after {r.evaluations} evaluations in {r.wall_s:.1f} s")
+        print(f"  method: {r.method}")
+        print(f"  why: {r.why}")
+        print(f"  objective {o['name']}: {fmt(o['before'])} -> {fmt(o['after'])}")
+        for c in r.changes:
+            print(f"  {c['key']}: {c['before']:.6g} -> {c['after']:.6g}")
+        cmp_ = r.comparison
+        if cmp_:
+            print(f"  {'':<22}{'original':>14}{'tuned':>14}")
+            for k, label in (("feasible", "feasible"), ("reached_horizon", "reached horizon"),
+                             ("peak_torque", "peak |tau| [N m]"), ("ise", "ISE e1 [rad^2 s]"),
+                             ("min_margin", "min funnel margin"), ("min_rate_hz", "min rate [Hz]"),
+                             ("sample_violations", "violating samples")):
+                a, b = cmp_["original"].get(k), cmp_["tuned"].get(k)
+                if a is None and b is None:
+                    continue
+                cell = (lambda v: "-" if v is None else (str(v) if isinstance(v, (bool, int)) else f"{v:.4g}"))
+                print(f"  {label:<22}{cell(a):>14}{cell(b):>14}")
+        for k, g in r.constraints["values"].items():
+            print(f"  constraint {k}: {g:+.4g} ({'holds' if g >= 0 else 'violated'}; worst on "
+                  f"{r.constraints['worst_run'].get(k, 'nominal')})")
+        if r.samples:
+            print(f"  uncertainty: {r.samples} samples + nominal; no violation gives P(violation) <= 0.05 with "
+                  f"confidence {r.confidence:.3f} (scenario approach)")
+        print(f"  verify gate: {r.gate['status']}" + (f" (unexpected: {', '.join(r.gate['unexpected'])})"
+                                                      if r.gate.get("unexpected") else ""))
+        if r.binding:
+            print(f"  binding: {', '.join(r.binding)}")
+        for n in r.notes:
+            print(f"  note: {n}")
+        if args.out is not None:
+            print(f"  wrote {args.out}")
+    return 0 if r.status == "ok" else 1

@@ -1,0 +1,468 @@
+"""`symfunnel tune`: search the design parameters of `[tune]` for a design that keeps the constraints, best objective.
+
+Constraints of a candidate (each a number g >= 0 when it holds, on the nominal plant and on N uncertainty samples):
+`containment` (both funnels kept with margin >= M over the horizon: the sampled loop around the compiled C step
+when the scenario has `[implementation]`, else the continuous simulation; a run that leaves a funnel early scores
+lower the earlier it leaves) and `saturation` (|tau| below tau_max: 1 - max over joints of peak |tau_i|/tau_max_i
+when the torque never saturates, else minus the saturated time fraction). The objective (peak torque, integral
+squared e1, or the minimum sample rate) is minimised over the feasible candidates. Method: the sampled-data loop
+(zero-order hold, saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so
+gradients are meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated,
+then Nelder-Mead (on a penalty: any infeasible candidate ranks behind every feasible one) runs from the best starts
+over log-scaled parameters until it converges or the wall-clock limit is reached. The best feasible designs then go
+through verify's gate in turn.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .tune_spec import TUNABLE, TuneSpec, current_value
+
+__all__ = ["tune", "TuneResult", "Candidate", "scenario_confidence", "METHOD"]
+
+METHOD = ("derivative-free: Nelder-Mead on a feasibility-first penalty over log-scaled parameters, multi-start from "
+          "the user's values and Sobol points")
+WHY = ("the constraints come from simulated runs (sampled-data loop: zero-order hold, torque saturation, stop at "
+       "the first breach), piecewise constant in the parameters, so their gradients are zero or undefined")
+#: Sobol starting points besides the user's values
+SOBOL_STARTS = 8
+INFEASIBLE = 1e3
+#: feasible designs (best first) that go through verify's gate before tune reports infeasible
+GATE_TRIES = 3
+
+
+class _OutOfTime(Exception):
+    """Raised inside the objective when the wall-clock limit or the evaluation budget is reached."""
+
+
+@dataclass
+class Variable:
+    """One search coordinate: a key (all joints, or one joint), its bounds and how it maps to the scenario's values."""
+
+    key: str
+    joint: int | None          # None: all joints (shared) or a scalar key
+    lo: float
+    hi: float
+    base: list[float]          # the user's per-joint values of the key
+    ratio: list[float]         # shared mode: joint value = x * ratio[i]
+
+    @property
+    def name(self) -> str:
+        """The key, with [joint] (1-based) when it is one joint's."""
+        return self.key if self.joint is None else f"{self.key}[{self.joint + 1}]"
+
+    def x_of(self, z: float) -> float:
+        """The value at z in [0, 1] of the log-scaled range."""
+        z = min(1.0, max(0.0, float(z)))
+        return self.lo * (self.hi / self.lo) ** z
+
+    def z_of(self, x: float) -> float:
+        """The log-scale coordinate of a value (clipped into the bounds)."""
+        x = min(self.hi, max(self.lo, x))
+        return math.log(x / self.lo) / math.log(self.hi / self.lo)
+
+    def user_x(self) -> float:
+        """The user's value of this coordinate."""
+        return self.base[self.joint] if self.joint is not None else max(self.base)
+
+
+def variables(scenario, spec: TuneSpec) -> list[Variable]:
+    """The search coordinates of a scenario's `[tune]`."""
+    out = []
+    for key in spec.parameters:
+        lo, hi = spec.bounds_of(key)
+        base = current_value(scenario, key)
+        if len(base) > 1 and spec.per_joint:
+            out.extend(Variable(key, i, lo, hi, base, []) for i in range(len(base)))
+        else:
+            top = max(base)
+            ratio = [b / top for b in base] if top > 0 and min(base) > 0 else [1.0] * len(base)
+            out.append(Variable(key, None, lo, hi, base, ratio))
+    return out
+
+
+def apply(raw: dict, vars_: list[Variable], xs) -> dict:
+    """A copy of the scenario document with the coordinates' values written at their keys."""
+    raw = copy.deepcopy(raw)
+    values: dict[str, list[float]] = {}
+    for v, x in zip(vars_, xs):
+        cur = values.setdefault(v.key, list(v.base))
+        if v.joint is not None:
+            cur[v.joint] = float(x)
+        else:
+            for i, r in enumerate(v.ratio):
+                cur[i] = float(x) * r
+    for key, vals in values.items():
+        *path, leaf = key.split(".")
+        t = raw
+        for p in path:
+            t = t.setdefault(p, {})
+        t[leaf] = vals[0] if (not TUNABLE[key][0] or len(set(vals)) == 1) else vals
+    return raw
+
+
+def scenario_confidence(n: int, eps: float = 0.05) -> float:
+    """Scenario approach: with n independent samples and no violation, P(violation) <= eps with this confidence."""
+    return 1.0 - (1.0 - eps) ** n
+
+
+@dataclass
+class Candidate:
+    """One evaluated design: its values, constraint values (>= 0 holds) and objective figures."""
+
+    xs: list[float]
+    constraints: dict[str, float]
+    figures: dict[str, float]
+    note: str = ""
+    worst_run: dict = field(default_factory=dict)
+
+    @property
+    def feasible(self) -> bool:
+        """Every constraint holds."""
+        return bool(self.constraints) and all(g >= 0 for g in self.constraints.values())
+
+    def binding(self, tol: float = 0.02) -> list[str]:
+        """The violated constraints, or (when feasible) those within tol of their limit."""
+        bad = [k for k, g in self.constraints.items() if g < 0]
+        return bad or [k for k, g in self.constraints.items() if g < tol]
+
+
+class Evaluator:
+    """Simulates candidates of one scenario under its `[tune]` constraints (nominal plant + uncertainty samples)."""
+
+    def __init__(self, scenario, spec: TuneSpec, *, t_final: float | None = None, progress=None):
+        self.sc = scenario
+        self.spec = spec
+        self.say = progress or (lambda s: None)
+        self.impl = scenario.implementation
+        self.T = float(t_final if t_final is not None else scenario.simulation.t_final)
+        self.samples = self._samples()
+        self.count = 0
+
+    def _samples(self) -> list[dict]:
+        """Scenario edits of the N uncertainty samples (none without [[uncertainty]])."""
+        camp = self.sc.campaign
+        if camp is None or not camp.uncertainties:
+            return []
+        from .uncertainty import scenario_edits
+        vals = camp.values(range(self.spec.runs), self.spec.runs)
+        return [scenario_edits(camp, self.sc.n, v) for v in vals]
+
+    def scenario(self, raw: dict):
+        """A scenario from a document (the tuned one keeps the original's file and name)."""
+        from .scenario import from_dict
+        return from_dict(raw, file=self.sc.file, base_dir=self.sc.path.parent, default_name=self.sc.name)
+
+    def plants(self, raw: dict) -> list[tuple[str, dict]]:
+        """(label, document) of the nominal plant and of every uncertainty sample."""
+        out = [("nominal", raw)]
+        for i, edits in enumerate(self.samples):
+            r = copy.deepcopy(raw)
+            for key, v in edits.items():
+                *path, leaf = key.split(".")
+                t = r
+                for p in path:
+                    t = t.setdefault(p, {})
+                t[leaf] = v
+            out.append((f"sample {i}", r))
+        return out
+
+    def run(self, raw: dict) -> tuple[dict, dict, dict]:
+        """(constraints, figures, worst run) of one design document."""
+        sc = self.scenario(raw)
+        from .design import derive
+        design = derive(sc)
+        cons = {"containment": math.inf}
+        if self.impl is not None and self.impl.tau_max is not None:
+            cons["saturation"] = math.inf
+        figs = {}
+        worst = {}
+        ctrl = None
+        if self.impl is not None:
+            from .codegen import generate
+            from .sampled import step_library
+            ctrl = step_library(design, generate(design, "c", rate_hz=self.impl.rate_hz, tau_max=self.impl.tau_max))
+        violated = 0
+        for label, r in self.plants(raw):
+            psc = sc if label == "nominal" else self.scenario(r)
+            g, f = (self._sampled(psc, design, ctrl) if ctrl is not None else self._continuous(psc, design))
+            for k, v in g.items():
+                if v < cons[k]:
+                    cons[k] = v
+                    worst[k] = label
+            if label == "nominal":
+                figs = f
+            else:
+                violated += any(v < 0 for v in g.values())
+        if self.samples:
+            figs["sample_violations"] = violated
+        if self.spec.objective == "min_rate" and cons["containment"] >= 0:
+            from .rate import min_rate
+            r = min_rate(sc, margin=self.spec.margin, design=design, t_final=self.T, rel_tol=0.1,
+                         start=self.impl.rate_hz)
+            figs["min_rate"] = r["min_rate_hz"] if r["min_rate_hz"] is not None else math.inf
+        return cons, figs, worst
+
+    def _containment(self, ok: bool, min_margin: float, t_end: float) -> float:
+        """min margin - M; a run that stopped early loses the fraction of the horizon it did not reach."""
+        m = max(min_margin, -1.0) if math.isfinite(min_margin) else -1.0     # a diverged run: -1, not -1e6
+        if ok:
+            return m - self.spec.margin
+        return min(m, 0.0) - self.spec.margin - max(0.0, 1.0 - t_end / self.T)
+
+    def _sampled(self, sc, design, ctrl) -> tuple[dict, dict]:
+        from .sampled import simulate_sampled
+        res = simulate_sampled(sc, t_final=self.T, design=design, controller=ctrl)
+        g = {"containment": self._containment(res.ok, res.min_margin, float(res.t[-1]))}
+        peak = float(np.max(np.abs(res.tau))) if res.tau.size else 0.0
+        if res.tau_max is not None:
+            frac = max(res.saturated_fraction or [0.0])
+            use = float(np.max(np.abs(res.tau) / np.asarray(res.tau_max))) if res.tau.size else 0.0
+            g["saturation"] = 1.0 - use if frac == 0 else -frac
+        n = sc.n
+        k = res.tau.shape[0]
+        qd = np.asarray(design.reference.map(k + 1)(res.t.reshape(1, -1))[0]).T if k else np.zeros((1, n))
+        e1 = res.q[:k + 1] - qd
+        ok = np.all(np.isfinite(e1), axis=1)
+        h = 1.0 / res.rate_hz
+        figs = {"peak_torque": peak, "ise": float(np.sum(e1[ok] ** 2) * h)}
+        return g, figs
+
+    def _continuous(self, sc, design) -> tuple[dict, dict]:
+        from .simulate import simulate
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = simulate(sc, design, t_final=self.T)
+        s = res.signals
+        mm = [float(np.min(s[k])) for k in ("m1", "m2") if s[k].size]
+        if res.breach is not None:
+            mm.append(float(res.breach["margin"]))
+        t_end = float(res.t[-1]) if res.t.size else 0.0
+        g = {"containment": self._containment(res.ok, min(mm) if mm else -1.0, t_end)}
+        tau = np.asarray(s["tau"])
+        peak = float(np.max(np.abs(tau))) if tau.size and np.isfinite(tau).all() else math.inf
+        e1 = np.asarray(s["e1"]).reshape(len(res.t), -1) if res.t.size else np.zeros((1, 1))
+        ise = float(np.trapezoid(np.sum(e1 ** 2, axis=1), res.t)) if res.t.size > 1 else math.inf
+        return g, {"peak_torque": peak, "ise": ise}
+
+    def evaluate(self, vars_: list[Variable], xs) -> Candidate:
+        """Simulate one candidate (a candidate the scenario's validation rejects gets the constraint `valid` < 0)."""
+        self.count += 1
+        raw = apply(self.sc.raw, vars_, xs)
+        try:
+            cons, figs, worst = self.run(raw)
+        except InputError as exc:       # e.g. a funnel that no longer contains e2(0): not a design at all
+            return Candidate(list(xs), {"valid": -1.0}, {}, note=exc.reason)
+        return Candidate(list(xs), cons, figs, worst_run=worst)
+
+
+def _score(c: Candidate, objective: str, ref: dict) -> float:
+    """Feasibility first: any infeasible candidate ranks behind every feasible one; ties broken by the others."""
+    if not c.feasible:
+        if "valid" in c.constraints:
+            return 2 * INFEASIBLE
+        return INFEASIBLE + sum(max(0.0, -g) for g in c.constraints.values() if math.isfinite(g))
+    val = c.figures.get(objective, math.inf)
+    if not math.isfinite(val):
+        return INFEASIBLE - 1
+    main = val / ref.get(objective, 1.0)
+    tie = sum(c.figures[k] / ref.get(k, 1.0) for k in ("peak_torque", "ise") if k != objective
+              and math.isfinite(c.figures.get(k, math.inf)))
+    return main + 1e-6 * tie
+
+
+@dataclass
+class TuneResult:
+    """The outcome of `tune`: status, method, objective before/after, changes, binding constraints, the tuned TOML."""
+
+    status: str
+    method: str
+    why: str
+    objective: dict
+    changes: list[dict]
+    binding: list[str]
+    wall_s: float
+    evaluations: int
+    constraints: dict
+    samples: int
+    confidence: float | None
+    gate: dict
+    tuned_raw: dict
+    notes: list[str]
+    comparison: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """The `--json` output of the contract (plus details)."""
+        from .io import json_safe
+        return json_safe({"status": self.status, "method": self.method, "why": self.why,
+                          "objective": self.objective, "changes": self.changes, "binding": self.binding,
+                          "wall_s": self.wall_s, "evaluations": self.evaluations, "constraints": self.constraints,
+                          "uncertainty_samples": self.samples, "confidence_eps_0.05": self.confidence,
+                          "gate": self.gate, "notes": self.notes, "comparison": self.comparison})
+
+
+def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,
+         max_evaluations: int | None = None, gate: bool = True) -> TuneResult:
+    """Search the `[tune]` parameters of a scenario (see the module doc); never changes the specification."""
+    from scipy.optimize import minimize
+    from scipy.stats import qmc
+    say = progress or (lambda s: None)
+    spec = scenario.tune or TuneSpec()
+    if spec.objective == "min_rate" and scenario.implementation is None:
+        raise InputError("is 'min_rate' but the scenario has no [implementation]", file=scenario.file,
+                         key="tune.objective", expected="an [implementation] section or peak_torque / ise")
+    t0 = time.perf_counter()
+    ev = Evaluator(scenario, spec, t_final=t_final, progress=say)
+    vars_ = variables(scenario, spec)
+    d = len(vars_)
+    loop = (f"sampled loop at {scenario.implementation.rate_hz:g} Hz" if scenario.implementation
+            else "continuous-time loop")
+    say(f"tune {scenario.name}: {d} coordinate(s) ({', '.join(v.name for v in vars_)}), objective "
+        f"{spec.objective}, margin {spec.margin:g}, {len(ev.samples)} uncertainty sample(s) + nominal, horizon "
+        f"{ev.T:g} s, {loop}")
+    say(f"method: {METHOD} ({WHY})")
+    user = [v.user_x() for v in vars_]
+    before = ev.evaluate(vars_, user)
+    say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
+        + ", ".join(f"{k} {g:+.3g}" for k, g in before.constraints.items()))
+    ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
+    seen: dict[tuple, Candidate] = {}
+    best: list[Candidate | None] = [None]          # the best candidate inside the bounds
+
+    def record(c: Candidate) -> float:
+        s = _score(c, spec.objective, ref)
+        if best[0] is None or s < _score(best[0], spec.objective, ref):
+            best[0] = c
+        return s
+
+    def f(z) -> float:
+        xs = [v.x_of(zi) for v, zi in zip(vars_, z)]
+        key = tuple(round(x, 10) for x in xs)
+        if key in seen:
+            return _score(seen[key], spec.objective, ref)
+        if time.perf_counter() - t0 > wall_limit:
+            raise _OutOfTime(f"search stopped at the wall-clock limit ({wall_limit:g} s)")
+        if max_evaluations and ev.count >= max_evaluations:
+            raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
+        c = ev.evaluate(vars_, xs)
+        seen[key] = c
+        s = record(c)
+        b = best[0]
+        say(f"eval {ev.count}: {'feasible' if c.feasible else 'infeasible'} "
+            + ", ".join(f"{k} {g:+.3g}" for k, g in c.constraints.items())
+            + (f", {spec.objective} {c.figures.get(spec.objective, math.nan):.4g}" if c.figures else f" ({c.note})")
+            + f" | best {'feasible' if b.feasible else 'infeasible'} {_score(b, spec.objective, ref):.4g}")
+        return s
+
+    if all(v.lo <= x <= v.hi for v, x in zip(vars_, user)):
+        seen[tuple(round(x, 10) for x in user)] = before
+        record(before)
+    else:
+        say("the user's values lie outside the bounds: the search starts from them clipped into the bounds")
+    z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
+    starts = [z_user]
+    sob = qmc.Sobol(d, scramble=True, seed=0).random(SOBOL_STARTS)
+    starts.extend(sob)
+    scored = []
+    stopped = None
+    try:
+        for z in starts:
+            scored.append((f(z), list(z)))
+        scored.sort(key=lambda p: p[0])
+        for _, z in scored[:3]:
+            step = 0.15
+            simplex = [np.array(z)] + [np.clip(np.array(z) + step * np.eye(d)[i] * (1 if z[i] < 0.5 else -1), 0, 1)
+                                       for i in range(d)]
+            minimize(f, np.array(z), method="Nelder-Mead", bounds=[(0.0, 1.0)] * d,
+                     options={"initial_simplex": np.array(simplex), "xatol": 2e-3, "fatol": 1e-4,
+                              "maxfev": 60 * d})
+    except _OutOfTime as exc:
+        stopped = str(exc)
+        say(stopped + ": the best design so far is the result")
+    b = best[0] or before
+    notes = [stopped] if stopped else []
+    gate_info = {"status": "skipped"}
+    status = "ok" if b.feasible else "infeasible"
+    binding = b.binding()
+    if b.feasible and gate:
+        # verify's gate on the best feasible designs in turn (at most GATE_TRIES): the search's constraints are
+        # the sampled runs; the gate adds the continuous-time checks, whose declared outcomes must still hold
+        ranked = sorted((c for c in seen.values() if c.feasible and all(v.lo <= x <= v.hi for v, x in
+                                                                         zip(vars_, c.xs))),
+                        key=lambda c: _score(c, spec.objective, ref))
+        for i, c in enumerate(ranked[:GATE_TRIES]):
+            say(f"verify's gate on the tuned scenario (design {i + 1} of the ranking)")
+            gate_info = verify_gate(ev.scenario(apply(scenario.raw, vars_, c.xs)), progress=say)
+            if gate_info["status"] == "pass":
+                b = c
+                break
+            notes.append(f"design {i + 1} of the ranking failed verify's gate: {', '.join(gate_info['unexpected'])}")
+        else:
+            status = "infeasible"
+            binding = binding + [f"verify.{c}" for c in gate_info.get("unexpected", [])]
+    tuned = apply(scenario.raw, vars_, b.xs)
+    changes = []
+    for v, x in zip(vars_, b.xs):
+        ux = v.user_x()
+        if not math.isclose(x, ux, rel_tol=1e-12):
+            changes.append({"key": v.name, "before": ux, "after": x})
+    _record_deviations(tuned, changes, spec, b, ev, status)
+    name = spec.objective
+    return TuneResult(
+        status=status, method=METHOD, why=WHY,
+        objective={"name": name, "before": before.figures.get(name) if before.feasible or name != "min_rate" else None,
+                   "after": b.figures.get(name)},
+        changes=changes, binding=binding, wall_s=time.perf_counter() - t0, evaluations=ev.count,
+        constraints={"margin": spec.margin, "values": b.constraints, "before": before.constraints,
+                     "worst_run": b.worst_run, "before_feasible": before.feasible},
+        samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
+        gate=gate_info, tuned_raw=tuned, notes=notes,
+        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
+
+
+def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
+    """One column of the original/tuned comparison: torque, margin, saturation, violations among the samples."""
+    g = c.constraints
+    held = g.get("containment", -1) >= -spec.margin         # reached the horizon inside both funnels
+    out = {"feasible": c.feasible, "reached_horizon": held, "peak_torque": c.figures.get("peak_torque"),
+           "ise": c.figures.get("ise") if held else None,
+           "min_margin": g["containment"] + spec.margin if held else None,
+           "saturation": g.get("saturation"), "min_rate_hz": c.figures.get("min_rate")}
+    if ev.samples:
+        k = c.figures.get("sample_violations")
+        out["sample_violations"] = k
+        out["samples"] = len(ev.samples)
+    return out
+
+
+def verify_gate(scenario, progress=None) -> dict:
+    """verify's gate (the Run's verification) on a scenario: {"status", "unexpected": [check ids]}."""
+    from .pipeline import Run, RunOptions
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        v = Run(scenario, RunOptions(), progress=None).verification
+    return {"status": v.status, "unexpected": [c.id for c in v.checks if c.unexpected]}
+
+
+def _record_deviations(raw: dict, changes: list[dict], spec: TuneSpec, b: Candidate, ev: Evaluator,
+                       status: str) -> None:
+    """Append a `[[deviations]]` entry per changed key (old -> new, why) to the tuned document."""
+    if not changes:
+        return
+    impl = ev.impl
+    what = (f"sampled loop at {impl.rate_hz:g} Hz" + (f", |tau| <= {', '.join(f'{x:g}' for x in impl.tau_max)}"
+                                                      if impl.tau_max else "")) if impl else "continuous-time loop"
+    unc = f" on the nominal plant and {len(ev.samples)} uncertainty samples" if ev.samples else " on the nominal plant"
+    why = (f"symfunnel tune ({status}): both funnels kept with margin >= {spec.margin:g} in the {what}{unc} "
+           f"over {ev.T:g} s, objective {spec.objective} = {b.figures.get(spec.objective, math.nan):.6g}")
+    devs = raw.setdefault("deviations", [])
+    for c in changes:
+        devs.append({"key": c["key"], "paper": "", "value": f"{c['before']:.6g} -> {c['after']:.6g}", "reason": why})
