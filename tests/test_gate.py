@@ -136,3 +136,19 @@ def test_drop_G_is_equivalent_exactly_when_G_is_zero(paper, capsys):
     v = variant_of(paper)
     d = derive(paper, mutant="drop_G")
     assert (v.equivalent(d, "drop_G") is not None) == bool(d.signals["G"].is_zero())
+
+
+def test_mutants_the_identity_misses_go_through_the_full_gate(paper, monkeypatch):
+    """The second stage of mutation testing: with the identity check disabled, the simulated gate still kills a
+    controller error (its Lyapunov decay fails along the run), and names the checks that did."""
+    import symfunnel.pipeline as P
+    from symfunnel.checks.audit import CheckResult
+    from symfunnel.design import variant_of
+    monkeypatch.setattr(P, "check_identity", lambda design, rng: CheckResult("design.identity.vdot", "pass", "off"))
+    keep = {"flip_adaptation"}
+    cls = type(variant_of(paper))
+    real = cls.mutants
+    monkeypatch.setattr(cls, "mutants", lambda self: [m for m in real(self) if m.id in keep])
+    out = P.run_mutants(paper, t_final=1.0, samples=500)
+    (m,) = out["mutants"]
+    assert m["killed"] and "design.identity.vdot" in m["by"] and "lyapunov.decay" in m["by"]
