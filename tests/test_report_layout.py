@@ -139,7 +139,7 @@ def test_no_formula_wider_than_the_page(which, tmp_path):
         sc = load_scenario(which)
     from symfunnel.pipeline import Run, RunOptions
     out = build_report(Run(sc, RunOptions(t_final=0.3, samples=20)), tmp_path / "r.html", codegen=False,
-                       mutants=False)
+                       mutants=False, deployed=which == "paper")     # the deployed section's layout: on paper
     text = out.read_text(encoding="utf-8")
     widths = (1280, 1024) if which == "paper" else (1280,)
     for w in widths:
