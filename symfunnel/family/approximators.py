@@ -74,25 +74,12 @@ class ESNApproximator:
         return self.esn.summary()
 
 
-@APPROXIMATORS.register("none", "no approximator: the model-based controller (the unknown term is left to robustness)")
-class NoApproximator:
-    """No regressor and no adaptive weights: tau is the model's inverse dynamics of v."""
-
-    name = "none"
-    SETTINGS = None
-
-    def __init__(self, scenario):
-        pass
-
-    n_regressor = 0
+class _Stateless:
+    """An approximator without states of its own: Phi is a function of the design's base inputs only."""
 
     def states(self) -> list[tuple[str, tuple[int, int]]]:
         """No states."""
         return []
-
-    def regressor(self, sym: dict[str, ca.SX]) -> ca.SX:
-        """An empty regressor."""
-        return ca.SX(0, 1)
 
     def dynamics(self, sym, signals) -> dict[str, ca.SX]:
         """No dynamics."""
@@ -105,6 +92,24 @@ class NoApproximator:
     def box(self) -> dict[str, float]:
         """No states."""
         return {}
+
+
+@APPROXIMATORS.register("none", "no approximator: the model-based controller (the unknown term is left to robustness)")
+class NoApproximator(_Stateless):
+    """No regressor and no adaptive weights: tau is the model's inverse dynamics of v."""
+
+    name = "none"
+    SETTINGS = None
+
+    def __init__(self, scenario):
+        pass
+
+    n_regressor = 0
+
+    def regressor(self, sym: dict[str, ca.SX]) -> ca.SX:
+        """An empty regressor."""
+        return ca.SX(0, 1)
+
 
     def summary(self) -> dict[str, Any]:
         """Facts for the report."""
@@ -207,7 +212,7 @@ def rbf_centres(spec: RBFSpec, dims: int) -> tuple[np.ndarray, float]:
 
 @APPROXIMATORS.register("rbf", "Gaussian radial basis functions of base inputs (default q, dq), centres on a grid or "
                                "Sobol points over the input box; settings in `[rbf]`")
-class RBFApproximator:
+class RBFApproximator(_Stateless):
     """Phi = [exp(-||u - c_j||^2 / w^2)]_j (+ a bias 1), u the inputs scaled to the unit box, w = width_factor times
     the spacing of the centres; no states of its own, so Phi is a function of the design's base inputs only."""
 
@@ -228,10 +233,6 @@ class RBFApproximator:
         """Length of Phi: one per centre, plus the bias."""
         return self.centres.shape[0] + (1 if self.spec.bias else 0)
 
-    def states(self) -> list[tuple[str, tuple[int, int]]]:
-        """No states of its own."""
-        return []
-
     def regressor(self, sym: dict[str, ca.SX]) -> ca.SX:
         """Phi in the base inputs."""
         x = ca.vertcat(*[sym[k] for k in self.spec.inputs])
@@ -246,17 +247,6 @@ class RBFApproximator:
         g = np.exp(-d2 / self.width ** 2)
         return np.vstack([g, np.ones((1, x.shape[1]))]) if self.spec.bias else g
 
-    def dynamics(self, sym, signals) -> dict[str, ca.SX]:
-        """No dynamics."""
-        return {}
-
-    def initial(self, scenario) -> dict[str, np.ndarray]:
-        """No states."""
-        return {}
-
-    def box(self) -> dict[str, float]:
-        """No states."""
-        return {}
 
     def summary(self) -> dict[str, Any]:
         """Facts for the report."""
