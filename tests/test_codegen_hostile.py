@@ -7,8 +7,6 @@ import importlib.util
 import os
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import PAPER
 
 
