@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -15,7 +14,6 @@ import pytest
 from symfunnel.cli import main
 from symfunnel.errors import InputError
 from tests.conftest import PAPER
-from tests.test_compile_cache import read_only_dir  # noqa: F401 - a fixture
 
 
 def one_error_line(capsys, *needles):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import ctypes
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -77,25 +76,6 @@ def test_unwritable_cache_builds_in_a_temporary_directory(tmp_path, cc):
     assert len(rec) == 1                            # one warning per process and cache directory
     assert _call(b.path, 0.25) == 1.5 and not str(b.path).startswith(str(tmp_path))
     assert other.path.parent.parent == b.path.parent.parent
-
-
-@pytest.fixture
-def read_only_dir(tmp_path):
-    """A directory nobody can write: mode 0555, or for root (who ignores modes) a read-only tmpfs mount."""
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    if os.geteuid() != 0:
-        ro.chmod(0o555)
-        yield ro
-        ro.chmod(0o755)
-        return
-    if not shutil.which("mount") or subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)],
-                                                    capture_output=True).returncode != 0:
-        pytest.skip("running as root without permission to mount a read-only file system")
-    try:
-        yield ro
-    finally:
-        subprocess.run(["umount", str(ro)], capture_output=True)
 
 
 def test_read_only_cache_directory(read_only_dir, cc):
