@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -103,3 +105,22 @@ def alpha2_dot_fd_error(design, k: int, seed: int, fill: float = 0.9) -> tuple[f
         worst = max(worst, float(np.max(np.abs(fd - ex)) / max(np.max(np.abs(ex)), 1e-3)))
         used += 1
     return worst, used
+
+
+@pytest.fixture
+def read_only_dir(tmp_path):
+    """A directory nobody can write: mode 0555, or for root (who ignores modes) a read-only tmpfs mount."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if os.geteuid() != 0:
+        ro.chmod(0o555)
+        yield ro
+        ro.chmod(0o755)
+        return
+    if not shutil.which("mount") or subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)],
+                                                    capture_output=True).returncode != 0:
+        pytest.skip("running as root without permission to mount a read-only file system")
+    try:
+        yield ro
+    finally:
+        subprocess.run(["umount", str(ro)], capture_output=True)

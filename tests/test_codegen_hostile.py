@@ -7,7 +7,6 @@ import importlib.util
 import os
 from pathlib import Path
 
-
 from tests.conftest import PAPER
 
 
