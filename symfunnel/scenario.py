@@ -385,12 +385,7 @@ def _esn(table: Any, file: str) -> ESNSpec:
     V.check_keys(table, ["size", "leak", "time_constant", "spectral_radius", "input_scaling", "sparsity",
                          "seed", "bias", "inputs", "scales"], file=file, prefix=p)
     d = ESNSpec()
-    inputs = V.get_list(table, "inputs", d.inputs, file=file, prefix=p)
-    for i, s in enumerate(inputs):
-        if not isinstance(s, str) or s not in ESN_INPUTS:
-            hint = V.did_you_mean(s, ESN_INPUTS) if isinstance(s, str) else ""
-            raise InputError(f"is {s!r}{hint}", file=file, key=f"esn.inputs[{i}]",
-                             expected="one of " + ", ".join(ESN_INPUTS))
+    inputs = V.get_names(table, "inputs", d.inputs, file=file, prefix=p, choices=ESN_INPUTS)
     if not inputs:
         raise InputError("is empty", file=file, key="esn.inputs", expected="at least one input signal")
     scales_raw = table.get("scales", {})
@@ -529,6 +524,21 @@ def claim_names(n: int, model) -> set[str]:
     return names
 
 
+def _expression_pair(c: dict, p: str, keys: tuple[str, str], exclusive: tuple[str, ...], kind: str, whose: str,
+                     names: set[str], file: str) -> tuple[Expression, Expression]:
+    """The two expressions of a claim kind given by a pair of keys (lhs/rhs, rho/delta), alone of their kind."""
+    a, b = keys
+    for k in exclusive:
+        if k in c:
+            raise InputError(f"cannot be combined with '{a}'/'{b}'", file=file, key=f"{p}.{k}",
+                             expected=f"{kind} has {a} and {b} only")
+    for k in keys:
+        if k not in c:
+            raise InputError("is missing", file=file, key=f"{p}.{k}", expected=f"{a} and {b} {whose}")
+    return tuple(parse_expression(V.get_str(c, k, file=file, prefix=p), names, file=file, key=f"{p}.{k}")
+                 for k in keys)
+
+
 #: what an inequality claim may name besides a signal claim's names: the design's V and its exact derivative along
 #: the nominal model plus W*^T Phi (eps = 0: the ideal approximation such printed steps assume), and W*
 INEQUALITY_NAMES = {"V", "V_dot", "W_star"}
@@ -566,27 +576,13 @@ def _claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
             params[k] = V.as_float(v, file=file, key=f"{p}.parameters.{k}")
         cnames = names | set(params)
         if "lhs" in c or "rhs" in c:
-            for k in ("signal", "expression", "funnel", "rho", "delta"):
-                if k in c:
-                    raise InputError("cannot be combined with 'lhs'/'rhs'", file=file, key=f"{p}.{k}",
-                                     expected="an inequality claim has lhs and rhs only")
-            for k in ("lhs", "rhs"):
-                if k not in c:
-                    raise InputError("is missing", file=file, key=f"{p}.{k}", expected="lhs and rhs of the inequality")
-            lhs, rhs = (parse_expression(V.get_str(c, k, file=file, prefix=p), cnames | INEQUALITY_NAMES,
-                                         file=file, key=f"{p}.{k}") for k in ("lhs", "rhs"))
+            lhs, rhs = _expression_pair(c, p, ("lhs", "rhs"), ("signal", "expression", "funnel", "rho", "delta"),
+                                        "an inequality claim", "of the inequality", cnames | INEQUALITY_NAMES, file)
             out.append(Claim(name, source, desc, "inequality", lhs=lhs, rhs=rhs, expect=expect, parameters=params))
             continue
         if "rho" in c or "delta" in c:
-            for k in ("signal", "expression", "funnel"):
-                if k in c:
-                    raise InputError("cannot be combined with 'rho'/'delta'", file=file, key=f"{p}.{k}",
-                                     expected="a decay claim has rho and delta only")
-            for k in ("rho", "delta"):
-                if k not in c:
-                    raise InputError("is missing", file=file, key=f"{p}.{k}", expected="rho and delta of the claim")
-            rho, delta = (parse_expression(V.get_str(c, k, file=file, prefix=p), names | {"W_star_norm2"},
-                                           file=file, key=f"{p}.{k}") for k in ("rho", "delta"))
+            rho, delta = _expression_pair(c, p, ("rho", "delta"), ("signal", "expression", "funnel"),
+                                          "a decay claim", "of the claim", names | {"W_star_norm2"}, file)
             out.append(Claim(name, source, desc, "decay", rho=rho, delta=delta, expect=expect))
             continue
         if "funnel" in c:

@@ -157,6 +157,18 @@ def per_joint(table: dict, key: str, n: int, default: Any = _MISSING, *, file: s
     return [v] * n
 
 
+def get_names(table: dict, key: str, default: list, *, file: str, prefix: str, choices: Iterable[str]) -> list:
+    """An array of names, each one of `choices` (with a did-you-mean hint naming the bad entry)."""
+    choices = list(choices)
+    names = get_list(table, key, default, file=file, prefix=prefix)
+    for i, k in enumerate(names):
+        if not isinstance(k, str) or k not in choices:
+            hint = did_you_mean(k, choices) if isinstance(k, str) else ""
+            raise InputError(f"is {k!r}{hint}", file=file, key=f"{join(prefix, key)}[{i}]",
+                             expected="one of " + ", ".join(choices))
+    return names
+
+
 def get_list(table: dict, key: str, default: Any = _MISSING, *, file: str, prefix: str,
              length: int | None = None) -> list:
     """An array, optionally of a given length."""

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..design import Design
 from ..model.base import christoffel_C
-from ..sx.proof import _Timeout, sympy_is_zero, time_limit  # noqa: F401 - re-exported for the audit's users
+from ..sx.proof import sympy_is_zero, time_limit
 from .sampling import eval_mapped, funnel_states, joint_states, point_of
 
 

@@ -142,12 +142,7 @@ def parse_rbf(table: Any, n: int, *, file: str, joint_lower, joint_upper, veloci
     V.check_keys(table, ["inputs", "centres", "size", "per_dim", "width_factor", "bias", "seed", "box"],
                  file=file, prefix=p)
     d = RBFSpec()
-    inputs = V.get_list(table, "inputs", d.inputs, file=file, prefix=p)
-    for i, k in enumerate(inputs):
-        if not isinstance(k, str) or k not in RBF_INPUTS:
-            hint = V.did_you_mean(k, RBF_INPUTS) if isinstance(k, str) else ""
-            raise InputError(f"is {k!r}{hint}", file=file, key=f"rbf.inputs[{i}]",
-                             expected="one of " + ", ".join(RBF_INPUTS))
+    inputs = V.get_names(table, "inputs", d.inputs, file=file, prefix=p, choices=RBF_INPUTS)
     if not inputs or len(set(inputs)) != len(inputs):
         raise InputError(f"is {inputs!r}", file=file, key="rbf.inputs", expected="distinct input names, at least one")
     centres = V.get_str(table, "centres", d.centres, file=file, prefix=p, choices=["sobol", "grid"])
