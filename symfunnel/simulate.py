@@ -34,6 +34,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from . import deadline
 from .closedloop import OUTPUT_NAMES, ClosedLoop, build_closed_loop
 from .errors import InputError
 from .integrators import INTEGRATORS
@@ -142,6 +143,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
         cg.add(outputs)
         cg.generate(tmp + os.sep)
         src = Path(tmp, "symfunnel_cl.c").read_bytes()
+    deadline.check()                           # generating the Jacobian is one CasADi call no signal interrupts
     digest = hashlib.sha256(src + " ".join(COMPILE_FLAGS).encode() + ca.__version__.encode()).hexdigest()[:24]
     if digest in _LOADED:
         ext_dae, ext_out, lib = _LOADED[digest]
@@ -417,6 +419,7 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
     w = float(w)
 
     start = time.perf_counter()
+    limit = min(limit, deadline.remaining())      # a command's (or Run's) wall-clock limit bounds this run too
     if closed_loop is None:
         say("building the closed loop")
         with warnings.catch_warnings():
@@ -430,7 +433,8 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
     approx = method == "cvodes" and APPROX_ESN_JACOBIAN
     comp = getattr(cl, "_compiled", {}).get((jit, approx))
     if comp is None:
-        comp = compile_closed_loop(cl, progress=say, jit=jit, approx_jacobian=approx)
+        with deadline.step("compiling the closed loop"):
+            comp = compile_closed_loop(cl, progress=say, jit=jit, approx_jacobian=approx)
         cl.__dict__.setdefault("_compiled", {})[(jit, approx)] = comp
     compile_time = time.perf_counter() - start
     pv = cl.p0.copy()
@@ -479,6 +483,8 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
     x = x0
     K = 25
     last_report = sim_start
+    paused = deadline.paused()                 # the loop stops at `limit` itself, keeping the trajectory so far
+    paused.__enter__()
     try:
         while k < M:
             Kc = min(K, M - k)
@@ -538,6 +544,8 @@ def simulate(scenario, design, *, t_final=None, integrator=None, width=None, pro
         status = "timeout"
         message = (f"wall-clock limit of {limit:g} s reached at t = {tr:.6g} s of {tf:g} s; the trajectory so "
                    f"far is kept (raise simulation.wall_limit, or check the scenario for stiffness)")
+    finally:
+        paused.__exit__(None, None, None)
     stats["sim_wall_time"] = time.perf_counter() - sim_start
     return _finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list)
 
