@@ -89,7 +89,7 @@ class Run:
     @cached_property
     def simulation(self):
         """The simulated closed loop (SimResult)."""
-        from .simulate import simulate
+        from .simulation import simulate
         o = self.options
         self._say("simulating the closed loop")
         res = self._timed("simulate", lambda: simulate(

@@ -35,7 +35,7 @@ def run(args) -> int:
     from ._common import _dump, _load, _progress
     from ..errors import InputError
     from ..pipeline import Run, RunOptions
-    from ..simulate import convergence_study
+    from ..simulation import convergence_study
 
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
