@@ -101,7 +101,8 @@ def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix:
             rate_hz: float | None = None, points: int = 1000, seed: int = 0, **options) -> CodegenResult:
     """`symfunnel codegen`: the generated files (written to `out` when given), cross-checked with `check=True`;
     `strict` semantics: a failed cross-check raises CheckFailed."""
-    from .codegen import check_output, write_output
+    from .codegen.check import check_output
+    from .codegen.files import write_output
     r = run(scenario, **options)
     files = r.code(lang, prefix=prefix, rate_hz=rate_hz)
     res = CodegenResult(r.scenario.name, lang, files)

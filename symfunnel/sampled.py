@@ -141,7 +141,7 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
     """Compile (cached) the generated C pair of `files` as a shared library and wrap its step API."""
     import json
 
-    from .codegen import c_names
+    from .codegen.files import c_names
     from .codegen.build import SHARED_FLAGS, compile_cached
     base = c_names(files)[0]
     api = json.loads(files["manifest.json"])["c_api"]["step"]
@@ -248,7 +248,7 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
     `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
     `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
     """
-    from .codegen import generate
+    from .codegen.files import generate
     from .design import derive
     from .implementation import implementation_of
     say = progress or (lambda s: None)
