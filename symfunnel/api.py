@@ -6,11 +6,14 @@ from __future__ import annotations
 import html
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from .errors import CheckFailed
 from .pipeline import Run, RunOptions, run_mutants
 from .scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:
+    from .codegen.check import CheckReport
 
 
 def _scenario(scenario) -> Scenario:
@@ -42,7 +45,7 @@ class CodegenResult:
     language: str
     files: dict[str, str]
     paths: list[Path] = field(default_factory=list)
-    check: Any = None
+    check: CheckReport | None = None
 
     def to_json(self) -> dict:
         """The shape of `codegen --json`."""

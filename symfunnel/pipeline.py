@@ -11,15 +11,24 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .checks.theory import check_identity
 from .design import derive, variant_of
 from .scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:
+    from .checks.audit import CheckResult
+    from .checks.lyapunov import LyapunovTrajectory
+    from .checks.verify import Verification
+    from .closedloop import ClosedLoop
+    from .design import Design
+    from .simulation.result import SimResult
 
 
 @dataclass
@@ -47,7 +56,7 @@ class Run:
     timings: dict[str, float] = field(default_factory=dict)
 
     @classmethod
-    def load(cls, name_or_path=None, **options) -> "Run":
+    def load(cls, name_or_path=None, **options) -> Run:
         """A Run of a built-in scenario name or a TOML path, with option overrides as keywords."""
         progress = options.pop("progress", None)
         return cls(load_scenario(name_or_path), RunOptions(**options), progress)
@@ -70,14 +79,14 @@ class Run:
     # --- stages ---------------------------------------------------------------------------------------
 
     @cached_property
-    def design(self):
+    def design(self) -> Design:
         """The design, derived once (with the run's mutant, if any)."""
         from .design import derive
         self._say("deriving the design" + (f" (mutant {self.options.mutant})" if self.options.mutant else ""))
         return self._timed("derive", lambda: derive(self.scenario, mutant=self.options.mutant))
 
     @cached_property
-    def closed_loop(self):
+    def closed_loop(self) -> ClosedLoop:
         """The closed-loop ODE of plant and controller."""
         from .closedloop import build_closed_loop
         self._say("building the closed loop")
@@ -87,7 +96,7 @@ class Run:
                                                                         width=self.options.width))
 
     @cached_property
-    def simulation(self):
+    def simulation(self) -> SimResult:
         """The simulated closed loop (SimResult)."""
         from .simulation import simulate
         o = self.options
@@ -99,7 +108,7 @@ class Run:
         return res
 
     @cached_property
-    def lyapunov(self):
+    def lyapunov(self) -> LyapunovTrajectory | None:
         """The Lyapunov argument along the simulated trajectory (W* fitted once), or None without a trajectory."""
         from .checks.lyapunov import along_trajectory
         from .checks.verify import decay_claim
@@ -111,7 +120,7 @@ class Run:
                                                                 claim=decay_claim(self.scenario)))
 
     @cached_property
-    def audit(self):
+    def audit(self) -> list[CheckResult]:
         """The audit's checks (model, funnels, printed claims)."""
         from .checks.audit import audit
         from .checks.gate import apply_expectations
@@ -119,7 +128,7 @@ class Run:
             "audit", lambda: audit(self.scenario, self.design, progress=self.progress)))
 
     @cached_property
-    def verification(self):
+    def verification(self) -> Verification:
         """Every verify check on the simulated closed loop."""
         from .checks.verify import verify
         o = self.options

@@ -130,7 +130,8 @@ def _sampled(args, sc, say) -> int:
     from ..cli import _dump
     from ..io import atomic_write
     from ..sampled import simulate_sampled
-    res = simulate_sampled(sc, rate_hz=args.rate, t_final=args.t_final, progress=say)
+    from ..pipeline import Run
+    res = simulate_sampled(sc, Run(sc, progress=say).design, rate_hz=args.rate, t_final=args.t_final, progress=say)
     summary = res.summary()
     if args.out:
         import io
