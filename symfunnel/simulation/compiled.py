@@ -28,8 +28,8 @@ _LOADED: dict = {}           # source hash -> (ode, outputs) externals loaded in
 class Buffered:
     """A casadi.Function evaluated on preallocated numpy buffers: no numpy -> DM -> numpy conversion per call.
 
-    Every input and output must be dense; `__call__` copies the arguments in (column-major) and returns the
-    outputs as fresh arrays, with CasADi's return code (0: success).
+    Every input and output must be dense (`supports`). The arguments are copied into `args` (column-major
+    nonzeros), the outputs land in `res`, overwritten by the next evaluation; callers copy what they keep.
     """
 
     def __init__(self, f: ca.Function, *, stats: bool = False):
@@ -75,6 +75,7 @@ class Buffered:
                 st[k] = v - self._counted.get(k, 0)
                 self._counted[k] = v
         self.stats = st
+
 
 @dataclass
 class Compiled:
