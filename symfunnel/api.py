@@ -8,12 +8,15 @@ import functools
 import html
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from . import deadline
 from .errors import CheckFailed, SimulationError
 from .pipeline import Run, RunOptions, run_mutants
 from .scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:
+    from .codegen.check import CheckReport
 
 
 def _scenario(scenario) -> Scenario:
@@ -45,7 +48,7 @@ class CodegenResult:
     language: str
     files: dict[str, str]
     paths: list[Path] = field(default_factory=list)
-    check: Any = None
+    check: CheckReport | None = None
 
     def to_json(self) -> dict:
         """The shape of `codegen --json`."""
@@ -120,7 +123,8 @@ def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix:
             rate_hz: float | None = None, points: int = 1000, seed: int = 0, **options) -> CodegenResult:
     """`symfunnel codegen`: the generated files (written to `out` when given), cross-checked with `check=True`;
     `strict` semantics: a failed cross-check raises CheckFailed."""
-    from .codegen import check_output, write_output
+    from .codegen.check import check_output
+    from .codegen.files import write_output
     r = run(scenario, **options)
     files = r.code(lang, prefix=prefix, rate_hz=rate_hz)
     res = CodegenResult(r.scenario.name, lang, files)

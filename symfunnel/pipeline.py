@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,14 @@ from . import deadline
 from .checks.theory import check_identity
 from .design import derive, variant_of
 from .scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:
+    from .checks.audit import CheckResult
+    from .checks.lyapunov import LyapunovTrajectory
+    from .checks.verify import Verification
+    from .closedloop import ClosedLoop
+    from .design import Design
+    from .simulation.result import SimResult
 
 
 @dataclass
@@ -48,7 +57,7 @@ class Run:
     timings: dict[str, float] = field(default_factory=dict)
 
     @classmethod
-    def load(cls, name_or_path=None, **options) -> "Run":
+    def load(cls, name_or_path=None, **options) -> Run:
         """A Run of a built-in scenario name or a TOML path, with option overrides as keywords."""
         progress = options.pop("progress", None)
         return cls(load_scenario(name_or_path), RunOptions(**options), progress)
@@ -85,14 +94,14 @@ class Run:
     # --- stages ---------------------------------------------------------------------------------------
 
     @cached_property
-    def design(self):
+    def design(self) -> Design:
         """The design, derived once (with the run's mutant, if any)."""
         from .design import derive
         self._say("deriving the design" + (f" (mutant {self.options.mutant})" if self.options.mutant else ""))
         return self._bounded("derive", lambda: derive(self.scenario, mutant=self.options.mutant), "deriving the design")
 
     @cached_property
-    def closed_loop(self):
+    def closed_loop(self) -> ClosedLoop:
         """The closed-loop ODE of plant and controller."""
         from .closedloop import build_closed_loop
         self._say("building the closed loop")
@@ -104,9 +113,9 @@ class Run:
                                  "building the closed loop")
 
     @cached_property
-    def simulation(self):
+    def simulation(self) -> SimResult:
         """The simulated closed loop (SimResult)."""
-        from .simulate import simulate
+        from .simulation import simulate
         o = self.options
         self._say("simulating the closed loop")
         design, cl = self.design, self.closed_loop
@@ -118,7 +127,7 @@ class Run:
         return res
 
     @cached_property
-    def lyapunov(self):
+    def lyapunov(self) -> LyapunovTrajectory | None:
         """The Lyapunov argument along the simulated trajectory (W* fitted once), or None without a trajectory."""
         from .checks.lyapunov import along_trajectory
         from .checks.verify import decay_claim
@@ -131,7 +140,7 @@ class Run:
                            "evaluating the Lyapunov function along the trajectory")
 
     @cached_property
-    def audit(self):
+    def audit(self) -> list[CheckResult]:
         """The audit's checks (model, funnels, printed claims)."""
         from .checks.audit import audit
         from .checks.gate import apply_expectations
@@ -139,7 +148,7 @@ class Run:
             "audit", lambda: audit(self.scenario, self.design, progress=self.progress), "auditing the model and claims"))
 
     @cached_property
-    def verification(self):
+    def verification(self) -> Verification:
         """Every verify check on the simulated closed loop."""
         from .checks.verify import verify
         o = self.options
@@ -177,7 +186,7 @@ class Run:
     @cached_property
     def code_trajectory(self) -> dict[str, np.ndarray]:
         """Controller inputs at 50 samples of the simulated run's first 2 s (for the generated main programs)."""
-        from .codegen import trajectory_from_run
+        from .codegen.contract import trajectory_from_run
         return trajectory_from_run(self.design, self.closed_loop, self.simulation)
 
     def code(self, lang: str, *, prefix: str | None = None, rate_hz: float | None = None) -> dict[str, str]:
@@ -185,7 +194,7 @@ class Run:
         cache = self.__dict__.setdefault("_code", {})
         key = (lang, prefix, rate_hz)
         if key not in cache:
-            from .codegen import generate
+            from .codegen.files import generate
             cache[key] = generate(self.design, lang, trajectory=self.code_trajectory, prefix=prefix, rate_hz=rate_hz)
         return cache[key]
 

@@ -6,7 +6,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import validate as V
 from .errors import InputError
@@ -20,6 +20,12 @@ from .model import MODEL_TYPES
 from .plant import DeadZoneSpec
 from .plant import check_dead_zone_spec as _check_dead_zone
 from .names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
+
+if TYPE_CHECKING:
+    from .implementation import ImplementationSpec
+    from .model.base import RigidBodyModel
+    from .tune_spec import TuneSpec
+    from .uncertainty import Campaign
 
 DATA_DIR = Path(__file__).parent / "data"
 BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
@@ -152,7 +158,7 @@ class Scenario:
     description: str
     source: str
     deviations: list[Deviation]
-    model: Any                      # RigidBodyModel
+    model: RigidBodyModel
     reference: list[Expression]
     q0: list[float]
     dq0: list[float]
@@ -171,10 +177,10 @@ class Scenario:
     design: DesignSpec = field(default_factory=DesignSpec)
     expectations: list[Expectation] = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
-    campaign: Any = None            # uncertainty.Campaign of [[uncertainty]] / [sweep], None without them
-    implementation: Any = None      # ImplementationSpec, or None: the continuous-time controller
+    campaign: Campaign | None = None                # of [[uncertainty]] / [sweep], None without them
+    implementation: ImplementationSpec | None = None  # None: the continuous-time controller
     rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
-    tune: Any = None                # tune_spec.TuneSpec of [tune], or None
+    tune: TuneSpec | None = None    # of [tune], or None
 
     @property
     def n(self) -> int:

@@ -22,7 +22,7 @@ LAYERS = [
     ("scenario", ["scenario", "implementation", "tune_spec"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
-    ("stages", ["simulate", "codegen", "checks", "sampled", "rate", "implementation_report"]),
+    ("stages", ["simulate", "simulation", "codegen", "checks", "sampled", "rate", "implementation_report"]),
     ("pipeline", ["pipeline", "campaign", "tuning"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "api"]),
 ]

@@ -37,7 +37,7 @@ def campaign(runs: int, t_final: float):
 def baseline_loop(sc, runs: int) -> float:
     """Runs per second of one process calling simulate() on each run's scenario (load, derive, build, run)."""
     from ..scenario import from_dict
-    from ..simulate import simulate
+    from ..simulation import simulate
     from ..campaign import make_job, worst_scenario
     from ..design import derive
     try:
@@ -80,8 +80,8 @@ def run(progress=None) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="symfunnel-bench-sweep-") as tmp:
         os.environ["SYMFUNNEL_CACHE"] = str(Path(tmp) / "cache")     # a fresh cache: the compile is real
         try:
-            from .. import simulate as simmod
-            simmod._LOADED.clear()
+            from ..simulation import compiled
+            compiled._LOADED.clear()
             for w in sorted({cores, 1, 2}):
                 say(f"sweep: {runs} runs of {tf:g} s with {w} worker(s)")
                 res = sweep(sc, workers=w, out=Path(tmp) / f"w{w}")

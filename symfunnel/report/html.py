@@ -502,7 +502,7 @@ def implementation_section(run, progress) -> dict:
 
 def codegen_section(run, progress) -> dict:
     """The code-generation summary of a Run: both languages generated, compiled/imported and cross-checked."""
-    from ..codegen import codegen_summary
+    from ..codegen.check import codegen_summary
     progress("code generation: C and Python, compiled/imported and cross-checked")
     t0 = time.perf_counter()
     try:
