@@ -298,7 +298,8 @@ class _Runner:
     def integrator(self, K: int, h: float | None = None):
         """An integrator over the relative output grid h, 2h, ..., K h (p = the chunk's start time)."""
         h = self.h if h is None else h
-        key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps)
+        key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps,
+               getattr(self.sim, "max_step", 0.0))
         if key not in self._integrators:
             sim = self.sim
             grid = [h * (k + 1) for k in range(K)]
