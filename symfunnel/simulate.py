@@ -313,7 +313,8 @@ class _Runner:
         F = self.integrator(K, h)
         c0 = time.perf_counter()
         try:
-            xf = F(x0=x0[self.perm], p=np.concatenate([[t0], self.comp.pvals]))["xf"]
+            st = {}
+            xf = _evaluate(F, {"x0": x0[self.perm], "p": np.concatenate([[t0], self.comp.pvals])}, "xf", st)
         except RuntimeError as exc:
             from .lifecycle import reraise_interrupt
             reraise_interrupt(exc)                 # a signal during the integration is not an integrator failure
@@ -321,7 +322,6 @@ class _Runner:
             self.last_error = error_line(str(exc))
             raise
         self.stats["integrate_time"] += time.perf_counter() - c0
-        st = F.stats()
         if self.method == "cvodes":
             self.stats["steps"] += int(st.get("nsteps", 0))
             self.stats["rhs_evaluations"] += int(st.get("nfevals", 0))
@@ -330,8 +330,7 @@ class _Runner:
         else:
             self.stats["steps"] += int(st.get("n_call_step", 0)) * 1
             self.stats["rhs_evaluations"] += int(st.get("n_call_daeF", 0))
-        X = np.asarray(xf).T[:, self.inv]
-        return X
+        return xf[:, self.inv]
 
 
 def _outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> dict:
@@ -344,13 +343,41 @@ def _outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> dict:
         f = comp.outputs.map(T)
         ins = [ca.MX.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
         fm = comp.maps[T] = ca.Function("outputs_stacked", ins, [ca.vertcat(*f.call(ins))])
-    rows = np.asarray(fm(t.reshape(1, -1), X.T, comp.pvals))
+    P = np.broadcast_to(comp.pvals, (T, comp.pvals.size))             # the map takes p once per point
+    # rows in C order, each signal a transposed view of them: the memory layout numpy's reductions (and so the
+    # summary's last digits) have always seen
+    rows = np.ascontiguousarray(_evaluate(fm, {fm.name_in(0): t, fm.name_in(1): X, fm.name_in(2): P},
+                                          fm.name_out(0)).T)
     out, i = {}, 0
     for k in OUTPUT_NAMES:
         r = comp.outputs.size1_out(k)
         out[k] = rows[i:i + r].T
         i += r
     return out
+
+
+def _evaluate(F: ca.Function, args: dict, out: str, stats: dict | None = None) -> np.ndarray:
+    """F's output `out` (transposed: columns first) computed straight into a numpy array from numpy inputs.
+
+    CasADi's buffer interface skips the DM round trip of a plain call (a list of Python floats per matrix, about a
+    tenth of a campaign run's CPU time); inputs not given are zero, as in a call. Matrices are column-major in
+    CasADi, so a C-ordered (columns, rows) array is the (rows, columns) matrix without a copy. `stats` receives
+    the call's statistics (the buffer evaluates in its own memory, so `F.stats()` would not see them).
+    """
+    buf, trigger = F.buffer()
+    keep = []
+    for name, a in args.items():
+        a = np.ascontiguousarray(a, dtype=float)
+        if a.size != F.numel_in(name):
+            raise ValueError(f"{F.name()}: input {name} has {a.size} values, expected {F.numel_in(name)}")
+        keep.append(a)
+        buf.set_arg(F.index_in(name), memoryview(a.reshape(-1)))
+    res = np.empty((F.size2_out(out), F.size1_out(out)))
+    buf.set_res(F.index_out(out), memoryview(res.reshape(-1)))
+    trigger()
+    if stats is not None:
+        stats.update(buf.stats())
+    return res
 
 
 def _bad_index(o: dict, X: np.ndarray) -> tuple[int | None, str]:
