@@ -157,3 +157,46 @@ def test_untuned_scenarios_stay_inside(name):
     r = simulate(*_sd(load_scenario(DERIV / f"{name}.toml")))
     assert r.status == "ok", r.message
     assert min(r.summary()["min_margin_e1"]) > 0.5
+
+
+def test_max_step_caps_cvodes_steps_and_keeps_the_trajectory(paper):
+    """simulation.max_step reaches CVODES: 0.5 s cannot take fewer than 0.5/max_step steps; q stays the same to
+    the tolerance's order; a negative value is refused naming the key."""
+    from symfunnel.errors import InputError
+    free = simulate(paper, derive(paper), t_final=0.5)
+    capped_sc = _variant(paper, lambda raw: raw["simulation"].update(max_step=5e-4), "capped")
+    assert capped_sc.simulation.max_step == 5e-4 and paper.simulation.max_step == 0.0
+    capped = simulate(capped_sc, derive(capped_sc), t_final=0.5)
+    assert free.status == capped.status == "ok"
+    assert capped.stats["steps"] >= 0.5 / 5e-4 > free.stats["steps"]
+    assert np.max(np.abs(capped.q - free.q)) < 1e-5
+    with pytest.raises(InputError) as exc:
+        _variant(paper, lambda raw: raw["simulation"].update(max_step=-1.0), "bad")
+    assert exc.value.key == "simulation.max_step"
+
+
+def test_buffered_evaluation_is_the_plain_call():
+    """_evaluate gives a CasADi call's numbers bit for bit (x' = -x: exp(-t) to the tolerance), its statistics,
+    and the same error when the integrator fails."""
+    import casadi as ca
+
+    from symfunnel.sim_hints import error_line
+    from symfunnel.simulate import _evaluate
+    x, a = ca.SX.sym("x", 2), ca.SX.sym("a")
+    grid = [0.1 * k for k in range(1, 11)]
+    F = ca.integrator("F", "cvodes", {"x": x, "p": a, "ode": -a * x}, 0.0, grid, {"abstol": 1e-10, "reltol": 1e-8})
+    x0, p = np.array([1.0, 2.0]), np.array([1.5])
+    plain = np.asarray(F(x0=x0, p=p)["xf"])                       # (2, 10)
+    st = {}
+    got = _evaluate(F, {"x0": x0, "p": p}, "xf", st)              # (10, 2): columns first
+    assert got.shape == (10, 2) and np.array_equal(got, plain.T)
+    assert np.allclose(got, np.exp(-1.5 * np.array(grid))[:, None] * x0, rtol=1e-6, atol=0)
+    assert st["nsteps"] == F.stats()["nsteps"] > 0
+    G = ca.integrator("G", "cvodes", {"x": x, "p": a, "ode": -a * x}, 0.0, grid, {"max_num_steps": 2})
+    with pytest.raises(RuntimeError) as e1:
+        G(x0=x0, p=p)
+    with pytest.raises(RuntimeError) as e2:
+        _evaluate(G, {"x0": x0, "p": p}, "xf")
+    assert error_line(str(e1.value)) == error_line(str(e2.value)) != ""
+    with pytest.raises(ValueError):
+        _evaluate(F, {"x0": np.ones(3), "p": p}, "xf")
