@@ -362,9 +362,15 @@ def _evaluate(F: ca.Function, args: dict, out: str, stats: dict | None = None) -
     CasADi's buffer interface skips the DM round trip of a plain call (a list of Python floats per matrix, about a
     tenth of a campaign run's CPU time); inputs not given are zero, as in a call. Matrices are column-major in
     CasADi, so a C-ordered (columns, rows) array is the (rows, columns) matrix without a copy. `stats` receives
-    the call's statistics (the buffer evaluates in its own memory, so `F.stats()` would not see them).
+    this call's statistics (the buffer evaluates in a memory of its own, so `F.stats()` would not see them).
     """
     buf, trigger = F.buffer()
+    before = {}
+    if stats is not None:
+        try:
+            before = buf.stats()          # the buffer's memory may have served earlier calls: count from here
+        except RuntimeError:
+            before = {}
     keep = []
     for name, a in args.items():
         a = np.ascontiguousarray(a, dtype=float)
@@ -376,7 +382,9 @@ def _evaluate(F: ca.Function, args: dict, out: str, stats: dict | None = None) -
     buf.set_res(F.index_out(out), memoryview(res.reshape(-1)))
     trigger()
     if stats is not None:
-        stats.update(buf.stats())
+        # CasADi's own call counters and timers (n_call_*, t_*) add up in a memory; the solver's counters restart
+        stats.update({k: v - before.get(k, 0) if k.startswith(("n_call_", "t_proc_", "t_wall_")) else v
+                      for k, v in buf.stats().items()})
     return res
 
 

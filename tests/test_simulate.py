@@ -176,8 +176,8 @@ def test_max_step_caps_cvodes_steps_and_keeps_the_trajectory(paper):
 
 
 def test_buffered_evaluation_is_the_plain_call():
-    """_evaluate gives a CasADi call's numbers bit for bit (x' = -x: exp(-t) to the tolerance), its statistics,
-    and the same error when the integrator fails."""
+    """_evaluate gives a CasADi call's numbers bit for bit (x' = -x: exp(-t) to the tolerance), its statistics
+    (per call), and the same error when the integrator fails."""
     import casadi as ca
 
     from symfunnel.sim_hints import error_line
@@ -192,6 +192,10 @@ def test_buffered_evaluation_is_the_plain_call():
     assert got.shape == (10, 2) and np.array_equal(got, plain.T)
     assert np.allclose(got, np.exp(-1.5 * np.array(grid))[:, None] * x0, rtol=1e-6, atol=0)
     assert st["nsteps"] == F.stats()["nsteps"] > 0
+    again = {}
+    _evaluate(F, {"x0": x0, "p": p}, "xf", again)                # counters are per call, not summed over calls
+    for k in ("nsteps", "n_call_daeF", "n_call_jacF"):
+        assert again[k] == st[k] == F.stats()[k], k
     G = ca.integrator("G", "cvodes", {"x": x, "p": a, "ode": -a * x}, 0.0, grid, {"max_num_steps": 2})
     with pytest.raises(RuntimeError) as e1:
         G(x0=x0, p=p)
