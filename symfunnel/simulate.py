@@ -371,7 +371,7 @@ def _evaluate(F: ca.Function, args: dict, out: str, stats: dict | None = None) -
             before = buf.stats()          # the buffer's memory may have served earlier calls: count from here
         except RuntimeError:
             before = {}
-    keep = []
+    keep = []                             # CasADi holds raw pointers: the arrays must outlive the call
     for name, a in args.items():
         a = np.ascontiguousarray(a, dtype=float)
         if a.size != F.numel_in(name):
