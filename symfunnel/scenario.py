@@ -122,6 +122,7 @@ class SimulationSpec:
     convergence_widths: list[float] = field(default_factory=lambda: [1e-2, 1e-3])
     wall_limit: float = 300.0
     rk_substeps: int = 10
+    max_step: float = 0.0            # CVODES' largest step in seconds, 0 = unlimited
 
 
 @dataclass
@@ -451,7 +452,7 @@ def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
 def _simulation(table: Any, file: str) -> SimulationSpec:
     p = "simulation"
     V.check_keys(table, ["t_final", "dt", "integrator", "rtol", "atol", "smoothing_width",
-                         "convergence_widths", "wall_limit", "rk_substeps"], file=file, prefix=p)
+                         "convergence_widths", "wall_limit", "rk_substeps", "max_step"], file=file, prefix=p)
     d = SimulationSpec()
     t_final = V.get_float(table, "t_final", d.t_final, file=file, prefix=p, minimum=0, strict_min=True,
                           maximum=1e6)
@@ -474,6 +475,7 @@ def _simulation(table: Any, file: str) -> SimulationSpec:
                                strict_min=True),
         rk_substeps=V.get_int(table, "rk_substeps", d.rk_substeps, file=file, prefix=p, minimum=1,
                               maximum=10000),
+        max_step=V.get_float(table, "max_step", d.max_step, file=file, prefix=p, minimum=0),
     )
 
 

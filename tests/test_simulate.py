@@ -187,3 +187,19 @@ def test_buffered_evaluation_matches_the_plain_call_with_per_call_statistics():
     Bm(X.T, 3.0)
     assert np.array_equal(Bm.res[0].reshape(4, 2), 3.0 * X)
     assert np.array_equal(Bm.res[1], np.sum(X ** 2, axis=1))
+
+
+def test_max_step_caps_cvodes_steps_and_keeps_the_trajectory(paper):
+    """simulation.max_step reaches CVODES: 0.5 s cannot take fewer than 0.5/max_step steps; q stays the same to
+    the tolerance's order; a negative value is refused naming the key."""
+    from symfunnel.errors import InputError
+    free = simulate(paper, derive(paper), t_final=0.5)
+    capped_sc = _variant(paper, lambda raw: raw["simulation"].update(max_step=5e-4), "capped")
+    assert capped_sc.simulation.max_step == 5e-4 and paper.simulation.max_step == 0.0
+    capped = simulate(capped_sc, derive(capped_sc), t_final=0.5)
+    assert free.status == capped.status == "ok"
+    assert capped.stats["steps"] >= 0.5 / 5e-4 > free.stats["steps"]
+    assert np.max(np.abs(capped.q - free.q)) < 1e-5
+    with pytest.raises(InputError) as exc:
+        _variant(paper, lambda raw: raw["simulation"].update(max_step=-1.0), "bad")
+    assert exc.value.key == "simulation.max_step"

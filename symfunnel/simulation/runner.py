@@ -37,7 +37,8 @@ class Runner:
         """An integrator over the relative output grid h, 2h, ..., K h (p = the chunk's start time), with its
         evaluation on numpy buffers (None when an input or output is sparse)."""
         h = self.h if h is None else h
-        key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps)
+        key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps,
+               self.sim.max_step)
         if key not in self._integrators:
             sim = self.sim
             grid = [h * (k + 1) for k in range(K)]
