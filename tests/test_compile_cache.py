@@ -13,6 +13,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from symfunnel.codegen import build
@@ -180,3 +181,29 @@ def test_truncated_closed_loop_library_is_repaired(tmp_path):
     assert len(lines) == 1 and "damaged" in lines[0] and lines[0].startswith("symfunnel: warning:")
     assert json.loads(second.stdout)["code"] == "compiled"
     assert json.loads(second.stdout)["min_margin_e1"] == json.loads(first.stdout)["min_margin_e1"]
+
+
+def test_a_cached_closed_loop_is_found_by_its_graph_without_generating_c(tmp_path, monkeypatch, cc):
+    """The closed-loop library is keyed by the serialized graphs: a hit loads it without generating the Newton
+    Jacobian or the C (for a large reservoir most of the cost); another graph gets another entry."""
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.scenario import load_scenario
+    from symfunnel.simulation import compiled
+    monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path))
+    cl = Run(load_scenario("paper"), RunOptions()).closed_loop
+    monkeypatch.setattr(compiled, "_LOADED", {})
+    first = compiled.compile_closed_loop(cl)
+    assert first.mode == "compiled" and not first.cached
+    monkeypatch.setattr(compiled, "_LOADED", {})
+
+    def no_codegen(*a, **k):
+        raise AssertionError("generated the C again for a cached graph")
+    monkeypatch.setattr(compiled, "_newton_jacobian", no_codegen)
+    again = compiled.compile_closed_loop(cl)
+    assert again.cached and again.library == first.library
+    x = cl.x0 + 0.01
+    p = np.concatenate([[0.0], cl.p0])
+    ref = first.dae(0.3, x[first.perm], [], p, [])[0]
+    assert np.array_equal(np.asarray(again.dae(0.3, x[again.perm], [], p, [])[0]), np.asarray(ref))
+    with pytest.raises(AssertionError, match="generated the C again"):
+        compiled.compile_closed_loop(Run(load_scenario("paper"), RunOptions(width=0.02)).closed_loop)  # another graph

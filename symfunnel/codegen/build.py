@@ -88,17 +88,21 @@ def _key(sources: dict[str, str | bytes], flags: tuple[str, ...], output: str, c
 
 def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], output: str,
                    flags: tuple[str, ...] | list[str], *, libs: tuple[str, ...] = ("-lm",),
-                   cache: Path | None = None, on_build=None, timeout: float | None = None) -> Built:
+                   cache: Path | None = None, on_build=None, timeout: float | None = None,
+                   identity: bytes | None = None) -> Built:
     """Compile `compile_files` (names in `sources`) into `output` with `flags`, once per distinct input.
 
     The key is sha256 over the compiler and its version, the flags, the output name and every source file's
-    name and text (headers included). A compiler failure raises RuntimeError with its diagnostics.
+    name and text (headers included) — or, given `identity`, those bytes in place of the sources, which may then be
+    a callable returning them, called only when the entry must be built (generating the sources can cost more
+    than compiling them). A compiler failure raises RuntimeError with its diagnostics.
     `on_build(message)` is called just before the compiler runs (not on a cache hit), for progress output.
     `timeout` (default `compile_timeout()`) bounds the compiler's run; a damaged entry is rebuilt with a warning.
     """
     flags = tuple(flags)
     cc = find_compiler()
-    key = _key(sources, flags + tuple(libs) + tuple(compile_files), output, cc)
+    key = _key(sources if identity is None else {"identity": identity}, flags + tuple(libs) + tuple(compile_files),
+               output, cc)
     root = Path(cache) if cache is not None else cache_dir()
     entry = root / key[:32]
     target = entry / output
@@ -123,13 +127,15 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         entry, target = root / key[:32], root / key[:32] / output
         tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
     try:
+        if on_build is not None:
+            on_build(f"compiling {output} (one-time; cached in {root})")
+        if callable(sources):
+            sources = sources()
         for name, data in sources.items():
             mode = "wb" if isinstance(data, bytes) else "w"
             with open(tmp / name, mode, **({} if isinstance(data, bytes) else {"encoding": "utf-8"})) as fh:
                 fh.write(data)
         cmd = [cc, *flags, "-o", output, *compile_files, *libs]
-        if on_build is not None:
-            on_build(f"compiling {output} (one-time; cached in {root})")
         returncode, err = run_compiler(cmd, cwd=tmp, timeout=compile_timeout() if timeout is None else timeout)
         if returncode != 0 or err.strip():
             raise RuntimeError(f"compiling {output} failed ({' '.join(cmd)}):\n{err.strip()}")

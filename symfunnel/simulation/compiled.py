@@ -165,18 +165,27 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     if not jit or os.environ.get("SYMFUNNEL_NO_JIT"):
         return vm
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
-        cg = ca.CodeGenerator("symfunnel_cl.c", {"with_header": False})
-        cg.add(dae)
-        cg.add(_newton_jacobian(cl, dae, perm) if approx_jacobian else dae.jacobian())
-        cg.add(outputs)
-        cg.generate(tmp + os.sep)
-        src = Path(tmp, "symfunnel_cl.c").read_bytes()
-    deadline.check()                           # generating the Jacobian is one CasADi call no signal interrupts
-    digest = hashlib.sha256(src + " ".join(COMPILE_FLAGS).encode() + ca.__version__.encode()).hexdigest()[:24]
+    # The library is keyed by the graphs it is generated from (and this module, which generates it), so a cached
+    # entry skips generating the Newton Jacobian and the C: for a large reservoir that is most of the cost.
+    identity = hashlib.sha256(b"\0".join([
+        dae.serialize().encode(), outputs.serialize().encode(), b"approx" if approx_jacobian else b"exact",
+        " ".join(COMPILE_FLAGS).encode(), ca.__version__.encode(), Path(__file__).read_bytes()])).digest()
+    digest = identity.hex()[:24]
     if digest in _LOADED:
         ext_dae, ext_out, lib = _LOADED[digest]
         return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, True, lib, digest)
+
+    def sources() -> dict[str, bytes]:
+        with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
+            cg = ca.CodeGenerator("symfunnel_cl.c", {"with_header": False})
+            cg.add(dae)
+            cg.add(_newton_jacobian(cl, dae, perm) if approx_jacobian else dae.jacobian())
+            cg.add(outputs)
+            cg.generate(tmp + os.sep)
+            src = Path(tmp, "symfunnel_cl.c").read_bytes()
+        deadline.check()                       # generating the Jacobian is one CasADi call no signal interrupts
+        return {"symfunnel_cl.c": src}
+
     from ..codegen.build import compile_cached, find_compiler
     try:
         find_compiler()
@@ -185,8 +194,8 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
                       RuntimeWarning, stacklevel=2)
         return vm
     try:
-        built = compile_cached({"symfunnel_cl.c": src}, ["symfunnel_cl.c"], "symfunnel_cl.so", COMPILE_FLAGS,
-                               on_build=say)
+        built = compile_cached(sources, ["symfunnel_cl.c"], "symfunnel_cl.so", COMPILE_FLAGS, on_build=say,
+                               identity=identity)
     except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
         warnings.warn(f"compiling the closed loop failed ({exc}); simulating on the CasADi virtual machine",
                       RuntimeWarning, stacklevel=2)
