@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 
@@ -23,6 +24,27 @@ def register(sub, common) -> None:
     sp.set_defaults(func=run)
 
 
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """File descriptor 1 onto 2 while tuning: CasADi prints a failed integrator call's inputs to the C stdout, which
+    would corrupt --json (a candidate that does not integrate is an expected event of the search)."""
+    import os
+    import sys
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:                  # no file descriptor 1 (embedded): nothing to protect
+        yield
+        return
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def run(args) -> int:
     """Tune, write --out atomically, print a summary (or JSON); exit 1 when no feasible design was found."""
     from pathlib import Path
@@ -42,7 +64,8 @@ def run(args) -> int:
         raise InputError("is a directory", file=args.out, key="--out", expected="a .toml file path")
     sc = _load(args)
     say = _progress(args.quiet or args.json)
-    r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals)
+    with _stdout_to_stderr():
+        r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals)
     if args.out is not None:
         atomic_write(args.out, dumps(r.tuned_raw))
     if args.json:
