@@ -5,12 +5,15 @@ Constraints of a candidate (each a number g >= 0 when it holds, on the nominal p
 when the scenario has `[implementation]`, else the continuous simulation; a run that leaves a funnel early scores
 lower the earlier it leaves) and `saturation` (|tau| below tau_max: 1 - max over joints of peak |tau_i|/tau_max_i
 when the torque never saturates, else minus the saturated time fraction). The objective (peak torque, integral
-squared e1, or the minimum sample rate) is minimised over the feasible candidates. Method: the sampled-data loop
-(zero-order hold, saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so
-gradients are meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated,
-then Nelder-Mead (on a penalty: any infeasible candidate ranks behind every feasible one) runs from the best starts
-over log-scaled parameters until it converges or the wall-clock limit is reached. The best feasible designs then go
-through verify's gate in turn.
+squared e1, or the minimum sample rate) is minimised over the feasible candidates. Method: without
+`[implementation]` the continuous-time loop is smooth in the parameters, so IPOPT runs over them with exact
+sensitivities of the constraints on an output grid (`tune_gradient`), from the user's values and a few Sobol points;
+each result is judged by the full simulation above. With `[implementation]` the sampled-data loop (zero-order hold,
+saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so gradients are
+meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated, then Nelder-Mead
+(on a penalty: any infeasible candidate ranks behind every feasible one) runs from the best starts over log-scaled
+parameters until it converges or the wall-clock limit is reached. It is also the fallback when IPOPT is missing or
+finds nothing that holds. The best feasible designs then go through verify's gate in turn.
 """
 
 from __future__ import annotations

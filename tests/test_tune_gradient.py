@@ -77,6 +77,7 @@ def test_symbolic_parameters_reproduce_an_independent_simulation(tmp_path):
     assert np.allclose(g[2 * n * K1:3 * n * K1].reshape(K1, n), 1 - sim.signals["tau"] / 200.0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_gradient_path_tunes_the_continuous_loop_into_the_torque_limit(tmp_path, capsys):
     src = write(tmp_path, paper_doc(1.0, {"tau_max": 200.0}))
     out = tmp_path / "tuned.toml"

@@ -10,8 +10,10 @@ def register(sub, common) -> None:
     """Add the `tune` subcommand."""
     sp = sub.add_parser("tune", help="search gains and the e2 funnel that keep both funnels with a margin within the "
                                      "torque limit (reference and e1 funnel fixed)",
-                        description="Derivative-free search (Nelder-Mead, multi-start) over the [tune] parameters; "
-                        "the best design goes through verify's gate. Exit 0 ok, 1 infeasible, 2 bad input.")
+                        description="Without [implementation]: IPOPT with exact sensitivities of the simulated "
+                        "constraints; with it (or as fallback): derivative-free search (Nelder-Mead, multi-start) over "
+                        "the [tune] parameters; the best design goes through verify's gate. Exit 0 ok, 1 infeasible, "
+                        "2 bad input.")
     common(sp)
     sp.add_argument("--out", metavar="FILE.toml", help="write the tuned scenario (with a [[deviations]] entry per "
                                                        "change)")
