@@ -174,7 +174,37 @@ def test_report_compares_original_and_tuned_with_independent_numbers(tmp_path):
         assert float(rows["min margin e2"][col]) == pytest.approx(np.min(sim.signals["m2"]), rel=1e-3)
     assert float(rows["peak |tau| [N m]"][0]) > 200 > float(rows["peak |tau| [N m]"][1])
     assert "<code>controller.k2</code>" in body and 'id="fig-tune-comparison"' in body and "<svg" in body
+    import html5lib
+    parser = html5lib.HTMLParser(strict=False)
+    parser.parse(html)
+    assert not [e for e in parser.errors if e[1] != "unexpected-end-tag-in-math"]
     # a scenario without tune records has no such section
     plain = render_report(Run(load_scenario(write(tmp_path, orig, "plain.toml"))), codegen=False, mutants=False,
                           deployed=False)
     assert 'id="tuning"' not in plain
+
+
+@pytest.mark.slow
+def test_arm7_is_tuned_within_its_urdf_effort_limits(tmp_path, capsys):
+    import shutil
+    import tomllib
+
+    from symfunnel.model.urdf import effort_limits
+    from symfunnel.pipeline import Run
+    from symfunnel.scenario import DATA_DIR
+    shutil.copy(DATA_DIR / "arm7.urdf", tmp_path / "arm7.urdf")
+    raw = tomllib.loads((DATA_DIR / "arm7.toml").read_text())
+    raw["simulation"]["t_final"] = 0.5                  # 261 states: a short horizon keeps the sensitivities cheap
+    raw["tune"] = {"tau_max": "urdf", "parameters": ["controller.k2", "funnel.e2.phi_inf"]}
+    src = write(tmp_path, raw, "arm7.toml")
+    out = tmp_path / "tuned.toml"
+    code = main(["tune", str(src), "--out", str(out), "--json", "--max-evals", "2", "--wall-limit", "60", "-q"])
+    res = json.loads(capsys.readouterr().out)
+    assert code == 0 and res["status"] == "ok" and res["method"].startswith("gradient: IPOPT")
+    effort = np.array(effort_limits(tmp_path / "arm7.urdf"), float)
+    assert effort.shape == (7,) and np.all(effort > 0)
+    sim = Run(load_scenario(out)).simulation             # independent run of the written scenario
+    peak = np.max(np.abs(sim.signals["tau"]), axis=0)
+    assert sim.ok and np.all(peak < effort)
+    assert min(float(np.min(sim.signals["m1"])), float(np.min(sim.signals["m2"]))) >= 0.05
+    assert res["constraints"]["values"]["saturation"] == pytest.approx(1 - float(np.max(peak / effort)), rel=1e-9)
