@@ -208,3 +208,49 @@ def test_arm7_is_tuned_within_its_urdf_effort_limits(tmp_path, capsys):
     assert sim.ok and np.all(peak < effort)
     assert min(float(np.min(sim.signals["m1"])), float(np.min(sim.signals["m2"]))) >= 0.05
     assert res["constraints"]["values"]["saturation"] == pytest.approx(1 - float(np.max(peak / effort)), rel=1e-9)
+
+
+def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path):
+    from symfunnel.pipeline import Run
+    from symfunnel.rate import min_rate
+    from symfunnel.report.html import tuning_section
+    from symfunnel.uncertainty import scenario_edits
+    orig = paper_doc(1.0, {"runs": 6})
+    orig["implementation"] = {"rate_hz": 1000.0, "tau_max": 200.0}
+    # an initial error of up to 0.06 rad: some runs breach, more of them with the original design
+    orig["uncertainty"] = [{"key": "plant.mass_scale", "dist": "uniform", "low": 0.5, "high": 1.5},
+                           {"key": "initial.q", "dist": "uniform", "low": -0.06, "high": 0.06}]
+    tuned = copy.deepcopy(orig)
+    tuned["controller"]["k2"] = 4.0
+    tuned["funnel"]["e2"]["phi0"] = 1.2
+    tuned["deviations"] = orig["deviations"] + [
+        {"key": "controller.k2", "paper": "", "value": "10.0 -> 4.0", "reason": "symfunnel tune (ok): test"},
+        {"key": "funnel.e2.phi0", "paper": "", "value": "0.4 -> 1.2", "reason": "symfunnel tune (ok): test"}]
+    sec = tuning_section(Run(load_scenario(write(tmp_path, tuned, "tuned.toml"))), lambda s: None)
+    rows = {k: (a, b) for k, a, b in sec["rows"]}
+    counts = []
+    for col, raw in enumerate((orig, tuned)):
+        raw = copy.deepcopy(raw)
+        raw.pop("deviations")
+        sc = load_scenario(write(tmp_path, raw, f"side{col}.toml"))
+        r = min_rate(sc, margin=0.05, rel_tol=0.1, start=1000.0)
+        cell = rows["minimum sample rate [Hz]"][col]
+        if r["min_rate_hz"] is None:                    # no rate holds within tau_max (the original design)
+            assert cell == "\u2014" and col == 0
+        else:
+            assert float(cell) == pytest.approx(r["min_rate_hz"], rel=1e-3)
+        breaches = 0                                    # the campaign's 4 runs, simulated one by one
+        for v in sc.campaign.values(range(6), 6):
+            d = copy.deepcopy(raw)
+            for key, val in scenario_edits(sc.campaign, sc.n, v).items():
+                *path, leaf = key.split(".")
+                t = d
+                for p in path:
+                    t = t[p]
+                t[leaf] = val
+            breaches += Run(load_scenario(write(tmp_path, d, "run.toml"))).simulation.status != "ok"
+        assert 0 < breaches < 6
+        counts.append(breaches)
+        assert rows["breach probability"][col].startswith(f"{breaches / 6:.4g} (95 % CI")
+    assert rows["minimum sample rate [Hz]"][1] != "\u2014"      # the tuned design has one
+    assert counts[0] > counts[1]
