@@ -413,6 +413,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                                               "no IPOPT result held in the full simulation")
                        + ", so the derivative-free search continued (fallback)")
                 say("falling back to the derivative-free search: " + why)
+            elif failed:
+                why = f"{GRADIENT_WHY}; IPOPT stopped with an error ({failed}) after a design that holds"
         else:
             why = f"{WHY_NO_GRADIENT} ({reason})"
     if method.endswith(METHOD) and stopped is None:
@@ -514,10 +516,10 @@ def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline
         try:
             r = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
                          progress=say)
-        except RuntimeError as exc:          # the start itself does not integrate: next start
+        except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
             from .lifecycle import reraise_interrupt
             reraise_interrupt(exc)
-            say(f"IPOPT start {i + 1}: skipped, its closed loop does not integrate ({_last_line(exc)})")
+            say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
             continue
         say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
         f(r["z"], final=True)

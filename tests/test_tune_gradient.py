@@ -254,3 +254,19 @@ def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path)
         assert rows["breach probability"][col].startswith(f"{breaches / 6:.4g} (95 % CI")
     assert rows["minimum sample rate [Hz]"][1] != "\u2014"      # the tuned design has one
     assert counts[0] > counts[1]
+
+
+def test_when_ipopt_finds_nothing_that_holds_the_derivative_free_search_takes_over(tmp_path, monkeypatch):
+    from symfunnel import tune_gradient, tuning
+    calls = []
+
+    def stuck(self, z0, **kw):                          # IPOPT "returns" its start: the user's infeasible design
+        calls.append(z0)
+        return {"z": np.asarray(z0, float), "status": "Infeasible_Problem_Detected", "success": False,
+                "iterations": 0, "f": float("nan")}
+    monkeypatch.setattr(tune_gradient.GradientProblem, "solve", stuck)
+    sc = load_scenario(write(tmp_path, paper_doc(0.5, {"tau_max": 200.0, "parameters": ["controller.k2"]})))
+    r = tuning.tune(sc, max_evaluations=4, gate=False)
+    assert calls and r.method == f"{tuning.GRADIENT_METHOD}; then {tuning.METHOD}"
+    assert "fallback" in r.why and "no IPOPT result held" in r.why
+    assert r.evaluations == 4                            # the derivative-free search ran on after IPOPT
