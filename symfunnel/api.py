@@ -1,16 +1,22 @@
 """The Python API: one function per CLI command, the same options as keyword arguments, results with `to_json()`
-(and `_repr_html_` for notebooks); bad input raises `InputError`, a failed gate `CheckFailed` (with `strict=True`)."""
+(and `_repr_html_` for notebooks); bad input raises `InputError`, a failed gate `CheckFailed` (with `strict=True`),
+a reached `wall_limit=` (seconds, the whole call as for the CLI's --wall-limit) `SimulationError`."""
 
 from __future__ import annotations
 
+import functools
 import html
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
-from .errors import CheckFailed
+from . import deadline
+from .errors import CheckFailed, SimulationError
 from .pipeline import Run, RunOptions, run_mutants
 from .scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:
+    from .codegen.check import CheckReport
 
 
 def _scenario(scenario) -> Scenario:
@@ -42,7 +48,7 @@ class CodegenResult:
     language: str
     files: dict[str, str]
     paths: list[Path] = field(default_factory=list)
-    check: Any = None
+    check: CheckReport | None = None
 
     def to_json(self) -> dict:
         """The shape of `codegen --json`."""
@@ -67,11 +73,24 @@ class ReportResult:
         return f"<p>report written to <code>{html.escape(str(self.path))}</code></p>"
 
 
+def _bounded(fn):
+    """The call within its `wall_limit=` keyword (also the Run's), a reached limit raised as SimulationError."""
+    @functools.wraps(fn)
+    def call(*args, **kw):
+        try:
+            with deadline.limit(kw.get("wall_limit")):
+                return fn(*args, **kw)
+        except deadline.WallLimitReached as exc:
+            raise SimulationError(f"timeout: {exc}") from None
+    return call
+
+
 def run(scenario, **options) -> Run:
     """The pipeline of a scenario (name, path or Scenario) with RunOptions as keywords; stages computed on use."""
     return Run(_scenario(scenario), RunOptions(**options))
 
 
+@_bounded
 def audit(scenario, design=None, **options) -> Checks:
     """`symfunnel audit`: model properties, funnels and printed claims (with the scenario's expectations)."""
     r = run(scenario, **options)
@@ -80,11 +99,13 @@ def audit(scenario, design=None, **options) -> Checks:
     return Checks(r.audit)
 
 
+@_bounded
 def simulate(scenario, **options):
     """`symfunnel simulate`: the closed-loop SimResult (`summary()`/`to_json()`, `save_npz`)."""
     return run(scenario, **options).simulation
 
 
+@_bounded
 def verify(scenario, *, strict: bool = False, mutants: bool = False, **options):
     """`symfunnel verify`: the Verification (`status`, `checks`, `to_json()`); with `mutants=True` the mutation
     testing result instead; `strict=True` raises CheckFailed when the gate fails."""
@@ -97,11 +118,13 @@ def verify(scenario, *, strict: bool = False, mutants: bool = False, **options):
     return v
 
 
+@_bounded
 def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix: str | None = None,
             rate_hz: float | None = None, points: int = 1000, seed: int = 0, **options) -> CodegenResult:
     """`symfunnel codegen`: the generated files (written to `out` when given), cross-checked with `check=True`;
     `strict` semantics: a failed cross-check raises CheckFailed."""
-    from .codegen import check_output, write_output
+    from .codegen.check import check_output
+    from .codegen.files import write_output
     r = run(scenario, **options)
     files = r.code(lang, prefix=prefix, rate_hz=rate_hz)
     res = CodegenResult(r.scenario.name, lang, files)
@@ -114,6 +137,7 @@ def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix:
     return res
 
 
+@_bounded
 def report(scenario, out=None, *, codegen: bool = True, mutants: bool = True, deployed: bool = True, figures=None,
            **options) -> ReportResult:
     """`symfunnel report`: writes the HTML report (default reports/<name>.html) and returns its path."""

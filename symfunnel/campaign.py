@@ -31,6 +31,9 @@ ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "time
 RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau"]
 PARTS = ".results.parts"
 FLUSH_SECONDS = 10.0
+#: a campaign caps CVODES' step at this fraction of the output step unless the scenario sets simulation.max_step:
+#: fewer rejected steps and Newton-matrix refactorisations (docs/sweep.md, `symfunnel bench --only sweep`)
+MAX_STEP_OF_DT = 0.5
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,9 @@ def make_job(scenario, *, runs: int | None = None) -> Job:
     n_runs = c.sweep.runs if runs is None else runs
     tf = float(c.sweep.t_final if c.sweep.t_final is not None else scenario.simulation.t_final)
     raw = copy.deepcopy(scenario.raw)
+    sim = raw.setdefault("simulation", {})
+    if scenario.simulation.integrator == "cvodes" and "max_step" not in sim:
+        sim["max_step"] = MAX_STEP_OF_DT * float(scenario.simulation.dt)   # in worst.toml too: replays exactly
     blob = json.dumps({"raw": raw, "runs": n_runs, "t_final": tf}, sort_keys=True, default=str)
     fp = hashlib.sha256(blob.encode()).hexdigest()[:20]
     return Job(raw, scenario.file, str(Path(scenario.file).resolve().parent), scenario.name, tf, n_runs, fp)

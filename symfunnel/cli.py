@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 
@@ -181,7 +182,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     for extra in _extra_commands():
         extra(sub, common)
+    for name in BOUNDED:
+        sub.choices[name].add_argument(
+            "--wall-limit", type=float, metavar="S", dest="command_wall_limit",
+            help="wall-clock limit in s for the whole command (deriving, building, compiling, simulating, checking); "
+                 "reached, it stops with one line and exit 1, writing nothing")
     return p
+
+
+#: commands whose `--wall-limit` bounds the whole command (simulate's bounds its run: derive, compile, integrate)
+BOUNDED = ("derive", "audit", "verify", "codegen", "report", "rate")
 
 
 def _extra_commands():
@@ -208,9 +218,17 @@ def main(argv: list[str] | None = None) -> int:
     from . import lifecycle
     parser = build_parser()
     args = parser.parse_args(argv)
+    from . import deadline
     lifecycle.install()
     try:
-        code = args.func(args)
+        seconds = getattr(args, "command_wall_limit", None)
+        if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+            raise InputError(f"is {seconds:g}", key="--wall-limit", expected="a number of seconds > 0")
+        with deadline.limit(seconds):
+            code = args.func(args)
+    except deadline.WallLimitReached as exc:
+        print(f"symfunnel: timeout: {exc}", file=sys.stderr)
+        return 1
     except InputError as exc:
         print(f"symfunnel: error: {exc}", file=sys.stderr)
         return 2

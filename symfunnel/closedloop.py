@@ -27,12 +27,17 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
 from .errors import InputError
 from .sx.linalg import ldl_solve
+
+if TYPE_CHECKING:
+    from .design import Design
+    from .scenario import Scenario
 
 #: logged signals (name -> shape kind): 'n' per joint, 'N' per reservoir unit, '1' scalar
 OUTPUT_NAMES = ("qd", "dqd", "ddqd", "tau", "tau_applied", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2",
@@ -43,8 +48,8 @@ OUTPUT_NAMES = ("qd", "dqd", "ddqd", "tau", "tau_applied", "e1", "F1", "e2", "F2
 class ClosedLoop:
     """The closed-loop ODE of one scenario: symbolic state, right-hand side and logged signals as casadi Functions."""
 
-    design: object
-    scenario: object
+    design: Design
+    scenario: Scenario
     n: int
     N: int
     width: float

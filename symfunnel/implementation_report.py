@@ -1,35 +1,42 @@
 """Data and figures of the deployed controller for the report: minimum rate, design help, torque beside the limits.
 
-`implementation_report(scenario)` returns plain data; `torque_figure` (sampled torque as stairs over the continuous
-one) and `rate.margin_rate_figure` (min margin against rate) draw it. The report's wiring is left to report/.
+`implementation_report(scenario, design)` returns plain data; `torque_figure` (sampled torque as stairs over the
+continuous one) and `rate.margin_rate_figure` (min margin against rate) draw it. The report's wiring is left to report/.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from .design import Design
+    from .scenario import Scenario
 
 __all__ = ["implementation_report", "torque_figure"]
 
 
-def implementation_report(scenario, design=None, *, margin: float = 0.05, sensitivity: bool = True,
-                          t_final: float | None = None, progress=None) -> dict:
+def implementation_report(scenario: Scenario, design: Design, *, margin: float = 0.05, sensitivity: bool = True,
+                          t_final: float | None = None, progress: Callable[[str], None] | None = None) -> dict:
     """{"min_rate": rate.min_rate(...), "sensitivity": rate.rate_sensitivity(...) | None, "run": the sampled run's
     summary at the scenario's rate (twice the minimum without [implementation]), "peak_tau", "tau_max",
     "effort_limits" (a URDF model's <limit effort>, else None)}: the peak torque beside the actuator limits."""
-    from .design import derive
     from .rate import min_rate, rate_sensitivity
     from .sampled import simulate_sampled
     say = progress or (lambda s: None)
-    design = design or derive(scenario)
-    r = min_rate(scenario, margin=margin, design=design, t_final=t_final, progress=say)
+    r = min_rate(scenario, design, margin=margin, t_final=t_final, progress=say)
     impl = getattr(scenario, "implementation", None)
     rate = impl.rate_hz if impl is not None else (2 * r["min_rate_hz"] if r["min_rate_hz"] else None)
     run = None
     if rate is not None:
-        res = simulate_sampled(scenario, rate_hz=rate, t_final=t_final, design=design)
+        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final)
         run = res.summary()
         run["result"] = res
-    sens = rate_sensitivity(scenario, margin=margin, t_final=t_final, baseline=r, progress=say) if sensitivity else None
+    sens = (rate_sensitivity(scenario, design, margin=margin, t_final=t_final, baseline=r, progress=say)
+            if sensitivity else None)
     effort = None
     model = scenario.raw.get("model", {})
     if model.get("type") == "urdf":

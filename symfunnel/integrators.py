@@ -18,9 +18,12 @@ MAX_STEPS_PER_OUTPUT = 20000
 
 @INTEGRATORS.register("cvodes", "SUNDIALS CVODES, variable-order BDF with error control (default; stiff loops)")
 def cvodes_options(sim, h: float, h_run: float, K: int) -> dict:
-    """Tolerances of the scenario, sparse direct linear solver."""
-    return {"abstol": sim.atol, "reltol": sim.rtol, "max_num_steps": MAX_STEPS_PER_OUTPUT,
+    """Tolerances and step limit of the scenario, sparse direct linear solver."""
+    opts = {"abstol": sim.atol, "reltol": sim.rtol, "max_num_steps": MAX_STEPS_PER_OUTPUT,
             "linear_solver": "csparse", "disable_internal_warnings": True}
+    if getattr(sim, "max_step", 0.0) > 0:
+        opts["max_step_size"] = float(sim.max_step)
+    return opts
 
 
 def _substeps(sim, h: float, h_run: float, K: int, per: int = 1) -> int:

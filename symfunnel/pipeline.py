@@ -11,15 +11,25 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from . import deadline
 from .checks.theory import check_identity
 from .design import derive, variant_of
 from .scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:
+    from .checks.audit import CheckResult
+    from .checks.lyapunov import LyapunovTrajectory
+    from .checks.verify import Verification
+    from .closedloop import ClosedLoop
+    from .design import Design
+    from .simulation.result import SimResult
 
 
 @dataclass
@@ -47,7 +57,7 @@ class Run:
     timings: dict[str, float] = field(default_factory=dict)
 
     @classmethod
-    def load(cls, name_or_path=None, **options) -> "Run":
+    def load(cls, name_or_path=None, **options) -> Run:
         """A Run of a built-in scenario name or a TOML path, with option overrides as keywords."""
         progress = options.pop("progress", None)
         return cls(load_scenario(name_or_path), RunOptions(**options), progress)
@@ -56,11 +66,25 @@ class Run:
         if self.progress:
             self.progress(msg)
 
-    def _timed(self, name: str, fn):
+    def _timed(self, name: str, fn, what: str | None = None):
         t0 = time.perf_counter()
-        out = fn()
+        with deadline.step(what or name):
+            out = fn()
         self.timings[name] = time.perf_counter() - t0
         return out
+
+    def _bounded(self, name: str, fn, what: str):
+        """A stage of getting the trajectory (derive, build, compile, integrate): all of them within the Run's
+        wall-clock limit (RunOptions.wall_limit, else the scenario's [simulation] wall_limit), counted from the
+        first of them; integration stops gracefully at it, the others raise deadline.WallLimitReached."""
+        if "_expiry" not in self.__dict__:
+            seconds = self.options.wall_limit if self.options.wall_limit is not None else \
+                self.scenario.simulation.wall_limit
+            now = time.monotonic()
+            self.__dict__["_expiry"] = (now + seconds if seconds else float("inf"), seconds, now)
+        expiry, seconds, started = self.__dict__["_expiry"]
+        with deadline.until(expiry, seconds, started):
+            return self._timed(name, fn, what)
 
     @property
     def t_final(self) -> float:
@@ -70,36 +94,40 @@ class Run:
     # --- stages ---------------------------------------------------------------------------------------
 
     @cached_property
-    def design(self):
+    def design(self) -> Design:
         """The design, derived once (with the run's mutant, if any)."""
         from .design import derive
         self._say("deriving the design" + (f" (mutant {self.options.mutant})" if self.options.mutant else ""))
-        return self._timed("derive", lambda: derive(self.scenario, mutant=self.options.mutant))
+        return self._bounded("derive", lambda: derive(self.scenario, mutant=self.options.mutant), "deriving the design")
 
     @cached_property
-    def closed_loop(self):
+    def closed_loop(self) -> ClosedLoop:
         """The closed-loop ODE of plant and controller."""
         from .closedloop import build_closed_loop
         self._say("building the closed loop")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            return self._timed("closed_loop", lambda: build_closed_loop(self.scenario, self.design,
-                                                                        width=self.options.width))
+            design = self.design
+            return self._bounded("closed_loop", lambda: build_closed_loop(self.scenario, design,
+                                                                          width=self.options.width),
+                                 "building the closed loop")
 
     @cached_property
-    def simulation(self):
+    def simulation(self) -> SimResult:
         """The simulated closed loop (SimResult)."""
-        from .simulate import simulate
+        from .simulation import simulate
         o = self.options
         self._say("simulating the closed loop")
-        res = self._timed("simulate", lambda: simulate(
-            self.scenario, self.design, t_final=o.t_final, integrator=o.integrator, width=o.width,
-            progress=self.progress, wall_limit=o.wall_limit, closed_loop=self.closed_loop, jit=o.jit))
+        design, cl = self.design, self.closed_loop
+        res = self._bounded("simulate", lambda: simulate(
+            self.scenario, design, t_final=o.t_final, integrator=o.integrator, width=o.width,
+            progress=self.progress, wall_limit=o.wall_limit, closed_loop=cl, jit=o.jit),
+            "compiling and integrating the closed loop")
         self._say(f"simulation: {res.status} ({res.message})")
         return res
 
     @cached_property
-    def lyapunov(self):
+    def lyapunov(self) -> LyapunovTrajectory | None:
         """The Lyapunov argument along the simulated trajectory (W* fitted once), or None without a trajectory."""
         from .checks.lyapunov import along_trajectory
         from .checks.verify import decay_claim
@@ -108,30 +136,33 @@ class Run:
             return None
         self._say("Lyapunov function and its exact derivative along the trajectory (AD)")
         return self._timed("lyapunov", lambda: along_trajectory(self.closed_loop, res.t, res.x, res.signals["f_true"],
-                                                                claim=decay_claim(self.scenario)))
+                                                                claim=decay_claim(self.scenario)),
+                           "evaluating the Lyapunov function along the trajectory")
 
     @cached_property
-    def audit(self):
+    def audit(self) -> list[CheckResult]:
         """The audit's checks (model, funnels, printed claims)."""
         from .checks.audit import audit
         from .checks.gate import apply_expectations
         return apply_expectations(self.scenario, self._timed(
-            "audit", lambda: audit(self.scenario, self.design, progress=self.progress)))
+            "audit", lambda: audit(self.scenario, self.design, progress=self.progress), "auditing the model and claims"))
 
     @cached_property
-    def verification(self):
+    def verification(self) -> Verification:
         """Every verify check on the simulated closed loop."""
         from .checks.verify import verify
         o = self.options
         return self._timed("verify", lambda: verify(
             self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, self.audit,
-            t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress, rate_hz=o.rate_hz))
+            t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress, rate_hz=o.rate_hz),
+            "running verify's checks")
 
     @cached_property
     def mutation(self) -> dict:
         """`verify --mutants`: the design's seeded errors through the same gate (see symfunnel.mutation)."""
         return self._timed("mutants", lambda: run_mutants(self.scenario, samples=min(self.options.samples, 2000),
-                                                          seed=self.options.seed, progress=self.progress))
+                                                          seed=self.options.seed, progress=self.progress),
+                           "testing the verifier on the design's mutants")
 
     @cached_property
     def implementation(self) -> dict:
@@ -139,7 +170,8 @@ class Run:
         at the scenario's rate (twice the minimum without [implementation]) and its peak torque beside the limits."""
         from .implementation_report import implementation_report
         return self._timed("implementation", lambda: implementation_report(
-            self.scenario, self.design, t_final=self.t_final, progress=self.progress))
+            self.scenario, self.design, t_final=self.t_final, progress=self.progress),
+            "checking the deployed controller")
 
     def trajectory_arrays(self) -> dict[str, np.ndarray]:
         """The simulated trajectory with V (from the one Lyapunov stage) and W*, for `simulate --out`."""
@@ -154,7 +186,7 @@ class Run:
     @cached_property
     def code_trajectory(self) -> dict[str, np.ndarray]:
         """Controller inputs at 50 samples of the simulated run's first 2 s (for the generated main programs)."""
-        from .codegen import trajectory_from_run
+        from .codegen.contract import trajectory_from_run
         return trajectory_from_run(self.design, self.closed_loop, self.simulation)
 
     def code(self, lang: str, *, prefix: str | None = None, rate_hz: float | None = None) -> dict[str, str]:
@@ -162,7 +194,7 @@ class Run:
         cache = self.__dict__.setdefault("_code", {})
         key = (lang, prefix, rate_hz)
         if key not in cache:
-            from .codegen import generate
+            from .codegen.files import generate
             cache[key] = generate(self.design, lang, trajectory=self.code_trajectory, prefix=prefix, rate_hz=rate_hz)
         return cache[key]
 

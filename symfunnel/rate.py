@@ -1,7 +1,7 @@
 """The minimum sample rate of the deployed controller, and which design parameters set it.
 
-`min_rate(scenario)` searches the lowest rate at which the sampled-data loop (`symfunnel.sampled`) keeps both
-funnels with margin >= M over the horizon: it brackets from the scenario's rate by factors of 4, then bisects on a
+`min_rate(scenario, design)` searches the lowest rate at which the sampled-data loop (`symfunnel.sampled`) keeps
+both funnels with margin >= M over the horizon: it brackets from the scenario's rate by factors of 4, then bisects on a
 log scale until the bracket is within `rel_tol`. It assumes that holding is monotone in the rate (every tried rate
 is listed, so a non-monotone case shows). `rate_sensitivity` re-runs the search for a few one-parameter changes
 of the inner loop (phi_inf and a of funnel e2, k2), to show which parameter sets the minimum rate.
@@ -11,8 +11,15 @@ from __future__ import annotations
 
 import copy
 import math
+from typing import TYPE_CHECKING
 
 from .errors import InputError
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from .design import Design
+    from .scenario import Scenario
 
 __all__ = ["min_rate", "rate_sensitivity", "margin_rate_figure", "VARIATIONS", "MAX_RATE_HZ"]
 
@@ -22,21 +29,20 @@ MIN_RATE_HZ = 1.0
 VARIATIONS = (("funnel.e2.phi_inf", 2.0), ("controller.k2", 0.5), ("funnel.e2.a", 0.5))
 
 
-def min_rate(scenario, *, margin: float = 0.05, design=None, t_final: float | None = None, rel_tol: float = 0.05,
-             start: float | None = None, progress=None) -> dict:
+def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_final: float | None = None,
+             rel_tol: float = 0.05, start: float | None = None,
+             progress: Callable[[str], None] | None = None) -> dict:
     """{"min_rate_hz": float | None, "margin", "tried": [{"rate_hz", "status", "min_margin", "holds"}]}."""
-    from .design import derive
     from .sampled import simulate_sampled
     if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
         raise InputError(f"is {margin!r}", file=scenario.file, key="--margin", expected="a number in [0, 1)")
     say = progress or (lambda s: None)
-    design = design or derive(scenario)
     impl = getattr(scenario, "implementation", None)
     r = float(start or (impl.rate_hz if impl is not None else 1000.0))
     tried: list[dict] = []
 
     def holds(rate: float) -> bool:
-        res = simulate_sampled(scenario, rate_hz=rate, t_final=t_final, design=design)
+        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final)
         ok = res.ok and res.min_margin >= margin
         m = res.min_margin
         tried.append({"rate_hz": rate, "status": res.status, "min_margin": m if math.isfinite(m) else None,
@@ -91,15 +97,19 @@ def _varied(scenario, key: str, factor: float):
     return sc, before, table[last]
 
 
-def rate_sensitivity(scenario, *, margin: float = 0.05, t_final: float | None = None, variations=VARIATIONS,
-                     baseline: dict | None = None, progress=None) -> dict:
+def rate_sensitivity(scenario: Scenario, design: Design, *, margin: float = 0.05, t_final: float | None = None,
+                     variations=VARIATIONS, baseline: dict | None = None,
+                     progress: Callable[[str], None] | None = None) -> dict:
     """The minimum rate of the scenario and of each one-parameter variation, computed by `min_rate`.
+
+    `design` is the scenario's (for the baseline); each variation is a new scenario, derived here.
 
     Returns {"baseline": min_rate(...), "inner_loop_gain": [k2 / phi_inf of e2 per joint],
     "variations": [{"key", "factor", "before", "after", "min_rate_hz", "ratio"}]}, ratio = variation / baseline.
     """
+    from .design import derive
     say = progress or (lambda s: None)
-    base = baseline or min_rate(scenario, margin=margin, t_final=t_final, progress=say)
+    base = baseline or min_rate(scenario, design, margin=margin, t_final=t_final, progress=say)
     start = base["min_rate_hz"]
     out = []
     shape = scenario.funnels["e2"]
@@ -111,7 +121,7 @@ def rate_sensitivity(scenario, *, margin: float = 0.05, t_final: float | None = 
             continue
         say(f"design help: {key} x {factor:g}")
         sc, before, after = _varied(scenario, key, factor)
-        r = min_rate(sc, margin=margin, t_final=t_final, start=start, progress=say)
+        r = min_rate(sc, derive(sc), margin=margin, t_final=t_final, start=start, progress=say)
         ratio = (r["min_rate_hz"] / start) if (r["min_rate_hz"] and start) else None
         out.append({"key": key, "factor": factor, "before": before, "after": after,
                     "min_rate_hz": r["min_rate_hz"], "ratio": ratio, "tried": r["tried"]})

@@ -10,9 +10,9 @@ state at the samples (between samples they are not observed).
 
 API::
 
-    res = simulate_sampled(scenario, rate_hz=2000.0)    # SampledResult: t, q, dq, tau, margins, breach
+    res = simulate_sampled(scenario, design, rate_hz=2000.0)   # SampledResult: t, q, dq, tau, margins, breach
     res.ok, res.min_margin, res.saturated_fraction
-    checks = implementation_checks(scenario, res)      # implementation.containment / .saturation
+    checks = implementation_checks(scenario, design, result=res)   # implementation.containment / .saturation
 """
 
 from __future__ import annotations
@@ -21,9 +21,17 @@ import ctypes
 import math
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from .checks.audit import CheckResult
+    from .design import Design
+    from .scenario import Scenario
 
 __all__ = ["SampledResult", "StepLibrary", "simulate_sampled", "implementation_checks", "plant_step_function",
            "step_library", "plant_substeps"]
@@ -141,7 +149,7 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
     """Compile (cached) the generated C pair of `files` as a shared library and wrap its step API."""
     import json
 
-    from .codegen import c_names
+    from .codegen.files import c_names
     from .codegen.build import SHARED_FLAGS, compile_cached
     base = c_names(files)[0]
     api = json.loads(files["manifest.json"])["c_api"]["step"]
@@ -241,20 +249,19 @@ def _margin_function(design) -> ca.Function:
     return ca.Function("margins", [s["t"], s["q"], s["dq"]], [m])
 
 
-def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float | None = None, design=None,
-                     progress=None, stop_on_breach: bool = True, controller=None) -> SampledResult:
+def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | None = None,
+                     t_final: float | None = None, progress: Callable[[str], None] | None = None,
+                     stop_on_breach: bool = True, controller=None) -> SampledResult:
     """Run the sampled-data loop (see the module doc) to t_final; stops at the first sample outside a funnel.
 
     `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
     `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
     """
-    from .codegen import generate
-    from .design import derive
+    from .codegen.files import generate
     from .implementation import implementation_of
     say = progress or (lambda s: None)
     sc = scenario
     impl = implementation_of(sc, rate_hz) or implementation_of(sc, 1000.0)
-    design = design or derive(sc)
     n = sc.n
     h = 1.0 / impl.rate_hz
     T = float(t_final if t_final is not None else sc.simulation.t_final)
@@ -348,13 +355,15 @@ def simulate_sampled(scenario, *, rate_hz: float | None = None, t_final: float |
                           "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution})
 
 
-def implementation_checks(scenario, design=None, *, rate_hz: float | None = None, t_final: float | None = None,
-                          result: SampledResult | None = None, progress=None) -> list:
+def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz: float | None = None,
+                          t_final: float | None = None, result: SampledResult | None = None,
+                          progress: Callable[[str], None] | None = None) -> list[CheckResult]:
     """`implementation.containment` and (with tau_max) `implementation.saturation`; [] without an implementation.
 
     containment: the sampled loop around the compiled C step reaches t_final with every true margin > 0 at the
     samples. saturation: the torque never sits at tau_max (the design's guarantees assume the torque it asks
-    for is applied); detail and evidence give the time fraction saturated per joint.
+    for is applied); detail and evidence give the time fraction saturated per joint. `design` may be None when
+    `result` (the sampled run) is given.
     """
     from .checks.audit import CheckResult
     if result is None:

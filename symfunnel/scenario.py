@@ -6,7 +6,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import validate as V
 from .errors import InputError
@@ -20,6 +20,12 @@ from .model import MODEL_TYPES
 from .plant import DeadZoneSpec
 from .plant import check_dead_zone_spec as _check_dead_zone
 from .names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
+
+if TYPE_CHECKING:
+    from .implementation import ImplementationSpec
+    from .model.base import RigidBodyModel
+    from .tune_spec import TuneSpec
+    from .uncertainty import Campaign
 
 DATA_DIR = Path(__file__).parent / "data"
 BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
@@ -116,6 +122,7 @@ class SimulationSpec:
     convergence_widths: list[float] = field(default_factory=lambda: [1e-2, 1e-3])
     wall_limit: float = 300.0
     rk_substeps: int = 10
+    max_step: float = 0.0            # CVODES' largest step in seconds, 0 = unlimited
 
 
 @dataclass
@@ -152,7 +159,7 @@ class Scenario:
     description: str
     source: str
     deviations: list[Deviation]
-    model: Any                      # RigidBodyModel
+    model: RigidBodyModel
     reference: list[Expression]
     q0: list[float]
     dq0: list[float]
@@ -171,10 +178,10 @@ class Scenario:
     design: DesignSpec = field(default_factory=DesignSpec)
     expectations: list[Expectation] = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
-    campaign: Any = None            # uncertainty.Campaign of [[uncertainty]] / [sweep], None without them
-    implementation: Any = None      # ImplementationSpec, or None: the continuous-time controller
+    campaign: Campaign | None = None                # of [[uncertainty]] / [sweep], None without them
+    implementation: ImplementationSpec | None = None  # None: the continuous-time controller
     rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
-    tune: Any = None                # tune_spec.TuneSpec of [tune], or None
+    tune: TuneSpec | None = None    # of [tune], or None
 
     @property
     def n(self) -> int:
@@ -446,7 +453,7 @@ def _plant(table: Any, n: int, file: str, model) -> PlantSpec:
 def _simulation(table: Any, file: str) -> SimulationSpec:
     p = "simulation"
     V.check_keys(table, ["t_final", "dt", "integrator", "rtol", "atol", "smoothing_width",
-                         "convergence_widths", "wall_limit", "rk_substeps"], file=file, prefix=p)
+                         "convergence_widths", "wall_limit", "rk_substeps", "max_step"], file=file, prefix=p)
     d = SimulationSpec()
     t_final = V.get_float(table, "t_final", d.t_final, file=file, prefix=p, minimum=0, strict_min=True,
                           maximum=1e6)
@@ -469,6 +476,7 @@ def _simulation(table: Any, file: str) -> SimulationSpec:
                                strict_min=True),
         rk_substeps=V.get_int(table, "rk_substeps", d.rk_substeps, file=file, prefix=p, minimum=1,
                               maximum=10000),
+        max_step=V.get_float(table, "max_step", d.max_step, file=file, prefix=p, minimum=0),
     )
 
 

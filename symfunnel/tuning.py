@@ -622,7 +622,7 @@ def original_document(raw: dict, n: int) -> dict | None:
     return doc
 
 
-def compare_designs(tuned, *, tuned_simulation=None, t_final: float | None = None, sweep_runs: int | None = None,
+def compare_designs(tuned, *, tuned_run=None, t_final: float | None = None, sweep_runs: int | None = None,
                     progress=None) -> dict | None:
     """Original (from tune's `[[deviations]]` records) against tuned, side by side: peak |tau|, min margins e1/e2
     of the continuous-time run, the minimum sample rate (with `[implementation]`) and the breach probability of a
@@ -640,12 +640,10 @@ def compare_designs(tuned, *, tuned_simulation=None, t_final: float | None = Non
     for label, sc in (("original", original), ("tuned", tuned)):
         from .pipeline import Run, RunOptions
         say(f"tuning comparison: the {label} design")
-        if label == "tuned" and tuned_simulation is not None:
-            sim = tuned_simulation
-        else:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                sim = Run(sc, RunOptions(t_final=t_final)).simulation
+        run = tuned_run if label == "tuned" and tuned_run is not None else Run(sc, RunOptions(t_final=t_final))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sim = run.simulation
         s = sim.signals
         tau = np.abs(np.asarray(s["tau"]))
         side = {"scenario": sc, "simulation": sim, "status": sim.status,
@@ -654,7 +652,8 @@ def compare_designs(tuned, *, tuned_simulation=None, t_final: float | None = Non
                 "min_margin_e2": float(np.min(s["m2"])) if np.size(s["m2"]) else None}
         if sc.implementation is not None:
             from .rate import min_rate
-            r = min_rate(sc, margin=spec.margin, t_final=t_final, rel_tol=0.1, start=sc.implementation.rate_hz)
+            r = min_rate(sc, run.design, margin=spec.margin, t_final=t_final, rel_tol=0.1,
+                         start=sc.implementation.rate_hz)
             side["min_rate_hz"] = r["min_rate_hz"]
         if sc.campaign is not None and sc.campaign.uncertainties:
             from .campaign import sweep

@@ -16,13 +16,13 @@ PKG = Path(__file__).resolve().parent.parent / "symfunnel"
 #: layers, lowest first; a module may import its own layer and the ones below
 LAYERS = [
     ("ground", ["errors", "io", "validate", "names", "registry", "expr", "sx", "family", "esn", "plant",
-                "integrators", "inputs", "outputs", "lifecycle", "sim_hints", "uncertainty", "toml_write",
+                "integrators", "inputs", "outputs", "lifecycle", "deadline", "sim_hints", "uncertainty", "toml_write",
                 "_callable"]),
     ("model", ["model"]),
     ("scenario", ["scenario", "implementation", "tune_spec"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
-    ("stages", ["simulate", "codegen", "checks", "sampled", "rate", "implementation_report"]),
+    ("stages", ["simulate", "simulation", "codegen", "checks", "sampled", "rate", "implementation_report"]),
     ("pipeline", ["pipeline", "campaign", "tuning", "tune_gradient"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "api"]),
 ]

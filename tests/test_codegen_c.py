@@ -16,6 +16,7 @@ import pytest
 from symfunnel import codegen as cg
 from symfunnel.codegen import build, check
 from symfunnel.codegen.c import STRICT_CFLAGS, parse_trajectory_output
+from symfunnel.codegen.contract import trajectory_inputs
 from symfunnel.scenario import load_scenario
 
 from .conftest import private_cache
@@ -158,7 +159,7 @@ def test_main_under_asan_ubsan_gives_casadi_torques(c_dir, design, c_files, tmp_
     assert run.returncode == 0, run.stderr
     assert run.stderr == ""
     rows = parse_trajectory_output(run.stdout)
-    inputs = cg._trajectory_inputs(design, c_files["trajectory.txt"])
+    inputs = trajectory_inputs(design, c_files["trajectory.txt"])
     tau = casadi_tau(design, inputs)
     assert rows.shape == (tau.shape[0], 1 + design.n) and tau.shape[0] == 50
     np.testing.assert_array_equal(rows[:, 0], inputs["t"][0, 0])
@@ -331,14 +332,14 @@ def test_python_module_needs_numpy_only(tmp_path, py_files, design, c_files):
     proc = subprocess.run([sys.executable, "-c", run], cwd=out, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     rows = parse_trajectory_output(proc.stdout)
-    tau = casadi_tau(design, cg._trajectory_inputs(design, py_files["trajectory.txt"]))
+    tau = casadi_tau(design, trajectory_inputs(design, py_files["trajectory.txt"]))
     assert rows.shape == (50, 1 + design.n)
     assert np.max(np.abs(rows[:, 1:] - tau) / np.maximum(1, np.abs(tau))) <= 1e-10
 
 
 def test_trajectory_stays_in_funnels_and_is_shared(design, c_files, py_files):
     assert c_files["trajectory.txt"] == py_files["trajectory.txt"]
-    inp = cg._trajectory_inputs(design, c_files["trajectory.txt"])
+    inp = trajectory_inputs(design, c_files["trajectory.txt"])
     f = design.function("lv", ["t", "q", "dq", "qd", "dqd"], ["e1", "F1", "e2", "F2"])
     e1, F1, e2, F2 = check.casadi_values(f, inp)
     assert np.all(np.abs(e1) < F1) and np.all(np.abs(e2) < F2)

@@ -277,8 +277,9 @@ def test_rate_sensitivity_skips_phi_variations_of_an_expression_funnel(monkeypat
     from symfunnel.scenario import load_scenario
     sc = load_scenario(REPO / "derivations" / "ppc_log_rbf.toml")
     seen = []
-    monkeypatch.setattr(rate, "min_rate", lambda s, **k: seen.append(s.k2) or {"min_rate_hz": 100.0, "tried": []})
-    out = rate.rate_sensitivity(sc, t_final=1.0)
+    monkeypatch.setattr(rate, "min_rate", lambda s, d, **k: seen.append(s.k2) or {"min_rate_hz": 100.0, "tried": []})
+    monkeypatch.setattr("symfunnel.design.derive", lambda s: object())    # each variation's design (unused here)
+    out = rate.rate_sensitivity(sc, object(), t_final=1.0)
     status = {v["key"]: v.get("status") for v in out["variations"]}
     assert status == {"funnel.e2.phi_inf": "skip", "funnel.e2.a": "skip", "controller.k2": None}
     assert seen == [[10.0] * 3, [5.0] * 3]                  # the baseline, then k2 halved

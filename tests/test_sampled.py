@@ -12,6 +12,7 @@ import pytest
 from symfunnel import rate as R
 from symfunnel import sampled as S
 from symfunnel.cli import main
+from symfunnel.design import derive
 from symfunnel.errors import InputError
 from symfunnel.scenario import DATA_DIR, load_scenario
 
@@ -103,7 +104,7 @@ def test_noise_quantisation_and_delay_reach_the_controller_as_specified(tmp_path
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 1000.0\nnoise_q = 0.01\nnoise_dq = 0.2\n"
                                             "encoder_resolution = 0.005\ndelay_samples = 1\nseed = 7"))
     rec = Recorder(2, [1.0, -2.0])
-    res = S.simulate_sampled(sc, t_final=2.0, controller=rec, stop_on_breach=False)
+    res = S.simulate_sampled(sc, derive(sc), t_final=2.0, controller=rec, stop_on_breach=False)
     qm, dqm = np.array(rec.seen_q), np.array(rec.seen_dq)
     K = res.tau.shape[0]
     assert qm.shape == (K, 2) and K == 2000
@@ -117,7 +118,7 @@ def test_noise_quantisation_and_delay_reach_the_controller_as_specified(tmp_path
     np.testing.assert_allclose(res.tau[1:], np.outer(1 + np.arange(K - 1) / 1000.0, [1.0, -2.0]), rtol=1e-15)
     # seeded: the same run again gives the same measurements
     rec2 = Recorder(2, [1.0, -2.0])
-    S.simulate_sampled(sc, t_final=2.0, controller=rec2, stop_on_breach=False)
+    S.simulate_sampled(sc, derive(sc), t_final=2.0, controller=rec2, stop_on_breach=False)
     np.testing.assert_array_equal(np.array(rec2.seen_q), qm)
 
 
@@ -142,7 +143,6 @@ def paper_arm_numpy():
 @pytest.mark.slow
 def test_pstep_at_10khz_drives_an_independent_numpy_plant_inside_its_funnel():
     from symfunnel.codegen import generate
-    from symfunnel.design import derive
     sc = load_scenario("paper")
     design = derive(sc)
     lib = S.step_library(design, generate(design, "c", rate_hz=10000.0))
@@ -180,8 +180,7 @@ def test_sampled_loop_agrees_with_the_continuous_simulation_at_a_high_rate():
     """At 20 kHz the held torque is nearly continuous: q follows the CVODES closed loop to within 1e-3 rad."""
     from symfunnel.simulate import simulate
     sc = load_scenario("paper")
-    res = S.simulate_sampled(sc, rate_hz=20000.0, t_final=2.0)
-    from symfunnel.design import derive
+    res = S.simulate_sampled(sc, derive(sc), rate_hz=20000.0, t_final=2.0)
     ref = simulate(sc, derive(sc), t_final=2.0)
     assert res.ok and ref.ok
     qi = np.stack([np.interp(ref.t, res.t, res.q[:, j]) for j in range(2)], axis=1)
@@ -193,15 +192,15 @@ def test_sampled_loop_agrees_with_the_continuous_simulation_at_a_high_rate():
 def test_verify_holds_at_twice_the_minimum_rate_and_fails_at_a_quarter(tmp_path, capsys):
     p = paper_with(tmp_path, "rate_hz = 4000.0", t_final=6.0)
     sc = load_scenario(p)
-    r = R.min_rate(sc)
+    r = R.min_rate(sc, derive(sc))
     rmin = r["min_rate_hz"]
     assert rmin is not None and 100 < rmin < 1e5
     holds = [d["rate_hz"] for d in r["tried"] if d["holds"]]
     fails = [d["rate_hz"] for d in r["tried"] if not d["holds"]]
     assert min(holds) == rmin and max(fails) < rmin and rmin / max(fails) <= 1.05
-    good = S.implementation_checks(sc, rate_hz=2 * rmin)
+    good = S.implementation_checks(sc, derive(sc), rate_hz=2 * rmin)
     assert [c.id for c in good] == ["implementation.containment"] and good[0].status == "pass"
-    bad = S.implementation_checks(sc, rate_hz=rmin / 4)
+    bad = S.implementation_checks(sc, derive(sc), rate_hz=rmin / 4)
     assert bad[0].status == "fail" and bad[0].where["time"] > 0
     assert main(["verify", str(p), "--rate", str(rmin / 4), "--json", "-q", "--samples", "100"]) == 1
     out = capsys.readouterr().out
@@ -211,21 +210,21 @@ def test_verify_holds_at_twice_the_minimum_rate_and_fails_at_a_quarter(tmp_path,
 @needs_gcc
 def test_saturation_check_reports_the_time_fraction_at_the_limit(tmp_path):
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 4000.0\ntau_max = [400.0, 1000.0]"))
-    res = S.simulate_sampled(sc, t_final=1.0)
-    checks = {c.id: c for c in S.implementation_checks(sc, result=res)}
+    res = S.simulate_sampled(sc, derive(sc), t_final=1.0)
+    checks = {c.id: c for c in S.implementation_checks(sc, None, result=res)}
     sat = checks["implementation.saturation"]
     frac = sat.evidence["saturated_fraction"]
     assert sat.status == "fail" and frac[1] == 0.0
     assert frac[0] == pytest.approx(np.mean(np.abs(res.tau[:, 0]) >= 400.0)) and frac[0] > 0
     assert res.ok and np.max(np.abs(res.tau[:, 0])) == 400.0                      # the step saturates
     sc2 = load_scenario(paper_with(tmp_path, "rate_hz = 4000.0\ntau_max = 1e4", name="b.toml"))
-    ok = {c.id: c for c in S.implementation_checks(sc2, t_final=1.0)}
+    ok = {c.id: c for c in S.implementation_checks(sc2, derive(sc2), t_final=1.0)}
     assert ok["implementation.saturation"].status == "pass"
     assert ok["implementation.containment"].status == "pass"
 
 
 def test_no_implementation_no_checks():
-    assert S.implementation_checks(load_scenario("paper")) == []
+    assert S.implementation_checks(load_scenario("paper"), None) == []
 
 
 # --- rate search (plumbing, with a stand-in for the sampled run) ------------------------------------
@@ -237,7 +236,7 @@ class _Run:
 
 
 def _threshold_sim(threshold_of):
-    def fake(sc, rate_hz=None, t_final=None, design=None, **_):
+    def fake(sc, design, *, rate_hz=None, t_final=None, **_):
         thr = threshold_of(sc)
         return _Run(rate_hz >= thr, 0.3 if rate_hz >= thr else -5.0)
     return fake
@@ -245,7 +244,7 @@ def _threshold_sim(threshold_of):
 
 def test_min_rate_brackets_and_bisects_on_a_log_scale(monkeypatch):
     monkeypatch.setattr(S, "simulate_sampled", _threshold_sim(lambda sc: 3000.0))
-    r = R.min_rate(load_scenario("paper"), design=object())
+    r = R.min_rate(load_scenario("paper"), object())
     assert 3000.0 <= r["min_rate_hz"] <= 3000.0 * 1.05
     rates = [d["rate_hz"] for d in r["tried"]]
     assert rates[:2] == [1000.0, 4000.0]
@@ -261,7 +260,7 @@ def test_rate_sensitivity_changes_the_named_parameter(monkeypatch):
     monkeypatch.setattr(S, "simulate_sampled",
                         _threshold_sim(lambda s: 100.0 * s.k2[0] / s.funnels["e2"].phi_inf[0]))
     monkeypatch.setattr("symfunnel.design.derive", lambda sc: object())
-    out = R.rate_sensitivity(sc, variations=R.VARIATIONS)
+    out = R.rate_sensitivity(sc, object(), variations=R.VARIATIONS)
     by = {v["key"]: v for v in out["variations"]}
     assert out["inner_loop_gain"] == [1000.0, 1000.0]
     assert by["funnel.e2.phi_inf"]["after"] == pytest.approx(0.02)
@@ -281,7 +280,7 @@ def test_rate_command_bad_margin_is_input_error(capsys):
 def test_report_figures_draw_the_sampled_torque_and_the_rate_search(tmp_path):
     from symfunnel.implementation_report import torque_figure
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0\ntau_max = 450.0"))
-    res = S.simulate_sampled(sc, t_final=0.5)
+    res = S.simulate_sampled(sc, derive(sc), t_final=0.5)
     fig = torque_figure(res, t_max=0.2)
     steps = fig.axes[0].patches[0]                     # the stairs of joint 1
     assert np.max(np.abs(steps.get_path().vertices[:, 1])) == pytest.approx(450.0)
@@ -297,7 +296,7 @@ def test_design_help_computes_the_minimum_rate_per_parameter(tmp_path):
     """Computed, not asserted by hand; the one expectation is theory: a wider e2 funnel (phi_inf x 2) halves the
     lower bound 1/F2 of mu2, the gain of both the torque's e2 term and the adaptation, so it lowers the rate."""
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0", t_final=6.0))
-    out = R.rate_sensitivity(sc)
+    out = R.rate_sensitivity(sc, derive(sc))
     by = {v["key"]: v for v in out["variations"]}
     assert out["baseline"]["min_rate_hz"] is not None
     assert by["funnel.e2.phi_inf"]["ratio"] < 0.9
@@ -309,7 +308,7 @@ def test_design_help_computes_the_minimum_rate_per_parameter(tmp_path):
 def test_rate_command_json_has_the_contract_keys(monkeypatch, capsys):
     import json
     monkeypatch.setattr(S, "simulate_sampled", _threshold_sim(lambda sc: 2500.0))
-    monkeypatch.setattr("symfunnel.design.derive", lambda sc: object())
+    monkeypatch.setattr("symfunnel.design.derive", lambda sc, **_: object())     # the command's Run derives
     assert main(["rate", "paper", "--json", "--margin", "0.1"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) == {"min_rate_hz", "margin", "tried"} and out["margin"] == 0.1
@@ -342,16 +341,16 @@ def test_arm7_has_a_finite_minimum_rate_and_holds_at_twice_it(tmp_path):
     assert "t_final = 4.0" in text
     (tmp_path / "arm7.toml").write_text(text)
     sc = load_scenario(tmp_path / "arm7.toml")
-    r = R.min_rate(sc, rel_tol=0.2)
+    design = derive(sc)
+    r = R.min_rate(sc, design, rel_tol=0.2)
     assert r["min_rate_hz"] is not None and r["min_rate_hz"] < 1e5
-    assert S.implementation_checks(sc, rate_hz=2 * r["min_rate_hz"])[0].status == "pass"
+    assert S.implementation_checks(sc, design, rate_hz=2 * r["min_rate_hz"])[0].status == "pass"
 
 
 @needs_gcc
 def test_the_c_loop_and_the_python_loop_apply_noise_quantisation_and_delay_alike(tmp_path):
     """The fast loop in C (used with the compiled step) against the Python loop (checked above) on the same step."""
     from symfunnel.codegen import generate
-    from symfunnel.design import derive
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 4000.0\nnoise_q = 1e-4\nnoise_dq = 1e-3\n"
                                             "encoder_resolution = 1e-4\ndelay_samples = 1\nseed = 3"))
     design = derive(sc)
@@ -372,7 +371,7 @@ def test_the_c_loop_and_the_python_loop_apply_noise_quantisation_and_delay_alike
 def test_implementation_report_puts_the_peak_torque_beside_the_limits(tmp_path):
     from symfunnel.implementation_report import implementation_report
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 3000.0\ntau_max = [600.0, 300.0]", t_final=2.0))
-    out = implementation_report(sc, sensitivity=False)
+    out = implementation_report(sc, derive(sc), sensitivity=False)
     assert out["min_rate"]["min_rate_hz"] is not None and out["sensitivity"] is None
     res = out["run"]["result"]
     assert res.rate_hz == 3000.0

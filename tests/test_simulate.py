@@ -157,3 +157,49 @@ def test_untuned_scenarios_stay_inside(name):
     r = simulate(*_sd(load_scenario(DERIV / f"{name}.toml")))
     assert r.status == "ok", r.message
     assert min(r.summary()["min_margin_e1"]) > 0.5
+
+
+def test_buffered_evaluation_matches_the_plain_call_with_per_call_statistics():
+    """The simulation's numpy-buffer path gives the plain call's values and statistics, call after call (CasADi's
+    n_call_* counters add up in a buffer's memory, a plain call restarts them)."""
+    import casadi as ca
+
+    from symfunnel.simulation.compiled import Buffered
+    x, p = ca.SX.sym("x", 2), ca.SX.sym("p")
+    ode = ca.vertcat(x[1], -p * x[0] - 0.1 * x[1] ** 3)
+    F = ca.integrator("F", "cvodes", {"x": x, "p": p, "ode": ode}, 0.0, [0.5, 1.0, 1.5])
+    assert Buffered.supports(F)
+    B = Buffered(F, stats=True)
+    for x0 in ([1.0, 0.0], [0.3, -2.0], [1.0, 0.0]):
+        ref = np.asarray(F(x0=x0, p=4.0)["xf"])
+        st = F.stats()
+        B.args[F.index_in("x0")][:] = x0
+        B.args[F.index_in("p")][:] = 4.0
+        assert B.evaluate() == 0
+        assert np.array_equal(B.res[F.index_out("xf")], ref.T.reshape(-1))      # column-major: point by point
+        for k in ("nsteps", "nfevals", "n_call_jacF", "n_call_daeF"):
+            assert B.stats[k] == st[k], k
+    assert B.stats["n_call_daeF"] > 0
+    f = ca.Function("g", [x, p], [x * p, ca.sumsqr(x)])
+    m = f.map("gm", "serial", 4, [1], [])
+    X = np.arange(8.0).reshape(4, 2)                                            # 4 points of x
+    Bm = Buffered(m)
+    Bm(X.T, 3.0)
+    assert np.array_equal(Bm.res[0].reshape(4, 2), 3.0 * X)
+    assert np.array_equal(Bm.res[1], np.sum(X ** 2, axis=1))
+
+
+def test_max_step_caps_cvodes_steps_and_keeps_the_trajectory(paper):
+    """simulation.max_step reaches CVODES: 0.5 s cannot take fewer than 0.5/max_step steps; q stays the same to
+    the tolerance's order; a negative value is refused naming the key."""
+    from symfunnel.errors import InputError
+    free = simulate(paper, derive(paper), t_final=0.5)
+    capped_sc = _variant(paper, lambda raw: raw["simulation"].update(max_step=5e-4), "capped")
+    assert capped_sc.simulation.max_step == 5e-4 and paper.simulation.max_step == 0.0
+    capped = simulate(capped_sc, derive(capped_sc), t_final=0.5)
+    assert free.status == capped.status == "ok"
+    assert capped.stats["steps"] >= 0.5 / 5e-4 > free.stats["steps"]
+    assert np.max(np.abs(capped.q - free.q)) < 1e-5
+    with pytest.raises(InputError) as exc:
+        _variant(paper, lambda raw: raw["simulation"].update(max_step=-1.0), "bad")
+    assert exc.value.key == "simulation.max_step"

@@ -210,3 +210,25 @@ def _cl(sc):
 
 def _sd(sc):
     return sc, derive(sc)
+
+
+def test_campaign_caps_the_cvodes_step_at_half_the_output_step(tmp_path):
+    """A campaign integrates with simulation.max_step = dt/2 unless the scenario sets it (0 keeps CVODES free); the
+    cap is written into worst.toml, so a replay integrates exactly as the run did."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+        import tomli as tomllib
+
+    from symfunnel.campaign import MAX_STEP_OF_DT, worst_scenario
+    sc = load_scenario(_campaign_file(tmp_path, runs=2))
+    job = make_job(sc)
+    assert MAX_STEP_OF_DT == 0.5
+    assert job.raw["simulation"]["max_step"] == 0.5 * sc.simulation.dt and "max_step" not in sc.raw["simulation"]
+    replay = tomllib.loads(worst_scenario(job, sc.campaign, 1, sc.n))
+    assert replay["simulation"]["max_step"] == 0.5 * sc.simulation.dt
+    for given in (0.0, 0.003):
+        raw = copy.deepcopy(sc.raw)
+        raw["simulation"]["max_step"] = given
+        (tmp_path / "given.toml").write_text(dumps(raw), encoding="utf-8")
+        assert make_job(load_scenario(tmp_path / "given.toml")).raw["simulation"]["max_step"] == given

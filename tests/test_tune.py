@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from symfunnel.cli import main
+from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
 from symfunnel.toml_write import dumps
 
@@ -38,7 +39,8 @@ def write(tmp_path, raw: dict, name: str = "s.toml"):
 def independent_run(path):
     """The sampled loop of a scenario file, run directly (not through tune)."""
     from symfunnel.sampled import simulate_sampled
-    return simulate_sampled(load_scenario(path))
+    sc = load_scenario(path)
+    return simulate_sampled(sc, derive(sc))
 
 
 @needs_gcc
@@ -186,7 +188,8 @@ def test_tuned_design_is_robust_to_the_mass_scale(tmp_path, capsys):
     for m in (0.8, 1.2):                                 # the sampled loop at the ends of the range (not samples)
         r2 = copy.deepcopy(tuned.raw)
         r2["plant"]["mass_scale"] = m
-        r = simulate_sampled(load_scenario(write(tmp_path, r2, f"m{m}.toml")))
+        sc = load_scenario(write(tmp_path, r2, f"m{m}.toml"))
+        r = simulate_sampled(sc, derive(sc))
         assert r.ok and r.min_margin >= 0.05 and max(r.saturated_fraction) == 0.0
 
 
@@ -234,12 +237,13 @@ def test_min_rate_objective_is_the_rate_search_of_the_tuned_design(tmp_path, cap
     assert r.status == "ok" and r.objective["name"] == "min_rate"
     tuned = load_scenario(write(tmp_path, r.tuned_raw, "tuned.toml"))
     # independently: the tuned design holds at its reported minimum rate and not at a third of it
-    res = min_rate(tuned, margin=0.05, rel_tol=0.1, start=1000.0)
+    design = derive(tuned)
+    res = min_rate(tuned, design, margin=0.05, rel_tol=0.1, start=1000.0)
     assert res["min_rate_hz"] == pytest.approx(r.objective["after"], rel=1e-9)
     from symfunnel.sampled import simulate_sampled
-    ok = simulate_sampled(tuned, rate_hz=r.objective["after"])
+    ok = simulate_sampled(tuned, design, rate_hz=r.objective["after"])
     assert ok.ok and ok.min_margin >= 0.05
-    low = simulate_sampled(tuned, rate_hz=r.objective["after"] / 3)
+    low = simulate_sampled(tuned, design, rate_hz=r.objective["after"] / 3)
     assert not (low.ok and low.min_margin >= 0.05)
 
 

@@ -212,6 +212,7 @@ def test_arm7_is_tuned_within_its_urdf_effort_limits(tmp_path, capsys):
 
 def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path):
     from symfunnel.pipeline import Run
+    from symfunnel.design import derive
     from symfunnel.rate import min_rate
     from symfunnel.report.html import tuning_section
     from symfunnel.uncertainty import scenario_edits
@@ -233,7 +234,7 @@ def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path)
         raw = copy.deepcopy(raw)
         raw.pop("deviations")
         sc = load_scenario(write(tmp_path, raw, f"side{col}.toml"))
-        r = min_rate(sc, margin=0.05, rel_tol=0.1, start=1000.0)
+        r = min_rate(sc, derive(sc), margin=0.05, rel_tol=0.1, start=1000.0)
         cell = rows["minimum sample rate [Hz]"][col]
         if r["min_rate_hz"] is None:                    # no rate holds within tau_max (the original design)
             assert cell == "\u2014" and col == 0

@@ -11,7 +11,7 @@ TARGET_NS = 5000.0
 
 def run(progress) -> list[dict]:
     """Results codegen.c_controller_ns, .python_controller_ns, .python_batch_ns and .controller_ops."""
-    from ..codegen import time_controller
+    from ._timing import time_controller
     from ..pipeline import Run
     run = Run.load("paper")
     sc, design = run.scenario, run.design

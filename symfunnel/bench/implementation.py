@@ -28,10 +28,9 @@ class VMStep:
     """The step function on CasADi's VM, with the compiled step's interface (buffers and raw())."""
 
     def __init__(self, design, rate_hz: float, tau_max=None):
-        from ..codegen import _initial
-        from ..codegen.step import step_function
+        from ..codegen.step import step_function, step_initial
         self.f = step_function(design, rate_hz, tau_max)
-        self.x0, self.w0 = _initial(design)
+        self.x0, self.w0 = step_initial(design)
         n = design.n
         self.q, self.dq, self.tau = np.zeros(n), np.zeros(n), np.zeros(n)
         self.init()
@@ -51,7 +50,7 @@ class VMStep:
 
 def run(progress) -> list[dict]:
     """The three results above, for the paper scenario."""
-    from ..codegen import generate
+    from ..codegen.files import generate
     from ..codegen.build import compile_cached
     from ..codegen.c import STRICT_CFLAGS
     from ..codegen.step import step_function

@@ -182,7 +182,7 @@ def kane_equations(urdf: str | os.PathLike, gravity=(0.0, 0.0, -9.81)):
     import sympy as sp
     from sympy.physics import mechanics as me
 
-    from ..model.rigid import bodies_from_tree, skew
+    from ..model.tree import bodies_from_tree, skew
     from ..model.urdf import parse_urdf
     bodies = bodies_from_tree(parse_urdf(urdf))
     n = len(bodies)

@@ -52,7 +52,7 @@ def run_scipy(cl, t_final: float, method: str = "BDF"):
 def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> list[dict]:
     """Measure both sides on the paper scenario (override the horizon with $SYMFUNNEL_BENCH_T_FINAL)."""
     from ..pipeline import Run
-    from ..simulate import simulate
+    from ..simulation import simulate
     say = progress or (lambda s: None)
     pr = Run.load("paper")
     sc, d = pr.scenario, pr.design

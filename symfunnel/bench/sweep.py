@@ -3,9 +3,11 @@ plain loop of `symfunnel.simulate` calls on scenario variants (what a user would
 
 Ids: `sweep.runs_per_second` (campaign throughput with the machine's cores; baseline: the simulate loop in one
 process; `extrapolated_10000_runs_s` says how long the issue's 10,000-run target would take at that rate),
-`sweep.scaling_2_workers` (throughput of 2 workers over 1 worker, same campaign) and `sweep.compile_time` (the one
-compilation of a campaign, in a fresh cache). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS (default 24 runs per campaign),
-$SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
+`sweep.scaling_2_workers` (throughput of 2 workers over 1 worker, same campaign), `sweep.cpu_per_run` (process CPU
+seconds per campaign run, the figure to extrapolate from on a shared machine; baseline: the same runs with CVODES'
+step left free, `simulation.max_step = 0`, as campaigns ran before they capped it at dt/2) and `sweep.compile_time`
+(the one compilation of a campaign, in a fresh cache). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS (default 24 runs per
+campaign), $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
 """
 
 from __future__ import annotations
@@ -25,10 +27,13 @@ UNCERTAINTY = [
 ]
 
 
-def campaign(runs: int, t_final: float):
-    """The paper scenario with three [[uncertainty]] tables and a [sweep] of `runs` runs of `t_final` s."""
+def campaign(runs: int, t_final: float, max_step: float | None = None):
+    """The paper scenario with three [[uncertainty]] tables and a [sweep] of `runs` runs of `t_final` s (and a
+    given simulation.max_step; None: the campaign's default)."""
     from ..scenario import DATA_DIR, from_dict, load_scenario
     raw = copy.deepcopy(load_scenario("paper").raw)
+    if max_step is not None:
+        raw.setdefault("simulation", {})["max_step"] = float(max_step)
     raw["uncertainty"] = copy.deepcopy(UNCERTAINTY)
     raw["sweep"] = {"runs": runs, "design": "sobol", "seed": 0, "t_final": t_final}
     return from_dict(raw, file=str(DATA_DIR / "paper_2dof.toml"), base_dir=DATA_DIR, default_name="paper")
@@ -37,7 +42,7 @@ def campaign(runs: int, t_final: float):
 def baseline_loop(sc, runs: int) -> float:
     """Runs per second of one process calling simulate() on each run's scenario (load, derive, build, run)."""
     from ..scenario import from_dict
-    from ..simulate import simulate
+    from ..simulation import simulate
     from ..campaign import make_job, worst_scenario
     from ..design import derive
     try:
@@ -80,8 +85,8 @@ def run(progress=None) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="symfunnel-bench-sweep-") as tmp:
         os.environ["SYMFUNNEL_CACHE"] = str(Path(tmp) / "cache")     # a fresh cache: the compile is real
         try:
-            from .. import simulate as simmod
-            simmod._LOADED.clear()
+            from ..simulation import compiled
+            compiled._LOADED.clear()
             for w in sorted({cores, 1, 2}):
                 say(f"sweep: {runs} runs of {tf:g} s with {w} worker(s)")
                 res = sweep(sc, workers=w, out=Path(tmp) / f"w{w}")
@@ -92,8 +97,10 @@ def run(progress=None) -> list[dict]:
                 os.environ.pop("SYMFUNNEL_CACHE", None)
             else:
                 os.environ["SYMFUNNEL_CACHE"] = old_cache
-    say("sweep: CPU time per run in one process")
-    one = cpu_per_run(sc, max(2, runs // 4))
+    say("sweep: CPU time per run in one process, with CVODES' step capped (the campaign) and free (before)")
+    cpu_runs = max(2, runs // 4)
+    one = cpu_per_run(sc, cpu_runs)
+    free = cpu_per_run(campaign(runs, tf, max_step=0.0), cpu_runs)
     base_runs = max(2, runs // 4)
     say(f"sweep baseline: a loop of {base_runs} simulate() calls on scenario variants")
     base_rps = baseline_loop(sc, base_runs)
@@ -106,6 +113,8 @@ def run(progress=None) -> list[dict]:
             "extrapolated_10000_runs_s": 10000 / rps, "target_10000_runs_s": 600.0,
             "runs_per_second_with_startup": out[cores]["runs_per_second"], "breaches": out[cores]["breaches"],
             "one_process": one, "load_average_1min": os.getloadavg()[0],
+            "cpu_bound_runs_per_second": cores / one["cpu_s_per_run"],
+            "cpu_bound_10000_runs_s": 10000 * one["cpu_s_per_run"] / cores,
             "note": "steady rate after the workers started; 10,000-run time extrapolated from it"}
     return [
         result("sweep.runs_per_second", rps, "runs/s", "loop of symfunnel.simulate calls, one process", base_rps,
@@ -113,6 +122,12 @@ def run(progress=None) -> list[dict]:
         result("sweep.scaling_2_workers", steady(2) / steady(1), "x", "1 worker", 1.0, steady(2) / steady(1),
                runs_per_second_1=steady(1), runs_per_second_2=steady(2),
                target=1.7, runs=runs, t_final=tf),
+        result("sweep.cpu_per_run", one["cpu_s_per_run"], "CPU s", "the same runs with CVODES' step free "
+               "(simulation.max_step = 0)", free["cpu_s_per_run"], free["cpu_s_per_run"] / one["cpu_s_per_run"],
+               runs=cpu_runs, t_final=tf, capped=one, free=free, max_step=sc.simulation.dt / 2,
+               runs_per_second_per_core=1 / one["cpu_s_per_run"],
+               runs_per_second_per_core_free=1 / free["cpu_s_per_run"],
+               note="ratio = CPU per run free / capped (> 1: the campaign's cap is faster)"),
         result("sweep.compile_time", first["compile_time"], "s", None, None, None,
                compilations=compiled, campaigns=len(out), runs_per_campaign=runs,
                cache_hit_first=first["compile_cache_hit"]),

@@ -23,12 +23,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..io import json_safe
 from .audit import CheckResult
 from .lyapunov import REL_TOL, LyapunovTrajectory, decay_margin, falsify
+
+if TYPE_CHECKING:
+    from ..closedloop import ClosedLoop
+    from ..design import Design
+    from ..scenario import Scenario
+    from ..simulation.result import SimResult
 
 #: how far (relative) the last quarter's peak |tau| may exceed the peak before it and still count as bounded
 TAU_GROWTH_ALLOWANCE = 0.1
@@ -41,10 +48,10 @@ V_ABS_ALLOWANCE_PER_ATOL = 100.0
 class Verification:
     """Everything `verify` computed: the checks, and the data behind them (for the report)."""
 
-    scenario: object
-    design: object
-    closed_loop: object
-    result: object                            # SimResult
+    scenario: Scenario
+    design: Design
+    closed_loop: ClosedLoop
+    result: SimResult
     lyapunov: LyapunovTrajectory | None
     falsification: dict | None
     checks: list[CheckResult]

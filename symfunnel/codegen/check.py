@@ -1,4 +1,5 @@
-"""Cross-check generated code against CasADi's evaluation of the same SX graph, at random points inside the funnels.
+"""Cross-check generated code against CasADi's evaluation of the same SX graph, at random points inside the funnels;
+`check_output` checks a generated file set (and runs its main.c), `codegen_summary` both languages for the report.
 
 Error measure, per output and point (normwise): max|generated - casadi| / max(1, max|casadi|) over the entries of
 that output (relative, with a unit floor so that outputs near zero are compared absolutely). The check reports the
@@ -10,15 +11,27 @@ from __future__ import annotations
 import ctypes
 import importlib.util
 import itertools
+import json
 import subprocess
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import casadi
 import numpy as np
 
+from .c import BASENAME
+from .contract import LANGS, contract_functions, trajectory_inputs
+from .files import c_names, generate, write_output
+
+if TYPE_CHECKING:
+    from ..design import Design
+    from .build import Built
+
 __all__ = ["THRESHOLDS", "FILL", "CheckReport", "sample_points", "casadi_values", "c_library", "CLibrary",
-           "check_c", "check_python", "load_python_module", "relative_error"]
+           "check_c", "check_python", "load_python_module", "relative_error", "check_output", "main_program",
+           "codegen_summary"]
 
 #: Worst relative error allowed by `codegen --check` per language.
 THRESHOLDS = {"c": 1e-12, "python": 1e-10}
@@ -242,4 +255,96 @@ def run_main(exe: str | Path, trajectory: str | Path, cwd: str | Path | None = N
     if proc.returncode != 0:
         raise RuntimeError(f"{exe} failed with exit code {proc.returncode}: {proc.stderr.strip()}")
     return parse_trajectory_output(proc.stdout)
+
+
+
+# --- the generated files, checked --------------------------------------------------------------------
+
+def check_output(design: Design, lang: str, files: dict[str, str], *, points: int = 1000, seed: int = 0,
+                 fill: float | None = None, pts: dict | None = None) -> CheckReport:
+    """Compile (C, cached) or import (Python) generated files and compare every function with CasADi.
+
+    For C also compiles main.c with the strict flags and runs it over trajectory.txt, comparing its torques with
+    CasADi (extra entry 'main.c trajectory').
+    """
+    functions = contract_functions(design)
+    if pts is None:
+        pts = sample_points(design, points, seed, FILL if fill is None else fill)
+    if lang == "c":
+        base, fprefix = c_names(files)
+        lib = c_library(files[base + ".c"], files[base + ".h"], base)
+        report = check_c(functions, lib.path, pts, prefix=fprefix)
+        report.extra["main.c trajectory"] = _check_main(design, files)
+        return report
+    with tempfile.TemporaryDirectory(prefix="symfunnel-py-") as tmp:
+        path = Path(tmp) / (BASENAME + ".py")
+        path.write_text(files[BASENAME + ".py"], encoding="utf-8")
+        mod = load_python_module(path)
+    return check_python(functions, mod, pts)
+
+
+
+def main_program(files: dict[str, str], flags=None) -> Built:
+    """Build main.c + the generated pair with the strict flags (cached)."""
+    from .build import compile_cached
+    from .c import STRICT_CFLAGS
+    base = c_names(files)[0]
+    src = {k: files[k] for k in (base + ".c", base + ".h", "main.c")}
+    return compile_cached(src, ["main.c", base + ".c"], "symfunnel_main", tuple(flags or STRICT_CFLAGS))
+
+
+def _check_main(design: Design, files: dict[str, str]) -> float:
+    """Worst relative error of main.c's torques over trajectory.txt against CasADi."""
+    exe = main_program(files).path
+    with tempfile.TemporaryDirectory(prefix="symfunnel-traj-") as tmp:
+        p = Path(tmp) / "trajectory.txt"
+        p.write_text(files["trajectory.txt"], encoding="utf-8")
+        rows = run_main(exe, p)
+    inp = trajectory_inputs(design, files["trajectory.txt"])
+    tau = casadi_values(design.controller(), inp)[0]                  # (n, 1, k)
+    tau_max = json.loads(files["manifest.json"])["c_api"]["step"]["tau_max"]
+    if tau_max is not None:                                           # main.c's Pstep saturates
+        tm = np.asarray(tau_max, dtype=float)[:, None, None]
+        tau = np.clip(tau, -tm, tm)
+    if rows.shape != (tau.shape[2], 1 + tau.shape[0]):
+        return float("inf")
+    return float(relative_error(rows[:, 1:].T[:, None, :], tau).max())
+
+
+
+def codegen_summary(design: Design, trajectory: dict, *, points: int = 1000) -> dict:
+    """Generate both languages into a temp dir and check them against CasADi; plain data for the report.
+
+    Returns {"scenario", "functions": [{"name", "inputs", "outputs", "operations"}],
+    "languages": {"c"|"python": {"files": [{"name", "bytes", "lines"}], "check": CheckReport.to_json()}},
+    "controller_operations", "timings": None (timing is `symfunnel bench --only codegen`'s job), "points"}.
+    """
+    from ..sx.tape import count_ops
+    from .build import find_compiler
+    from .python import manifest_entry
+    functions = contract_functions(design)
+    pts = sample_points(design, points, 0)
+    out = {"scenario": design.scenario.name, "points": points, "languages": {},
+           "functions": [], "controller_operations": count_ops(design.controller())["operations"]}
+    for f in functions:
+        e = manifest_entry(f)
+        e["operations"] = count_ops(f)["operations"]
+        out["functions"].append(e)
+    files = {}
+    with tempfile.TemporaryDirectory(prefix="symfunnel-codegen-") as tmp:
+        for lang in LANGS:
+            files[lang] = generate(design, lang, trajectory=trajectory)
+            write_output(files[lang], Path(tmp) / lang)
+            entry = {"files": [{"name": k, "bytes": len(v.encode("utf-8")), "lines": v.count("\n")}
+                               for k, v in files[lang].items()]}
+            try:
+                if lang == "c":
+                    find_compiler()
+                entry["check"] = check_output(design, lang, files[lang], pts=pts).to_json()
+            except Exception as exc:  # noqa: BLE001 - the report shows why a language could not be checked
+                entry["check"] = None
+                entry["error"] = f"{type(exc).__name__}: {exc}"
+            out["languages"][lang] = entry
+    out["timings"] = None
+    return out
 

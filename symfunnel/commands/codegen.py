@@ -34,8 +34,8 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Generate, write atomically, and optionally cross-check."""
-    from ..codegen import check_output, write_output
-    from ..codegen.check import FILL
+    from ..codegen.check import FILL, check_output
+    from ..codegen.files import write_output
     from ._common import _progress
     from ..errors import InputError
     from ..outputs import check_count

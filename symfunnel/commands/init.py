@@ -122,7 +122,7 @@ def _fmt(x: float) -> str:
 
 def scenario_from_urdf(urdf: str, out: Path, name: str) -> str:
     """A scenario around a URDF's movable joints: gentle swings around mid-range, funnels containing e(0)."""
-    from ..model.rigid import bodies_from_tree
+    from ..model.tree import bodies_from_tree
     from ..model.urdf import parse_urdf
     tree = parse_urdf(urdf)
     bodies = bodies_from_tree(tree)

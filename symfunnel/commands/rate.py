@@ -30,7 +30,8 @@ def run(args) -> int:
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
     sc = _load(args)
     say = _progress(args.quiet or args.json)
-    r = min_rate(sc, margin=args.margin, t_final=args.t_final, progress=say)
+    from ..pipeline import Run
+    r = min_rate(sc, Run(sc, progress=say).design, margin=args.margin, t_final=args.t_final, progress=say)
     if args.json:
         print(_dump(r))
     else:

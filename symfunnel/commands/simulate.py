@@ -35,7 +35,7 @@ def run(args) -> int:
     from ._common import _dump, _load, _progress
     from ..errors import InputError
     from ..pipeline import Run, RunOptions
-    from ..simulate import convergence_study
+    from ..simulation import convergence_study
 
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
@@ -130,7 +130,8 @@ def _sampled(args, sc, say) -> int:
     from ..cli import _dump
     from ..io import atomic_write
     from ..sampled import simulate_sampled
-    res = simulate_sampled(sc, rate_hz=args.rate, t_final=args.t_final, progress=say)
+    from ..pipeline import Run
+    res = simulate_sampled(sc, Run(sc, progress=say).design, rate_hz=args.rate, t_final=args.t_final, progress=say)
     summary = res.summary()
     if args.out:
         import io

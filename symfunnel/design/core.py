@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
@@ -16,6 +17,9 @@ import numpy as np
 from ..errors import InputError
 from ..sx.tape import count_ops as tape_ops
 from ..validate import did_you_mean
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 #: the inputs every design has, before the controller states of its variant
 JOINT_INPUTS = ("t", "q", "dq", "qd", "dqd", "ddqd")
@@ -25,7 +29,7 @@ JOINT_INPUTS = ("t", "q", "dq", "qd", "dqd", "ddqd")
 class Design:
     """Signals of one scenario's design as SX, with the base symbols they are written in."""
 
-    scenario: object
+    scenario: Scenario
     variant: object                        # the design variant that derived it (design.backstepping.Backstepping)
     sym: dict[str, ca.SX]
     signals: dict[str, ca.SX]

@@ -12,8 +12,9 @@ import numpy as np
 from ..errors import InputError
 from ..validate import check_keys, get_float, get_list, get_str, join
 from .base import RigidBodyModel
-from .rigid import (Joint, Link, Tree, build_model, check_inertia, check_mass, get_coordinates,
-                    get_joint_range, get_range, get_vector, rot_x, rot_z)
+from .rigid import build_model
+from .tree import (Joint, Link, Tree, check_inertia, check_mass, get_coordinates, get_joint_range, get_range,
+                   get_vector, rot_x, rot_z)
 
 COMMON = ("type", "coordinates", "gravity", "joint_range")
 PLANAR_LINK = ("mass", "length", "com", "inertia")

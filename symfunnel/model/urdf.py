@@ -11,8 +11,9 @@ import numpy as np
 from ..errors import InputError
 from ..validate import check_keys, did_you_mean, get_str, join
 from .base import RigidBodyModel
-from .rigid import (MOVABLE, Joint, Link, Tree, bodies_from_tree, build_model, check_inertia, check_mass,
-                    get_coordinates, get_joint_range, get_vector, rpy_matrix)
+from .rigid import build_model
+from .tree import (MOVABLE, Joint, Link, Tree, bodies_from_tree, check_inertia, check_mass, get_coordinates,
+                   get_joint_range, get_vector, rpy_matrix)
 
 KEYS = ("type", "path", "coordinates", "gravity", "joint_range")
 JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed")

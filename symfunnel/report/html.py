@@ -509,7 +509,7 @@ def tuning_section(run, progress, figures_dir=None) -> dict:
         return {"available": False}
     progress("tuning: the original design against the tuned one")
     try:
-        cmp_ = compare_designs(sc, tuned_simulation=run.simulation, t_final=run.options.t_final, progress=progress)
+        cmp_ = compare_designs(sc, tuned_run=run, t_final=run.options.t_final, progress=progress)
     except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
         return {"available": True, "error": f"{type(exc).__name__}: {exc}"}
     o, t = cmp_["original"], cmp_["tuned"]
@@ -538,7 +538,7 @@ def tuning_section(run, progress, figures_dir=None) -> dict:
 
 def codegen_section(run, progress) -> dict:
     """The code-generation summary of a Run: both languages generated, compiled/imported and cross-checked."""
-    from ..codegen import codegen_summary
+    from ..codegen.check import codegen_summary
     progress("code generation: C and Python, compiled/imported and cross-checked")
     t0 = time.perf_counter()
     try:

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import signal
-import threading
-
 import casadi as ca
 
 
@@ -13,23 +9,13 @@ class _Timeout(Exception):
     pass
 
 
-@contextlib.contextmanager
 def time_limit(seconds: float):
-    """Raise _Timeout inside the block after `seconds` (main thread only; elsewhere no limit is applied)."""
-    if seconds <= 0 or threading.current_thread() is not threading.main_thread():
-        yield
-        return
+    """Raise _Timeout inside the block after `seconds` (main thread only; elsewhere no limit is applied).
 
-    def handler(signum, frame):
-        raise _Timeout()
-
-    old = signal.signal(signal.SIGALRM, handler)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
+    Nested in a command's wall-clock limit (`symfunnel.deadline`): whichever expires first stops the block, and the
+    command's own limit is never swallowed as this one's _Timeout."""
+    from ..deadline import limit
+    return limit(seconds if seconds > 0 else None, on_expiry=_Timeout)
 
 
 def sympy_is_zero(expr: ca.SX, inputs: list[ca.SX], timeout: float, max_ops: int = 3000):

@@ -1,0 +1,168 @@
+"""One wall-clock limit for a whole command: nested deadlines, enforced by SIGALRM in the main thread and by checks.
+
+A command opens a deadline (`limit(seconds)`); inner work may open tighter ones (a sympy proof's few seconds, a
+Run's `[simulation] wall_limit`); the earliest expiry is armed as a real-time alarm. When it fires in Python code
+the exception of the outermost expired deadline is raised there: `WallLimitReached` for a command's limit (a
+BaseException, so no `except Exception` in a stage swallows it), the caller's own exception for an inner time limit.
+Code that cannot be interrupted by a signal (one long CasADi call, a compiler subprocess) bounds itself with
+`remaining()` and calls `check()` when it returns; long loops that stop gracefully (the integration, which keeps its
+trajectory) run under `paused()` and watch `remaining()` themselves.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+__all__ = ["WallLimitReached", "limit", "until", "remaining", "check", "paused", "step", "current_step"]
+
+
+class WallLimitReached(BaseException):
+    """A command's wall-clock limit was reached while doing `step`."""
+
+    def __init__(self, seconds: float, step: str, elapsed: float):
+        self.seconds, self.step, self.elapsed = seconds, step, elapsed
+        super().__init__(f"wall-clock limit of {seconds:g} s reached while {step} (after {elapsed:.3g} s); "
+                         f"nothing was written (raise --wall-limit or [simulation] wall_limit)")
+
+
+@dataclass
+class _Deadline:
+    expiry: float                       # time.monotonic() at which it expires
+    seconds: float
+    started: float
+    make: Callable[[], BaseException] | None    # None: WallLimitReached
+
+
+_stack: list[_Deadline] = []
+_steps: list[str] = []
+_paused: list[bool] = []
+
+
+def _main() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def current_step() -> str:
+    """What the command is doing now (for the message of a reached limit)."""
+    return _steps[-1] if _steps else "working"
+
+
+def _error(d: _Deadline) -> BaseException:
+    if d.make is not None:
+        return d.make()
+    return WallLimitReached(d.seconds, current_step(), time.monotonic() - d.started)
+
+
+def _expired() -> _Deadline | None:
+    now = time.monotonic()
+    for d in _stack:                    # outermost first: a command's limit wins over an inner time limit
+        if now >= d.expiry:
+            return d
+    return None
+
+
+def _handler(signum, frame):
+    d = _expired()
+    if d is not None:
+        raise _error(d)
+    _arm()                               # woke early (an outer deadline was re-armed): wait for the next one
+
+
+def _arm() -> None:
+    if not _main():
+        return
+    if not _stack or (_paused and _paused[-1]):
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        return
+    wait = min(d.expiry for d in _stack) - time.monotonic()
+    signal.signal(signal.SIGALRM, _handler)
+    signal.setitimer(signal.ITIMER_REAL, max(wait, 1e-4))
+
+
+def remaining() -> float:
+    """Seconds left before the earliest open deadline (inf without one)."""
+    if not _stack or not _main():
+        return math.inf
+    return min(d.expiry for d in _stack) - time.monotonic()
+
+
+def check(what: str | None = None) -> None:
+    """Raise the expired deadline's exception, if one has expired (for code a signal cannot interrupt)."""
+    if not _main():
+        return
+    d = _expired()
+    if d is not None:
+        if what:
+            _steps.append(what)
+        try:
+            raise _error(d)
+        finally:
+            if what:
+                _steps.pop()
+
+
+@contextlib.contextmanager
+def _push(d: _Deadline):
+    if not _main():
+        yield
+        return
+    old = signal.getsignal(signal.SIGALRM) if not _stack else None
+    _stack.append(d)
+    _arm()
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        _stack.remove(d)
+        if _stack:
+            _arm()
+        elif old is not None:
+            signal.signal(signal.SIGALRM, old)
+
+
+def limit(seconds: float | None, *, on_expiry: Callable[[], BaseException] | None = None):
+    """A deadline `seconds` from now for the block (None or inf: none). `on_expiry` makes the exception raised
+    (default: WallLimitReached naming the current step). Main thread only; elsewhere the block runs unbounded."""
+    if seconds is None or not math.isfinite(seconds):
+        return contextlib.nullcontext()
+    now = time.monotonic()
+    return _push(_Deadline(now + max(float(seconds), 0.0), float(seconds), now, on_expiry))
+
+
+def until(expiry: float, seconds: float, started: float):
+    """The deadline at monotonic time `expiry` (of a limit of `seconds` started at `started`) for the block."""
+    if not math.isfinite(expiry):
+        return contextlib.nullcontext()
+    return _push(_Deadline(expiry, seconds, started, None))
+
+
+@contextlib.contextmanager
+def paused():
+    """No alarm inside the block (it watches `remaining()` itself); an expiry is raised by the next check."""
+    if not _main():
+        yield
+        return
+    _paused.append(True)
+    _arm()
+    try:
+        yield
+    finally:
+        _paused.pop()
+        _arm()
+
+
+@contextlib.contextmanager
+def step(what: str):
+    """Name what the block does, for the message of a limit reached inside it; checks the deadline on entry."""
+    _steps.append(what)
+    try:
+        check()
+        yield
+    finally:
+        _steps.pop()

@@ -1,0 +1,223 @@
+"""The closed loop compiled for the integrator: its DAE function (states permuted), the Newton Jacobian and the
+logged-signals function, generated as C, compiled once (cached by `codegen.build`) and loaded, or on the CasADi VM.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import subprocess
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from .. import deadline
+from ..closedloop import OUTPUT_NAMES, ClosedLoop
+from ..errors import InputError
+
+COMPILE_FLAGS = ["-O1", "-shared", "-fPIC"]
+APPROX_ESN_JACOBIAN = True
+_LOADED: dict = {}           # source hash -> (ode, outputs) externals loaded in this process
+
+
+class Buffered:
+    """A casadi.Function evaluated on preallocated numpy buffers: no numpy -> DM -> numpy conversion per call.
+
+    Every input and output must be dense (`supports`). The arguments are copied into `args` (column-major
+    nonzeros), the outputs land in `res`, overwritten by the next evaluation; callers copy what they keep.
+    """
+
+    def __init__(self, f: ca.Function, *, stats: bool = False):
+        self.f = f
+        self.with_stats = stats
+        self.stats: dict = {}        # of the last evaluation (with stats=True)
+        self._counted: dict = {}     # CasADi's n_call_* counters of this buffer's memory so far
+        self.buffer, self._eval = f.buffer()
+        self.args = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
+        self.res = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
+        for i, a in enumerate(self.args):
+            self.buffer.set_arg(i, memoryview(a))
+        for i, r in enumerate(self.res):
+            self.buffer.set_res(i, memoryview(r))
+
+    @staticmethod
+    def supports(f: ca.Function) -> bool:
+        """Whether every input and output of f is dense (the buffers hold nonzeros only)."""
+        return (all(f.sparsity_in(i).is_dense() for i in range(f.n_in()))
+                and all(f.sparsity_out(i).is_dense() for i in range(f.n_out())))
+
+    def __call__(self, *args) -> int:
+        """Evaluate on `args` (arrays in the inputs' column-major order); the outputs are then in `self.res`."""
+        for a, v in zip(self.args, args):
+            a[:] = np.ravel(v, order="F")
+        return self.evaluate()
+
+    def evaluate(self) -> int:
+        """Evaluate on the values already in `self.args`; CasADi's return code."""
+        try:
+            self._eval()
+        finally:
+            if self.with_stats:
+                self._count()
+        return self.buffer.ret()
+
+    def _count(self) -> None:
+        # A buffer keeps one memory object, whose n_call_* counters add up over evaluations (a plain call starts
+        # from zero): report the difference, as a plain call would.
+        st = dict(self.buffer.stats())
+        for k, v in st.items():
+            if k.startswith("n_call_") and isinstance(v, (int, float)):
+                st[k] = v - self._counted.get(k, 0)
+                self._counted[k] = v
+        self.stats = st
+
+
+@dataclass
+class Compiled:
+    """The integrator's DAE function and the logged-signals function, compiled or on the VM."""
+
+    dae: ca.Function                 # dyn_in -> dyn_out, states permuted, p = [chunk start time; plant p]
+    outputs: ca.Function             # (t, x, p) -> OUTPUT_NAMES, public state order
+    perm: np.ndarray                 # integrator state i = public state perm[i]
+    mode: str                        # "compiled" or "vm"
+    compile_time: float = 0.0
+    cached: bool = False
+    library: str | None = None
+    source_hash: str | None = None
+    maps: dict = field(default_factory=dict, repr=False)
+    pvals: np.ndarray | None = None  # the plant parameters of the run this copy is bound to (see `bind`)
+    integrators: dict = field(default_factory=dict, repr=False)
+
+    def bind(self, pvals) -> Compiled:
+        """This compiled loop bound to one run's plant parameters (shares the code and the output maps)."""
+        return dataclasses.replace(self, pvals=np.asarray(pvals, dtype=float).reshape(-1))
+
+
+def _permutation(cl: ClosedLoop) -> np.ndarray:
+    """Controller states last first, joints last: keeps the Newton matrix's LU fill-in low."""
+    s = cl.slices
+    idx = np.arange(cl.nx)
+    states = [name for name, _ in reversed(cl.design.states)]
+    return np.concatenate([idx[s[k]] for k in states] + [idx[s["q"]], idx[s["dq"]]])
+
+
+def _dae_function(cl: ClosedLoop, perm: np.ndarray) -> ca.Function:
+    t0 = ca.SX.sym("t0")
+    p = ca.vertcat(t0, cl.p)
+    xi = cl.x[list(perm)]
+    ode = ca.substitute(cl.xdot_p, cl.t, cl.t + t0)[list(perm)]
+    empty = ca.SX(0, 1)
+    return ca.Function("symfunnel_ode", [cl.t, xi, ca.SX.sym("z", 0, 1), p, ca.SX.sym("u", 0, 1)],
+                       [ode, empty, empty, empty], ca.dyn_in(), ca.dyn_out(), {"cse": True})
+
+
+def _newton_jacobian(cl: ClosedLoop, dae: ca.Function, perm: np.ndarray) -> ca.Function:
+    """The Jacobian CVODES' Newton iteration uses: exact, except the reservoir's internal coupling.
+
+    The block d(x_esn_dot)/d(x_esn) = (1/time_constant)(-leak I + diag(tanh') W) is replaced by its diagonal: the
+    dropped part has norm <= spectral-radius-ish 0.9/time_constant, so h*||dropped|| << 1 at the step sizes the
+    stiff funnel/friction modes impose, and Newton still converges (a modified Newton iteration; CVODES' error
+    control, hence the accuracy, is unchanged). Without it, the random sparse W makes the LU of the Newton matrix
+    fill in to a dense 50 x 50 block, which costs more than everything else in the run.
+    """
+    jac = dae.jacobian()
+    ins = [ca.SX.sym(jac.name_in(i), jac.sparsity_in(i)) for i in range(jac.n_in())]
+    outs = jac.call(ins)
+    ix = jac.name_out().index("jac_ode_x")
+    J = outs[ix]
+    pos = np.empty(cl.nx, dtype=int)
+    pos[perm] = np.arange(cl.nx)
+    esn = set(int(v) for v in pos[cl.slices["x_esn"]]) if "x_esn" in cl.slices else set()
+    rows, cols = J.sparsity().get_triplet()
+    keep_r, keep_c, vals = [], [], []
+    for r, c in zip(rows, cols):
+        if r in esn and c in esn and r != c:
+            continue
+        keep_r.append(r)
+        keep_c.append(c)
+        vals.append(J[r, c])
+    sp = ca.Sparsity.triplet(J.size1(), J.size2(), keep_r, keep_c)
+    Jn = ca.SX(sp, ca.vertcat(*vals) if vals else ca.SX(0, 1))
+    outs[ix] = Jn
+    return ca.Function(jac.name(), ins, outs, jac.name_in(), jac.name_out(), {"cse": True})
+
+
+def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
+                        approx_jacobian: bool = APPROX_ESN_JACOBIAN) -> Compiled:
+    """Generate C for the closed loop's RHS, Jacobian and outputs, compile it once (cached) and load it.
+
+    `approx_jacobian` selects the modified-Newton Jacobian of `_newton_jacobian` (right for CVODES, whose error
+    control does not depend on it); collocation solves its stage equations with that Jacobian too, and needs the
+    exact one to converge.
+    """
+    say = progress or (lambda s: None)
+    perm = _permutation(cl)
+    dae = _dae_function(cl, perm)
+    outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x, cl.p], [cl.signals_p[k] for k in OUTPUT_NAMES],
+                          ["t", "x", "p"], list(OUTPUT_NAMES), {"cse": True})
+    vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm")
+    if not jit or os.environ.get("SYMFUNNEL_NO_JIT"):
+        return vm
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
+        cg = ca.CodeGenerator("symfunnel_cl.c", {"with_header": False})
+        cg.add(dae)
+        cg.add(_newton_jacobian(cl, dae, perm) if approx_jacobian else dae.jacobian())
+        cg.add(outputs)
+        cg.generate(tmp + os.sep)
+        src = Path(tmp, "symfunnel_cl.c").read_bytes()
+    deadline.check()                           # generating the Jacobian is one CasADi call no signal interrupts
+    digest = hashlib.sha256(src + " ".join(COMPILE_FLAGS).encode() + ca.__version__.encode()).hexdigest()[:24]
+    if digest in _LOADED:
+        ext_dae, ext_out, lib = _LOADED[digest]
+        return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, True, lib, digest)
+    from ..codegen.build import compile_cached, find_compiler
+    try:
+        find_compiler()
+    except InputError:
+        warnings.warn("no C compiler found (gcc/cc/$CC): simulating on the CasADi virtual machine (slower)",
+                      RuntimeWarning, stacklevel=2)
+        return vm
+    try:
+        built = compile_cached({"symfunnel_cl.c": src}, ["symfunnel_cl.c"], "symfunnel_cl.so", COMPILE_FLAGS,
+                               on_build=say)
+    except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
+        warnings.warn(f"compiling the closed loop failed ({exc}); simulating on the CasADi virtual machine",
+                      RuntimeWarning, stacklevel=2)
+        return vm
+    lib, cached = built.path, built.cached
+    try:
+        ext_dae = ca.external("symfunnel_ode", str(lib))
+        ext_out = ca.external("symfunnel_outputs", str(lib))
+    except RuntimeError as exc:
+        from ..sim_hints import error_line
+        warnings.warn(f"loading {lib} failed ({error_line(str(exc))}); simulating on the CasADi virtual machine",
+                      RuntimeWarning, stacklevel=2)
+        return vm
+    _LOADED[digest] = (ext_dae, ext_out, str(lib))
+    return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, cached, str(lib), digest)
+
+
+
+def evaluate_outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> dict:
+    """The logged signals (OUTPUT_NAMES, each (T, size)) at times t and states X (T, n_x), public order."""
+    T = t.size
+    if T == 0:
+        return {k: np.zeros((0, n)) for k in OUTPUT_NAMES}
+    fm = comp.maps.get(T)
+    if fm is None:
+        # one serial map over the chunk, the plant parameters shared (reduce_in), evaluated on numpy buffers
+        f = comp.outputs.map("outputs_map", "serial", T, [2], [])
+        fm = comp.maps[T] = Buffered(f) if Buffered.supports(f) else f
+    if isinstance(fm, Buffered):
+        fm(t, X.T, comp.pvals)
+        # copied into Fortran order, the layout a DM's transpose had: reductions over time sum in the same order
+        return {k: np.array(r.reshape(T, -1), order="F") for k, r in zip(OUTPUT_NAMES, fm.res)}
+    res = fm(t.reshape(1, -1), X.T, comp.pvals)
+    return {k: np.asarray(ca.densify(r)).T for k, r in zip(OUTPUT_NAMES, res)}

@@ -1,0 +1,194 @@
+"""The run loop: `simulate` integrates the compiled closed loop in chunks of the output grid (a fixed schedule:
+reproducible), checks the funnel margins after each chunk, stops at a breach, a failure or the wall-clock limit."""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .. import deadline
+from ..closedloop import ClosedLoop, build_closed_loop
+from ..errors import InputError
+from ..integrators import INTEGRATORS
+from .breach import bad_index, describe_breach, locate_failure, locate_within
+from .compiled import APPROX_ESN_JACOBIAN, compile_closed_loop, evaluate_outputs
+from .result import SimResult, finish
+from .runner import Runner, Timeout
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Mapping
+
+    from ..design import Design
+    from ..scenario import Scenario
+
+CHUNK_SIZES = (1, 5, 25, 100, 500)
+
+
+def _grid(t_final: float, dt: float) -> tuple[int, float]:
+    """Number of output steps and the step that divides t_final evenly (at most dt)."""
+    M = max(1, int(math.ceil(t_final / dt - 1e-9)))
+    return M, t_final / M
+
+
+def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None, integrator: str | None = None,
+             width: float | None = None, progress: Callable[[str], None] | None = None,
+             wall_limit: float | None = None, closed_loop: ClosedLoop | None = None, jit: bool = True,
+             params: Mapping[str, float] | None = None, x0=None, fixed_chunks: bool = False) -> SimResult:
+    """Simulate a scenario's closed loop; never raises for a breach, a timeout or an integrator failure.
+
+    Returns a SimResult whose status is 'ok', 'breach', 'initial_outside', 'timeout' or 'failed', with the
+    trajectory up to where the run stopped. Bad settings raise InputError. `params` (name -> value, names of
+    `closedloop.plant_parameters`) and `x0` (public state order) override the closed loop's plant quantities and
+    initial state without recompiling: a campaign runs every variant on one compiled loop. `fixed_chunks`
+    integrates in the chunks a fast machine chooses (25 points, then 500) whatever the wall time, so that the
+    result does not depend on the machine's speed (CVODES restarts at every chunk).
+    """
+    say = progress or (lambda s: None)
+    sc = scenario
+    sim = sc.simulation
+    tf = sim.t_final if t_final is None else t_final
+    if not (isinstance(tf, (int, float)) and not isinstance(tf, bool) and math.isfinite(tf) and tf > 0):
+        raise InputError(f"is {tf!r}", key="--t-final", expected="a number > 0")
+    if tf / sim.dt > 1e6:
+        raise InputError(f"gives {tf / sim.dt:.3g} output points", key="--t-final",
+                         expected="at most 1e6 output points (t_final/dt)")
+    method = integrator or sim.integrator
+    INTEGRATORS.get(method, key="--integrator")
+    limit = sim.wall_limit if wall_limit is None else float(wall_limit)
+    w = sim.smoothing_width if width is None else width
+    if not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0):
+        raise InputError(f"is {w!r}", key="--width", expected="a number >= 0")
+    w = float(w)
+
+    start = time.perf_counter()
+    limit = min(limit, deadline.remaining())      # a command's (or Run's) wall-clock limit bounds this run too
+    if closed_loop is None:
+        say("building the closed loop")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            cl = build_closed_loop(sc, design, width=w)
+    else:
+        cl = closed_loop
+    if w == 0.0:
+        warnings.warn("smoothing_width = 0: exact sign friction and dead-zone kinks; CVODES may take many tiny "
+                      "steps at every switch (the wall-clock limit still applies)", RuntimeWarning, stacklevel=2)
+    approx = method == "cvodes" and APPROX_ESN_JACOBIAN
+    comp = getattr(cl, "_compiled", {}).get((jit, approx))
+    if comp is None:
+        with deadline.step("compiling the closed loop"):
+            comp = compile_closed_loop(cl, progress=say, jit=jit, approx_jacobian=approx)
+        cl.__dict__.setdefault("_compiled", {})[(jit, approx)] = comp
+    compile_time = time.perf_counter() - start
+    pv = cl.p0.copy()
+    if params:
+        index = {k: i for i, k in enumerate(cl.p_names)}
+        for k, v in params.items():
+            if k not in index:
+                raise InputError("is not a plant parameter of this closed loop", key=k,
+                                 expected="one of " + ", ".join(cl.p_names))
+            pv[index[k]] = float(v)
+    comp = comp.bind(pv)
+
+    M, h = _grid(float(tf), sim.dt)
+    n = cl.n
+    treatment = (f"smoothing of width {w:g} (sign_w(x) = x/sqrt(x^2+w^2) for Coulomb friction, "
+                 f"ramp_w(x) = (x+sqrt(x^2+w^2))/2 at the dead-zone breakpoints)") if w > 0 else \
+        "exact non-smooth terms (no smoothing)"
+    stats = {"integrator": method, "smoothing_width": w, "non_smooth_treatment": treatment,
+             "t_final": float(tf), "dt": h, "code": comp.mode, "compiled_library": comp.library,
+             "cache_hit": comp.cached, "compile_time": compile_time, "rtol": sim.rtol, "atol": sim.atol,
+             "wall_limit": limit}
+    runner = Runner(cl, comp, method, h, sim)
+
+    # initial point
+    x0 = cl.x0.copy() if x0 is None else np.asarray(x0, dtype=float).reshape(cl.nx).copy()
+    t_list = [np.array([0.0])]
+    X_list = [x0[None, :]]
+    o0 = evaluate_outputs(comp, n, np.array([0.0]), x0[None, :])
+    O_list = [o0]              # logged signals of the segments of t_list computed on the way (None: not yet)
+    bi, kind = bad_index(o0, x0[None, :])
+    status, message, breach = "ok", "", None
+    if bi is not None:
+        if kind == "nonfinite":
+            status = "failed"
+            message = "the initial state gives non-finite signals (check the scenario's initial values)"
+        else:
+            b = describe_breach(0.0, o0, 0, n)
+            status = "initial_outside"
+            breach = b
+            message = (f"initial error outside funnel {b['funnel']} at joint {b['joint']}: "
+                       f"|{b['funnel']}(0)| = {b['abs_error']:.6g} >= F{b['funnel'][1]}(0) = {b['boundary']:.6g}")
+        return finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list)
+
+    sim_start = time.perf_counter()
+    k = 0                      # grid index reached
+    x = x0
+    K = 25
+    last_report = sim_start
+    with deadline.paused():                    # the loop stops at `limit` itself, keeping the trajectory
+        try:
+            while k < M:
+                Kc = min(K, M - k)
+                t0 = k * h
+                elapsed = time.perf_counter() - start
+                if elapsed > limit:
+                    raise Timeout()
+                c0 = time.perf_counter()
+                try:
+                    X = runner.run(t0, x, Kc)
+                    failed = False
+                except RuntimeError:
+                    X, failed = None, True
+                if failed:
+                    # redo point by point to find the last good grid point, then locate within the step
+                    res = locate_failure(runner, comp, n, k, x, Kc, h, start, limit)
+                    t_list.extend(res["t"])
+                    X_list.extend(res["X"])
+                    status, message, breach = res["status"], res["message"], res["breach"]
+                    break
+                tc = t0 + h * np.arange(1, Kc + 1)
+                tc[-1] = min(tc[-1], float(tf)) if k + Kc == M else tc[-1]
+                o = evaluate_outputs(comp, n, tc, X)
+                bi, kind = bad_index(o, X)
+                if bi is not None:
+                    t_list.append(tc[:bi])
+                    X_list.append(X[:bi])
+                    xs = X[bi - 1] if bi > 0 else x
+                    ts = tc[bi - 1] if bi > 0 else t0
+                    res = locate_within(runner, comp, n, ts, xs, h)
+                    t_list.extend(res["t"])
+                    X_list.extend(res["X"])
+                    status, message, breach = res["status"], res["message"], res["breach"]
+                    break
+                t_list.append(tc)
+                X_list.append(X)
+                O_list.append(o)
+                k += Kc
+                x = X[-1]
+                spent = time.perf_counter() - c0
+                # Chunks grow along CHUNK_SIZES whatever the wall time, so a run is reproducible bit for bit (CVODES
+                # restarts at chunk boundaries); only a chunk that would overrun the wall-clock limit is shrunk.
+                per_point = spent / Kc
+                remaining = max(limit - (time.perf_counter() - start), 1e-3)
+                if fixed_chunks:
+                    K = CHUNK_SIZES[-1]
+                else:
+                    K = CHUNK_SIZES[min(CHUNK_SIZES.index(K) + 1, len(CHUNK_SIZES) - 1)] if K in CHUNK_SIZES else 1
+                if per_point * K > remaining / 4:
+                    K = max([c for c in CHUNK_SIZES if per_point * c <= remaining / 4] or [1])
+                now = time.perf_counter()
+                if now - last_report > 2.0:
+                    say(f"t = {k * h:.3g} / {tf:g} s")
+                    last_report = now
+        except Timeout:
+            tr = float(np.concatenate(t_list)[-1])
+            status = "timeout"
+            message = (f"wall-clock limit of {limit:g} s reached at t = {tr:.6g} s of {tf:g} s; the trajectory so "
+                       f"far is kept (raise simulation.wall_limit, or check the scenario for stiffness)")
+    stats["sim_wall_time"] = time.perf_counter() - sim_start
+    return finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list)
+

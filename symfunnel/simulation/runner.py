@@ -1,0 +1,85 @@
+"""Integration of the compiled closed loop over a relative output grid: one `Runner` per run, its integrators
+shared by every run on the same compiled loop, with the integrator statistics of the run."""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+
+from ..closedloop import ClosedLoop
+from ..integrators import INTEGRATORS
+from .compiled import Buffered, Compiled
+
+if TYPE_CHECKING:
+    from ..scenario import SimulationSpec
+
+
+class Timeout(Exception):
+    """The run's wall-clock limit was reached."""
+
+
+class Runner:
+    """Chunked integration on the output grid (used by the run loop and the breach location); one per run."""
+
+    def __init__(self, cl: ClosedLoop, comp: Compiled, method: str, h: float, sim: SimulationSpec):
+        self.cl, self.comp, self.method, self.h, self.sim = cl, comp, method, h, sim
+        self.perm = comp.perm
+        self.inv = np.argsort(comp.perm)
+        # integrators are shared by every run on this compiled loop (a campaign builds them once)
+        self._integrators: dict = comp.integrators
+        self.stats = {"steps": 0, "rhs_evaluations": 0, "jacobian_evaluations": 0, "error_test_failures": 0,
+                      "integrate_time": 0.0}
+
+    def integrator(self, K: int, h: float | None = None) -> tuple[ca.Function, Buffered | None]:
+        """An integrator over the relative output grid h, 2h, ..., K h (p = the chunk's start time), with its
+        evaluation on numpy buffers (None when an input or output is sparse)."""
+        h = self.h if h is None else h
+        key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps,
+               self.sim.max_step)
+        if key not in self._integrators:
+            sim = self.sim
+            grid = [h * (k + 1) for k in range(K)]
+            opts = INTEGRATORS.get(self.method)(sim, h, self.h, K)
+            opts["show_eval_warnings"] = False
+            F = ca.integrator(f"sim_{K}", self.method, self.comp.dae, 0.0, grid, opts)
+            self._integrators[key] = (F, Buffered(F, stats=True) if Buffered.supports(F) else None)
+        return self._integrators[key]
+
+    def run(self, t0: float, x0: np.ndarray, K: int, h: float | None = None) -> np.ndarray:
+        """States (K, n_x), public order, at t0 + h, ..., t0 + K h; RuntimeError when the integrator fails."""
+        F, B = self.integrator(K, h)
+        p = np.concatenate([[t0], self.comp.pvals])
+        c0 = time.perf_counter()
+        xf = None
+        if B is not None:
+            B.args[F.index_in("x0")][:] = x0[self.perm]
+            B.args[F.index_in("p")][:] = p
+            try:
+                if B.evaluate() == 0:
+                    xf, st = B.res[F.index_out("xf")], B.stats
+            except RuntimeError as exc:
+                from ..lifecycle import reraise_interrupt
+                reraise_interrupt(exc)
+        if xf is None:       # no buffers, or a failure: the plain call raises CasADi's error (the run's message)
+            try:
+                xf = np.asarray(F(x0=x0[self.perm], p=p)["xf"]).T.reshape(-1)
+            except RuntimeError as exc:
+                from ..lifecycle import reraise_interrupt
+                reraise_interrupt(exc)                 # a signal during the integration is not an integrator failure
+                from ..sim_hints import error_line
+                self.last_error = error_line(str(exc))
+                raise
+            st = F.stats()
+        self.stats["integrate_time"] += time.perf_counter() - c0
+        if self.method == "cvodes":
+            self.stats["steps"] += int(st.get("nsteps", 0))
+            self.stats["rhs_evaluations"] += int(st.get("nfevals", 0))
+            self.stats["jacobian_evaluations"] += int(st.get("n_call_jacF", 0))
+            self.stats["error_test_failures"] += int(st.get("netfails", 0))
+        else:
+            self.stats["steps"] += int(st.get("n_call_step", 0)) * 1
+            self.stats["rhs_evaluations"] += int(st.get("n_call_daeF", 0))
+        return xf.reshape(K, -1)[:, self.inv]

@@ -1,0 +1,160 @@
+"""One wall-clock limit over a whole command: nested deadlines, the compiler killed, derive stopped, one line, exit 1."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from symfunnel import deadline
+from symfunnel.sx.proof import _Timeout, time_limit
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "symfunnel" / "data" / "paper_2dof.toml"
+
+
+def _spin(seconds: float) -> None:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        pass
+
+
+def test_the_alarm_stops_python_code_at_the_limit():
+    t0 = time.monotonic()
+    with pytest.raises(deadline.WallLimitReached) as info:
+        with deadline.limit(0.2), deadline.step("spinning"):
+            _spin(5.0)
+    assert time.monotonic() - t0 < 2.0
+    assert info.value.step == "spinning" and "0.2 s" in str(info.value)
+    assert deadline.remaining() == float("inf")          # nothing left armed
+
+
+def test_an_inner_time_limit_fires_first_and_the_outer_one_still_holds():
+    with pytest.raises(deadline.WallLimitReached):
+        with deadline.limit(0.6):
+            with pytest.raises(_Timeout):
+                with time_limit(0.1):
+                    _spin(5.0)
+            assert 0.0 < deadline.remaining() < 0.6      # the command's limit is re-armed after the proof's
+            _spin(5.0)
+
+
+def test_the_command_limit_is_not_swallowed_as_a_proof_timeout():
+    # the audit catches _Timeout around sympy; a command limit reached inside must escape as WallLimitReached
+    with pytest.raises(deadline.WallLimitReached):
+        with deadline.limit(0.1):
+            try:
+                with time_limit(30.0):
+                    _spin(5.0)
+            except _Timeout:
+                pytest.fail("the command's limit was turned into the proof's timeout")
+
+
+def test_paused_blocks_watch_the_limit_themselves_and_check_raises_after():
+    with deadline.limit(0.1):
+        with deadline.paused():
+            _spin(0.3)                                    # no alarm in here
+            assert deadline.remaining() < 0
+        with pytest.raises(deadline.WallLimitReached):
+            deadline.check("after the pause")
+
+
+def test_the_compiler_is_killed_with_its_children_at_the_limit(tmp_path):
+    from symfunnel.codegen.build import run_compiler
+    marker = tmp_path / "child.pid"
+    script = f"sleep 30 & echo $! > {marker}; wait"
+    t0 = time.monotonic()
+    with pytest.raises(deadline.WallLimitReached):
+        with deadline.limit(0.5), deadline.step("compiling"):
+            run_compiler(["sh", "-c", script], cwd=tmp_path, timeout=600)
+    assert time.monotonic() - t0 < 5.0
+    pid = int(marker.read_text())
+    time.sleep(0.2)
+    alive = subprocess.run(["ps", "-o", "stat=", "-p", str(pid)], capture_output=True, text=True).stdout.strip()
+    assert alive in ("", "Z"), f"the compiler's child {pid} survived the limit ({alive})"
+
+
+def _big_esn(tmp_path: Path, size: int) -> Path:
+    text = PAPER.read_text()
+    lines = text.splitlines()
+    out, in_esn = [], False
+    for line in lines:
+        if line.startswith("["):
+            in_esn = line.strip() == "[esn]"
+        if in_esn and line.startswith("size ="):
+            line = f"size = {size}"
+        out.append(line)
+    p = tmp_path / "big.toml"
+    p.write_text("\n".join(out) + "\n")
+    return p
+
+
+def _cli(args, **kw):
+    env = dict(os.environ, SYMFUNNEL_CACHE=str(kw.pop("cache")))
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "symfunnel", *args], capture_output=True, text=True, env=env,
+                       timeout=600)
+    return r, time.monotonic() - t0
+
+
+@pytest.mark.slow
+def test_derive_of_the_largest_reservoir_stops_at_the_limit(tmp_path):
+    big = _big_esn(tmp_path, 2000)
+    r, wall = _cli(["derive", str(big), "-q", "--json", "--wall-limit", "2"], cache=tmp_path / "cache")
+    assert r.returncode == 1, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("symfunnel: timeout: wall-clock limit of 2 s reached while")
+    assert r.stdout == ""
+    # the step that was interrupted is named, and the limit held to within the longest uninterruptible call
+    assert "deriving the design" in lines[0]
+    assert wall < 30.0
+
+
+@pytest.mark.slow
+def test_simulate_stops_in_the_compile_step_and_leaves_no_cache_entry(tmp_path):
+    big = _big_esn(tmp_path, 300)
+    cache = tmp_path / "cache"
+    r, wall = _cli(["simulate", str(big), "-q", "--t-final", "1", "--wall-limit", "4"], cache=cache)
+    assert r.returncode == 1, r.stderr
+    assert "timeout: wall-clock limit of 4 s reached while" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not any(cache.glob("**/*.so")), "a half-built library was left in the cache"
+    assert wall < 60.0
+
+
+def test_bad_limit_is_bad_input(capsys, tmp_path):
+    from symfunnel.cli import main
+    for cmd in (["derive"], ["verify"], ["report"], ["codegen", "--lang", "c", "--out", str(tmp_path / "c")],
+                ["audit"]):
+        assert main([*cmd, "-q", "--wall-limit", "-1"]) == 2
+        err = capsys.readouterr().err
+        assert "--wall-limit" in err and "> 0" in err
+
+
+def test_verify_under_a_limit_too_short_for_the_integration_stops_with_one_line(capsys):
+    from symfunnel.cli import main
+    assert main(["verify", "-q", "--wall-limit", "0.5"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "wall-clock limit of 0.5 s reached" in err[0]
+
+
+def test_the_api_raises_a_simulation_error_at_its_wall_limit():
+    from symfunnel import api
+    from symfunnel.errors import SimulationError
+    with pytest.raises(SimulationError, match="wall-clock limit of 0.3 s reached"):
+        api.verify("paper", wall_limit=0.3)
+    assert deadline.remaining() == float("inf")
+
+
+def test_large_reservoirs_get_the_same_spectral_radius_from_arpack_as_from_lapack():
+    import numpy as np
+
+    from symfunnel.esn import DENSE_UP_TO, _draw_reservoir, _norm2, _spectral_radius
+    W = _draw_reservoir(np.random.default_rng(3), DENSE_UP_TO + 100, 0.9)
+    dense_rho = float(np.max(np.abs(np.linalg.eigvals(W))))
+    assert _spectral_radius(W) == pytest.approx(dense_rho, rel=1e-11)
+    assert _norm2(W) == pytest.approx(float(np.linalg.norm(W, 2)), rel=1e-11)
