@@ -227,25 +227,18 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
     return {"ddq": ddq, "M": M, "C": C, "G": G, "friction": fric, "disturbance": dist, "tau_applied": tau_applied}
 
 
-def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
-    """Assemble the closed-loop ODE of a scenario from its design."""
-    w = scenario.simulation.smoothing_width if width is None else width
-    if not (isinstance(w, (int, float)) and np.isfinite(w) and w >= 0):
-        raise InputError(f"is {w!r}", file=scenario.file, key="simulation.smoothing_width",
-                         expected="a finite number >= 0")
-    w = float(w)
+def loop_sx(scenario, design, width: float) -> dict:
+    """The closed loop's symbols and expressions before any number is put in: t, x, p (the plant's quantities,
+    layout `plant_parameters`), p0 (this scenario's p), xdot_p and the logged signals in (t, x, p), the plant's
+    parts, x0. A design derived with symbolic parameter values (`design.derive(values=...)`) leaves them free in
+    xdot_p and the signals (how tune differentiates the closed loop with respect to its gains)."""
     d = design
     sym = d.sym
     n = d.n
     t, q, dq = sym["t"], sym["q"], sym["dq"]
     states = [name for name, _ in d.states]
-    N = sym["x_esn"].numel() if "x_esn" in sym else 0
     ref_syms = ca.vertcat(sym["qd"], sym["dqd"], sym["ddqd"])
     ref_t = ca.vertcat(d.reference_t["qd"], d.reference_t["dqd"], d.reference_t["ddqd"])
-
-    def sub(e):
-        return ca.substitute(e, ref_syms, ref_t)
-
     S = d.signals
     names = ["tau", *[f"{k}_dot" for k in states], "ddq", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2", "Phi",
              "qd", "dqd", "ddqd"]
@@ -254,7 +247,7 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
     tau = sg["tau"]
     p_names, p0 = plant_parameters(scenario)
     p = ca.SX.sym("p", len(p_names))
-    plant = plant_acceleration(scenario, q, dq, t, tau, w, p=p)
+    plant = plant_acceleration(scenario, q, dq, t, tau, width, p=p)
     ddq = plant["ddq"]
     x = ca.vertcat(q, dq, *[ca.vec(sym[k]) for k in states])
     xdot_p = ca.vertcat(dq, ddq, *[ca.vec(sg[f"{k}_dot"]) for k in states])
@@ -269,8 +262,24 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
         "ddq": ddq, "ddq_nom": sg["ddq"], "f_true": f_true, "w_phi": w_phi,
         "m1": (sg["F1"] - ca.fabs(sg["e1"])) / sg["F1"], "m2": (sg["F2"] - ca.fabs(sg["e2"])) / sg["F2"],
     }
-    outs_p = {k: ca.SX(outs[k]) for k in OUTPUT_NAMES}
-    parts_p = {k: ca.SX(v) for k, v in plant.items()}
+    sc = scenario
+    init = d.variant.initial_states()
+    x0 = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float),
+                         *[np.ravel(init[k], order="F") for k in states]])
+    return {"t": t, "x": x, "p": p, "p_names": p_names, "p0": p0, "xdot_p": xdot_p,
+            "signals_p": {k: ca.SX(outs[k]) for k in OUTPUT_NAMES}, "plant_p": {k: ca.SX(v) for k, v in plant.items()},
+            "x0": x0, "N": sym["x_esn"].numel() if "x_esn" in sym else 0}
+
+
+def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
+    """Assemble the closed-loop ODE of a scenario from its design."""
+    w = scenario.simulation.smoothing_width if width is None else width
+    if not (isinstance(w, (int, float)) and np.isfinite(w) and w >= 0):
+        raise InputError(f"is {w!r}", file=scenario.file, key="simulation.smoothing_width",
+                         expected="a finite number >= 0")
+    w = float(w)
+    L = loop_sx(scenario, design, w)
+    t, x, p, p0, xdot_p, outs_p, parts_p = (L[k] for k in ("t", "x", "p", "p0", "xdot_p", "signals_p", "plant_p"))
     # the nominal loop in (t, x): p replaced by this scenario's values, for every consumer that takes (t, x)
     pk = list(parts_p)
     nom = ca.substitute([xdot_p] + [outs_p[k] for k in OUTPUT_NAMES] + [parts_p[k] for k in pk], [p],
@@ -281,14 +290,9 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
     f = ca.Function("closed_loop", [t, x], [xdot], ["t", "x"], ["xdot"], {"cse": True})
     outputs = ca.Function("closed_loop_outputs", [t, x], [outs[k] for k in OUTPUT_NAMES], ["t", "x"],
                           list(OUTPUT_NAMES), {"cse": True})
-
-    sc = scenario
-    init = d.variant.initial_states()
-    x0 = np.concatenate([np.asarray(sc.q0, float), np.asarray(sc.dq0, float),
-                         *[np.ravel(init[k], order="F") for k in states]])
     if w == 0.0:
         warnings.warn("smoothing_width = 0: exact sign friction and dead-zone kinks; CVODES may stall on them",
                       RuntimeWarning, stacklevel=2)
-    return ClosedLoop(design=d, scenario=sc, n=n, N=N, width=w, t=t, x=x, xdot=xdot, f=f, outputs=outputs,
-                      x0=x0, signals=outs, plant_parts=plant, p=p, p_names=p_names, p0=p0, xdot_p=xdot_p,
-                      signals_p=outs_p)
+    return ClosedLoop(design=design, scenario=scenario, n=design.n, N=L["N"], width=w, t=t, x=x, xdot=xdot, f=f,
+                      outputs=outputs, x0=L["x0"], signals=outs, plant_parts=plant, p=p, p_names=L["p_names"],
+                      p0=p0, xdot_p=xdot_p, signals_p=outs_p)

@@ -49,16 +49,7 @@ def parse_implementation(table: Any, *, n: int, file: str, raw_model: dict, base
     V.check_keys(table, KEYS, file=file, prefix=p)
     rate = check_rate(table.get("rate_hz", ImplementationSpec.rate_hz), file=file, key=p + ".rate_hz")
     delay = V.get_int(table, "delay_samples", 0, file=file, prefix=p, minimum=0, maximum=1)
-    tau_max = None
-    if "tau_max" in table:
-        v = table["tau_max"]
-        if v == "urdf":
-            tau_max = _urdf_limits(raw_model, n, file, base_dir)
-        elif isinstance(v, str):
-            raise InputError(f"is '{v}'", file=file, key=p + ".tau_max",
-                             expected='a number > 0, one per joint, or "urdf"')
-        else:
-            tau_max = tuple(V.per_joint(table, "tau_max", n, file=file, prefix=p, minimum=0, strict_min=True))
+    tau_max = parse_tau_max(table, p, n=n, file=file, raw_model=raw_model, base_dir=base_dir)
     noise_q = V.get_float(table, "noise_q", 0.0, file=file, prefix=p, minimum=0)
     noise_dq = V.get_float(table, "noise_dq", 0.0, file=file, prefix=p, minimum=0)
     res = V.get_float(table, "encoder_resolution", 0.0, file=file, prefix=p, minimum=0)
@@ -66,8 +57,21 @@ def parse_implementation(table: Any, *, n: int, file: str, raw_model: dict, base
     return ImplementationSpec(rate, delay, tau_max, noise_q, noise_dq, res, seed)
 
 
-def _urdf_limits(raw_model: dict, n: int, file: str, base_dir: Path) -> tuple[float, ...]:
-    key = "implementation.tau_max"
+def parse_tau_max(table: dict, prefix: str, *, n: int, file: str, raw_model: dict,
+                  base_dir: Path) -> tuple[float, ...] | None:
+    """A `tau_max` key of a table (None when absent): a number > 0, one per joint, or "urdf" (the effort limits)."""
+    if "tau_max" not in table:
+        return None
+    v = table["tau_max"]
+    if v == "urdf":
+        return _urdf_limits(raw_model, n, file, base_dir, prefix + ".tau_max")
+    if isinstance(v, str):
+        raise InputError(f"is '{v}'", file=file, key=prefix + ".tau_max",
+                         expected='a number > 0, one per joint, or "urdf"')
+    return tuple(V.per_joint(table, "tau_max", n, file=file, prefix=prefix, minimum=0, strict_min=True))
+
+
+def _urdf_limits(raw_model: dict, n: int, file: str, base_dir: Path, key: str) -> tuple[float, ...]:
     if not isinstance(raw_model, dict) or raw_model.get("type") != "urdf":
         raise InputError('is "urdf" but the model is not a URDF', file=file, key=key,
                          expected="a number or one per joint (effort limits come only from a URDF model)")

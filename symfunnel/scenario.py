@@ -296,7 +296,8 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     tune = None
     if "tune" in raw:
         from .tune_spec import parse_tune
-        tune = parse_tune(raw["tune"], file=file, has_implementation=impl is not None, funnels=funnels)
+        tune = parse_tune(raw["tune"], file=file, has_implementation=impl is not None, funnels=funnels, n=n,
+                          raw_model=raw["model"], base_dir=base_dir)
 
     return Scenario(name=name, path=Path(file), title=title, description=description, source=source,
                     deviations=deviations, model=model, reference=reference, q0=q0, dq0=dq0,

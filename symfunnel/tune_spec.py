@@ -29,7 +29,7 @@ TUNABLE = {
 #: the specification the user prescribes: never tuned
 SPECIFICATION = ("reference", "funnel.e1")
 OBJECTIVES = ("peak_torque", "ise", "min_rate")
-KEYS = ["parameters", "objective", "margin", "runs", "bounds", "per_joint"]
+KEYS = ["parameters", "objective", "margin", "runs", "bounds", "per_joint", "tau_max"]
 DEFAULT_PARAMETERS = ["controller.k1", "controller.k2", "funnel.e2.phi0", "funnel.e2.phi_inf", "funnel.e2.a"]
 
 
@@ -43,6 +43,7 @@ class TuneSpec:
     runs: int = 20
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     per_joint: bool = False
+    tau_max: tuple[float, ...] | None = None     # the torque limit of a scenario without [implementation]
 
     def bounds_of(self, key: str) -> tuple[float, float]:
         """The search bounds of a key (the table's, else the documented default)."""
@@ -61,7 +62,8 @@ def _check_key(key: Any, file: str, where: str) -> str:
     return key
 
 
-def parse_tune(table: Any, *, file: str, has_implementation: bool, funnels: dict | None = None) -> TuneSpec:
+def parse_tune(table: Any, *, file: str, has_implementation: bool, funnels: dict | None = None, n: int = 1,
+               raw_model: dict | None = None, base_dir=None) -> TuneSpec:
     """Validate `[tune]` (see docs/scenario.md); InputError naming the key on any bad entry."""
     p = "tune"
     V.check_keys(table, KEYS, file=file, prefix=p)
@@ -110,7 +112,14 @@ def parse_tune(table: Any, *, file: str, has_implementation: bool, funnels: dict
         if not lo < hi:
             raise InputError(f"is [{lo:g}, {hi:g}]", file=file, key=where, expected="low < high")
         bounds[k] = (lo, hi)
-    return TuneSpec(keys, objective, margin, runs, bounds, per_joint)
+    tau_max = None
+    if "tau_max" in table:
+        if has_implementation:
+            raise InputError("is given but the scenario has [implementation]", file=file, key="tune.tau_max",
+                             expected="the torque limit in implementation.tau_max (the deployed controller's)")
+        from .implementation import parse_tau_max
+        tau_max = parse_tau_max(table, p, n=n, file=file, raw_model=raw_model or {}, base_dir=base_dir or ".")
+    return TuneSpec(keys, objective, margin, runs, bounds, per_joint, tau_max)
 
 
 def current_value(scenario, key: str) -> list[float]:

@@ -5,12 +5,15 @@ Constraints of a candidate (each a number g >= 0 when it holds, on the nominal p
 when the scenario has `[implementation]`, else the continuous simulation; a run that leaves a funnel early scores
 lower the earlier it leaves) and `saturation` (|tau| below tau_max: 1 - max over joints of peak |tau_i|/tau_max_i
 when the torque never saturates, else minus the saturated time fraction). The objective (peak torque, integral
-squared e1, or the minimum sample rate) is minimised over the feasible candidates. Method: the sampled-data loop
-(zero-order hold, saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so
-gradients are meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated,
-then Nelder-Mead (on a penalty: any infeasible candidate ranks behind every feasible one) runs from the best starts
-over log-scaled parameters until it converges or the wall-clock limit is reached. The best feasible designs then go
-through verify's gate in turn.
+squared e1, or the minimum sample rate) is minimised over the feasible candidates. Method: without
+`[implementation]` the continuous-time loop is smooth in the parameters, so IPOPT runs over them with exact
+sensitivities of the constraints on an output grid (`tune_gradient`), from the user's values and a few Sobol points;
+each result is judged by the full simulation above. With `[implementation]` the sampled-data loop (zero-order hold,
+saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so gradients are
+meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated, then Nelder-Mead
+(on a penalty: any infeasible candidate ranks behind every feasible one) runs from the best starts over log-scaled
+parameters until it converges or the wall-clock limit is reached. It is also the fallback when IPOPT is missing or
+finds nothing that holds. The best feasible designs then go through verify's gate in turn.
 """
 
 from __future__ import annotations
@@ -26,14 +29,22 @@ import numpy as np
 from .errors import InputError
 from .tune_spec import TUNABLE, TuneSpec, current_value
 
-__all__ = ["tune", "TuneResult", "Candidate", "scenario_confidence", "METHOD"]
+__all__ = ["tune", "TuneResult", "Candidate", "scenario_confidence", "METHOD", "GRADIENT_METHOD", "tune_records",
+           "original_document"]
 
 METHOD = ("derivative-free: Nelder-Mead on a feasibility-first penalty over log-scaled parameters, multi-start from "
           "the user's values and Sobol points")
 WHY = ("the constraints come from simulated runs (sampled-data loop: zero-order hold, torque saturation, stop at "
        "the first breach), piecewise constant in the parameters, so their gradients are zero or undefined")
+GRADIENT_METHOD = ("gradient: IPOPT (limited-memory Hessian) over log-scaled parameters with CVODES forward "
+                   "sensitivities of the grid constraints, multi-start from the user's values and Sobol points")
+GRADIENT_WHY = ("no [implementation]: the continuous-time closed loop is smooth in the gains and the e2 funnel, so the "
+                "simulated constraints have exact derivatives")
+WHY_NO_GRADIENT = "no [implementation], but the gradient path is not available"
 #: Sobol starting points besides the user's values
 SOBOL_STARTS = 8
+#: Sobol starting points of the gradient path besides the user's values
+GRADIENT_SOBOL_STARTS = 2
 INFEASIBLE = 1e3
 #: feasible designs (best first) that go through verify's gate before tune reports infeasible
 GATE_TRIES = 3
@@ -143,7 +154,9 @@ class Evaluator:
         self.spec = spec
         self.say = progress or (lambda s: None)
         self.impl = scenario.implementation
+        self.tau_max = self.impl.tau_max if self.impl is not None else spec.tau_max
         self.T = float(t_final if t_final is not None else scenario.simulation.t_final)
+        self.sample_values = []
         self.samples = self._samples()
         self.count = 0
 
@@ -154,6 +167,7 @@ class Evaluator:
             return []
         from .uncertainty import scenario_edits
         vals = camp.values(range(self.spec.runs), self.spec.runs)
+        self.sample_values = vals
         return [scenario_edits(camp, self.sc.n, v) for v in vals]
 
     def scenario(self, raw: dict):
@@ -181,7 +195,7 @@ class Evaluator:
         from .design import derive
         design = derive(sc)
         cons = {"containment": math.inf}
-        if self.impl is not None and self.impl.tau_max is not None:
+        if self.tau_max is not None:
             cons["saturation"] = math.inf
         figs = {}
         worst = {}
@@ -249,6 +263,10 @@ class Evaluator:
         g = {"containment": self._containment(res.ok, min(mm) if mm else -1.0, t_end)}
         tau = np.asarray(s["tau"])
         peak = float(np.max(np.abs(tau))) if tau.size and np.isfinite(tau).all() else math.inf
+        if self.tau_max is not None:        # the continuous loop has no saturation: 1 - the largest |tau|/tau_max
+            use = (float(np.max(np.abs(tau).reshape(len(res.t), -1) / np.asarray(self.tau_max)))
+                   if math.isfinite(peak) and tau.size else math.inf)
+            g["saturation"] = 1.0 - use
         e1 = np.asarray(s["e1"]).reshape(len(res.t), -1) if res.t.size else np.zeros((1, 1))
         ise = float(np.trapezoid(np.sum(e1 ** 2, axis=1), res.t)) if res.t.size > 1 else math.inf
         return g, {"peak_torque": peak, "ise": ise}
@@ -328,7 +346,6 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     say(f"tune {scenario.name}: {d} coordinate(s) ({', '.join(v.name for v in vars_)}), objective "
         f"{spec.objective}, margin {spec.margin:g}, {len(ev.samples)} uncertainty sample(s) + nominal, horizon "
         f"{ev.T:g} s, {loop}")
-    say(f"method: {METHOD} ({WHY})")
     user = [v.user_x() for v in vars_]
     before = ev.evaluate(vars_, user)
     say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
@@ -343,12 +360,15 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
             best[0] = c
         return s
 
-    def f(z) -> float:
+    def f(z, final: bool = False) -> float:
+        # final: the result of an IPOPT run, always judged (the limits stop the next search, not this check)
         xs = [v.x_of(zi) for v, zi in zip(vars_, z)]
         key = tuple(round(x, 10) for x in xs)
         if key in seen:
             return _score(seen[key], spec.objective, ref)
-        if time.perf_counter() - t0 > wall_limit:
+        if final:
+            pass
+        elif time.perf_counter() - t0 > wall_limit:
             raise _OutOfTime(f"search stopped at the wall-clock limit ({wall_limit:g} s)")
         if max_evaluations and ev.count >= max_evaluations:
             raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
@@ -368,25 +388,56 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     else:
         say("the user's values lie outside the bounds: the search starts from them clipped into the bounds")
     z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
-    starts = [z_user]
-    sob = qmc.Sobol(d, scramble=True, seed=0).random(SOBOL_STARTS)
-    starts.extend(sob)
-    scored = []
+    method, why = METHOD, WHY
     stopped = None
-    try:
-        for z in starts:
-            scored.append((f(z), list(z)))
-        scored.sort(key=lambda p: p[0])
-        for _, z in scored[:3]:
-            step = 0.15
-            simplex = [np.array(z)] + [np.clip(np.array(z) + step * np.eye(d)[i] * (1 if z[i] < 0.5 else -1), 0, 1)
-                                       for i in range(d)]
-            minimize(f, np.array(z), method="Nelder-Mead", bounds=[(0.0, 1.0)] * d,
-                     options={"initial_simplex": np.array(simplex), "xatol": 2e-3, "fatol": 1e-4,
-                              "maxfev": 60 * d})
-    except _OutOfTime as exc:
-        stopped = str(exc)
-        say(stopped + ": the best design so far is the result")
+    if scenario.implementation is None:
+        use, reason = _gradient_sound()
+        if use:
+            method, why = GRADIENT_METHOD, GRADIENT_WHY
+            say(f"method: {method} ({why})")
+            failed = None
+            try:
+                _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, deadline=t0 + wall_limit,
+                                 max_evaluations=max_evaluations)
+            except _OutOfTime as exc:
+                stopped = str(exc)
+                say(stopped + ": the best design so far is the result")
+            except RuntimeError as exc:            # CasADi/IPOPT failed to build or run the problem
+                from .lifecycle import reraise_interrupt
+                reraise_interrupt(exc)
+                failed = _last_line(exc)
+            b = best[0]
+            if stopped is None and (b is None or not b.feasible):
+                method = f"{GRADIENT_METHOD}; then {METHOD}"
+                why = (f"{GRADIENT_WHY}; " + (f"IPOPT failed ({failed})" if failed else
+                                              "no IPOPT result held in the full simulation")
+                       + ", so the derivative-free search continued (fallback)")
+                say("falling back to the derivative-free search: " + why)
+            elif failed:
+                why = f"{GRADIENT_WHY}; IPOPT stopped with an error ({failed}) after a design that holds"
+        else:
+            why = f"{WHY_NO_GRADIENT} ({reason})"
+    if method.endswith(METHOD) and stopped is None:
+        if method == METHOD:
+            say(f"method: {method} ({why})")
+        starts = [z_user]
+        sob = qmc.Sobol(d, scramble=True, seed=0).random(SOBOL_STARTS)
+        starts.extend(sob)
+        scored = []
+        try:
+            for z in starts:
+                scored.append((f(z), list(z)))
+            scored.sort(key=lambda p: p[0])
+            for _, z in scored[:3]:
+                step = 0.15
+                simplex = [np.array(z)] + [np.clip(np.array(z) + step * np.eye(d)[i] * (1 if z[i] < 0.5 else -1),
+                                                   0, 1) for i in range(d)]
+                minimize(f, np.array(z), method="Nelder-Mead", bounds=[(0.0, 1.0)] * d,
+                         options={"initial_simplex": np.array(simplex), "xatol": 2e-3, "fatol": 1e-4,
+                                  "maxfev": 60 * d})
+        except _OutOfTime as exc:
+            stopped = str(exc)
+            say(stopped + ": the best design so far is the result")
     b = best[0] or before
     notes = [stopped] if stopped else []
     gate_info = {"status": "skipped"}
@@ -417,7 +468,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     _record_deviations(tuned, changes, spec, b, ev, status)
     name = spec.objective
     return TuneResult(
-        status=status, method=METHOD, why=WHY,
+        status=status, method=method, why=why,
         objective={"name": name, "before": before.figures.get(name) if before.feasible or name != "min_rate" else None,
                    "after": b.figures.get(name)},
         changes=changes, binding=binding, wall_s=time.perf_counter() - t0, evaluations=ev.count,
@@ -426,6 +477,52 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
         gate=gate_info, tuned_raw=tuned, notes=notes,
         comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
+
+
+def _last_line(exc: Exception) -> str:
+    """The last line of an exception's message (CasADi's carry a call trace before it)."""
+    text = str(exc).strip()
+    return text.splitlines()[-1][:200] if text else type(exc).__name__
+
+
+def _gradient_sound() -> tuple[bool, str]:
+    """Whether IPOPT is there (the installed casadi wheel may lack the plugin), with the reason when not."""
+    from .tune_gradient import ipopt_available
+    if not ipopt_available():
+        return False, "casadi.has_nlpsol('ipopt') is false in the installed casadi"
+    return True, ""
+
+
+def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline: float,
+                     max_evaluations: int | None) -> None:
+    """IPOPT from the user's values, then from Sobol points, while time remains; every result is judged by `f`
+    (the full simulation of the Evaluator), which records the best candidate."""
+    from scipy.stats import qmc
+
+    from .tune_gradient import GradientProblem
+    gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max, sample_values=ev.sample_values)
+    say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
+        "points)")
+    starts = [z_user, *qmc.Sobol(len(vars_), scramble=True, seed=0).random(GRADIENT_SOBOL_STARTS)]
+    obj = spec.objective
+    for i, z0 in enumerate(starts):
+        left = deadline - time.perf_counter()
+        if left <= 1.0:
+            raise _OutOfTime("search stopped at the wall-clock limit")
+        if max_evaluations and ev.count >= max_evaluations:
+            raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
+        say(f"IPOPT start {i + 1} of {len(starts)}")
+        # IPOPT gets the time left but what the full simulation of its result needs
+        try:
+            r = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
+                         progress=say)
+        except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
+            from .lifecycle import reraise_interrupt
+            reraise_interrupt(exc)
+            say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
+            continue
+        say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
+        f(r["z"], final=True)
 
 
 def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
@@ -465,4 +562,106 @@ def _record_deviations(raw: dict, changes: list[dict], spec: TuneSpec, b: Candid
            f"over {ev.T:g} s, objective {spec.objective} = {b.figures.get(spec.objective, math.nan):.6g}")
     devs = raw.setdefault("deviations", [])
     for c in changes:
-        devs.append({"key": c["key"], "paper": "", "value": f"{c['before']:.6g} -> {c['after']:.6g}", "reason": why})
+        # exact (shortest round-trip) numbers, so that `original_document` restores the user's design
+        devs.append({"key": c["key"], "paper": "", "value": f"{float(c['before'])!r} -> {float(c['after'])!r}",
+                     "reason": why})
+
+
+TUNE_REASON = "symfunnel tune ("
+
+
+def tune_records(raw: dict) -> list[dict]:
+    """The `[[deviations]]` entries that `symfunnel tune` wrote into a scenario document (key, old, new)."""
+    import re
+    from .tune_spec import TUNABLE
+    out = []
+    for d in raw.get("deviations", []) or []:
+        if not (isinstance(d, dict) and str(d.get("reason", "")).startswith(TUNE_REASON)):
+            continue
+        m = re.fullmatch(r"\s*(\S+)\s*->\s*(\S+)\s*", str(d.get("value", "")))
+        k = re.fullmatch(r"([a-z0-9_.]+)(?:\[(\d+)\])?", str(d.get("key", "")))
+        if not (m and k and k.group(1) in TUNABLE):
+            continue
+        try:
+            old, new = float(m.group(1)), float(m.group(2))
+        except ValueError:
+            continue
+        out.append({"key": k.group(1), "joint": int(k.group(2)) - 1 if k.group(2) else None, "before": old,
+                    "after": new, "name": d["key"]})
+    return out
+
+
+def original_document(raw: dict, n: int) -> dict | None:
+    """The scenario document before `symfunnel tune` (its records undone, old values back), or None when the
+    document carries no tune record. A shared per-joint key gets back old/new times each joint's value (tune kept
+    the joints' ratios)."""
+    recs = tune_records(raw)
+    if not recs:
+        return None
+    from .tune_spec import TUNABLE
+    doc = copy.deepcopy(raw)
+    for r in reversed(recs):           # the last change first: a key tuned twice returns to its first value
+        *path, leaf = r["key"].split(".")
+        t = doc
+        for p in path:
+            t = t.setdefault(p, {})
+        cur = t.get(leaf)
+        if not TUNABLE[r["key"]][0]:
+            t[leaf] = r["before"]
+        elif r["joint"] is not None:
+            vals = list(cur) if isinstance(cur, list) else [cur] * n
+            vals[r["joint"]] = r["before"]
+            t[leaf] = vals
+        else:
+            scale = r["before"] / r["after"]
+            t[leaf] = [v * scale for v in cur] if isinstance(cur, list) else cur * scale
+    doc["deviations"] = [d for d in doc.get("deviations", [])
+                         if not str(d.get("reason", "")).startswith(TUNE_REASON)]
+    if not doc["deviations"]:
+        del doc["deviations"]
+    return doc
+
+
+def compare_designs(tuned, *, tuned_run=None, t_final: float | None = None, sweep_runs: int | None = None,
+                    progress=None) -> dict | None:
+    """Original (from tune's `[[deviations]]` records) against tuned, side by side: peak |tau|, min margins e1/e2
+    of the continuous-time run, the minimum sample rate (with `[implementation]`) and the breach probability of a
+    campaign of the scenario's `[[uncertainty]]` (`sweep_runs` runs, default tune's `runs`). None without records.
+    """
+    import tempfile
+    say = progress or (lambda s: None)
+    orig_raw = original_document(tuned.raw, tuned.n)
+    if orig_raw is None:
+        return None
+    from .scenario import from_dict
+    original = from_dict(orig_raw, file=tuned.file, base_dir=tuned.path.parent, default_name=tuned.name)
+    spec = tuned.tune or TuneSpec()
+    sides = {}
+    for label, sc in (("original", original), ("tuned", tuned)):
+        from .pipeline import Run, RunOptions
+        say(f"tuning comparison: the {label} design")
+        run = tuned_run if label == "tuned" and tuned_run is not None else Run(sc, RunOptions(t_final=t_final))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sim = run.simulation
+        s = sim.signals
+        tau = np.abs(np.asarray(s["tau"]))
+        side = {"scenario": sc, "simulation": sim, "status": sim.status,
+                "peak_torque": float(np.max(tau)) if tau.size else None,
+                "min_margin_e1": float(np.min(s["m1"])) if np.size(s["m1"]) else None,
+                "min_margin_e2": float(np.min(s["m2"])) if np.size(s["m2"]) else None}
+        if sc.implementation is not None:
+            from .rate import min_rate
+            r = min_rate(sc, run.design, margin=spec.margin, t_final=t_final, rel_tol=0.1,
+                         start=sc.implementation.rate_hz)
+            side["min_rate_hz"] = r["min_rate_hz"]
+        if sc.campaign is not None and sc.campaign.uncertainties:
+            from .campaign import sweep
+            runs = sweep_runs or spec.runs
+            with tempfile.TemporaryDirectory(prefix="symfunnel-tune-cmp-") as tmp:
+                summ = sweep(sc, runs=runs, workers=1, out=tmp).summary
+            side["breach_probability"] = summ["breach_probability"]
+            side["breach_ci95"] = summ["ci95"]
+            side["runs"] = runs
+        sides[label] = side
+    return {"original": sides["original"], "tuned": sides["tuned"], "changes": tune_records(tuned.raw)}

@@ -23,7 +23,7 @@ LAYERS = [
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
     ("stages", ["simulate", "simulation", "codegen", "checks", "sampled", "rate", "implementation_report"]),
-    ("pipeline", ["pipeline", "campaign", "tuning"]),
+    ("pipeline", ["pipeline", "campaign", "tuning", "tune_gradient"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "api"]),
 ]
 

@@ -1,8 +1,10 @@
 """Bench area `tune`: `symfunnel tune` on the paper deployed at 1 kHz with |tau| <= 200 N m, beside one verify.
 
-Id: `tune.wall_s` (wall time of the whole tune: search plus verify's gate on the result, at the default 240 s
+Ids: `tune.wall_s` (wall time of the whole tune: search plus verify's gate on the result, at the default 240 s
 limit; target <= 300 s). Baseline, measured in the same run: one `verify --rate 1000` of the paper's own design
-(the check a user runs by hand per guess). Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
+(the check a user runs by hand per guess). `tune.gradient_wall_s`: the same without `[implementation]`
+(`tune.tau_max = 200`: the gradient path, IPOPT with CVODES sensitivities), beside one continuous-time simulation of
+the printed design. Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
 """
 
 from __future__ import annotations
@@ -16,12 +18,17 @@ from . import result
 TARGET_S = 300.0
 
 
-def scenario(t_final: float | None = None):
-    """The paper with `[implementation] rate_hz = 1000, tau_max = 200` and `[tune]` (objective peak_torque)."""
+def scenario(t_final: float | None = None, sampled: bool = True):
+    """The paper with `[implementation] rate_hz = 1000, tau_max = 200` and `[tune]` (objective peak_torque);
+    sampled=False: no `[implementation]`, `[tune] tau_max = 200` (the continuous-time loop)."""
     from ..scenario import DATA_DIR, from_dict, load_scenario
     raw = copy.deepcopy(load_scenario("paper").raw)
-    raw["implementation"] = {"rate_hz": 1000.0, "tau_max": 200.0}
-    raw["tune"] = {"objective": "peak_torque"}
+    if sampled:
+        raw["implementation"] = {"rate_hz": 1000.0, "tau_max": 200.0}
+        raw["tune"] = {"objective": "peak_torque"}
+    else:
+        raw.pop("implementation", None)
+        raw["tune"] = {"objective": "peak_torque", "tau_max": 200.0}
     if t_final is not None:
         raw["simulation"]["t_final"] = float(t_final)
     return from_dict(raw, file=str(DATA_DIR / "paper_2dof.toml"), base_dir=DATA_DIR, default_name="paper")
@@ -43,7 +50,21 @@ def run(progress) -> list[dict]:
     one = time.perf_counter() - t0
     progress("tune: symfunnel tune (search + verify's gate)")
     r = tune(sc, progress=progress)
-    return [result("tune.wall_s", r.wall_s, "s", "one verify --rate 1000 of the printed design", one, one / r.wall_s,
+    out = [result("tune.wall_s", r.wall_s, "s", "one verify --rate 1000 of the printed design", one, one / r.wall_s,
                    target_s=TARGET_S, meets_target=bool(r.wall_s <= TARGET_S), status=r.status,
                    evaluations=r.evaluations, objective=r.objective, gate=r.gate["status"],
                    baseline_status=v.status, scenario=sc.name, t_final=sc.simulation.t_final)]
+    sc = scenario(float(tf) if tf else None, sampled=False)
+    progress("tune: baseline, one continuous-time simulation of the printed design")
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _ = Run(sc).simulation
+    one = time.perf_counter() - t0
+    progress("tune: symfunnel tune without [implementation] (gradient path + verify's gate)")
+    r = tune(sc, progress=progress)
+    out.append(result("tune.gradient_wall_s", r.wall_s, "s", "one continuous-time simulation of the printed design",
+                      one, one / r.wall_s, target_s=TARGET_S, meets_target=bool(r.wall_s <= TARGET_S),
+                      status=r.status, method=r.method, evaluations=r.evaluations, objective=r.objective,
+                      gate=r.gate["status"], scenario=sc.name, t_final=sc.simulation.t_final))
+    return out

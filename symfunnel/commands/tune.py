@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 
@@ -9,8 +10,10 @@ def register(sub, common) -> None:
     """Add the `tune` subcommand."""
     sp = sub.add_parser("tune", help="search gains and the e2 funnel that keep both funnels with a margin within the "
                                      "torque limit (reference and e1 funnel fixed)",
-                        description="Derivative-free search (Nelder-Mead, multi-start) over the [tune] parameters; "
-                        "the best design goes through verify's gate. Exit 0 ok, 1 infeasible, 2 bad input.")
+                        description="Without [implementation]: IPOPT with exact sensitivities of the simulated "
+                        "constraints; with it (or as fallback): derivative-free search (Nelder-Mead, multi-start) over "
+                        "the [tune] parameters; the best design goes through verify's gate. Exit 0 ok, 1 infeasible, "
+                        "2 bad input.")
     common(sp)
     sp.add_argument("--out", metavar="FILE.toml", help="write the tuned scenario (with a [[deviations]] entry per "
                                                        "change)")
@@ -21,6 +24,27 @@ def register(sub, common) -> None:
                                                              "scenario's)")
     sp.add_argument("--max-evals", type=int, metavar="K", help="stop the search after K candidate evaluations")
     sp.set_defaults(func=run)
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """File descriptor 1 onto 2 while tuning: CasADi prints a failed integrator call's inputs to the C stdout, which
+    would corrupt --json (a candidate that does not integrate is an expected event of the search)."""
+    import os
+    import sys
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:                  # no file descriptor 1 (embedded): nothing to protect
+        yield
+        return
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def run(args) -> int:
@@ -42,7 +66,8 @@ def run(args) -> int:
         raise InputError("is a directory", file=args.out, key="--out", expected="a .toml file path")
     sc = _load(args)
     say = _progress(args.quiet or args.json)
-    r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals)
+    with _stdout_to_stderr():
+        r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals)
     if args.out is not None:
         atomic_write(args.out, dumps(r.tuned_raw))
     if args.json:

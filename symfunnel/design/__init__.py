@@ -20,6 +20,7 @@ def variant_of(scenario):
     return resolve(scenario.design.variant, file=scenario.file)(scenario)
 
 
-def derive(scenario, *, mutant: str | None = None) -> Design:
-    """Build every signal of the scenario's design, once, as SX (the single source of truth)."""
-    return variant_of(scenario).derive(mutant)
+def derive(scenario, *, mutant: str | None = None, values: dict | None = None) -> Design:
+    """Build every signal of the scenario's design, once, as SX (the single source of truth); `values` replaces
+    tunable design parameters by expressions (see `Backstepping.derive`)."""
+    return variant_of(scenario).derive(mutant, values=values)

@@ -123,11 +123,15 @@ class Backstepping:
 
     # --- signals ------------------------------------------------------------------------------------
 
-    def derive(self, mutant: str | None = None, offsets: dict[str, ca.SX] | None = None):
+    def derive(self, mutant: str | None = None, offsets: dict[str, ca.SX] | None = None,
+               values: dict[str, ca.SX] | None = None):
         """Every signal of the design as SX, with `mutant` (an id of `mutants()`) applied when given.
 
         `offsets` adds a symbol to a signal where it is defined, so every signal computed from it depends on that
         symbol: how the audit finds what depends on a signal through the derivation (circular printed claims).
+        `values` replaces design parameters (keys of `tune_spec.TUNABLE`: controller.k1/k2, adaptation.gamma/sigma,
+        funnel.e2.phi0/phi_inf/a) by expressions, e.g. symbols, so that tune can differentiate the closed loop
+        with respect to them.
         """
         from .core import Design
         sc = self.scenario
@@ -145,15 +149,17 @@ class Backstepping:
         nr = self.n_regressor
         w_hat = sym["w_hat"] if nr else ca.SX(0, n)
 
-        k1, k2 = ca.DM(sc.k1), ca.DM(sc.k2)
-        gamma, sigma = ca.DM(sc.gamma), ca.DM(sc.sigma)
+        val = values or {}
+        k1, k2 = val.get("controller.k1", ca.DM(sc.k1)), val.get("controller.k2", ca.DM(sc.k2))
+        gamma, sigma = val.get("adaptation.gamma", ca.DM(sc.gamma)), val.get("adaptation.sigma", ca.DM(sc.sigma))
+        shape2 = {k.rsplit(".", 1)[1]: v for k, v in val.items() if k.startswith("funnel.e2.")}
         s = _Signals(offsets or {})
         s.update(qd=qd, dqd=dqd, ddqd=ddqd)
         s["M"] = model.numeric(model.M)
         s["C"] = model.numeric(model.C)
         s["G"] = model.numeric(model.G)
         for i, key in ((1, "e1"), (2, "e2")):
-            F = sc.funnels[key].sx(t)
+            F = sc.funnels[key].sx(t, **(shape2 if key == "e2" else {}))
             s[f"F{i}"] = F
             s[f"dF{i}"] = ca.jtimes(F, t, ca.SX(1))
 

@@ -43,9 +43,10 @@ class FunnelSpec:
         a = V.per_joint(table, "a", n, defaults[2], file=file, prefix=prefix, minimum=0)
         return cls(phi0, phi_inf, a)
 
-    def sx(self, t: ca.SX) -> ca.SX:
-        """F as an (n, 1) SX expression in t."""
-        return ca.DM(self.phi0) * ca.exp(-ca.DM(self.a) * t) + ca.DM(self.phi_inf)
+    def sx(self, t: ca.SX, **values) -> ca.SX:
+        """F as an (n, 1) SX expression in t (`values`: phi0, phi_inf or a as expressions instead of the numbers)."""
+        phi0, phi_inf, a = (values.get(k, ca.DM(getattr(self, k))) for k in self.KEYS)
+        return phi0 * ca.exp(-a * t) + phi_inf
 
     def value(self, t: float) -> list[float]:
         """F at time t, per joint."""

@@ -47,6 +47,10 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
     ctx["simulation"] = H.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
     ctx["verification"] = H.verification_section(verification)
+    t0 = time.perf_counter()
+    ctx["tuning"] = H.tuning_section(run, say, figures_dir=figures_dir)
+    if ctx["tuning"]["available"]:
+        timings.append(("tuning: original against tuned", time.perf_counter() - t0))
     if deployed:
         t0 = time.perf_counter()
         ctx["deployed"] = H.implementation_section(run, say)

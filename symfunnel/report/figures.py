@@ -349,3 +349,31 @@ def funnel_margin(res, n: int) -> str:
     _legend_outside(axes[0], fontsize=8)
     axes[-1].set_xlabel("t [s]")
     return fig
+
+
+@_with_rc
+def tune_comparison(original, tuned, tau_max=None) -> str:
+    """Original against tuned design: the largest |tau_i| over the joints and the smallest margins of e1 and e2."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 1, figsize=(7.0, 4.6), sharex=True)
+    for res, label, ls in ((original, "original", "--"), (tuned, "tuned", "-")):
+        t = np.asarray(res.t)
+        if t.size < 2:
+            continue
+        tau = np.max(np.abs(np.asarray(res.signals["tau"]).reshape(t.size, -1)), axis=1)
+        m1 = np.min(np.asarray(res.signals["m1"]).reshape(t.size, -1), axis=1)
+        m2 = np.min(np.asarray(res.signals["m2"]).reshape(t.size, -1), axis=1)
+        tt, tau, m1, m2 = _decimate(t, tau, m1, m2)
+        axes[0].plot(tt, tau, ls, color="C0" if label == "tuned" else "C3", label=f"{label}: max_i |tau_i|")
+        axes[1].plot(tt, m1, ls, color="C0" if label == "tuned" else "C3", label=f"{label}: min_i margin e1")
+        axes[1].plot(tt, m2, ls, color="C2" if label == "tuned" else "C1", label=f"{label}: min_i margin e2")
+    if tau_max is not None:
+        axes[0].axhline(float(np.min(tau_max)), color="crimson", lw=1, ls=":", label="torque limit")
+    axes[0].set_ylabel("|tau| [N m]")
+    axes[0].set_yscale("symlog", linthresh=1.0)
+    axes[1].set_ylabel("1 - |e|/F")
+    axes[1].set_xlabel("t [s]")
+    axes[0].set_title("Original (dashed) against tuned (solid) design")
+    _legend_outside(axes[0], fontsize=7)
+    _legend_outside(axes[1], fontsize=7)
+    return fig

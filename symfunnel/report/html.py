@@ -500,6 +500,42 @@ def implementation_section(run, progress) -> dict:
             "declared": run.scenario.implementation is not None, "figures": figs}
 
 
+def tuning_section(run, progress, figures_dir=None) -> dict:
+    """Original against tuned design side by side, when the scenario carries `symfunnel tune`'s `[[deviations]]`
+    records (the original is those records undone): torque, margins, minimum rate, breach probability, a figure."""
+    from ..tuning import compare_designs, tune_records
+    sc = run.scenario
+    if not tune_records(sc.raw):
+        return {"available": False}
+    progress("tuning: the original design against the tuned one")
+    try:
+        cmp_ = compare_designs(sc, tuned_run=run, t_final=run.options.t_final, progress=progress)
+    except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
+        return {"available": True, "error": f"{type(exc).__name__}: {exc}"}
+    o, t = cmp_["original"], cmp_["tuned"]
+    rows = [("status of the continuous-time run", o["status"], t["status"]),
+            ("peak |tau| [N m]", _fmt(o["peak_torque"]), _fmt(t["peak_torque"])),
+            ("min margin e1", _fmt(o["min_margin_e1"]), _fmt(t["min_margin_e1"])),
+            ("min margin e2", _fmt(o["min_margin_e2"]), _fmt(t["min_margin_e2"]))]
+    if "min_rate_hz" in t:
+        rows.append(("minimum sample rate [Hz]", _fmt(o["min_rate_hz"]), _fmt(t["min_rate_hz"])))
+    if "breach_probability" in t:
+        def bp(side):
+            lo, hi = side["breach_ci95"] or (None, None)
+            return f"{_fmt(side['breach_probability'])} (95 % CI [{_fmt(lo)}, {_fmt(hi)}], {side['runs']} runs)"
+        rows.append(("breach probability", bp(o), bp(t)))
+    impl = sc.implementation
+    tau_max = impl.tau_max if impl is not None else (sc.tune.tau_max if sc.tune is not None else None)
+    stem = "fig-tune-comparison"
+    svg = FIG.tune_comparison(o["simulation"], t["simulation"], tau_max,
+                              export_to=(figures_dir, stem) if figures_dir is not None else None)
+    changes = [(c["name"], _fmt(c["before"]), _fmt(c["after"])) for c in cmp_["changes"]]
+    return {"available": True, "rows": rows, "changes": changes,
+            "figures": [("tune-comparison", figure_caption("tune-comparison", "Original (dashed) against tuned "
+                                                           "(solid): largest |tau| and smallest funnel margins",
+                                                           sc.name), svg)]}
+
+
 def codegen_section(run, progress) -> dict:
     """The code-generation summary of a Run: both languages generated, compiled/imported and cross-checked."""
     from ..codegen.check import codegen_summary

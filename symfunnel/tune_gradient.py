@@ -1,0 +1,219 @@
+"""tune's gradient path: IPOPT over the log-scaled `[tune]` parameters with CVODES forward sensitivities.
+
+Used when the scenario has no `[implementation]`: the continuous-time closed loop is smooth in its gains and e2
+funnel, so the simulated constraints have exact derivatives. The tunable parameters z in [0, 1]^d (log scale of
+their bounds) become symbolic values of the design (`design.derive(values=...)`), so the closed loop
+(`closedloop.loop_sx`) has p = [z; plant quantities]; one CVODES call returns the states on a fixed output grid of
+K points, and CasADi differentiates it (forward sensitivities, d directions). Constraints per grid point and joint,
+on the nominal plant and every uncertainty sample: m1, m2 >= margin (m = 1 - |e|/F) and |tau| <= tau_max when
+given. Objective: peak torque through an epigraph variable s (|tau_i(t_k)| <= s ref on the nominal run) or the
+integral of |e1|^2 by the trapezoidal rule on the grid, both divided by the user's design's value.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["GradientProblem", "ipopt_available", "GRID_POINTS", "TOLERANCE"]
+
+#: output grid points over the horizon (the constraints are imposed there; the result is checked by a full run)
+GRID_POINTS = 200
+#: CVODES tolerances (abstol, reltol) of the sensitivity runs: tighter than a simulation's so the derivatives of
+#: the grid states are accurate enough for IPOPT's line search
+TOLERANCE = (1e-9, 1e-8)
+#: CVODES steps allowed per output interval (a design this stiff is not worth the time: IPOPT backs off)
+MAX_STEPS = 2000
+#: IPOPT iterations per start
+MAX_ITER = 40
+
+
+def ipopt_available() -> bool:
+    """Whether the installed casadi has the IPOPT plugin."""
+    try:
+        return bool(ca.has_nlpsol("ipopt"))
+    except Exception:            # noqa: BLE001 - a broken plugin is the same as none
+        return False
+
+
+def design_values(scenario, vars_, z: ca.SX) -> dict:
+    """The tunable keys as expressions of the log-scale coordinates z (each Variable of `tuning.variables`)."""
+    from .tune_spec import TUNABLE
+    n = scenario.n
+    vals: dict[str, list] = {}
+    for i, v in enumerate(vars_):
+        x = v.lo * ca.exp(z[i] * math.log(v.hi / v.lo))
+        cur = vals.setdefault(v.key, [ca.SX(b) for b in v.base])
+        if v.joint is not None:
+            cur[v.joint] = x
+        else:
+            for j, r in enumerate(v.ratio):
+                cur[j] = x * r
+    out = {}
+    for key, entries in vals.items():
+        per_joint = TUNABLE[key][0]
+        out[key] = ca.vertcat(*entries) if per_joint else entries[0]
+        if per_joint and len(entries) == 1 and n > 1:
+            out[key] = ca.repmat(entries[0], n, 1)
+    return out
+
+
+class GradientProblem:
+    """The NLP of one scenario's `[tune]`: constraint and objective functions of z with exact Jacobians."""
+
+    def __init__(self, scenario, spec, vars_, *, t_final: float, tau_max=None, sample_values=(),
+                 grid_points: int = GRID_POINTS, tolerance=TOLERANCE):
+        from .closedloop import loop_sx
+        from .design import derive
+        self.sc, self.spec, self.vars = scenario, spec, vars_
+        self.d = d = len(vars_)
+        self.n = n = scenario.n
+        self.T = float(t_final)
+        self.K = K = int(grid_points)
+        self.tau_max = None if tau_max is None else np.broadcast_to(np.asarray(tau_max, float), (n,)).copy()
+        z = ca.SX.sym("z", d)
+        design = derive(scenario, values=design_values(scenario, vars_, z))
+        L = loop_sx(scenario, design, float(scenario.simulation.smoothing_width))
+        P = ca.vertcat(z, L["p"])
+        self.grid = np.linspace(0.0, self.T, K + 1)
+        opts = {"abstol": tolerance[0], "reltol": tolerance[1], "max_num_steps": MAX_STEPS, "linear_solver": "csparse",
+                "disable_internal_warnings": True, "show_eval_warnings": False}
+        integ = ca.integrator("tune_loop", "cvodes", {"t": L["t"], "x": L["x"], "p": P, "ode": L["xdot_p"]},
+                              0.0, list(self.grid[1:]), opts)
+        sig = L["signals_p"]
+        out = ca.Function("tune_signals", [L["t"], L["x"], P], [sig["tau"], sig["m1"], sig["m2"], sig["e1"]])
+        outm = out.map(K + 1)
+        # the plants: the nominal one and the uncertainty samples, each (plant parameters, initial state)
+        plants = [(L["p0"], L["x0"])]
+        if len(sample_values):
+            from types import SimpleNamespace
+
+            from .uncertainty import run_inputs
+            where = {k: i for i, k in enumerate(L["p_names"])}
+            for vals in sample_values:
+                params, x0 = run_inputs(scenario.campaign, SimpleNamespace(x0=L["x0"], n=n), vals)
+                pv = np.array(L["p0"], float)
+                for k, v in params.items():
+                    pv[where[k]] = v
+                plants.append((pv, x0))
+        self.nplants = len(plants)
+        zM = ca.MX.sym("z", d)
+        tgrid = ca.DM(self.grid).T
+        cons, taus, ise = [], [], None
+        for i, (pv, x0) in enumerate(plants):
+            Pm = ca.vertcat(zM, ca.DM(np.asarray(pv, float)))
+            X = ca.horzcat(ca.DM(np.asarray(x0, float)), integ(x0=ca.DM(np.asarray(x0, float)), p=Pm)["xf"])
+            tau, m1, m2, e1 = outm(tgrid, X, ca.repmat(Pm, 1, K + 1))
+            cons += [ca.vec(m1) - spec.margin, ca.vec(m2) - spec.margin]
+            if self.tau_max is not None:
+                lim = ca.repmat(ca.DM(self.tau_max), 1, K + 1)
+                cons += [ca.vec(1 - tau / lim), ca.vec(1 + tau / lim)]
+            if i == 0:
+                taus = tau
+                E = ca.sum1(e1 ** 2)
+                ise = ca.sum2(0.5 * (E[:, 1:] + E[:, :-1]) * ca.DM(np.diff(self.grid)).T)
+        g = ca.vertcat(*cons)
+        self.ng = int(g.numel())
+        #: constraint values (>= 0 holds) of z on the grid, for every plant
+        self.g = ca.Function("tune_g", [zM], [g])
+        #: the nominal run's torque on the grid (n x K+1) and ISE
+        self.figures = ca.Function("tune_figures", [zM], [taus, ise])
+        self._z, self._g, self._tau, self._ise = zM, g, taus, ise
+
+    def jacobian(self) -> ca.Function:
+        """dg/dz (CVODES forward sensitivities through CasADi)."""
+        return ca.Function("tune_dg", [self._z], [ca.jacobian(self._g, self._z)])
+
+    def solve(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int = MAX_ITER,
+              progress=None) -> dict:
+        """IPOPT from z0: {"z", "status", "success", "iterations", "f"}; limited-memory Hessian."""
+        say = progress or (lambda s: None)
+        d = self.d
+        zM = self._z
+        if objective == "peak_torque":
+            s = ca.MX.sym("s")
+            x = ca.vertcat(zM, s)
+            tau = ca.vec(self._tau)
+            g = ca.vertcat(self._g, s * ref - tau, s * ref + tau)
+            f = s
+            tau0 = np.asarray(self.figures(z0)[0], float)      # RuntimeError: the start does not integrate
+            s0 = float(np.max(np.abs(tau0))) / ref * 1.01 if np.all(np.isfinite(tau0)) else 2.0
+            # the epigraph variable never needs to exceed the start's peak or the limit: keeps IPOPT out of designs
+            # whose torque is many times the user's
+            top = max(s0, 1.0 if self.tau_max is None else float(np.max(self.tau_max)) / ref)
+            x0 = np.concatenate([z0, [min(s0, top)]])
+            lbx, ubx = [0.0] * d + [0.0], [1.0] * d + [top]
+        else:
+            x, g, f = zM, self._g, self._ise / ref
+            x0 = np.asarray(z0, float)
+            lbx, ubx = [0.0] * d, [1.0] * d
+        t0 = time.perf_counter()
+        log = ProgressCallback(x.numel(), g.numel(), d, say, t0)
+        opts = {"ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": int(max_iter),
+                "ipopt.max_wall_time": max(1.0, float(wall_s)), "ipopt.print_level": 0, "ipopt.sb": "yes",
+                "print_time": False, "ipopt.tol": 1e-6, "ipopt.acceptable_tol": 1e-4,
+                "ipopt.constr_viol_tol": 1e-6, "iteration_callback": log, "error_on_fail": False}
+        solver = ca.nlpsol("tune_nlp", "ipopt", {"x": x, "f": f, "g": g}, opts)
+        try:
+            r = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=0.0, ubg=ca.inf)
+        except RuntimeError as exc:
+            from .lifecycle import reraise_interrupt
+            reraise_interrupt(exc)
+            return {"z": np.asarray(z0, float), "status": f"error: {str(exc).splitlines()[-1][:200]}",
+                    "success": False, "iterations": log.iterations, "f": math.nan}
+        st = solver.stats()
+        z = np.clip(np.asarray(r["x"]).ravel()[:d], 0.0, 1.0)
+        out = {"z": z, "status": st.get("return_status", "?"), "success": bool(st.get("success", False)),
+               "iterations": int(st.get("iter_count", log.iterations)), "f": float(r["f"])}
+        if log.best is not None and not (out["success"] and out["f"] <= log.best[0]):
+            # IPOPT stopped elsewhere (limit, restoration): its best grid-feasible iterate is the result
+            out.update(z=np.clip(log.best[1], 0.0, 1.0), f=log.best[0], status=out["status"] + ", best feasible "
+                       f"iterate {log.best[2]}")
+        return out
+
+
+class ProgressCallback(ca.Callback):
+    """IPOPT's iteration callback: one progress line per iteration (objective, constraint violation, time)."""
+
+    def __init__(self, nx: int, ng: int, d: int, say, t0: float):
+        ca.Callback.__init__(self)
+        self.nx, self.ng, self.d, self.say, self.t0 = nx, ng, d, say, t0
+        self.iterations = 0
+        self.best = None          # (objective, z, iteration) of the best iterate that meets every grid constraint
+        self.construct("tune_progress", {})
+
+    def get_n_in(self):
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self):
+        return 1
+
+    def get_name_in(self, i):
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i):
+        return "ret"
+
+    def get_sparsity_in(self, i):
+        name = ca.nlpsol_out(i)
+        if name in ("f",):
+            return ca.Sparsity.scalar()
+        if name in ("x", "lam_x"):
+            return ca.Sparsity.dense(self.nx)
+        if name in ("g", "lam_g"):
+            return ca.Sparsity.dense(self.ng)
+        return ca.Sparsity(0, 0)
+
+    def eval(self, arg):
+        g = np.asarray(arg[ca.nlpsol_out().index("g")]).ravel()
+        viol = float(np.max(np.maximum(-g, 0.0))) if g.size else 0.0
+        f = float(arg[ca.nlpsol_out().index("f")])
+        if viol <= 1e-6 and np.isfinite(f) and (self.best is None or f < self.best[0]):
+            self.best = (f, np.asarray(arg[ca.nlpsol_out().index("x")]).ravel()[:self.d].copy(), self.iterations)
+        self.say(f"ipopt iteration {self.iterations}: objective {f:.5g}, constraint violation {viol:.3g} "
+                 f"({time.perf_counter() - self.t0:.1f} s)")
+        self.iterations += 1
+        return [0]
