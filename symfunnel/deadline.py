@@ -75,9 +75,9 @@ def _handler(signum, frame):
 
 
 def _arm() -> None:
-    if not _main():
+    if not _main() or not _stack:          # no deadline of ours: leave any other use of the timer alone
         return
-    if not _stack or (_paused and _paused[-1]):
+    if _paused and _paused[-1]:
         signal.setitimer(signal.ITIMER_REAL, 0)
         return
     wait = min(d.expiry for d in _stack) - time.monotonic()
