@@ -193,8 +193,11 @@ def test_tuned_design_is_robust_to_the_mass_scale(tmp_path, capsys):
         assert r.ok and r.min_margin >= 0.05 and max(r.saturated_fraction) == 0.0
 
 
-def test_continuous_time_tune_without_implementation(tmp_path, capsys):
-    # no [implementation]: candidates are judged by the continuous simulation; no torque limit, so no saturation
+def test_continuous_time_tune_without_implementation(tmp_path, capsys, monkeypatch):
+    # no [implementation]: candidates are judged by the continuous simulation; no torque limit, so no saturation.
+    # The derivative-free search here (its fallback role); the IPOPT path has its own tests in test_tune_gradient.
+    from symfunnel import tune_gradient
+    monkeypatch.setattr(tune_gradient, "ipopt_available", lambda: False)
     raw = paper_doc(t_final=1.0, tune={"parameters": ["controller.k2"], "objective": "ise"}, implementation={})
     src = write(tmp_path, raw)
     code = main(["tune", str(src), "--json", "--max-evals", "3", "-q"])

@@ -79,7 +79,8 @@ def test_symbolic_parameters_reproduce_an_independent_simulation(tmp_path):
 
 @pytest.mark.slow
 def test_gradient_path_tunes_the_continuous_loop_into_the_torque_limit(tmp_path, capsys):
-    src = write(tmp_path, paper_doc(1.0, {"tau_max": 200.0}))
+    src = write(tmp_path, paper_doc(1.0, {"tau_max": 200.0, "parameters": ["controller.k2", "funnel.e2.phi_inf",
+                                                                        "funnel.e2.phi0"]}))
     out = tmp_path / "tuned.toml"
     code = main(["tune", str(src), "--out", str(out), "--json", "--max-evals", "2", "-q"])
     res = json.loads(capsys.readouterr().out)            # stdout is the JSON alone
