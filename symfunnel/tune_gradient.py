@@ -61,6 +61,17 @@ def design_values(scenario, vars_, z: ca.SX) -> dict:
     return out
 
 
+def _funnel_order(scenario, values: dict):
+    """1 - phi_inf/phi0 per joint (>= 0: the e2 funnel narrows, as verify's funnel.parameters requires) when the
+    search moves phi0 or phi_inf, else None."""
+    keys = ("funnel.e2.phi0", "funnel.e2.phi_inf")
+    if not any(k in values for k in keys):
+        return None
+    from .tune_spec import current_value
+    phi0, phi_inf = (values[k] if k in values else ca.DM(current_value(scenario, k)) for k in keys)
+    return 1 - phi_inf / phi0
+
+
 class GradientProblem:
     """The NLP of one scenario's `[tune]`: constraint and objective functions of z with exact Jacobians."""
 
@@ -75,7 +86,9 @@ class GradientProblem:
         self.K = K = int(grid_points)
         self.tau_max = None if tau_max is None else np.broadcast_to(np.asarray(tau_max, float), (n,)).copy()
         z = ca.SX.sym("z", d)
-        design = derive(scenario, values=design_values(scenario, vars_, z))
+        values = design_values(scenario, vars_, z)
+        design = derive(scenario, values=values)
+        order = _funnel_order(scenario, values)
         L = loop_sx(scenario, design, float(scenario.simulation.smoothing_width))
         P = ca.vertcat(z, L["p"])
         self.grid = np.linspace(0.0, self.T, K + 1)
@@ -115,6 +128,8 @@ class GradientProblem:
                 taus = tau
                 E = ca.sum1(e1 ** 2)
                 ise = ca.sum2(0.5 * (E[:, 1:] + E[:, :-1]) * ca.DM(np.diff(self.grid)).T)
+        if order is not None:          # the e2 funnel must narrow: phi0 >= phi_inf (1 - phi_inf/phi0 >= 0)
+            cons.append(ca.Function("tune_order", [z], [order])(zM))
         g = ca.vertcat(*cons)
         self.ng = int(g.numel())
         #: constraint values (>= 0 holds) of z on the grid, for every plant

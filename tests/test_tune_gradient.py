@@ -272,3 +272,19 @@ def test_when_ipopt_finds_nothing_that_holds_the_derivative_free_search_takes_ov
     assert calls and r.method == f"{tuning.GRADIENT_METHOD}; then {tuning.METHOD}"
     assert "fallback" in r.why and "no IPOPT result held" in r.why
     assert r.evaluations == 4                            # the derivative-free search ran on after IPOPT
+
+
+def test_the_e2_funnel_must_narrow_in_the_nlp(tmp_path):
+    """phi_inf above phi0 breaks verify's funnel.parameters (eq. 16): the NLP has a row 1 - phi_inf/phi0 >= 0 per
+    joint, negative exactly there, computed from the tuned and the fixed values."""
+    sc, vs, gp = problem(tmp_path, tune={"tau_max": 200.0, "parameters": ["controller.k2", "funnel.e2.phi_inf"]},
+                         grid=10)
+    i = [v.key for v in vs].index("funnel.e2.phi_inf")
+    phi0 = np.asarray(sc.funnels["e2"].phi0, float)
+    z = np.array([v.z_of(v.user_x()) for v in vs])
+    rows = np.asarray(gp.g(z)).ravel()[-sc.n:]
+    assert np.allclose(rows, 1 - np.asarray(sc.funnels["e2"].phi_inf) / phi0, rtol=1e-12)
+    z[i] = vs[i].z_of(1.2 * float(np.max(phi0)))          # phi_inf above phi0 on every joint
+    z_rows = np.asarray(gp.g(z)).ravel()[-sc.n:]
+    assert np.all(z_rows < 0)
+    assert np.allclose(z_rows, 1 - vs[i].x_of(z[i]) / phi0, rtol=1e-9)
