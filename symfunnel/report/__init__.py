@@ -51,18 +51,17 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
     ctx["tuning"] = H.tuning_section(run, say, figures_dir=figures_dir)
     if ctx["tuning"]["available"]:
         timings.append(("tuning: original against tuned", time.perf_counter() - t0))
-    if deployed:
+    for key, wanted, section, label, reason in (
+            ("deployed", deployed, H.implementation_section, "deployed controller (rate search, design help)",
+             "left out of this report (deployed=False)"),
+            ("codegen", codegen, H.codegen_section, "code generation and cross-check",
+             "code generation was skipped for this report (codegen=False)")):
+        if not wanted:
+            ctx[key] = {"available": False, "reason": reason}
+            continue
         t0 = time.perf_counter()
-        ctx["deployed"] = H.implementation_section(run, say)
-        timings.append(("deployed controller (rate search, design help)", time.perf_counter() - t0))
-    else:
-        ctx["deployed"] = {"available": False, "reason": "left out of this report (deployed=False)"}
-    if codegen:
-        t0 = time.perf_counter()
-        ctx["codegen"] = H.codegen_section(run, say)
-        timings.append(("code generation and cross-check", time.perf_counter() - t0))
-    else:
-        ctx["codegen"] = {"available": False, "reason": "code generation was skipped for this report (codegen=False)"}
+        ctx[key] = section(run, say)
+        timings.append((label, time.perf_counter() - t0))
     checks = verification.checks
     guarantee = next((c for c in checks if c.id == "lyapunov.guarantee"), None)
     ctx["overview"] = {
