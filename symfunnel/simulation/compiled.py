@@ -23,7 +23,7 @@ from ..errors import InputError
 
 COMPILE_FLAGS = ["-O1", "-shared", "-fPIC"]
 APPROX_ESN_JACOBIAN = True
-_LOADED: dict = {}           # source hash -> (ode, outputs) externals loaded in this process
+_LOADED: dict = {}           # graph digest (see compile_closed_loop) -> (ode, outputs, library) loaded in this process
 
 
 class Buffered:
