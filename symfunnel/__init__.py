@@ -10,7 +10,7 @@ The Python API (what the CLI is a thin layer over)::
     v = sf.verify("paper", t_final=5.0)     # results have to_json(); verify(..., strict=True) raises CheckFailed
 """
 
-from .errors import CheckFailed, InputError, SymfunnelError
+from .core.errors import CheckFailed, InputError, SymfunnelError
 
 __version__ = "0.1.0"
 

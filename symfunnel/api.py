@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from . import deadline
-from .errors import CheckFailed, SimulationError
+from .core import deadline
+from .core.errors import CheckFailed, SimulationError
 from .pipeline import Run, RunOptions, run_mutants
 from .scenario import Scenario, load_scenario
 

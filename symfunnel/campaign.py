@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .io import atomic_path, atomic_write, json_safe
+from .core.errors import InputError
+from .core.io import atomic_path, atomic_write, json_safe
 
 ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "timeout": "failed", "failed": "failed"}
 RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau"]
@@ -374,7 +374,7 @@ def summarize(table, columns: list[str]) -> dict:
 
 def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
     """A complete scenario (TOML text) that `symfunnel simulate` replays to run `run` of the campaign."""
-    from .toml_write import dumps
+    from .core.toml_write import dumps
     from .uncertainty import scenario_edits
     values = campaign.values([run], job.runs)[0]
     raw = copy.deepcopy(job.raw)

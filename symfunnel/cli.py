@@ -8,7 +8,7 @@ import os
 import sys
 
 from .commands._common import _dump, _load, _progress  # noqa: F401 - shared with the command modules
-from .errors import InputError, SymfunnelError
+from .core.errors import InputError, SymfunnelError
 
 EXIT_INTERNAL = 3
 
@@ -16,7 +16,7 @@ EXIT_INTERNAL = 3
 # --- derive ---------------------------------------------------------------------------------------
 
 def _read_points(path: str):
-    from .inputs import loads_json, read_text
+    from .core.inputs import loads_json, read_text
     expected = '{"t": ..., "q": [...], "dq": [...]} or a list of such objects'
     data = loads_json(read_text(path, expected="a JSON point file"), file=path, expected=expected)
     return data
@@ -25,10 +25,10 @@ def _read_points(path: str):
 def cmd_derive(args) -> int:
     """`symfunnel derive`: signals with size and free variables; --eval values at points; --latex formulas."""
     from .design import evaluate
-    from .names import compress_names
+    from .core.names import compress_names
     from .pipeline import Run
     if args.latex:
-        from .outputs import check_output_file
+        from .core.outputs import check_output_file
         check_output_file(args.latex, key="--latex")
     sc = _load(args)
     d = Run(sc).design
@@ -87,7 +87,7 @@ def _write_latex(d, names, path) -> None:
     equation (converted from SX), the operation count for the rest."""
     import sympy
 
-    from .io import atomic_write
+    from .core.io import atomic_write
     from .sx.tosympy import sx_to_sympy
     name = _tex_text(d.scenario.name)
     body = []
@@ -215,10 +215,10 @@ def _version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; bad input ends in one line and exit 2, failed checks exit 1, never a traceback."""
-    from . import lifecycle
+    from .core import lifecycle
     parser = build_parser()
     args = parser.parse_args(argv)
-    from . import deadline
+    from .core import deadline
     lifecycle.install()
     try:
         seconds = getattr(args, "command_wall_limit", None)

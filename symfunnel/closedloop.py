@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from .errors import InputError
+from .core.errors import InputError
 from .sx.linalg import ldl_solve
 
 if TYPE_CHECKING:

@@ -11,8 +11,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from . import validate as V
-from .errors import InputError
+from .core import validate as V
+from .core.errors import InputError
 
 KEYS = ["rate_hz", "delay_samples", "tau_max", "noise_q", "noise_dq", "encoder_resolution", "seed"]
 MAX_RATE_HZ = 1e6

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import deadline
+from .core import deadline
 from .checks.theory import check_identity
 from .design import derive, variant_of
 from .scenario import Scenario, load_scenario

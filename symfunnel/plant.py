@@ -23,7 +23,7 @@ from typing import Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from .errors import InputError
+from .core.errors import InputError
 from .expr import Expression
 
 Branch = Callable[[ca.SX], ca.SX]

@@ -13,7 +13,7 @@ import copy
 import math
 from typing import TYPE_CHECKING
 
-from .errors import InputError
+from .core.errors import InputError
 
 if TYPE_CHECKING:
     from collections.abc import Callable

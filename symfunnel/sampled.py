@@ -150,7 +150,7 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
     import json
 
     from .codegen.files import c_names
-    from .codegen.build import SHARED_FLAGS, compile_cached
+    from .core.ccompile import SHARED_FLAGS, compile_cached
     base = c_names(files)[0]
     api = json.loads(files["manifest.json"])["c_api"]["step"]
     # The file's CasADi part does not depend on the rate (only the step API's constants after MARK do): compile
@@ -228,7 +228,7 @@ def _compiled(f: ca.Function, on_build=None) -> _CFun:
     import tempfile
     from pathlib import Path
 
-    from .codegen.build import SHARED_FLAGS, compile_cached
+    from .core.ccompile import SHARED_FLAGS, compile_cached
     with tempfile.TemporaryDirectory(prefix="symfunnel-plant-") as tmp:
         cg = ca.CodeGenerator(f.name() + ".c", {"with_header": False, "casadi_int": "int"})
         cg.add(f)
@@ -399,7 +399,7 @@ def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz:
 
 def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):
     """Run the loop in C (templates/sampled_loop.c) with the compiled step and plant: (rc, k_end, outside)."""
-    from .codegen.build import SHARED_FLAGS, compile_cached
+    from .core.ccompile import SHARED_FLAGS, compile_cached
     from .codegen.c import template
     built = compile_cached({"sampled_loop.c": template("sampled_loop.c")}, ["sampled_loop.c"],
                            "libsfs_loop.so", SHARED_FLAGS, on_build=say)

@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from . import validate as V
-from .errors import InputError
+from .core import validate as V
+from .core.errors import InputError
 from .expr import Expression, parse_expression
 from .family.approximators import APPROXIMATORS, ESNApproximator, RBFSpec, parse_rbf
 from .family.funnels import FunnelSpec, check_positive, parse_funnel
@@ -19,7 +19,7 @@ from .integrators import INTEGRATORS
 from .model import MODEL_TYPES
 from .plant import DeadZoneSpec
 from .plant import check_dead_zone_spec as _check_dead_zone
-from .names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
+from .core.names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
 
 if TYPE_CHECKING:
     from .implementation import ImplementationSpec
@@ -224,7 +224,7 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """Load and validate a scenario (a path or a built-in name such as 'paper')."""
     path = resolve(name_or_path)
     file = str(path)
-    from .inputs import loads_toml, read_text
+    from .core.inputs import loads_toml, read_text
     text = read_text(path, expected="a scenario TOML file")
     raw = loads_toml(text, file=file)
     default_name = path.stem if str(name_or_path) not in BUILTIN else str(name_or_path)

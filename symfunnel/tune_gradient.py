@@ -175,7 +175,7 @@ class GradientProblem:
         try:
             r = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=0.0, ubg=ca.inf)
         except RuntimeError as exc:
-            from .lifecycle import reraise_interrupt
+            from .core.lifecycle import reraise_interrupt
             reraise_interrupt(exc)
             return {"z": np.asarray(z0, float), "status": f"error: {str(exc).splitlines()[-1][:200]}",
                     "success": False, "iterations": log.iterations, "f": math.nan}

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .core.errors import InputError
 from .tune_spec import TUNABLE, TuneSpec, current_value
 
 __all__ = ["tune", "TuneResult", "Candidate", "scenario_confidence", "METHOD", "GRADIENT_METHOD", "tune_records",
@@ -319,7 +319,7 @@ class TuneResult:
 
     def to_json(self) -> dict:
         """The `--json` output of the contract (plus details)."""
-        from .io import json_safe
+        from .core.io import json_safe
         return json_safe({"status": self.status, "method": self.method, "why": self.why,
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
                           "wall_s": self.wall_s, "evaluations": self.evaluations, "constraints": self.constraints,
@@ -403,7 +403,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 stopped = str(exc)
                 say(stopped + ": the best design so far is the result")
             except RuntimeError as exc:            # CasADi/IPOPT failed to build or run the problem
-                from .lifecycle import reraise_interrupt
+                from .core.lifecycle import reraise_interrupt
                 reraise_interrupt(exc)
                 failed = _last_line(exc)
             b = best[0]
@@ -517,7 +517,7 @@ def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline
             r = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
                          progress=say)
         except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
-            from .lifecycle import reraise_interrupt
+            from .core.lifecycle import reraise_interrupt
             reraise_interrupt(exc)
             say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
             continue

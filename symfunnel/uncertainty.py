@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from . import validate as V
-from .errors import InputError
+from .core import validate as V
+from .core.errors import InputError
 
 DESIGNS = ("sobol", "lhs", "random")
 DISTS = {"uniform": ("low", "high"), "normal": ("mean", "std"), "choice": ("values",)}

@@ -7,7 +7,7 @@ import json
 import pytest
 
 import symfunnel as sf
-from symfunnel.errors import CheckFailed, InputError
+from symfunnel.core.errors import CheckFailed, InputError
 
 
 def test_one_function_per_command_with_json_results(tmp_path):

@@ -15,8 +15,7 @@ PKG = Path(__file__).resolve().parent.parent / "symfunnel"
 
 #: layers, lowest first; a module may import its own layer and the ones below
 LAYERS = [
-    ("ground", ["errors", "io", "validate", "names", "registry", "expr", "sx", "family", "esn", "plant",
-                "integrators", "inputs", "outputs", "lifecycle", "deadline", "sim_hints", "uncertainty", "toml_write",
+    ("ground", ["core", "expr", "sx", "family", "esn", "plant", "integrators", "sim_hints", "uncertainty",
                 "_callable"]),
     ("model", ["model"]),
     ("scenario", ["scenario", "implementation", "tune_spec"]),

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from symfunnel.cli import main
-from symfunnel.errors import InputError
+from symfunnel.core.errors import InputError
 from tests.conftest import PAPER
 
 
@@ -64,7 +64,7 @@ def test_latex_output_is_checked_first(tmp_path, capsys, target):
 
 
 def test_device_as_out_is_refused():
-    from symfunnel.outputs import check_output_file
+    from symfunnel.core.outputs import check_output_file
     with pytest.raises(InputError, match="not a regular file"):
         check_output_file("/dev/null")
 
@@ -76,7 +76,7 @@ def test_read_only_out_directory(read_only_dir, capsys):
 
 
 def test_check_output_file_accepts_new_nested_paths(tmp_path):
-    from symfunnel.outputs import check_output_file
+    from symfunnel.core.outputs import check_output_file
     assert check_output_file(tmp_path / "a" / "b" / "r.html") == tmp_path / "a" / "b" / "r.html"
     assert not (tmp_path / "a").exists()            # the check creates nothing
 
@@ -133,8 +133,8 @@ def test_default_report_name_of_a_copied_builtin(tmp_path):
 def test_sigterm_during_an_atomic_write_leaves_no_temporary_file(tmp_path):
     prog = textwrap.dedent(f"""
         import time
-        from symfunnel import lifecycle
-        from symfunnel.io import atomic_path
+        from symfunnel.core import lifecycle
+        from symfunnel.core.io import atomic_path
         lifecycle.install()
         try:
             with atomic_path({str(tmp_path / "out.html")!r}) as tmp:

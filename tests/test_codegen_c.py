@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from symfunnel import codegen as cg
-from symfunnel.codegen import build, check
+from symfunnel.core import ccompile as build
+from symfunnel.codegen import check
 from symfunnel.codegen.c import STRICT_CFLAGS, parse_trajectory_output
 from symfunnel.codegen.contract import trajectory_inputs
 from symfunnel.scenario import load_scenario

@@ -27,7 +27,7 @@ def test_c_check_passes_and_second_run_reuses_the_cache(tmp_path, capsys):
     for name in ("symfunnel_controller.c", "symfunnel_controller.h", "main.c", "Makefile", "trajectory.txt",
                  "manifest.json"):
         assert (out / name).is_file()
-    from symfunnel.codegen.build import cache_dir
+    from symfunnel.core.ccompile import cache_dir
     before = sorted(p.name for p in cache_dir().iterdir())
     mtimes = {p: p.stat().st_mtime_ns for p in cache_dir().rglob("*") if p.is_file()}
     assert main(["codegen", "--lang", "c", "--out", str(out), "--check", "--json"]) == 0

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from symfunnel.codegen import build
-from symfunnel.codegen.build import RECORD, compile_cached, find_compiler, verify_entry
+from symfunnel.core import ccompile as build
+from symfunnel.core.ccompile import RECORD, compile_cached, find_compiler, verify_entry
 
 SRC = {"f.c": "double f(double x) { return 2.0 * x + 1.0; }\n"}
 
@@ -145,8 +145,8 @@ def test_signal_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path, s
     cache = tmp_path / "cache"
     prog = textwrap.dedent(f"""
         import sys
-        from symfunnel import lifecycle
-        from symfunnel.codegen.build import compile_cached, SHARED_FLAGS
+        from symfunnel.core import lifecycle
+        from symfunnel.core.ccompile import compile_cached, SHARED_FLAGS
         lifecycle.install()
         try:
             compile_cached({SRC!r}, ["f.c"], "libf.so", SHARED_FLAGS, cache={str(cache)!r}, timeout=300)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from symfunnel import deadline
+from symfunnel.core import deadline
 from symfunnel.sx.proof import _Timeout, time_limit
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,7 +64,7 @@ def test_paused_blocks_watch_the_limit_themselves_and_check_raises_after():
 
 
 def test_the_compiler_is_killed_with_its_children_at_the_limit(tmp_path):
-    from symfunnel.codegen.build import run_compiler
+    from symfunnel.core.ccompile import run_compiler
     marker = tmp_path / "child.pid"
     script = f"sleep 30 & echo $! > {marker}; wait"
     t0 = time.monotonic()
@@ -144,7 +144,7 @@ def test_verify_under_a_limit_too_short_for_the_integration_stops_with_one_line(
 
 def test_the_api_raises_a_simulation_error_at_its_wall_limit():
     from symfunnel import api
-    from symfunnel.errors import SimulationError
+    from symfunnel.core.errors import SimulationError
     with pytest.raises(SimulationError, match="wall-clock limit of 0.3 s reached"):
         api.verify("paper", wall_limit=0.3)
     assert deadline.remaining() == float("inf")

@@ -11,7 +11,7 @@ import sympy as sp
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from symfunnel.errors import InputError
+from symfunnel.core.errors import InputError
 from symfunnel.expr import FUNCTIONS, MAX_NODES, parse_expression
 
 SCALARS = ["x", "y", "z"]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from symfunnel.cli import main
-from symfunnel.errors import InputError
+from symfunnel.core.errors import InputError
 from tests.conftest import PAPER
 
 
@@ -43,7 +43,7 @@ def test_device_and_directory_are_refused(tmp_path):
 
 
 def test_oversized_file_is_refused_before_reading(tmp_path):
-    from symfunnel.inputs import MAX_INPUT_BYTES, read_input
+    from symfunnel.core.inputs import MAX_INPUT_BYTES, read_input
     big = tmp_path / "big.toml"
     with open(big, "wb") as fh:                 # sparse: costs no disk
         fh.truncate(MAX_INPUT_BYTES + 1)
@@ -87,7 +87,7 @@ def test_toml_integer_notations_are_exact_integers(tmp_path):
 
 
 def test_float_literal_boundaries():
-    from symfunnel.inputs import float_literal
+    from symfunnel.core.inputs import float_literal
     assert float_literal("2.2250738585072014e-308", file=None) == sys.float_info.min
     assert float_literal("0.0", file=None) == 0.0 and float_literal("-0e5", file=None) == 0.0
     assert float_literal("1.7976931348623157e308", file=None) == sys.float_info.max

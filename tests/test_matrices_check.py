@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from symfunnel.cli import main
-from symfunnel.errors import InputError
+from symfunnel.core.errors import InputError
 from symfunnel.scenario import load_scenario
 from tests.conftest import MINIMAL_2LINK
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from symfunnel.errors import InputError
+from symfunnel.core.errors import InputError
 from symfunnel.model.base import christoffel_C
 from symfunnel.model.links import build_dh, build_planar
 from symfunnel.model.urdf import build_urdf, movable_joint_names, parse_urdf

@@ -129,7 +129,7 @@ def test_scales_are_factors_of_disturbance_and_branches(paper):
 
 @pytest.mark.parametrize("key,value", [("left_scale", 0.0), ("right_scale", -1.0)])
 def test_bad_branch_scale_is_rejected(paper, key, value):
-    from symfunnel.errors import InputError
+    from symfunnel.core.errors import InputError
     with pytest.raises(InputError, match=f"plant.dead_zone.{key}"):
         _variant(paper, lambda r: r["plant"]["dead_zone"].update({key: value}))
     with pytest.raises(InputError, match="plant.disturbance_scale"):

@@ -13,7 +13,7 @@ from symfunnel import rate as R
 from symfunnel import sampled as S
 from symfunnel.cli import main
 from symfunnel.design import derive
-from symfunnel.errors import InputError
+from symfunnel.core.errors import InputError
 from symfunnel.scenario import DATA_DIR, load_scenario
 
 from .conftest import private_cache

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from symfunnel.errors import InputError
+from symfunnel.core.errors import InputError
 from symfunnel.scenario import load_scenario
 
 from .conftest import MINIMAL_2LINK, PAPER, REPO

@@ -192,7 +192,7 @@ def test_buffered_evaluation_matches_the_plain_call_with_per_call_statistics():
 def test_max_step_caps_cvodes_steps_and_keeps_the_trajectory(paper):
     """simulation.max_step reaches CVODES: 0.5 s cannot take fewer than 0.5/max_step steps; q stays the same to
     the tolerance's order; a negative value is refused naming the key."""
-    from symfunnel.errors import InputError
+    from symfunnel.core.errors import InputError
     free = simulate(paper, derive(paper), t_final=0.5)
     capped_sc = _variant(paper, lambda raw: raw["simulation"].update(max_step=5e-4), "capped")
     assert capped_sc.simulation.max_step == 5e-4 and paper.simulation.max_step == 0.0

@@ -17,7 +17,7 @@ import pytest
 from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
 from symfunnel.campaign import clopper_pearson, make_job, run_chunk, sweep
-from symfunnel.toml_write import dumps
+from symfunnel.core.toml_write import dumps
 
 # |q0| beyond F1(0) = 0.19 starts outside the funnel (a breach at t = 0): a breach region known in advance
 UNCS = [{"key": "initial.q", "dist": "uniform", "low": -0.3, "high": 0.3},
@@ -161,7 +161,7 @@ def test_killed_sweep_resumes_without_duplicates(tmp_path):
 
 
 def test_resume_refuses_another_campaign(reference, tmp_path):
-    from symfunnel.errors import InputError
+    from symfunnel.core.errors import InputError
     sc, job, ref = reference
     out = tmp_path / "r"
     sweep(sc, workers=1, out=out, runs=2)

@@ -14,7 +14,7 @@ import pytest
 from symfunnel.cli import main
 from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
-from symfunnel.toml_write import dumps
+from symfunnel.core.toml_write import dumps
 
 needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not available")
 

@@ -12,7 +12,7 @@ import pytest
 
 from symfunnel.cli import main
 from symfunnel.scenario import load_scenario
-from symfunnel.toml_write import dumps
+from symfunnel.core.toml_write import dumps
 
 
 def paper_doc(t_final: float, tune: dict) -> dict:

@@ -10,7 +10,7 @@ import pytest
 
 from symfunnel.cli import main
 from symfunnel.scenario import DATA_DIR, from_dict, load_scenario
-from symfunnel.toml_write import dumps
+from symfunnel.core.toml_write import dumps
 from symfunnel.uncertainty import Uncertainty, design_points
 
 MASS = {"key": "plant.mass_scale", "dist": "uniform", "low": 0.8, "high": 1.2}
@@ -76,7 +76,7 @@ def test_bad_runs_option_and_missing_uncertainty(paper, tmp_path, capsys):
 
 def test_dead_zone_branch_checked_at_the_extreme_breakpoints(paper):
     """A branch written with the nominal breakpoint's number is only 0 there: varying b_r must be refused."""
-    from symfunnel.errors import InputError
+    from symfunnel.core.errors import InputError
     raw = _with(paper, [{"key": "plant.dead_zone.b_r", "dist": "uniform", "low": 0.5, "high": 2.0}])
     raw["plant"]["dead_zone"]["right"] = "1.1*(u - 1.0)"
     with pytest.raises(InputError, match="extreme breakpoints"):
@@ -142,7 +142,7 @@ def test_per_joint_columns_and_values(paper):
 
 
 def test_dead_zone_key_needs_a_dead_zone(paper):
-    from symfunnel.errors import InputError
+    from symfunnel.core.errors import InputError
     raw = _with(paper, [{"key": "plant.dead_zone.left_scale", "dist": "uniform", "low": 0.5, "high": 1.5}])
     del raw["plant"]["dead_zone"]
     with pytest.raises(InputError, match="has no dead zone"):

@@ -45,7 +45,7 @@ def time_controller(design: Design, c_files: dict[str, str], py_files: dict[str,
     import subprocess
 
     from ..codegen import check
-    from ..codegen.build import compile_cached
+    from ..core.ccompile import compile_cached
     from ..codegen.c import BASENAME, STRICT_CFLAGS
     from ..codegen.contract import trajectory_inputs
     from ..sx.tape import count_ops

@@ -51,7 +51,7 @@ class VMStep:
 def run(progress) -> list[dict]:
     """The three results above, for the paper scenario."""
     from ..codegen.files import generate
-    from ..codegen.build import compile_cached
+    from ..core.ccompile import compile_cached
     from ..codegen.c import STRICT_CFLAGS
     from ..codegen.step import step_function
     from ..design import derive

@@ -131,7 +131,7 @@ def compile_controller(design, workdir: pathlib.Path) -> dict:
 
 def _compiler() -> str:
     try:
-        from ..codegen.build import find_compiler
+        from ..core.ccompile import find_compiler
         return find_compiler()
     except ImportError:      # pragma: no cover
         import shutil

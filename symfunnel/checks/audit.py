@@ -321,7 +321,7 @@ def claim_env(design: Design, claim=None) -> dict:
 
 def claim_expression(design: Design, claim) -> ca.SX:
     """The printed claim as SX over the base symbols, broadcast to its signal's shape."""
-    from ..errors import InputError
+    from ..core.errors import InputError
     target = design.signals[claim.signal]
     e = claim.expression.to_casadi(claim_env(design, claim))
     e = ca.SX(e)
@@ -423,7 +423,7 @@ def circular_names(design: Design, claim) -> list[str]:
 def check_inequality(design: Design, claim, rng) -> CheckResult:
     """claim.<name> of an inequality claim: lhs <= rhs searched for counterexamples inside the funnels, with V and
     V_dot the design's (V_dot exact by AD along the nominal model plus W*^T Phi, eps = 0) and W* random."""
-    from ..errors import InputError
+    from ..core.errors import InputError
     sc = design.scenario
     cid = f"claim.{claim.name}"
     n, nr = design.n, design.n_regressor

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..io import json_safe
+from ..core.io import json_safe
 from .audit import CheckResult
 from .lyapunov import REL_TOL, LyapunovTrajectory, decay_margin, falsify
 

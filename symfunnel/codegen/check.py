@@ -27,7 +27,7 @@ from .files import c_names, generate, write_output
 
 if TYPE_CHECKING:
     from ..design import Design
-    from .build import Built
+    from ..core.ccompile import Built
 
 __all__ = ["THRESHOLDS", "FILL", "CheckReport", "sample_points", "casadi_values", "c_library", "CLibrary",
            "check_c", "check_python", "load_python_module", "relative_error", "check_output", "main_program",
@@ -201,7 +201,7 @@ class CFunction:
 
 def c_library(c_source: str, h_source: str, basename: str):
     """Compile the generated pair into a cached shared library; returns build.Built."""
-    from .build import SHARED_FLAGS, compile_cached
+    from ..core.ccompile import SHARED_FLAGS, compile_cached
     return compile_cached({basename + ".c": c_source, basename + ".h": h_source}, [basename + ".c"],
                           f"lib{basename}.so", SHARED_FLAGS)
 
@@ -286,7 +286,7 @@ def check_output(design: Design, lang: str, files: dict[str, str], *, points: in
 
 def main_program(files: dict[str, str], flags=None) -> Built:
     """Build main.c + the generated pair with the strict flags (cached)."""
-    from .build import compile_cached
+    from ..core.ccompile import compile_cached
     from .c import STRICT_CFLAGS
     base = c_names(files)[0]
     src = {k: files[k] for k in (base + ".c", base + ".h", "main.c")}
@@ -320,7 +320,7 @@ def codegen_summary(design: Design, trajectory: dict, *, points: int = 1000) -> 
     "controller_operations", "timings": None (timing is `symfunnel bench --only codegen`'s job), "points"}.
     """
     from ..sx.tape import count_ops
-    from .build import find_compiler
+    from ..core.ccompile import find_compiler
     from .python import manifest_entry
     functions = contract_functions(design)
     pts = sample_points(design, points, 0)

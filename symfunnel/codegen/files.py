@@ -116,8 +116,8 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path
 
     Raises InputError when out_dir exists and is not a directory. Other files in out_dir are left alone.
     """
-    from ..errors import InputError
-    from ..io import umask_mode
+    from ..core.errors import InputError
+    from ..core.io import umask_mode
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a directory", file=str(out), key="--out",

@@ -19,7 +19,7 @@ def _progress(quiet: bool):
 
 
 def _dump(obj) -> str:
-    from ..io import json_safe
+    from ..core.io import json_safe
     return json.dumps(json_safe(obj), indent=2, allow_nan=False)
 
 

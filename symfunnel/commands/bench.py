@@ -24,7 +24,7 @@ def run(args) -> int:
     from ..bench import AREAS
     from ..bench import run as run_bench
     from ._common import _progress
-    from ..errors import InputError
+    from ..core.errors import InputError
     for a in args.only or []:
         if a not in AREAS:
             raise InputError(f"unknown area '{a}'", key="--only", expected="one of " + ", ".join(AREAS))

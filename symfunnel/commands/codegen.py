@@ -37,8 +37,8 @@ def run(args) -> int:
     from ..codegen.check import FILL, check_output
     from ..codegen.files import write_output
     from ._common import _progress
-    from ..errors import InputError
-    from ..outputs import check_count
+    from ..core.errors import InputError
+    from ..core.outputs import check_count
     from ..pipeline import Run
     from ..codegen.step import valid_prefix
     from ..implementation import check_rate
@@ -64,7 +64,7 @@ def run(args) -> int:
         try:
             report = check_output(design, args.lang, files, points=args.points, seed=args.seed)
         except RuntimeError as exc:            # compiler diagnostics, a failing main.c: the check failed
-            from ..errors import CheckFailed
+            from ..core.errors import CheckFailed
             raise CheckFailed(f"codegen --check: {exc}") from None
         summary["check"] = report.to_json()
         code = 0 if report.passed else 1

@@ -33,9 +33,9 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Write the scenario, check that it loads and that its funnels contain the initial state; print its path."""
-    from ..errors import InputError
-    from ..io import atomic_write
-    from ..outputs import check_output_file
+    from ..core.errors import InputError
+    from ..core.io import atomic_write
+    from ..core.outputs import check_output_file
     out = Path(args.out)
     if out.suffix != ".toml":
         raise InputError(f"is '{out}'", key="--out", expected="a file name ending in .toml")

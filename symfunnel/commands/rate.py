@@ -22,7 +22,7 @@ def run(args) -> int:
     import math
 
     from ..cli import _dump, _load, _progress
-    from ..errors import InputError
+    from ..core.errors import InputError
     from ..rate import min_rate
     if not (math.isfinite(args.margin) and 0 <= args.margin < 1):
         raise InputError(f"is {args.margin:g}", key="--margin", expected="a number in [0, 1)")

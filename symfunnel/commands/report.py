@@ -30,7 +30,7 @@ def register(sub, common) -> None:
 def run(args) -> int:
     """Write the report and print its path. Failed checks are shown in the report; the exit code is still 0."""
     from ._common import _load, _progress
-    from ..outputs import check_count, check_output_file
+    from ..core.outputs import check_count, check_output_file
     from ..pipeline import Run, RunOptions
     from ..report import build_report, default_path
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
@@ -53,7 +53,7 @@ def figures_dir(arg: str):
     import os
     from pathlib import Path
 
-    from ..errors import InputError
+    from ..core.errors import InputError
     p = Path(arg)
     if p.exists() and not p.is_dir():
         raise InputError(f"{arg} exists and is not a directory", key="--figures", expected="a directory")

@@ -33,7 +33,7 @@ def run(args) -> int:
     import warnings
 
     from ._common import _dump, _load, _progress
-    from ..errors import InputError
+    from ..core.errors import InputError
     from ..pipeline import Run, RunOptions
     from ..simulation import convergence_study
 
@@ -46,7 +46,7 @@ def run(args) -> int:
     if args.out and not args.out.endswith(".npz"):
         raise InputError(f"is '{args.out}'", key="--out", expected="a file name ending in .npz")
     if args.out:
-        from ..outputs import check_output_file
+        from ..core.outputs import check_output_file
         check_output_file(args.out)
     say = _progress(args.quiet)
     if args.rate is not None:
@@ -128,7 +128,7 @@ def _table(s: dict) -> None:
 def _sampled(args, sc, say) -> int:
     """The sampled-data loop around the generated C step (symfunnel.sampled); exit 1 unless it kept its funnels."""
     from ..cli import _dump
-    from ..io import atomic_write
+    from ..core.io import atomic_write
     from ..sampled import simulate_sampled
     from ..pipeline import Run
     res = simulate_sampled(sc, Run(sc, progress=say).design, rate_hz=args.rate, t_final=args.t_final, progress=say)

@@ -51,9 +51,9 @@ def run(args) -> int:
     """Tune, write --out atomically, print a summary (or JSON); exit 1 when no feasible design was found."""
     from pathlib import Path
 
-    from ..errors import InputError
-    from ..io import atomic_write
-    from ..toml_write import dumps
+    from ..core.errors import InputError
+    from ..core.io import atomic_write
+    from ..core.toml_write import dumps
     from ..tuning import tune
     from ._common import _dump, _load, _progress
     if not (math.isfinite(args.wall_limit) and args.wall_limit > 0):

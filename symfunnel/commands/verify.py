@@ -45,7 +45,7 @@ def print_checks(checks, indent: str = "  ") -> None:
 def run(args) -> int:
     """Run every check; print a table (or JSON); exit 1 exactly when an outcome is not the declared one."""
     from ._common import _dump, _load, _progress
-    from ..outputs import check_count
+    from ..core.outputs import check_count
     from ..pipeline import Run, RunOptions
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     if args.rate is not None:

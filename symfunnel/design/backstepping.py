@@ -221,7 +221,7 @@ class Backstepping:
 
     def signal_info(self) -> dict[str, tuple[str, int]]:
         """name -> (description, funnel level needed: 0 none, 1 funnel e1, 2 both) of every signal derived."""
-        from ..names import SIGNALS
+        from ..core.names import SIGNALS
         out = {k: v for k, v in SIGNALS.items() if k not in ("zeta1", "zeta2", "Phi", "w_hat_dot", "x_esn_dot")}
         out["r1"] = ("e1/z1 (finite at e1 = 0)", 1)
         out["r2"] = ("e2/z2 (finite at e2 = 0), the coupling term's factor", 2)

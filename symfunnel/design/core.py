@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from ..errors import InputError
+from ..core.errors import InputError
 from ..sx.tape import count_ops as tape_ops
-from ..validate import did_you_mean
+from ..core.validate import did_you_mean
 
 if TYPE_CHECKING:
     from ..scenario import Scenario
@@ -132,7 +132,7 @@ def count_ops(f: ca.Function) -> int:
 # --- evaluation ---------------------------------------------------------------------------------
 
 def _as_array(value, shape, what: str, file: str | None, scalar_ok: bool = False) -> np.ndarray:
-    from ..inputs import number_array
+    from ..core.inputs import number_array
     return number_array(value, tuple(shape), file=file, key=what, scalar_ok=scalar_ok)
 
 

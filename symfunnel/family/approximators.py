@@ -12,9 +12,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from .. import validate as V
-from ..errors import InputError
-from ..registry import Registry
+from ..core import validate as V
+from ..core.errors import InputError
+from ..core.registry import Registry
 
 APPROXIMATORS = Registry("approximator", "approximator.type")
 

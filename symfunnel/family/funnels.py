@@ -9,10 +9,10 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from .. import validate as V
-from ..errors import InputError
+from ..core import validate as V
+from ..core.errors import InputError
 from ..expr import Expression, parse_expression
-from ..registry import Registry
+from ..core.registry import Registry
 
 FUNNEL_SHAPES = Registry("funnel shape", "funnel.eK")
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ..registry import Registry
+from ..core.registry import Registry
 
 TRANSFORMS = Registry("error transformation", "design.transform")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import importlib
 
-from ..registry import Registry
+from ..core.registry import Registry
 
 VARIANTS = Registry("design variant", "design.variant")
 VARIANTS.add("backstepping", "two-step funnel backstepping with an adaptive approximator (the paper's design)",

@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-from ..registry import Registry
+from ..core.registry import Registry
 
 MODEL_TYPES = Registry("model type", "model.type")
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
-from ..validate import check_keys, get_float, get_list, get_str, join
+from ..core.errors import InputError
+from ..core.validate import check_keys, get_float, get_list, get_str, join
 from .base import RigidBodyModel
 from .rigid import build_model
 from .tree import (Joint, Link, Tree, check_inertia, check_mass, get_coordinates, get_joint_range, get_range,

@@ -5,10 +5,10 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .. import validate as V
-from ..errors import InputError
+from ..core import validate as V
+from ..core.errors import InputError
 from ..expr import parse_expression
-from ..names import IDENT, RESERVED
+from ..core.names import IDENT, RESERVED
 from .base import RigidBodyModel, christoffel_C, symbols
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ..errors import InputError
+from ..core.errors import InputError
 
 #: Configurations sampled (besides the initial state) for symmetry and positive definiteness.
 SAMPLES = 64

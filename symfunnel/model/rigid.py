@@ -8,7 +8,7 @@ import math
 import casadi as ca
 import numpy as np
 
-from ..errors import InputError
+from ..core.errors import InputError
 from .base import RigidBodyModel, christoffel_C, symbols
 from .dynamics import mass_and_gravity
 from .tree import Body, Tree, bodies_from_tree, fmt_values

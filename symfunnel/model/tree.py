@@ -9,9 +9,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import InputError
-from ..names import IDENT
-from ..validate import as_float, did_you_mean, get_list, join, type_name
+from ..core.errors import InputError
+from ..core.names import IDENT
+from ..core.validate import as_float, did_you_mean, get_list, join, type_name
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 SNAP = 1e-14           # rotation-matrix entries this close to 0 are exactly 0 (rpy of pi/2 and the like)

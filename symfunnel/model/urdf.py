@@ -8,8 +8,8 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from ..errors import InputError
-from ..validate import check_keys, did_you_mean, get_str, join
+from ..core.errors import InputError
+from ..core.validate import check_keys, did_you_mean, get_str, join
 from .base import RigidBodyModel
 from .rigid import build_model
 from .tree import (MOVABLE, Joint, Link, Tree, bodies_from_tree, check_inertia, check_mass, get_coordinates,
@@ -44,7 +44,7 @@ def parse_urdf(path: str | pathlib.Path) -> Tree:
     """Read a URDF file into a Tree, checking every element the dynamics use; visuals and meshes are ignored."""
     path = pathlib.Path(path)
     file = str(path)
-    from ..inputs import read_input
+    from ..core.inputs import read_input
     text = read_input(path, expected="a URDF file")
     try:
         root = ET.fromstring(text)

@@ -93,7 +93,7 @@ def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True, d
                  figures_dir=None) -> Path:
     """Write the report of a Run (default reports/<name>.html) atomically; returns the path. With figures_dir,
     every figure also goes there as figNN-ID.png and figNN-ID.pdf (each written atomically)."""
-    from ..io import atomic_write
+    from ..core.io import atomic_write
     text = render_report(run, codegen=codegen, mutants=mutants, deployed=deployed, figures_dir=figures_dir)
     path = Path(out) if out is not None else default_path(run.scenario)
     atomic_write(path, text)

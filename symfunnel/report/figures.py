@@ -89,7 +89,7 @@ def export(fig, directory, stem: str) -> list:
     """Write a figure as STEM.png (150 dpi) and STEM.pdf into directory, each atomically; returns the paths."""
     from pathlib import Path
 
-    from ..io import atomic_write
+    from ..core.io import atomic_write
     out = []
     for fmt, meta in (("png", {"Software": None}), ("pdf", {"Creator": None, "Producer": None,
                                                            "CreationDate": None})):

@@ -16,7 +16,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ..names import compress_names
+from ..core.names import compress_names
 from . import figures as FIG
 from . import formula as FM
 
@@ -285,7 +285,7 @@ def derivation_section(design, audit_results, progress) -> dict:
     import sympy
 
     from ..design import count_ops
-    from ..names import SIGNALS
+    from ..core.names import SIGNALS
     rows = []
     for k in SIGNAL_ORDER:
         if k not in design.signals:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..core.errors import InputError
 from .figures import _plt, _with_rc
 
 STATUS_COLORS = {"ok": "C0", "breach": "crimson", "failed": "0.5"}
@@ -188,7 +188,7 @@ def render_section(sec: dict) -> str:
 
 def write_sweep_page(directory, out=None) -> Path:
     """Write the section as a self-contained HTML page (default DIR/sweep.html), atomically; returns its path."""
-    from ..io import atomic_write
+    from ..core.io import atomic_write
     sec = sweep_section(directory)
     title = html.escape(f"symfunnel sweep: {sec['summary'].get('scenario', '')}")
     page = (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{title}</title><style>"

@@ -17,9 +17,9 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from .. import deadline
+from ..core import deadline
 from ..closedloop import OUTPUT_NAMES, ClosedLoop
-from ..errors import InputError
+from ..core.errors import InputError
 
 COMPILE_FLAGS = ["-O1", "-shared", "-fPIC"]
 APPROX_ESN_JACOBIAN = True
@@ -186,7 +186,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
         deadline.check()                       # generating the Jacobian is one CasADi call no signal interrupts
         return {"symfunnel_cl.c": src}
 
-    from ..codegen.build import compile_cached, find_compiler
+    from ..core.ccompile import compile_cached, find_compiler
     try:
         find_compiler()
     except InputError:

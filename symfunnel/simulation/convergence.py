@@ -7,8 +7,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import InputError
-from ..io import json_safe
+from ..core.errors import InputError
+from ..core.io import json_safe
 from .run import simulate
 
 if TYPE_CHECKING:

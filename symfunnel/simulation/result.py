@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..closedloop import OUTPUT_NAMES, ClosedLoop
-from ..io import json_safe
+from ..core.io import json_safe
 from .compiled import Compiled, evaluate_outputs
 
 if TYPE_CHECKING:
@@ -104,7 +104,7 @@ class SimResult:
     def save_npz(self, path, arrays: dict | None = None) -> Path:
         """Write the trajectory (time first; `arrays` adds e.g. V and W* of the Lyapunov stage) and the run's
         metadata to an .npz file, atomically."""
-        from ..io import atomic_path
+        from ..core.io import atomic_path
         data = {"t": self.t}
         for k, v in self.signals.items():
             data[k] = np.asarray(v)

@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import deadline
+from ..core import deadline
 from ..closedloop import ClosedLoop, build_closed_loop
-from ..errors import InputError
+from ..core.errors import InputError
 from ..integrators import INTEGRATORS
 from .breach import bad_index, describe_breach, locate_failure, locate_within
 from .compiled import APPROX_ESN_JACOBIAN, compile_closed_loop, evaluate_outputs

@@ -61,13 +61,13 @@ class Runner:
                 if B.evaluate() == 0:
                     xf, st = B.res[F.index_out("xf")], B.stats
             except RuntimeError as exc:
-                from ..lifecycle import reraise_interrupt
+                from ..core.lifecycle import reraise_interrupt
                 reraise_interrupt(exc)
         if xf is None:       # no buffers, or a failure: the plain call raises CasADi's error (the run's message)
             try:
                 xf = np.asarray(F(x0=x0[self.perm], p=p)["xf"]).T.reshape(-1)
             except RuntimeError as exc:
-                from ..lifecycle import reraise_interrupt
+                from ..core.lifecycle import reraise_interrupt
                 reraise_interrupt(exc)                 # a signal during the integration is not an integrator failure
                 from ..sim_hints import error_line
                 self.last_error = error_line(str(exc))

@@ -12,9 +12,9 @@ class _Timeout(Exception):
 def time_limit(seconds: float):
     """Raise _Timeout inside the block after `seconds` (main thread only; elsewhere no limit is applied).
 
-    Nested in a command's wall-clock limit (`symfunnel.deadline`): whichever expires first stops the block, and the
+    Nested in a command's wall-clock limit (`symfunnel.core.deadline`): whichever expires first stops the block, and the
     command's own limit is never swallowed as this one's _Timeout."""
-    from ..deadline import limit
+    from ..core.deadline import limit
     return limit(seconds if seconds > 0 else None, on_expiry=_Timeout)
 
 

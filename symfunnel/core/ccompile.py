@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from ..errors import InputError
+from .errors import InputError
 
 __all__ = ["Built", "cache_dir", "find_compiler", "compile_cached", "verify_entry", "run_compiler", "SHARED_FLAGS"]
 
