@@ -1,6 +1,6 @@
 """Robustness campaigns: many runs of one scenario's closed loop, compiled once, over its `[[uncertainty]]`.
 
-Each run's drawn values are a pure function of (seed, run id) (`symfunnel.uncertainty`) and its row a pure
+Each run's drawn values are a pure function of (seed, run id) (`symfunnel.scenario.uncertainty`) and its row a pure
 function of those values (fixed integration chunks, one compiled loop), so rows are identical whatever executes
 them: a local process pool or a dask.distributed cluster, with any number of workers. Finished chunks of rows are
 written at once as small Parquet files beside `results.parquet`, which is rewritten (atomically) from them every
@@ -117,7 +117,7 @@ def row_of(result, run: int, columns: list[str], values) -> dict:
 def run_chunk(job: Job, run_ids) -> list[dict]:
     """Rows of the given runs (the unit of work of the pool and of dask)."""
     from .simulate import simulate
-    from .uncertainty import run_inputs
+    from .scenario.uncertainty import run_inputs
     sc, cl, _, _ = _state(job)
     camp = sc.campaign
     ids = [int(i) for i in run_ids]
@@ -375,7 +375,7 @@ def summarize(table, columns: list[str]) -> dict:
 def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
     """A complete scenario (TOML text) that `symfunnel simulate` replays to run `run` of the campaign."""
     from .core.toml_write import dumps
-    from .uncertainty import scenario_edits
+    from .scenario.uncertainty import scenario_edits
     values = campaign.values([run], job.runs)[0]
     raw = copy.deepcopy(job.raw)
     raw.pop("uncertainty", None)
@@ -411,7 +411,7 @@ class SweepResult:
 def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume=False, progress=None,
           chunk_size=None) -> SweepResult:
     """Run a scenario's campaign; write results.parquet, summary.json and worst.toml into `out`."""
-    from .uncertainty import check_runs
+    from .scenario.uncertainty import check_runs
     say = progress or (lambda s: None)
     if runs is not None:
         check_runs(runs, file=None, key="--runs")

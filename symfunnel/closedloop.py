@@ -12,7 +12,7 @@ substituted as functions of t (`Design.reference_t`). Plant (unknown to the cont
 with M_p, G_p = plant.mass_scale * the model's matrices at the model parameters overridden by
 `plant.parameters`, C_p the Christoffel-symbol Coriolis matrix of M_p (physical, whatever C the controller's model
 types in; `plant.coriolis = "model"` takes the model's C instead), friction = viscous*dq + coulomb*sign_w(dq), D the dead zone of eq. 2 (smoothed with the same
-width w, see `symfunnel.plant`), d the disturbance expressions. ddq is obtained by an LDL^T factorisation of M_p
+width w, see `symfunnel.plant.nonlinearities`), d the disturbance expressions. ddq is obtained by an LDL^T factorisation of M_p
 written out in SX (n^3/6 operations, no symbolic blow-up for n ~ 7, no pivoting needed as M_p is positive definite).
 
 The plant's uncertain quantities (mass scale, parameters, friction, disturbance scale, dead-zone breakpoints and
@@ -176,7 +176,7 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
     `p` (SX, laid out as `plant_parameters`) makes the plant's uncertain quantities symbols; without it they are
     the scenario's numbers.
     """
-    from . import plant as P
+    from .plant import nonlinearities as P
     from .model.base import christoffel_C
     model = scenario.model
     pl = scenario.plant

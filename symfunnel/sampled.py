@@ -258,7 +258,7 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
     """
     from .codegen.files import generate
-    from .implementation import implementation_of
+    from .scenario.implementation import implementation_of
     say = progress or (lambda s: None)
     sc = scenario
     impl = implementation_of(sc, rate_hz) or implementation_of(sc, 1000.0)

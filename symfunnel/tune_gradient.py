@@ -41,7 +41,7 @@ def ipopt_available() -> bool:
 
 def design_values(scenario, vars_, z: ca.SX) -> dict:
     """The tunable keys as expressions of the log-scale coordinates z (each Variable of `tuning.variables`)."""
-    from .tune_spec import TUNABLE
+    from .scenario.tune import TUNABLE
     n = scenario.n
     vals: dict[str, list] = {}
     for i, v in enumerate(vars_):
@@ -67,7 +67,7 @@ def _funnel_order(scenario, values: dict):
     keys = ("funnel.e2.phi0", "funnel.e2.phi_inf")
     if not any(k in values for k in keys):
         return None
-    from .tune_spec import current_value
+    from .scenario.tune import current_value
     phi0, phi_inf = (values[k] if k in values else ca.DM(current_value(scenario, k)) for k in keys)
     return 1 - phi_inf / phi0
 
@@ -104,7 +104,7 @@ class GradientProblem:
         if len(sample_values):
             from types import SimpleNamespace
 
-            from .uncertainty import run_inputs
+            from .scenario.uncertainty import run_inputs
             where = {k: i for i, k in enumerate(L["p_names"])}
             for vals in sample_values:
                 params, x0 = run_inputs(scenario.campaign, SimpleNamespace(x0=L["x0"], n=n), vals)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .core.errors import InputError
-from .tune_spec import TUNABLE, TuneSpec, current_value
+from .scenario.tune import TUNABLE, TuneSpec, current_value
 
 __all__ = ["tune", "TuneResult", "Candidate", "scenario_confidence", "METHOD", "GRADIENT_METHOD", "tune_records",
            "original_document"]
@@ -165,7 +165,7 @@ class Evaluator:
         camp = self.sc.campaign
         if camp is None or not camp.uncertainties:
             return []
-        from .uncertainty import scenario_edits
+        from .scenario.uncertainty import scenario_edits
         vals = camp.values(range(self.spec.runs), self.spec.runs)
         self.sample_values = vals
         return [scenario_edits(camp, self.sc.n, v) for v in vals]
@@ -573,7 +573,7 @@ TUNE_REASON = "symfunnel tune ("
 def tune_records(raw: dict) -> list[dict]:
     """The `[[deviations]]` entries that `symfunnel tune` wrote into a scenario document (key, old, new)."""
     import re
-    from .tune_spec import TUNABLE
+    from .scenario.tune import TUNABLE
     out = []
     for d in raw.get("deviations", []) or []:
         if not (isinstance(d, dict) and str(d.get("reason", "")).startswith(TUNE_REASON)):
@@ -598,7 +598,7 @@ def original_document(raw: dict, n: int) -> dict | None:
     recs = tune_records(raw)
     if not recs:
         return None
-    from .tune_spec import TUNABLE
+    from .scenario.tune import TUNABLE
     doc = copy.deepcopy(raw)
     for r in reversed(recs):           # the last change first: a key tuned twice returns to its first value
         *path, leaf = r["key"].split(".")

@@ -15,10 +15,9 @@ PKG = Path(__file__).resolve().parent.parent / "symfunnel"
 
 #: layers, lowest first; a module may import its own layer and the ones below
 LAYERS = [
-    ("ground", ["core", "expr", "sx", "family", "esn", "plant", "integrators", "sim_hints", "uncertainty",
-                "_callable"]),
+    ("ground", ["core", "expr", "sx", "family", "plant", "sim_hints", "_callable"]),
     ("model", ["model"]),
-    ("scenario", ["scenario", "implementation", "tune_spec"]),
+    ("scenario", ["scenario"]),
     ("design", ["design"]),
     ("closed loop", ["closedloop"]),
     ("stages", ["simulate", "simulation", "codegen", "checks", "sampled", "rate", "implementation_report"]),

@@ -153,7 +153,7 @@ def test_the_api_raises_a_simulation_error_at_its_wall_limit():
 def test_large_reservoirs_get_the_same_spectral_radius_from_arpack_as_from_lapack():
     import numpy as np
 
-    from symfunnel.esn import DENSE_UP_TO, _draw_reservoir, _norm2, _spectral_radius
+    from symfunnel.family.esn import DENSE_UP_TO, _draw_reservoir, _norm2, _spectral_radius
     W = _draw_reservoir(np.random.default_rng(3), DENSE_UP_TO + 100, 0.9)
     dense_rho = float(np.max(np.abs(np.linalg.eigvals(W))))
     assert _spectral_radius(W) == pytest.approx(dense_rho, rel=1e-11)

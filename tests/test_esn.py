@@ -12,7 +12,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from symfunnel.esn import ESN, ConfigError, ESNConfig
+from symfunnel.family.esn import ESN, ConfigError, ESNConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,7 +30,7 @@ def test_same_seed_same_bytes():
 
 
 def test_same_seed_same_bytes_in_subprocess():
-    code = ("import json; from symfunnel.esn import ESN, ESNConfig; e = ESN(ESNConfig(seed=7), n_inputs=6); "
+    code = ("import json; from symfunnel.family.esn import ESN, ESNConfig; e = ESN(ESNConfig(seed=7), n_inputs=6); "
             "print(json.dumps([e.fingerprint(), e.W.tobytes().hex(), e.W_in.tobytes().hex(), e.b.tobytes().hex()]))")
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT,

@@ -6,8 +6,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from symfunnel.plant import (check_dead_zone, dead_zone, dead_zone_numpy, dead_zone_slope_bounds, friction,
-                             friction_numpy, ramp, ramp_numpy, sign, sign_numpy)
+from symfunnel.plant.nonlinearities import check_dead_zone, dead_zone, dead_zone_numpy, dead_zone_slope_bounds, friction, friction_numpy, ramp, ramp_numpy, sign, sign_numpy
 
 B_L = np.array([-0.4, -1.0])
 B_R = np.array([0.5, 0.8])

@@ -216,7 +216,7 @@ def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path)
     from symfunnel.design import derive
     from symfunnel.rate import min_rate
     from symfunnel.report.html import tuning_section
-    from symfunnel.uncertainty import scenario_edits
+    from symfunnel.scenario.uncertainty import scenario_edits
     orig = paper_doc(1.0, {"runs": 6})
     orig["implementation"] = {"rate_hz": 1000.0, "tau_max": 200.0}
     # an initial error of up to 0.06 rad: some runs breach, more of them with the original design

@@ -11,7 +11,7 @@ import pytest
 from symfunnel.cli import main
 from symfunnel.scenario import DATA_DIR, from_dict, load_scenario
 from symfunnel.core.toml_write import dumps
-from symfunnel.uncertainty import Uncertainty, design_points
+from symfunnel.scenario.uncertainty import Uncertainty, design_points
 
 MASS = {"key": "plant.mass_scale", "dist": "uniform", "low": 0.8, "high": 1.2}
 

@@ -160,7 +160,7 @@ def check_guarantee(design, L) -> CheckResult:
 def _slope_sets(scenario) -> list[np.ndarray]:
     """Per joint, the dead-zone branch slopes to combine (1 without a dead zone)."""
     from ..closedloop import dead_zone_branches
-    from ..plant import dead_zone_slope_bounds
+    from ..plant.nonlinearities import dead_zone_slope_bounds
     n = scenario.n
     dz = scenario.plant.dead_zone
     if dz is None:

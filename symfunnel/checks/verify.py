@@ -312,7 +312,7 @@ def check_bounded(res, design, L: LyapunovTrajectory | None) -> list[CheckResult
     out.append(CheckResult("bounded.x_esn", "pass" if ok else "fail",
                            f"max |x_esn| = {_g(ax[i, j])} (unit {j + 1}, t = {t[i]:.4g} s) against the invariant box "
                            f"|x| <= 1/leak = {_g(box)}" + ("" if inside0 else " (x_esn(0) starts outside the box)"),
-                           method="finite horizon: |x_esn,i| <= 1/leak (tanh reservoir, see symfunnel/esn.py)",
+                           method="finite horizon: |x_esn,i| <= 1/leak (tanh reservoir, see symfunnel/family/esn.py)",
                            margin=float(box - ax[i, j]), where={"t": float(t[i]), "unit": int(j + 1)},
                            evidence={"max_abs": float(ax[i, j]), "box": box}))
     return out

@@ -41,7 +41,7 @@ def run(args) -> int:
     from ..core.outputs import check_count
     from ..pipeline import Run
     from ..codegen.step import valid_prefix
-    from ..implementation import check_rate
+    from ..scenario.implementation import check_rate
     check_count(args.points, key="--points", minimum=1000, maximum=MAX_POINTS, what="a number of check points")
     check_count(args.seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")
     if Path(args.out).exists() and not Path(args.out).is_dir():

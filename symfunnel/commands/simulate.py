@@ -13,7 +13,7 @@ def register(sub, common) -> None:
     sp.add_argument("--t-final", type=float, metavar="T", help="simulated time in s (default: the scenario's)")
     sp.add_argument("--out", metavar="FILE.npz", help="write the whole trajectory (time first) to an .npz file")
     sp.add_argument("--json", action="store_true", help="print the JSON summary")
-    from ..integrators import INTEGRATORS
+    from ..family.integrators import INTEGRATORS
     sp.add_argument("--integrator", choices=INTEGRATORS.names(),
                     help="integrator (default: the scenario's, normally cvodes)")
     sp.add_argument("--width", type=float, metavar="W", help="smoothing width of the non-smooth plant terms "
@@ -50,7 +50,7 @@ def run(args) -> int:
         check_output_file(args.out)
     say = _progress(args.quiet)
     if args.rate is not None:
-        from ..implementation import check_rate
+        from ..scenario.implementation import check_rate
         check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
     if args.rate is not None or sc.implementation is not None:

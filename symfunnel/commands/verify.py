@@ -49,7 +49,7 @@ def run(args) -> int:
     from ..pipeline import Run, RunOptions
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     if args.rate is not None:
-        from ..implementation import check_rate
+        from ..scenario.implementation import check_rate
         check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
     say = _progress(args.quiet or args.json)

@@ -30,7 +30,7 @@ class ESNApproximator:
     INPUTS = ("q", "dq", "e1", "e2", "qd", "dqd", "ddqd", "alpha2", "alpha2_dot")
 
     def __init__(self, scenario):
-        from ..esn import ESN, ESNConfig
+        from .esn import ESN, ESNConfig
         es = scenario.esn
         self.spec = es
         try:

@@ -13,7 +13,7 @@ import numpy as np
 from ..core import deadline
 from ..closedloop import ClosedLoop, build_closed_loop
 from ..core.errors import InputError
-from ..integrators import INTEGRATORS
+from ..family.integrators import INTEGRATORS
 from .breach import bad_index, describe_breach, locate_failure, locate_within
 from .compiled import APPROX_ESN_JACOBIAN, compile_closed_loop, evaluate_outputs
 from .result import SimResult, finish

@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 
 from ..closedloop import ClosedLoop
-from ..integrators import INTEGRATORS
+from ..family.integrators import INTEGRATORS
 from .compiled import Buffered, Compiled
 
 if TYPE_CHECKING:

@@ -11,8 +11,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from .core import validate as V
-from .core.errors import InputError
+from ..core import validate as V
+from ..core.errors import InputError
 
 __all__ = ["TuneSpec", "TUNABLE", "OBJECTIVES", "parse_tune", "current_value"]
 

@@ -23,8 +23,8 @@ from typing import Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from .core.errors import InputError
-from .expr import Expression
+from ..core.errors import InputError
+from ..expr import Expression
 
 Branch = Callable[[ca.SX], ca.SX]
 

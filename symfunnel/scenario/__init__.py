@@ -8,26 +8,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .core import validate as V
-from .core.errors import InputError
-from .expr import Expression, parse_expression
-from .family.approximators import APPROXIMATORS, ESNApproximator, RBFSpec, parse_rbf
-from .family.funnels import FunnelSpec, check_positive, parse_funnel
-from .family.transforms import TRANSFORMS
-from .family.variants import VARIANTS
-from .integrators import INTEGRATORS
-from .model import MODEL_TYPES
-from .plant import DeadZoneSpec
-from .plant import check_dead_zone_spec as _check_dead_zone
-from .core.names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
+from ..core import validate as V
+from ..core.errors import InputError
+from ..expr import Expression, parse_expression
+from ..family.approximators import APPROXIMATORS, ESNApproximator, RBFSpec, parse_rbf
+from ..family.funnels import FunnelSpec, check_positive, parse_funnel
+from ..family.transforms import TRANSFORMS
+from ..family.variants import VARIANTS
+from ..family.integrators import INTEGRATORS
+from ..model import MODEL_TYPES
+from ..plant.nonlinearities import DeadZoneSpec
+from ..plant.nonlinearities import check_dead_zone_spec as _check_dead_zone
+from ..core.names import CONSTANTS, EXPECT_STATUSES, IDENT, SIGNALS, check_ids
 
 if TYPE_CHECKING:
     from .implementation import ImplementationSpec
-    from .model.base import RigidBodyModel
-    from .tune_spec import TuneSpec
+    from ..model.base import RigidBodyModel
+    from .tune import TuneSpec
     from .uncertainty import Campaign
 
-DATA_DIR = Path(__file__).parent / "data"
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 BUILTIN = {"paper": "paper_2dof.toml", "arm7": "arm7.toml"}
 
 TOP_KEYS = ["name", "title", "description", "source", "deviations", "model", "reference", "initial",
@@ -224,7 +224,7 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     """Load and validate a scenario (a path or a built-in name such as 'paper')."""
     path = resolve(name_or_path)
     file = str(path)
-    from .core.inputs import loads_toml, read_text
+    from ..core.inputs import loads_toml, read_text
     text = read_text(path, expected="a scenario TOML file")
     raw = loads_toml(text, file=file)
     default_name = path.stem if str(name_or_path) not in BUILTIN else str(name_or_path)
@@ -277,7 +277,7 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
         check_positive(shape, sim.t_final, file=file, key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))
     audit = _audit(raw.get("audit", {}), n, file, model)
     if model.kind == "matrices":
-        from .model.matrices_check import check_inertia_matrix
+        from ..model.matrices_check import check_inertia_matrix
         check_inertia_matrix(model, q0, audit.joint_lower, audit.joint_upper, file=file)
     claims = _claims(raw.get("claims", []), n, file, model, funnels)
     design = _design(raw.get("design", {}), raw.get("approximator", {}), file)
@@ -295,7 +295,7 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
         impl = parse_implementation(raw["implementation"], n=n, file=file, raw_model=raw["model"], base_dir=base_dir)
     tune = None
     if "tune" in raw:
-        from .tune_spec import parse_tune
+        from .tune import parse_tune
         tune = parse_tune(raw["tune"], file=file, has_implementation=impl is not None, funnels=funnels, n=n,
                           raw_model=raw["model"], base_dir=base_dir)
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from .core import validate as V
-from .core.errors import InputError
+from ..core import validate as V
+from ..core.errors import InputError
 
 KEYS = ["rate_hz", "delay_samples", "tau_max", "noise_q", "noise_dq", "encoder_resolution", "seed"]
 MAX_RATE_HZ = 1e6
@@ -75,7 +75,7 @@ def _urdf_limits(raw_model: dict, n: int, file: str, base_dir: Path, key: str) -
     if not isinstance(raw_model, dict) or raw_model.get("type") != "urdf":
         raise InputError('is "urdf" but the model is not a URDF', file=file, key=key,
                          expected="a number or one per joint (effort limits come only from a URDF model)")
-    from .model.urdf import effort_limits
+    from ..model.urdf import effort_limits
     limits = effort_limits(Path(base_dir) / raw_model["path"])
     missing = [i + 1 for i, v in enumerate(limits) if v is None or not v > 0]
     if missing:

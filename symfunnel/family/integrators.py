@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from .core.registry import Registry
+from ..core.registry import Registry
 
 INTEGRATORS = Registry("integrator", "simulation.integrator")
 

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from .core import validate as V
-from .core.errors import InputError
+from ..core import validate as V
+from ..core.errors import InputError
 
 DESIGNS = ("sobol", "lhs", "random")
 DISTS = {"uniform": ("low", "high"), "normal": ("mean", "std"), "choice": ("values",)}
@@ -253,8 +253,8 @@ def _check_dead_zone_range(uncs: list[Uncertainty], plant, n: int, file: str) ->
         return
     if "plant.dead_zone.b_l" not in by and "plant.dead_zone.b_r" not in by:
         return
-    from .plant import DeadZoneSpec
-    from .plant import check_dead_zone_spec as _check_dead_zone
+    from ..plant.nonlinearities import DeadZoneSpec
+    from ..plant.nonlinearities import check_dead_zone_spec as _check_dead_zone
     dz = plant.dead_zone
     for pick in (0, 1):
         b = {}

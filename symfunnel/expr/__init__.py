@@ -30,8 +30,8 @@ from typing import Any, Callable, Iterable, Mapping, Union
 import casadi as ca
 import sympy as sp
 
-from .core.errors import InputError
-from .core.validate import did_you_mean
+from ..core.errors import InputError
+from ..core.validate import did_you_mean
 
 __all__ = ["Expression", "parse_expression", "FUNCTIONS", "CONSTANTS", "MAX_LENGTH", "MAX_NODES",
            "MAX_DEPTH", "MAX_LITERAL", "MAX_EXPONENT", "MAX_EXACT_DIGITS"]
