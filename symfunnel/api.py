@@ -148,5 +148,5 @@ def report(scenario, out=None, *, codegen: bool = True, mutants: bool = True, de
 
 def sweep(scenario, **options):
     """`symfunnel sweep`: a robustness campaign (result with `to_json()`, as summary.json)."""
-    from .campaign import sweep as _sweep
+    from .campaigns.campaign import sweep as _sweep
     return _sweep(_scenario(scenario), **options)

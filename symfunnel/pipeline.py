@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from .checks.audit import CheckResult
     from .checks.lyapunov import LyapunovTrajectory
     from .checks.verify import Verification
-    from .closedloop import ClosedLoop
+    from .simulation.closedloop import ClosedLoop
     from .design import Design
     from .simulation.result import SimResult
 
@@ -103,7 +103,7 @@ class Run:
     @cached_property
     def closed_loop(self) -> ClosedLoop:
         """The closed-loop ODE of plant and controller."""
-        from .closedloop import build_closed_loop
+        from .simulation.closedloop import build_closed_loop
         self._say("building the closed loop")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -168,7 +168,7 @@ class Run:
     def implementation(self) -> dict:
         """The deployed controller: minimum sample rate, the design help (which parameter sets it), the sampled run
         at the scenario's rate (twice the minimum without [implementation]) and its peak torque beside the limits."""
-        from .implementation_report import implementation_report
+        from .deployed.summary import implementation_report
         return self._timed("implementation", lambda: implementation_report(
             self.scenario, self.design, t_final=self.t_final, progress=self.progress),
             "checking the deployed controller")

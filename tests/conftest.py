@@ -85,7 +85,7 @@ def alpha2_dot_fd_error(design, k: int, seed: int, fill: float = 0.9) -> tuple[f
     d/ds alpha2(t + s, q + s dq, qd(t + s), dqd(t + s)) at s = 0, at k points inside the funnels; points whose
     stencil straddles the |e1| kink at e1 = 0 are skipped. Returns (worst, points used).
     """
-    from symfunnel.checks.sampling import funnel_states
+    from symfunnel.design.sampling import funnel_states
     a2 = design.function("alpha2", ["t", "q", "qd", "dqd"])
     a2d = design.function("alpha2_dot", ["t", "q", "dq", "qd", "dqd", "ddqd"])
     pts = funnel_states(design, k, np.random.default_rng(seed), fill=fill)

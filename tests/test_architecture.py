@@ -15,13 +15,12 @@ PKG = Path(__file__).resolve().parent.parent / "symfunnel"
 
 #: layers, lowest first; a module may import its own layer and the ones below
 LAYERS = [
-    ("ground", ["core", "expr", "sx", "family", "plant", "sim_hints", "_callable"]),
+    ("ground", ["core", "expr", "sx", "family", "plant", "_callable"]),
     ("model", ["model"]),
     ("scenario", ["scenario"]),
     ("design", ["design"]),
-    ("closed loop", ["closedloop"]),
-    ("stages", ["simulate", "simulation", "codegen", "checks", "sampled", "rate", "implementation_report"]),
-    ("pipeline", ["pipeline", "campaign", "tuning", "tune_gradient"]),
+    ("stages", ["simulate", "simulation", "codegen", "checks", "deployed"]),
+    ("pipeline", ["pipeline", "campaigns", "synthesis"]),
     ("presentation", ["report", "bench", "commands", "cli", "__init__", "__main__", "api"]),
 ]
 

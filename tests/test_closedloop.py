@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from symfunnel.design import derive
-from symfunnel.closedloop import build_closed_loop, ldl_solve, plant_acceleration
+from symfunnel.simulation.closedloop import build_closed_loop, ldl_solve, plant_acceleration
 from symfunnel.scenario import from_dict, load_scenario
 
 

@@ -16,7 +16,7 @@ from symfunnel.codegen import check
 from symfunnel.codegen.c import STRICT_CFLAGS
 from symfunnel.codegen.step import step_function
 from symfunnel.design import derive
-from symfunnel.sampled import step_library
+from symfunnel.deployed.loop import step_library
 from symfunnel.scenario import load_scenario
 
 from .conftest import private_cache

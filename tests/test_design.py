@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import sympy
 
-from symfunnel.checks.sampling import eval_mapped, funnel_states
+from symfunnel.design.sampling import eval_mapped, funnel_states
 from symfunnel.design import derive, evaluate
 from symfunnel.model.base import christoffel_C, symbols
 from symfunnel.scenario import load_scenario

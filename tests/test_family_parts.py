@@ -273,7 +273,7 @@ def test_ppc_scenario_verifies_and_kills_its_mutants(capsys):
 
 def test_rate_sensitivity_skips_phi_variations_of_an_expression_funnel(monkeypatch):
     """The design help varies phi_inf and a of funnel e2 only when it has them; its inner-loop gain is k2/inf F2."""
-    import symfunnel.rate as rate
+    import symfunnel.deployed.rate as rate
     from symfunnel.scenario import load_scenario
     sc = load_scenario(REPO / "derivations" / "ppc_log_rbf.toml")
     seen = []

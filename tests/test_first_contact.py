@@ -142,7 +142,7 @@ def test_zero_width_failure_names_the_integrator_error_and_the_width(paper, pape
 
 
 def test_failure_hint_per_setting(paper):
-    from symfunnel.sim_hints import error_line, failure_hint
+    from symfunnel.simulation.hints import error_line, failure_hint
     casadi_text = ('Error in Function::call for \'sim_1\' [CvodesInterface] at .../function.cpp:514:\n'
                    '.../casadi/interfaces/sundials/cvodes_interface.cpp:403: CVode returned "CV_TOO_MUCH_WORK". '
                    'Consult CVODES documentation.')

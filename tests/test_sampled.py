@@ -9,8 +9,9 @@ import shutil
 import numpy as np
 import pytest
 
-from symfunnel import rate as R
-from symfunnel import sampled as S
+from symfunnel.deployed import rate as R
+from symfunnel.checks.implementation import implementation_checks
+from symfunnel.deployed import loop as S
 from symfunnel.cli import main
 from symfunnel.design import derive
 from symfunnel.core.errors import InputError
@@ -198,9 +199,9 @@ def test_verify_holds_at_twice_the_minimum_rate_and_fails_at_a_quarter(tmp_path,
     holds = [d["rate_hz"] for d in r["tried"] if d["holds"]]
     fails = [d["rate_hz"] for d in r["tried"] if not d["holds"]]
     assert min(holds) == rmin and max(fails) < rmin and rmin / max(fails) <= 1.05
-    good = S.implementation_checks(sc, derive(sc), rate_hz=2 * rmin)
+    good = implementation_checks(sc, derive(sc), rate_hz=2 * rmin)
     assert [c.id for c in good] == ["implementation.containment"] and good[0].status == "pass"
-    bad = S.implementation_checks(sc, derive(sc), rate_hz=rmin / 4)
+    bad = implementation_checks(sc, derive(sc), rate_hz=rmin / 4)
     assert bad[0].status == "fail" and bad[0].where["time"] > 0
     assert main(["verify", str(p), "--rate", str(rmin / 4), "--json", "-q", "--samples", "100"]) == 1
     out = capsys.readouterr().out
@@ -211,20 +212,20 @@ def test_verify_holds_at_twice_the_minimum_rate_and_fails_at_a_quarter(tmp_path,
 def test_saturation_check_reports_the_time_fraction_at_the_limit(tmp_path):
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 4000.0\ntau_max = [400.0, 1000.0]"))
     res = S.simulate_sampled(sc, derive(sc), t_final=1.0)
-    checks = {c.id: c for c in S.implementation_checks(sc, None, result=res)}
+    checks = {c.id: c for c in implementation_checks(sc, None, result=res)}
     sat = checks["implementation.saturation"]
     frac = sat.evidence["saturated_fraction"]
     assert sat.status == "fail" and frac[1] == 0.0
     assert frac[0] == pytest.approx(np.mean(np.abs(res.tau[:, 0]) >= 400.0)) and frac[0] > 0
     assert res.ok and np.max(np.abs(res.tau[:, 0])) == 400.0                      # the step saturates
     sc2 = load_scenario(paper_with(tmp_path, "rate_hz = 4000.0\ntau_max = 1e4", name="b.toml"))
-    ok = {c.id: c for c in S.implementation_checks(sc2, derive(sc2), t_final=1.0)}
+    ok = {c.id: c for c in implementation_checks(sc2, derive(sc2), t_final=1.0)}
     assert ok["implementation.saturation"].status == "pass"
     assert ok["implementation.containment"].status == "pass"
 
 
 def test_no_implementation_no_checks():
-    assert S.implementation_checks(load_scenario("paper"), None) == []
+    assert implementation_checks(load_scenario("paper"), None) == []
 
 
 # --- rate search (plumbing, with a stand-in for the sampled run) ------------------------------------
@@ -278,7 +279,7 @@ def test_rate_command_bad_margin_is_input_error(capsys):
 
 @needs_gcc
 def test_report_figures_draw_the_sampled_torque_and_the_rate_search(tmp_path):
-    from symfunnel.implementation_report import torque_figure
+    from symfunnel.deployed.summary import torque_figure
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0\ntau_max = 450.0"))
     res = S.simulate_sampled(sc, derive(sc), t_final=0.5)
     fig = torque_figure(res, t_max=0.2)
@@ -344,7 +345,7 @@ def test_arm7_has_a_finite_minimum_rate_and_holds_at_twice_it(tmp_path):
     design = derive(sc)
     r = R.min_rate(sc, design, rel_tol=0.2)
     assert r["min_rate_hz"] is not None and r["min_rate_hz"] < 1e5
-    assert S.implementation_checks(sc, design, rate_hz=2 * r["min_rate_hz"])[0].status == "pass"
+    assert implementation_checks(sc, design, rate_hz=2 * r["min_rate_hz"])[0].status == "pass"
 
 
 @needs_gcc
@@ -369,7 +370,7 @@ def test_the_c_loop_and_the_python_loop_apply_noise_quantisation_and_delay_alike
 
 @needs_gcc
 def test_implementation_report_puts_the_peak_torque_beside_the_limits(tmp_path):
-    from symfunnel.implementation_report import implementation_report
+    from symfunnel.deployed.summary import implementation_report
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 3000.0\ntau_max = [600.0, 300.0]", t_final=2.0))
     out = implementation_report(sc, derive(sc), sensitivity=False)
     assert out["min_rate"]["min_rate_hz"] is not None and out["sensitivity"] is None

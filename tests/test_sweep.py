@@ -16,7 +16,7 @@ import pytest
 
 from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
-from symfunnel.campaign import clopper_pearson, make_job, run_chunk, sweep
+from symfunnel.campaigns.campaign import clopper_pearson, make_job, run_chunk, sweep
 from symfunnel.core.toml_write import dumps
 
 # |q0| beyond F1(0) = 0.19 starts outside the funnel (a breach at t = 0): a breach region known in advance
@@ -102,7 +102,7 @@ def test_summary_and_worst_scenario_replays(reference, tmp_path):
     assert min(r["min_margin_e1"]) == pytest.approx(row["min_margin_e1"], abs=1e-12)
     # a run that stays inside: its replay through a written scenario gives the same row, to the last digit
     ok = next(x for x in ref if x["status"] == "ok")
-    from symfunnel.campaign import worst_scenario
+    from symfunnel.campaigns.campaign import worst_scenario
     (tmp_path / "ok.toml").write_text(worst_scenario(job, sc.campaign, ok["run"], sc.n))
     r = simulate(*_sd(load_scenario(tmp_path / "ok.toml"))).summary()
     assert r["status"] == "ok" and r["t_end"] == ok["t_end"]
@@ -150,7 +150,7 @@ def test_killed_sweep_resumes_without_duplicates(tmp_path):
         p.wait(timeout=30)
     assert p.returncode != 0, "the sweep finished before it could be killed"
     assert not (out / "summary.json").exists()
-    from symfunnel.campaign import ResultStore
+    from symfunnel.campaigns.campaign import ResultStore
     before = ResultStore(out, sc.campaign.columns).done()
     assert 0 < len(before) < 10
     r = subprocess.run(cmd + ["--resume", "--json"], capture_output=True, text=True, timeout=300)
@@ -204,7 +204,7 @@ def test_cli_json_is_summary_and_progress_shows_rate(tmp_path, capsys):
 
 
 def _cl(sc):
-    from symfunnel.closedloop import build_closed_loop
+    from symfunnel.simulation.closedloop import build_closed_loop
     return build_closed_loop(sc, derive(sc))
 
 
@@ -220,7 +220,7 @@ def test_campaign_caps_the_cvodes_step_at_half_the_output_step(tmp_path):
     except ModuleNotFoundError:  # pragma: no cover - Python 3.10
         import tomli as tomllib
 
-    from symfunnel.campaign import MAX_STEP_OF_DT, worst_scenario
+    from symfunnel.campaigns.campaign import MAX_STEP_OF_DT, worst_scenario
     sc = load_scenario(_campaign_file(tmp_path, runs=2))
     job = make_job(sc)
     assert MAX_STEP_OF_DT == 0.5

@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from symfunnel.scenario import load_scenario
-from symfunnel.campaign import make_job, run_chunk, sweep
+from symfunnel.campaigns.campaign import make_job, run_chunk, sweep
 
 from .test_sweep import _campaign_file, _same
 
@@ -37,7 +37,7 @@ def _scheduler(tmp_path, log):
 
 
 def test_scheduler_without_workers_is_refused(tmp_path):
-    from symfunnel.campaign import connect
+    from symfunnel.campaigns.campaign import connect
     from symfunnel.core.errors import InputError
     with open(tmp_path / "dask.log", "w") as log:
         p, address = _scheduler(tmp_path, log)

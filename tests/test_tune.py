@@ -38,7 +38,7 @@ def write(tmp_path, raw: dict, name: str = "s.toml"):
 
 def independent_run(path):
     """The sampled loop of a scenario file, run directly (not through tune)."""
-    from symfunnel.sampled import simulate_sampled
+    from symfunnel.deployed.loop import simulate_sampled
     sc = load_scenario(path)
     return simulate_sampled(sc, derive(sc))
 
@@ -92,7 +92,7 @@ def test_infeasible_bounds_exit_1_with_the_binding_constraint(tmp_path, capsys):
 
 @needs_gcc
 def test_saturation_and_containment_constraints_match_an_independent_run(tmp_path):
-    from symfunnel.tuning import Evaluator, variables
+    from symfunnel.synthesis.search import Evaluator, variables
     sc = load_scenario(write(tmp_path, paper_doc()))
     ev = Evaluator(sc, sc.tune)
     vs = variables(sc, sc.tune)
@@ -143,7 +143,7 @@ def test_min_rate_needs_an_implementation(tmp_path, capsys):
 
 
 def test_shared_and_per_joint_coordinates(tmp_path):
-    from symfunnel.tuning import apply, variables
+    from symfunnel.synthesis.search import apply, variables
     raw = paper_doc(tune={"parameters": ["controller.k2", "adaptation.gamma"]})
     raw["controller"]["k2"] = [10.0, 4.0]
     sc = load_scenario(write(tmp_path, raw))
@@ -161,7 +161,7 @@ def test_shared_and_per_joint_coordinates(tmp_path):
 
 
 def test_scenario_approach_confidence():
-    from symfunnel.tuning import scenario_confidence
+    from symfunnel.synthesis.search import scenario_confidence
     # the classical figure: 59 violation-free samples give P(violation) <= 5 % with 95 % confidence, 58 do not
     assert scenario_confidence(59) >= 0.95 > scenario_confidence(58)
     assert scenario_confidence(20, 0.1) == pytest.approx(1 - 0.9 ** 20)
@@ -170,8 +170,8 @@ def test_scenario_approach_confidence():
 @needs_gcc
 @pytest.mark.slow
 def test_tuned_design_is_robust_to_the_mass_scale(tmp_path, capsys):
-    from symfunnel.campaign import sweep
-    from symfunnel.sampled import simulate_sampled
+    from symfunnel.campaigns.campaign import sweep
+    from symfunnel.deployed.loop import simulate_sampled
     raw = paper_doc(tune={"objective": "peak_torque", "runs": 4})
     raw["uncertainty"] = [{"key": "plant.mass_scale", "dist": "uniform", "low": 0.8, "high": 1.2}]
     raw["sweep"] = {"runs": 8}
@@ -196,7 +196,7 @@ def test_tuned_design_is_robust_to_the_mass_scale(tmp_path, capsys):
 def test_continuous_time_tune_without_implementation(tmp_path, capsys, monkeypatch):
     # no [implementation]: candidates are judged by the continuous simulation; no torque limit, so no saturation.
     # The derivative-free search here (its fallback role); the IPOPT path has its own tests in test_tune_gradient.
-    from symfunnel import tune_gradient
+    from symfunnel.synthesis import gradient as tune_gradient
     monkeypatch.setattr(tune_gradient, "ipopt_available", lambda: False)
     raw = paper_doc(t_final=1.0, tune={"parameters": ["controller.k2"], "objective": "ise"}, implementation={})
     src = write(tmp_path, raw)
@@ -214,7 +214,7 @@ def test_continuous_time_tune_without_implementation(tmp_path, capsys, monkeypat
 
 @needs_gcc
 def test_a_design_that_fails_verify_gate_is_not_reported_ok(tmp_path, monkeypatch):
-    from symfunnel import tuning as T
+    from symfunnel.synthesis import search as T
     calls = []
 
     def failing_gate(scenario, progress=None):
@@ -232,7 +232,7 @@ def test_a_design_that_fails_verify_gate_is_not_reported_ok(tmp_path, monkeypatc
 @needs_gcc
 def test_min_rate_objective_is_the_rate_search_of_the_tuned_design(tmp_path, capsys):
     import symfunnel as sf
-    from symfunnel.rate import min_rate
+    from symfunnel.deployed.rate import min_rate
     raw = paper_doc(t_final=1.0, tune={"objective": "min_rate", "parameters": ["controller.k2", "funnel.e2.phi_inf"],
                                        "bounds": {"controller.k2": [1.0, 10.0], "funnel.e2.phi_inf": [0.05, 0.5]}})
     sc = load_scenario(write(tmp_path, raw))
@@ -243,7 +243,7 @@ def test_min_rate_objective_is_the_rate_search_of_the_tuned_design(tmp_path, cap
     design = derive(tuned)
     res = min_rate(tuned, design, margin=0.05, rel_tol=0.1, start=1000.0)
     assert res["min_rate_hz"] == pytest.approx(r.objective["after"], rel=1e-9)
-    from symfunnel.sampled import simulate_sampled
+    from symfunnel.deployed.loop import simulate_sampled
     ok = simulate_sampled(tuned, design, rate_hz=r.objective["after"])
     assert ok.ok and ok.min_margin >= 0.05
     low = simulate_sampled(tuned, design, rate_hz=r.objective["after"] / 3)

@@ -31,8 +31,8 @@ def write(tmp_path, raw: dict, name: str = "s.toml"):
 
 
 def problem(tmp_path, t_final=0.5, grid=50, tune=None):
-    from symfunnel.tune_gradient import GradientProblem
-    from symfunnel.tuning import variables
+    from symfunnel.synthesis.gradient import GradientProblem
+    from symfunnel.synthesis.search import variables
     sc = load_scenario(write(tmp_path, paper_doc(t_final, tune or {"tau_max": 200.0})))
     vs = variables(sc, sc.tune)
     gp = GradientProblem(sc, sc.tune, vs, t_final=t_final, tau_max=sc.tune.tau_max, grid_points=grid,
@@ -98,7 +98,7 @@ def test_gradient_path_tunes_the_continuous_loop_into_the_torque_limit(tmp_path,
 
 
 def test_without_ipopt_the_search_falls_back_and_says_why(tmp_path, monkeypatch):
-    from symfunnel import tune_gradient, tuning
+    from symfunnel.synthesis import gradient as tune_gradient, search as tuning
     monkeypatch.setattr(tune_gradient, "ipopt_available", lambda: False)
     sc = load_scenario(write(tmp_path, paper_doc(0.5, {"tau_max": 200.0, "parameters": ["controller.k2"]})))
     r = tuning.tune(sc, max_evaluations=2, gate=False)
@@ -108,7 +108,7 @@ def test_without_ipopt_the_search_falls_back_and_says_why(tmp_path, monkeypatch)
 
 def test_saturation_constraint_of_the_continuous_loop_matches_an_independent_run(tmp_path):
     from symfunnel.pipeline import Run
-    from symfunnel.tuning import Evaluator, variables
+    from symfunnel.synthesis.search import Evaluator, variables
     sc = load_scenario(write(tmp_path, paper_doc(0.5, {"tau_max": [300.0, 100.0]})))
     c = Evaluator(sc, sc.tune).evaluate(variables(sc, sc.tune), [v.user_x() for v in variables(sc, sc.tune)])
     tau = np.abs(Run(sc).simulation.signals["tau"])
@@ -131,7 +131,7 @@ def test_bad_tune_tau_max_exits_2(tmp_path, capsys, tune, implementation, key, w
 
 
 def test_original_document_undoes_tune_records(tmp_path):
-    from symfunnel.tuning import Candidate, Evaluator, _record_deviations, apply, original_document, variables
+    from symfunnel.synthesis.search import Candidate, Evaluator, _record_deviations, apply, original_document, variables
     raw = paper_doc(0.5, {"parameters": ["controller.k1", "controller.k2", "adaptation.gamma"], "per_joint": True})
     raw["controller"]["k2"] = [10.0, 4.0]
     sc = load_scenario(write(tmp_path, raw))
@@ -214,7 +214,7 @@ def test_arm7_is_tuned_within_its_urdf_effort_limits(tmp_path, capsys):
 def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path):
     from symfunnel.pipeline import Run
     from symfunnel.design import derive
-    from symfunnel.rate import min_rate
+    from symfunnel.deployed.rate import min_rate
     from symfunnel.report.html import tuning_section
     from symfunnel.scenario.uncertainty import scenario_edits
     orig = paper_doc(1.0, {"runs": 6})
@@ -259,7 +259,7 @@ def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path)
 
 
 def test_when_ipopt_finds_nothing_that_holds_the_derivative_free_search_takes_over(tmp_path, monkeypatch):
-    from symfunnel import tune_gradient, tuning
+    from symfunnel.synthesis import gradient as tune_gradient, search as tuning
     calls = []
 
     def stuck(self, z0, **kw):                          # IPOPT "returns" its start: the user's infeasible design

@@ -55,8 +55,8 @@ def run(progress) -> list[dict]:
     from ..codegen.c import STRICT_CFLAGS
     from ..codegen.step import step_function
     from ..design import derive
-    from ..rate import min_rate
-    from ..sampled import simulate_sampled
+    from ..deployed.rate import min_rate
+    from ..deployed.loop import simulate_sampled
     from ..scenario import load_scenario
     sc = load_scenario("paper")
     design = derive(sc)

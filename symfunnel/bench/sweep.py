@@ -43,7 +43,7 @@ def baseline_loop(sc, runs: int) -> float:
     """Runs per second of one process calling simulate() on each run's scenario (load, derive, build, run)."""
     from ..scenario import from_dict
     from ..simulation import simulate
-    from ..campaign import make_job, worst_scenario
+    from ..campaigns.campaign import make_job, worst_scenario
     from ..design import derive
     try:
         import tomllib
@@ -63,7 +63,7 @@ def cpu_per_run(sc, runs: int) -> dict:
     """CPU and wall seconds per campaign run in this process (after one warm-up run), and the process's peak RSS."""
     import resource
 
-    from ..campaign import make_job, run_chunk
+    from ..campaigns.campaign import make_job, run_chunk
     job = make_job(sc)
     run_chunk(job, [0])
     t, c = time.perf_counter(), time.process_time()
@@ -74,7 +74,7 @@ def cpu_per_run(sc, runs: int) -> dict:
 
 def run(progress=None) -> list[dict]:
     """Measure the campaign throughput (cores, 1 and 2 workers), the simulate loop and the one compile time."""
-    from ..campaign import sweep
+    from ..campaigns.campaign import sweep
     say = progress or (lambda s: None)
     runs = int(os.environ.get("SYMFUNNEL_BENCH_SWEEP_RUNS", 24))
     tf = float(os.environ.get("SYMFUNNEL_BENCH_T_FINAL", 20.0))

@@ -39,7 +39,7 @@ def run(progress) -> list[dict]:
     import warnings
 
     from ..pipeline import Run, RunOptions
-    from ..tuning import tune
+    from ..synthesis.search import tune
     tf = os.environ.get("SYMFUNNEL_BENCH_T_FINAL")
     sc = scenario(float(tf) if tf else None)
     progress("tune: baseline, one verify of the printed design at 1 kHz")

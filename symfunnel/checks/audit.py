@@ -15,7 +15,7 @@ import numpy as np
 from ..design import Design
 from ..model.base import christoffel_C
 from ..sx.proof import sympy_is_zero, time_limit
-from .sampling import eval_mapped, funnel_states, joint_states, point_of
+from ..design.sampling import eval_mapped, funnel_states, joint_states, point_of
 
 
 @dataclass

@@ -250,7 +250,7 @@ def falsify(cl, W_star: np.ndarray, *, samples: int = 10000, seed: int = 0, w_sc
     This is falsification (a search for counterexamples at sampled states), not a proof. x_esn is sampled in the
     reservoir's invariant box, W_hat within +-w_scale (default: the largest |entry| of W*, at least 1).
     """
-    from .sampling import funnel_states
+    from ..design.sampling import funnel_states
     d = cl.design
     k = int(samples)
     rng = np.random.default_rng([seed, 7])

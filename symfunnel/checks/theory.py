@@ -20,7 +20,7 @@ import casadi as ca
 import numpy as np
 
 from .audit import CheckResult
-from .sampling import eval_mapped, funnel_states, point_of
+from ..design.sampling import eval_mapped, funnel_states, point_of
 
 #: relative residual of the identity above which it fails (round-off of the terms is ~1e-13 relative)
 IDENTITY_TOL = 1e-9
@@ -159,7 +159,7 @@ def check_guarantee(design, L) -> CheckResult:
 
 def _slope_sets(scenario) -> list[np.ndarray]:
     """Per joint, the dead-zone branch slopes to combine (1 without a dead zone)."""
-    from ..closedloop import dead_zone_branches
+    from ..simulation.closedloop import dead_zone_branches
     from ..plant.nonlinearities import dead_zone_slope_bounds
     n = scenario.n
     dz = scenario.plant.dead_zone
@@ -173,7 +173,7 @@ def _slope_sets(scenario) -> list[np.ndarray]:
 
 def check_input_gain(design, rng, *, samples: int = 400) -> CheckResult:
     """assumption.input_gain: lambda_min of sym(M_p(q)^-1 D M(q)) > 0 over sampled q and every slope combination."""
-    from ..closedloop import plant_acceleration
+    from ..simulation.closedloop import plant_acceleration
     sc = design.scenario
     n = design.n
     q, dq = design.sym["q"], design.sym["dq"]

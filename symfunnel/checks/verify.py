@@ -32,7 +32,7 @@ from .audit import CheckResult
 from .lyapunov import REL_TOL, LyapunovTrajectory, decay_margin, falsify
 
 if TYPE_CHECKING:
-    from ..closedloop import ClosedLoop
+    from ..simulation.closedloop import ClosedLoop
     from ..design import Design
     from ..scenario import Scenario
     from ..simulation.result import SimResult
@@ -378,7 +378,7 @@ def verify(scenario, design, closed_loop, result, lyapunov: LyapunovTrajectory |
         checks = [c for c in checks if c.id != f"claim.{claim.name}"]
         checks.append(check_decay_claim(L, fz, claim))
     checks += check_bounded(result, design, L)
-    from ..sampled import implementation_checks       # [implementation] or --rate: the deployed controller
+    from .implementation import implementation_checks       # [implementation] or --rate: the deployed controller
     checks += implementation_checks(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=say)
     apply_expectations(scenario, checks)
     return Verification(scenario=scenario, design=design, closed_loop=cl, result=result, lyapunov=L,

@@ -99,7 +99,7 @@ FILL = 0.98
 
 def sample_points(design, k: int = 1000, seed: int = 0, fill: float = FILL) -> dict[str, np.ndarray]:
     """k points inside both funnels (|e_i| <= fill * F_i), every base input as an (r, c, k) array, sample last."""
-    from ..checks.sampling import funnel_states
+    from ..design.sampling import funnel_states
     pts = funnel_states(design, k, np.random.default_rng(seed), fill=fill)
     out = {}
     for name in design.inputs:

@@ -10,7 +10,7 @@ import numpy as np
 if TYPE_CHECKING:
     import casadi
 
-    from ..closedloop import ClosedLoop
+    from ..simulation.closedloop import ClosedLoop
     from ..design import Design
     from ..simulation.result import SimResult
 

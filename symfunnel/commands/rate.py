@@ -23,7 +23,7 @@ def run(args) -> int:
 
     from ..cli import _dump, _load, _progress
     from ..core.errors import InputError
-    from ..rate import min_rate
+    from ..deployed.rate import min_rate
     if not (math.isfinite(args.margin) and 0 <= args.margin < 1):
         raise InputError(f"is {args.margin:g}", key="--margin", expected="a number in [0, 1)")
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):

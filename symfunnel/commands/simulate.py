@@ -126,10 +126,10 @@ def _table(s: dict) -> None:
 
 
 def _sampled(args, sc, say) -> int:
-    """The sampled-data loop around the generated C step (symfunnel.sampled); exit 1 unless it kept its funnels."""
+    """The sampled-data loop around the generated C step (symfunnel.deployed.loop); exit 1 unless it kept its funnels."""
     from ..cli import _dump
     from ..core.io import atomic_write
-    from ..sampled import simulate_sampled
+    from ..deployed.loop import simulate_sampled
     from ..pipeline import Run
     res = simulate_sampled(sc, Run(sc, progress=say).design, rate_hz=args.rate, t_final=args.t_final, progress=say)
     summary = res.summary()

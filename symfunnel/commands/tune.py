@@ -54,7 +54,7 @@ def run(args) -> int:
     from ..core.errors import InputError
     from ..core.io import atomic_write
     from ..core.toml_write import dumps
-    from ..tuning import tune
+    from ..synthesis.search import tune
     from ._common import _dump, _load, _progress
     if not (math.isfinite(args.wall_limit) and args.wall_limit > 0):
         raise InputError(f"is {args.wall_limit:g}", key="--wall-limit", expected="a number of seconds > 0")

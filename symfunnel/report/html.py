@@ -474,8 +474,8 @@ def verification_section(v) -> dict:
 def implementation_section(run, progress) -> dict:
     """The deployed controller: minimum rate with every tried rate, what sets it (re-computed for variations),
     the sampled torque (stairs) over the continuous one, and the peak torque beside the actuator limits."""
-    from ..implementation_report import torque_figure
-    from ..rate import margin_rate_figure
+    from ..deployed.summary import torque_figure
+    from ..deployed.rate import margin_rate_figure
     progress("deployed controller: minimum sample rate, design help, sampled run")
     try:
         data = run.implementation
@@ -503,7 +503,7 @@ def implementation_section(run, progress) -> dict:
 def tuning_section(run, progress, figures_dir=None) -> dict:
     """Original against tuned design side by side, when the scenario carries `symfunnel tune`'s `[[deviations]]`
     records (the original is those records undone): torque, margins, minimum rate, breach probability, a figure."""
-    from ..tuning import compare_designs, tune_records
+    from ..synthesis.search import compare_designs, tune_records
     sc = run.scenario
     if not tune_records(sc.raw):
         return {"available": False}

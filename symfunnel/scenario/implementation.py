@@ -1,6 +1,6 @@
 """The `[implementation]` scenario section: how the controller is deployed (sample rate, delay, saturation, noise).
 
-Absent, the controller is the continuous-time one, as before. Present, `symfunnel.sampled` simulates the sampled
+Absent, the controller is the continuous-time one, as before. Present, `symfunnel.deployed.loop` simulates the sampled
 loop around the generated C step function, and verify adds the implementation checks.
 """
 

@@ -2,7 +2,7 @@
 
 How a run works (docs/simulation.md has the long version):
 
-* The closed loop (`symfunnel.closedloop`) is one SX graph x' = f(t, x). For the integrator its states are permuted
+* The closed loop (`symfunnel.simulation.closedloop`) is one SX graph x' = f(t, x). For the integrator its states are permuted
   to [vec(W_hat); x_esn; q; dq], which lets the sparse LU of CVODES' Newton matrix stay sparse (the rows of ddq are
   dense, so they go last); the public state order stays [q; dq; x_esn; vec(W_hat)].
 * The right-hand side, its sparse Jacobian and the logged signals are generated as C (`casadi.CodeGenerator`),

@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from ..core import deadline
-from ..closedloop import OUTPUT_NAMES, ClosedLoop
+from .closedloop import OUTPUT_NAMES, ClosedLoop
 from ..core.errors import InputError
 
 COMPILE_FLAGS = ["-O1", "-shared", "-fPIC"]
@@ -205,7 +205,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
         ext_dae = ca.external("symfunnel_ode", str(lib))
         ext_out = ca.external("symfunnel_outputs", str(lib))
     except RuntimeError as exc:
-        from ..sim_hints import error_line
+        from .hints import error_line
         warnings.warn(f"loading {lib} failed ({error_line(str(exc))}); simulating on the CasADi virtual machine",
                       RuntimeWarning, stacklevel=2)
         return vm

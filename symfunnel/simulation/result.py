@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..closedloop import OUTPUT_NAMES, ClosedLoop
+from .closedloop import OUTPUT_NAMES, ClosedLoop
 from ..core.io import json_safe
 from .compiled import Compiled, evaluate_outputs
 
@@ -145,7 +145,7 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
     """The SimResult of a run from its segments (times, states, and the outputs already computed or None)."""
     O_list = list(O_list or [])
     if status == "failed" and runner is not None and not message.startswith("the initial state"):
-        from ..sim_hints import failure_hint
+        from .hints import failure_hint
         message += failure_hint(runner.method, stats["smoothing_width"], sc.simulation, stats["dt"],
                                 getattr(runner, "last_error", None))
     segs = []

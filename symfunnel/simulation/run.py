@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..core import deadline
-from ..closedloop import ClosedLoop, build_closed_loop
+from .closedloop import ClosedLoop, build_closed_loop
 from ..core.errors import InputError
 from ..family.integrators import INTEGRATORS
 from .breach import bad_index, describe_breach, locate_failure, locate_within

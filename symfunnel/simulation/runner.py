@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from ..closedloop import ClosedLoop
+from .closedloop import ClosedLoop
 from ..family.integrators import INTEGRATORS
 from .compiled import Buffered, Compiled
 
@@ -69,7 +69,7 @@ class Runner:
             except RuntimeError as exc:
                 from ..core.lifecycle import reraise_interrupt
                 reraise_interrupt(exc)                 # a signal during the integration is not an integrator failure
-                from ..sim_hints import error_line
+                from .hints import error_line
                 self.last_error = error_line(str(exc))
                 raise
             st = F.stats()

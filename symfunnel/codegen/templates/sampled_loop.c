@@ -1,4 +1,4 @@
-/* The sampled-data loop of symfunnel.sampled in C: measurements (noise, quantisation), the generated step,
+/* The sampled-data loop of symfunnel.deployed.loop in C: measurements (noise, quantisation), the generated step,
  * zero-order hold with optional one-sample delay, and the compiled plant step between samples.
  * The step and the plant are passed in as function pointers (the compiled generated step API and CasADi's C API
  * of the plant function), so this file knows neither. */

@@ -13,8 +13,8 @@ import numpy as np
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from .design import Design
-    from .scenario import Scenario
+    from ..design import Design
+    from ..scenario import Scenario
 
 __all__ = ["implementation_report", "torque_figure"]
 
@@ -25,7 +25,7 @@ def implementation_report(scenario: Scenario, design: Design, *, margin: float =
     summary at the scenario's rate (twice the minimum without [implementation]), "peak_tau", "tau_max",
     "effort_limits" (a URDF model's <limit effort>, else None)}: the peak torque beside the actuator limits."""
     from .rate import min_rate, rate_sensitivity
-    from .sampled import simulate_sampled
+    from .loop import simulate_sampled
     say = progress or (lambda s: None)
     r = min_rate(scenario, design, margin=margin, t_final=t_final, progress=say)
     impl = getattr(scenario, "implementation", None)
@@ -40,7 +40,7 @@ def implementation_report(scenario: Scenario, design: Design, *, margin: float =
     effort = None
     model = scenario.raw.get("model", {})
     if model.get("type") == "urdf":
-        from .model.urdf import effort_limits
+        from ..model.urdf import effort_limits
         effort = effort_limits(scenario.path.parent / model["path"])
     return {"min_rate": r, "sensitivity": sens, "run": run,
             "peak_tau": None if run is None else run["max_abs_tau"],

@@ -32,12 +32,12 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from .core.errors import InputError
-from .sx.linalg import ldl_solve
+from ..core.errors import InputError
+from ..sx.linalg import ldl_solve
 
 if TYPE_CHECKING:
-    from .design import Design
-    from .scenario import Scenario
+    from ..design import Design
+    from ..scenario import Scenario
 
 #: logged signals (name -> shape kind): 'n' per joint, 'N' per reservoir unit, '1' scalar
 OUTPUT_NAMES = ("qd", "dqd", "ddqd", "tau", "tau_applied", "e1", "F1", "e2", "F2", "z1", "z2", "alpha2",
@@ -176,8 +176,8 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
     `p` (SX, laid out as `plant_parameters`) makes the plant's uncertain quantities symbols; without it they are
     the scenario's numbers.
     """
-    from .plant import nonlinearities as P
-    from .model.base import christoffel_C
+    from ..plant import nonlinearities as P
+    from ..model.base import christoffel_C
     model = scenario.model
     pl = scenario.plant
     n = model.n

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..design import Design
+from . import Design
 
 
 def unit_samples(k: int, dim: int, rng: np.random.Generator, method: str = "random") -> np.ndarray:

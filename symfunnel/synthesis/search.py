@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .core.errors import InputError
-from .scenario.tune import TUNABLE, TuneSpec, current_value
+from ..core.errors import InputError
+from ..scenario.tune import TUNABLE, TuneSpec, current_value
 
 __all__ = ["tune", "TuneResult", "Candidate", "scenario_confidence", "METHOD", "GRADIENT_METHOD", "tune_records",
            "original_document"]
@@ -165,14 +165,14 @@ class Evaluator:
         camp = self.sc.campaign
         if camp is None or not camp.uncertainties:
             return []
-        from .scenario.uncertainty import scenario_edits
+        from ..scenario.uncertainty import scenario_edits
         vals = camp.values(range(self.spec.runs), self.spec.runs)
         self.sample_values = vals
         return [scenario_edits(camp, self.sc.n, v) for v in vals]
 
     def scenario(self, raw: dict):
         """A scenario from a document (the tuned one keeps the original's file and name)."""
-        from .scenario import from_dict
+        from ..scenario import from_dict
         return from_dict(raw, file=self.sc.file, base_dir=self.sc.path.parent, default_name=self.sc.name)
 
     def plants(self, raw: dict) -> list[tuple[str, dict]]:
@@ -192,7 +192,7 @@ class Evaluator:
     def run(self, raw: dict) -> tuple[dict, dict, dict]:
         """(constraints, figures, worst run) of one design document."""
         sc = self.scenario(raw)
-        from .design import derive
+        from ..design import derive
         design = derive(sc)
         cons = {"containment": math.inf}
         if self.tau_max is not None:
@@ -201,8 +201,8 @@ class Evaluator:
         worst = {}
         ctrl = None
         if self.impl is not None:
-            from .codegen import generate
-            from .sampled import step_library
+            from ..codegen import generate
+            from ..deployed.loop import step_library
             ctrl = step_library(design, generate(design, "c", rate_hz=self.impl.rate_hz, tau_max=self.impl.tau_max))
         violated = 0
         for label, r in self.plants(raw):
@@ -219,7 +219,7 @@ class Evaluator:
         if self.samples:
             figs["sample_violations"] = violated
         if self.spec.objective == "min_rate" and cons["containment"] >= 0:
-            from .rate import min_rate
+            from ..deployed.rate import min_rate
             r = min_rate(sc, margin=self.spec.margin, design=design, t_final=self.T, rel_tol=0.1,
                          start=self.impl.rate_hz)
             figs["min_rate"] = r["min_rate_hz"] if r["min_rate_hz"] is not None else math.inf
@@ -233,7 +233,7 @@ class Evaluator:
         return min(m, 0.0) - self.spec.margin - max(0.0, 1.0 - t_end / self.T)
 
     def _sampled(self, sc, design, ctrl) -> tuple[dict, dict]:
-        from .sampled import simulate_sampled
+        from ..deployed.loop import simulate_sampled
         res = simulate_sampled(sc, t_final=self.T, design=design, controller=ctrl)
         g = {"containment": self._containment(res.ok, res.min_margin, float(res.t[-1]))}
         peak = float(np.max(np.abs(res.tau))) if res.tau.size else 0.0
@@ -251,7 +251,7 @@ class Evaluator:
         return g, figs
 
     def _continuous(self, sc, design) -> tuple[dict, dict]:
-        from .simulate import simulate
+        from ..simulate import simulate
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             res = simulate(sc, design, t_final=self.T)
@@ -319,7 +319,7 @@ class TuneResult:
 
     def to_json(self) -> dict:
         """The `--json` output of the contract (plus details)."""
-        from .core.io import json_safe
+        from ..core.io import json_safe
         return json_safe({"status": self.status, "method": self.method, "why": self.why,
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
                           "wall_s": self.wall_s, "evaluations": self.evaluations, "constraints": self.constraints,
@@ -403,7 +403,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 stopped = str(exc)
                 say(stopped + ": the best design so far is the result")
             except RuntimeError as exc:            # CasADi/IPOPT failed to build or run the problem
-                from .core.lifecycle import reraise_interrupt
+                from ..core.lifecycle import reraise_interrupt
                 reraise_interrupt(exc)
                 failed = _last_line(exc)
             b = best[0]
@@ -487,7 +487,7 @@ def _last_line(exc: Exception) -> str:
 
 def _gradient_sound() -> tuple[bool, str]:
     """Whether IPOPT is there (the installed casadi wheel may lack the plugin), with the reason when not."""
-    from .tune_gradient import ipopt_available
+    from .gradient import ipopt_available
     if not ipopt_available():
         return False, "casadi.has_nlpsol('ipopt') is false in the installed casadi"
     return True, ""
@@ -499,7 +499,7 @@ def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline
     (the full simulation of the Evaluator), which records the best candidate."""
     from scipy.stats import qmc
 
-    from .tune_gradient import GradientProblem
+    from .gradient import GradientProblem
     gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max, sample_values=ev.sample_values)
     say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
         "points)")
@@ -517,7 +517,7 @@ def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline
             r = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
                          progress=say)
         except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
-            from .core.lifecycle import reraise_interrupt
+            from ..core.lifecycle import reraise_interrupt
             reraise_interrupt(exc)
             say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
             continue
@@ -542,7 +542,7 @@ def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
 
 def verify_gate(scenario, progress=None) -> dict:
     """verify's gate (the Run's verification) on a scenario: {"status", "unexpected": [check ids]}."""
-    from .pipeline import Run, RunOptions
+    from ..pipeline import Run, RunOptions
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         v = Run(scenario, RunOptions(), progress=None).verification
@@ -573,7 +573,7 @@ TUNE_REASON = "symfunnel tune ("
 def tune_records(raw: dict) -> list[dict]:
     """The `[[deviations]]` entries that `symfunnel tune` wrote into a scenario document (key, old, new)."""
     import re
-    from .scenario.tune import TUNABLE
+    from ..scenario.tune import TUNABLE
     out = []
     for d in raw.get("deviations", []) or []:
         if not (isinstance(d, dict) and str(d.get("reason", "")).startswith(TUNE_REASON)):
@@ -598,7 +598,7 @@ def original_document(raw: dict, n: int) -> dict | None:
     recs = tune_records(raw)
     if not recs:
         return None
-    from .scenario.tune import TUNABLE
+    from ..scenario.tune import TUNABLE
     doc = copy.deepcopy(raw)
     for r in reversed(recs):           # the last change first: a key tuned twice returns to its first value
         *path, leaf = r["key"].split(".")
@@ -633,12 +633,12 @@ def compare_designs(tuned, *, tuned_run=None, t_final: float | None = None, swee
     orig_raw = original_document(tuned.raw, tuned.n)
     if orig_raw is None:
         return None
-    from .scenario import from_dict
+    from ..scenario import from_dict
     original = from_dict(orig_raw, file=tuned.file, base_dir=tuned.path.parent, default_name=tuned.name)
     spec = tuned.tune or TuneSpec()
     sides = {}
     for label, sc in (("original", original), ("tuned", tuned)):
-        from .pipeline import Run, RunOptions
+        from ..pipeline import Run, RunOptions
         say(f"tuning comparison: the {label} design")
         run = tuned_run if label == "tuned" and tuned_run is not None else Run(sc, RunOptions(t_final=t_final))
         with warnings.catch_warnings():
@@ -651,12 +651,12 @@ def compare_designs(tuned, *, tuned_run=None, t_final: float | None = None, swee
                 "min_margin_e1": float(np.min(s["m1"])) if np.size(s["m1"]) else None,
                 "min_margin_e2": float(np.min(s["m2"])) if np.size(s["m2"]) else None}
         if sc.implementation is not None:
-            from .rate import min_rate
+            from ..deployed.rate import min_rate
             r = min_rate(sc, run.design, margin=spec.margin, t_final=t_final, rel_tol=0.1,
                          start=sc.implementation.rate_hz)
             side["min_rate_hz"] = r["min_rate_hz"]
         if sc.campaign is not None and sc.campaign.uncertainties:
-            from .campaign import sweep
+            from ..campaigns.campaign import sweep
             runs = sweep_runs or spec.runs
             with tempfile.TemporaryDirectory(prefix="symfunnel-tune-cmp-") as tmp:
                 summ = sweep(sc, runs=runs, workers=1, out=tmp).summary

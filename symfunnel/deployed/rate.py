@@ -1,6 +1,6 @@
 """The minimum sample rate of the deployed controller, and which design parameters set it.
 
-`min_rate(scenario, design)` searches the lowest rate at which the sampled-data loop (`symfunnel.sampled`) keeps
+`min_rate(scenario, design)` searches the lowest rate at which the sampled-data loop (`symfunnel.deployed.loop`) keeps
 both funnels with margin >= M over the horizon: it brackets from the scenario's rate by factors of 4, then bisects on a
 log scale until the bracket is within `rel_tol`. It assumes that holding is monotone in the rate (every tried rate
 is listed, so a non-monotone case shows). `rate_sensitivity` re-runs the search for a few one-parameter changes
@@ -13,13 +13,13 @@ import copy
 import math
 from typing import TYPE_CHECKING
 
-from .core.errors import InputError
+from ..core.errors import InputError
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from .design import Design
-    from .scenario import Scenario
+    from ..design import Design
+    from ..scenario import Scenario
 
 __all__ = ["min_rate", "rate_sensitivity", "margin_rate_figure", "VARIATIONS", "MAX_RATE_HZ"]
 
@@ -33,7 +33,7 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
              rel_tol: float = 0.05, start: float | None = None,
              progress: Callable[[str], None] | None = None) -> dict:
     """{"min_rate_hz": float | None, "margin", "tried": [{"rate_hz", "status", "min_margin", "holds"}]}."""
-    from .sampled import simulate_sampled
+    from .loop import simulate_sampled
     if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
         raise InputError(f"is {margin!r}", file=scenario.file, key="--margin", expected="a number in [0, 1)")
     say = progress or (lambda s: None)
@@ -82,7 +82,7 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
 
 def _varied(scenario, key: str, factor: float):
     """The scenario with the number(s) at a dotted key of its TOML multiplied by factor, and the old value."""
-    from .scenario import from_dict
+    from ..scenario import from_dict
     raw = copy.deepcopy(scenario.raw)
     *path, last = key.split(".")
     table = raw
@@ -107,7 +107,7 @@ def rate_sensitivity(scenario: Scenario, design: Design, *, margin: float = 0.05
     Returns {"baseline": min_rate(...), "inner_loop_gain": [k2 / phi_inf of e2 per joint],
     "variations": [{"key", "factor", "before", "after", "min_rate_hz", "ratio"}]}, ratio = variation / baseline.
     """
-    from .design import derive
+    from ..design import derive
     say = progress or (lambda s: None)
     base = baseline or min_rate(scenario, design, margin=margin, t_final=t_final, progress=say)
     start = base["min_rate_hz"]
@@ -128,7 +128,7 @@ def rate_sensitivity(scenario: Scenario, design: Design, *, margin: float = 0.05
     # mu2 >= 1/F2 grows to 1/inf F2 (phi_inf for the exponential): the inner loop's largest gain
     floor = getattr(shape, "phi_inf", None)
     if floor is None:
-        from .family.funnels import extremes
+        from ..family.funnels import extremes
         floor = extremes(shape, t_final or scenario.simulation.t_final)[0]
     gain = [float(k / p) for k, p in zip(scenario.k2, floor)]
     return {"baseline": base, "inner_loop_gain": gain, "variations": out}

@@ -41,7 +41,7 @@ def ipopt_available() -> bool:
 
 def design_values(scenario, vars_, z: ca.SX) -> dict:
     """The tunable keys as expressions of the log-scale coordinates z (each Variable of `tuning.variables`)."""
-    from .scenario.tune import TUNABLE
+    from ..scenario.tune import TUNABLE
     n = scenario.n
     vals: dict[str, list] = {}
     for i, v in enumerate(vars_):
@@ -67,7 +67,7 @@ def _funnel_order(scenario, values: dict):
     keys = ("funnel.e2.phi0", "funnel.e2.phi_inf")
     if not any(k in values for k in keys):
         return None
-    from .scenario.tune import current_value
+    from ..scenario.tune import current_value
     phi0, phi_inf = (values[k] if k in values else ca.DM(current_value(scenario, k)) for k in keys)
     return 1 - phi_inf / phi0
 
@@ -77,8 +77,8 @@ class GradientProblem:
 
     def __init__(self, scenario, spec, vars_, *, t_final: float, tau_max=None, sample_values=(),
                  grid_points: int = GRID_POINTS, tolerance=TOLERANCE):
-        from .closedloop import loop_sx
-        from .design import derive
+        from ..simulation.closedloop import loop_sx
+        from ..design import derive
         self.sc, self.spec, self.vars = scenario, spec, vars_
         self.d = d = len(vars_)
         self.n = n = scenario.n
@@ -104,7 +104,7 @@ class GradientProblem:
         if len(sample_values):
             from types import SimpleNamespace
 
-            from .scenario.uncertainty import run_inputs
+            from ..scenario.uncertainty import run_inputs
             where = {k: i for i, k in enumerate(L["p_names"])}
             for vals in sample_values:
                 params, x0 = run_inputs(scenario.campaign, SimpleNamespace(x0=L["x0"], n=n), vals)
@@ -175,7 +175,7 @@ class GradientProblem:
         try:
             r = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=0.0, ubg=ca.inf)
         except RuntimeError as exc:
-            from .core.lifecycle import reraise_interrupt
+            from ..core.lifecycle import reraise_interrupt
             reraise_interrupt(exc)
             return {"z": np.asarray(z0, float), "status": f"error: {str(exc).splitlines()[-1][:200]}",
                     "success": False, "iterations": log.iterations, "f": math.nan}

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.errors import InputError
-from .core.io import atomic_path, atomic_write, json_safe
+from ..core.errors import InputError
+from ..core.io import atomic_path, atomic_write, json_safe
 
 ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "timeout": "failed", "failed": "failed"}
 RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau"]
@@ -74,10 +74,10 @@ def _state(job: Job):
     key = (job.fingerprint, threading.get_ident())
     st = _STATE.get(key)
     if st is None:
-        from .closedloop import build_closed_loop
-        from .design import derive
-        from .scenario import from_dict
-        from .simulate import compile_closed_loop
+        from ..simulation.closedloop import build_closed_loop
+        from ..design import derive
+        from ..scenario import from_dict
+        from ..simulate import compile_closed_loop
         sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -116,8 +116,8 @@ def row_of(result, run: int, columns: list[str], values) -> dict:
 
 def run_chunk(job: Job, run_ids) -> list[dict]:
     """Rows of the given runs (the unit of work of the pool and of dask)."""
-    from .simulate import simulate
-    from .scenario.uncertainty import run_inputs
+    from ..simulate import simulate
+    from ..scenario.uncertainty import run_inputs
     sc, cl, _, _ = _state(job)
     camp = sc.campaign
     ids = [int(i) for i in run_ids]
@@ -374,8 +374,8 @@ def summarize(table, columns: list[str]) -> dict:
 
 def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
     """A complete scenario (TOML text) that `symfunnel simulate` replays to run `run` of the campaign."""
-    from .core.toml_write import dumps
-    from .scenario.uncertainty import scenario_edits
+    from ..core.toml_write import dumps
+    from ..scenario.uncertainty import scenario_edits
     values = campaign.values([run], job.runs)[0]
     raw = copy.deepcopy(job.raw)
     raw.pop("uncertainty", None)
@@ -411,7 +411,7 @@ class SweepResult:
 def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume=False, progress=None,
           chunk_size=None) -> SweepResult:
     """Run a scenario's campaign; write results.parquet, summary.json and worst.toml into `out`."""
-    from .scenario.uncertainty import check_runs
+    from ..scenario.uncertainty import check_runs
     say = progress or (lambda s: None)
     if runs is not None:
         check_runs(runs, file=None, key="--runs")

@@ -12,7 +12,9 @@ API::
 
     res = simulate_sampled(scenario, design, rate_hz=2000.0)   # SampledResult: t, q, dq, tau, margins, breach
     res.ok, res.min_margin, res.saturated_fraction
-    checks = implementation_checks(scenario, design, result=res)   # implementation.containment / .saturation
+
+The checks on such a run (`implementation.containment`, `implementation.saturation`) are
+`symfunnel.checks.implementation.implementation_checks`.
 """
 
 from __future__ import annotations
@@ -29,12 +31,11 @@ import numpy as np
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from .checks.audit import CheckResult
-    from .design import Design
-    from .scenario import Scenario
+    from ..design import Design
+    from ..scenario import Scenario
 
-__all__ = ["SampledResult", "StepLibrary", "simulate_sampled", "implementation_checks", "plant_step_function",
-           "step_library", "plant_substeps"]
+__all__ = ["SampledResult", "StepLibrary", "simulate_sampled", "plant_step_function", "step_library",
+           "plant_substeps"]
 
 _dp = ctypes.POINTER(ctypes.c_double)
 #: First line of the step API's part of a generated .c file (templates/step.c).
@@ -149,8 +150,8 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
     """Compile (cached) the generated C pair of `files` as a shared library and wrap its step API."""
     import json
 
-    from .codegen.files import c_names
-    from .core.ccompile import SHARED_FLAGS, compile_cached
+    from ..codegen.files import c_names
+    from ..core.ccompile import SHARED_FLAGS, compile_cached
     base = c_names(files)[0]
     api = json.loads(files["manifest.json"])["c_api"]["step"]
     # The file's CasADi part does not depend on the rate (only the step API's constants after MARK do): compile
@@ -188,7 +189,7 @@ def plant_step_function(scenario, substeps: int, name: str = "sfs_plant") -> ca.
 
     The ODE is integrated in s = (t - t0)/h over [0, 1], so one compiled function serves every period h.
     """
-    from .closedloop import plant_acceleration
+    from ..simulation.closedloop import plant_acceleration
     n = scenario.n
     q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
     s, th, tau = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n)
@@ -228,7 +229,7 @@ def _compiled(f: ca.Function, on_build=None) -> _CFun:
     import tempfile
     from pathlib import Path
 
-    from .core.ccompile import SHARED_FLAGS, compile_cached
+    from ..core.ccompile import SHARED_FLAGS, compile_cached
     with tempfile.TemporaryDirectory(prefix="symfunnel-plant-") as tmp:
         cg = ca.CodeGenerator(f.name() + ".c", {"with_header": False, "casadi_int": "int"})
         cg.add(f)
@@ -257,8 +258,8 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
     `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
     """
-    from .codegen.files import generate
-    from .scenario.implementation import implementation_of
+    from ..codegen.files import generate
+    from ..scenario.implementation import implementation_of
     say = progress or (lambda s: None)
     sc = scenario
     impl = implementation_of(sc, rate_hz) or implementation_of(sc, 1000.0)
@@ -355,52 +356,10 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
                           "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution})
 
 
-def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz: float | None = None,
-                          t_final: float | None = None, result: SampledResult | None = None,
-                          progress: Callable[[str], None] | None = None) -> list[CheckResult]:
-    """`implementation.containment` and (with tau_max) `implementation.saturation`; [] without an implementation.
-
-    containment: the sampled loop around the compiled C step reaches t_final with every true margin > 0 at the
-    samples. saturation: the torque never sits at tau_max (the design's guarantees assume the torque it asks
-    for is applied); detail and evidence give the time fraction saturated per joint. `design` may be None when
-    `result` (the sampled run) is given.
-    """
-    from .checks.audit import CheckResult
-    if result is None:
-        if getattr(scenario, "implementation", None) is None and rate_hz is None:
-            return []
-        (progress or (lambda s: None))("sampled-data run of the generated C step function")
-        result = simulate_sampled(scenario, rate_hz=rate_hz, t_final=t_final, design=design, progress=progress)
-    r = result
-    how = (f"sampled at {r.rate_hz:g} Hz, zero-order hold, delay {r.stats.get('delay_samples', 0)} sample(s), "
-           f"controller = compiled generated C step")
-    ev = r.summary()
-    ev.pop("breach", None)
-    if r.ok:
-        c = CheckResult("implementation.containment", "pass" if r.min_margin > 0 else "fail",
-                        f"{how}: reached t = {r.t[-1]:g} s; min margin {r.min_margin:.4g} at the samples",
-                        method="sampled-data simulation", margin=r.min_margin, evidence=ev)
-    else:
-        c = CheckResult("implementation.containment", "fail", f"{how}: {r.message}", method="sampled-data simulation",
-                        margin=r.breach["margin"] if r.breach else None, where=r.breach, evidence=ev)
-    out = [c]
-    if r.tau_max is not None:
-        frac = r.saturated_fraction or [0.0] * r.q.shape[1]
-        worst = max(frac)
-        detail = ("time fraction at tau_max per joint: " + ", ".join(f"{f:.3g}" for f in frac)
-                  + f" (tau_max = {', '.join(f'{v:g}' for v in r.tau_max)}; over the {r.tau.shape[0]} samples to "
-                  f"t = {r.t[-1]:g} s" + ("" if r.ok else ", where the run stopped") + ")")
-        out.append(CheckResult("implementation.saturation", "pass" if worst == 0.0 else "fail", detail,
-                               method="sampled-data simulation", margin=-worst,
-                               evidence={"saturated_fraction": frac, "tau_max": list(r.tau_max),
-                                         "max_abs_tau": ev["max_abs_tau"]}))
-    return out
-
-
 def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):
     """Run the loop in C (templates/sampled_loop.c) with the compiled step and plant: (rc, k_end, outside)."""
-    from .core.ccompile import SHARED_FLAGS, compile_cached
-    from .codegen.c import template
+    from ..core.ccompile import SHARED_FLAGS, compile_cached
+    from ..codegen.c import template
     built = compile_cached({"sampled_loop.c": template("sampled_loop.c")}, ["sampled_loop.c"],
                            "libsfs_loop.so", SHARED_FLAGS, on_build=say)
     lib = ctypes.CDLL(str(built.path))
