@@ -1,6 +1,6 @@
 """symfunnel: symbolic design and verification of funnel controllers for robot manipulators.
 
-The Python API (what the CLI is a thin layer over)::
+The Python API (what the CLI is a thin layer over; `symfunnel.api` holds it)::
 
     import symfunnel as sf
     sc = sf.load_scenario("paper")          # or a path to a TOML file
@@ -11,22 +11,21 @@ The Python API (what the CLI is a thin layer over)::
 """
 
 from .core.errors import CheckFailed, InputError, SymfunnelError
+from .core.version import __version__
 
-__version__ = "0.1.0"
+#: the commands, as plain functions of `symfunnel.api` (imported on first use: `import symfunnel` stays cheap)
+_API = ("load_scenario", "derive", "evaluate", "audit", "simulate", "verify", "codegen", "report", "sweep", "tune",
+        "run", "Run")
 
-__all__ = ["InputError", "CheckFailed", "SymfunnelError", "load_scenario", "derive", "evaluate", "audit", "simulate",
-           "verify", "codegen", "report", "sweep", "tune", "run", "Run"]
-
-_LAZY = {"load_scenario": "scenario", "derive": "design", "evaluate": "design", "Run": "pipeline",
-         "audit": "api", "verify": "api", "sweep": "api", "run": "api", "tune": "tuning"}
-#: command names that are also module names: the (callable) module is the API function, see _callable.py
-_CALLABLE_MODULES = ("simulate", "codegen", "report")
+__all__ = ["InputError", "CheckFailed", "SymfunnelError", *_API]
 
 
-def __getattr__(name):  # lazy: keep `import symfunnel` cheap for the CLI's cold start
-    import importlib
-    if name in _LAZY:
-        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
-    if name in _CALLABLE_MODULES:
-        return importlib.import_module(f".{name}", __name__)
-    raise AttributeError(name)
+def __getattr__(name):
+    if name in _API:
+        from . import api
+        return getattr(api, name)
+    raise AttributeError(f"module 'symfunnel' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

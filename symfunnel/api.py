@@ -1,6 +1,10 @@
 """The Python API: one function per CLI command, the same options as keyword arguments, results with `to_json()`
 (and `_repr_html_` for notebooks); bad input raises `InputError`, a failed gate `CheckFailed` (with `strict=True`),
-a reached `wall_limit=` (seconds, the whole call as for the CLI's --wall-limit) `SimulationError`."""
+a reached `wall_limit=` (seconds, the whole call as for the CLI's --wall-limit) `SimulationError`.
+
+These are what `symfunnel.simulate`, `symfunnel.codegen`, ... are: plain functions (no package of symfunnel has the
+name of one of them). A scenario is a built-in name (`"paper"`, `"arm7"`), a path to a TOML file or a `Scenario`.
+"""
 
 from __future__ import annotations
 
@@ -12,11 +16,18 @@ from typing import TYPE_CHECKING
 
 from .core import deadline
 from .core.errors import CheckFailed, SimulationError
+from .design import derive, evaluate
 from .pipeline import Run, RunOptions, run_mutants
 from .scenario import Scenario, load_scenario
 
 if TYPE_CHECKING:
-    from .codegen.check import CheckReport
+    from .campaigns.campaign import SweepResult
+    from .emit.check import CheckReport
+    from .simulation.result import SimResult
+    from .synthesis.search import TuneResult
+
+__all__ = ["load_scenario", "derive", "evaluate", "run", "Run", "audit", "simulate", "verify", "codegen", "report",
+           "sweep", "tune"]
 
 
 def _scenario(scenario) -> Scenario:
@@ -85,34 +96,46 @@ def _bounded(fn):
     return call
 
 
-def run(scenario, **options) -> Run:
-    """The pipeline of a scenario (name, path or Scenario) with RunOptions as keywords; stages computed on use."""
-    return Run(_scenario(scenario), RunOptions(**options))
+def run(scenario, *, t_final: float | None = None, integrator: str | None = None, width: float | None = None,
+        wall_limit: float | None = None, jit: bool = True, samples: int = 10000, seed: int = 0,
+        mutant: str | None = None, rate_hz: float | None = None) -> Run:
+    """The pipeline of a scenario with its stages computed on first use (`run.design`, `run.simulation`, ...);
+    every option as in `RunOptions` (None: the scenario's own setting)."""
+    return Run(_scenario(scenario), RunOptions(t_final=t_final, integrator=integrator, width=width,
+                                               wall_limit=wall_limit, jit=jit, samples=samples, seed=seed,
+                                               mutant=mutant, rate_hz=rate_hz))
 
 
 @_bounded
-def audit(scenario, design=None, **options) -> Checks:
-    """`symfunnel audit`: model properties, funnels and printed claims (with the scenario's expectations)."""
-    r = run(scenario, **options)
+def audit(scenario, design=None, *, wall_limit: float | None = None) -> Checks:
+    """`symfunnel audit`: model properties, funnels and printed claims (with the scenario's expectations); a
+    `design` the caller already derived from this scenario is used instead of deriving it again."""
+    r = run(scenario, wall_limit=wall_limit)
     if design is not None:
-        r.__dict__["design"] = design        # a design the caller derived from this scenario: not derived again
+        r.__dict__["design"] = design
     return Checks(r.audit)
 
 
 @_bounded
-def simulate(scenario, **options):
-    """`symfunnel simulate`: the closed-loop SimResult (`summary()`/`to_json()`, `save_npz`)."""
-    return run(scenario, **options).simulation
+def simulate(scenario, *, t_final: float | None = None, integrator: str | None = None, width: float | None = None,
+             wall_limit: float | None = None, jit: bool = True, rate_hz: float | None = None) -> SimResult:
+    """`symfunnel simulate`: the closed-loop SimResult (`summary()`, `to_json()`, `save_npz()`); `integrator`
+    cvodes | rk | collocation, `width` the smoothing width of the plant's kinks, `jit=False` the CasADi VM."""
+    return run(scenario, t_final=t_final, integrator=integrator, width=width, wall_limit=wall_limit, jit=jit,
+               rate_hz=rate_hz).simulation
 
 
 @_bounded
-def verify(scenario, *, strict: bool = False, mutants: bool = False, **options):
+def verify(scenario, *, strict: bool = False, mutants: bool = False, t_final: float | None = None,
+           samples: int = 10000, seed: int = 0, rate_hz: float | None = None, integrator: str | None = None,
+           width: float | None = None, wall_limit: float | None = None, jit: bool = True):
     """`symfunnel verify`: the Verification (`status`, `checks`, `to_json()`); with `mutants=True` the mutation
     testing result instead; `strict=True` raises CheckFailed when the gate fails."""
     sc = _scenario(scenario)
     if mutants:
-        return run_mutants(sc, t_final=options.get("t_final"), samples=min(options.get("samples", 10000), 2000))
-    v = Run(sc, RunOptions(**options)).verification
+        return run_mutants(sc, t_final=t_final, samples=min(samples, 2000))
+    v = run(sc, t_final=t_final, samples=samples, seed=seed, rate_hz=rate_hz, integrator=integrator, width=width,
+            wall_limit=wall_limit, jit=jit).verification
     if strict and v.unexpected:
         raise CheckFailed("verify: unexpected outcomes: " + ", ".join(c.id for c in v.unexpected))
     return v
@@ -120,12 +143,13 @@ def verify(scenario, *, strict: bool = False, mutants: bool = False, **options):
 
 @_bounded
 def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix: str | None = None,
-            rate_hz: float | None = None, points: int = 1000, seed: int = 0, **options) -> CodegenResult:
-    """`symfunnel codegen`: the generated files (written to `out` when given), cross-checked with `check=True`;
-    `strict` semantics: a failed cross-check raises CheckFailed."""
-    from .codegen.check import check_output
-    from .codegen.files import write_output
-    r = run(scenario, **options)
+            rate_hz: float | None = None, points: int = 1000, seed: int = 0, t_final: float | None = None,
+            wall_limit: float | None = None) -> CodegenResult:
+    """`symfunnel codegen`: the generated files (written to `out` when given), cross-checked with `check=True`
+    (a failed cross-check raises CheckFailed); `prefix` and `rate_hz` as `--prefix`, `--rate` of the C step."""
+    from .emit.check import check_output
+    from .emit.files import write_output
+    r = run(scenario, t_final=t_final, wall_limit=wall_limit)
     files = r.code(lang, prefix=prefix, rate_hz=rate_hz)
     res = CodegenResult(r.scenario.name, lang, files)
     if out is not None:
@@ -139,14 +163,29 @@ def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix:
 
 @_bounded
 def report(scenario, out=None, *, codegen: bool = True, mutants: bool = True, deployed: bool = True, figures=None,
-           **options) -> ReportResult:
-    """`symfunnel report`: writes the HTML report (default reports/<name>.html) and returns its path."""
-    from .report import build_report
-    return ReportResult(build_report(run(scenario, **options), out, codegen=codegen, mutants=mutants,
-                                     deployed=deployed, figures_dir=Path(figures) if figures is not None else None))
+           t_final: float | None = None, samples: int = 10000, seed: int = 0, rate_hz: float | None = None,
+           wall_limit: float | None = None) -> ReportResult:
+    """`symfunnel report`: writes the HTML report (default reports/<name>.html) and returns its path; `figures`
+    a directory for every figure as PNG and PDF; `codegen`, `mutants`, `deployed` include those sections."""
+    from .reporting import build_report
+    r = run(scenario, t_final=t_final, samples=samples, seed=seed, rate_hz=rate_hz, wall_limit=wall_limit)
+    return ReportResult(build_report(r, out, codegen=codegen, mutants=mutants, deployed=deployed,
+                                     figures_dir=Path(figures) if figures is not None else None))
 
 
-def sweep(scenario, **options):
-    """`symfunnel sweep`: a robustness campaign (result with `to_json()`, as summary.json)."""
+def sweep(scenario, *, runs: int | None = None, workers: int | None = None, scheduler: str | None = None, out=None,
+          resume: bool = False, progress=None, chunk_size: int | None = None) -> SweepResult:
+    """`symfunnel sweep`: a robustness campaign over the scenario's `[[uncertainty]]` (result with `to_json()`, as
+    summary.json); `scheduler` the address of a dask cluster, else `workers` local processes."""
     from .campaigns.campaign import sweep as _sweep
-    return _sweep(_scenario(scenario), **options)
+    return _sweep(_scenario(scenario), runs=runs, workers=workers, scheduler=scheduler, out=out, resume=resume,
+                  progress=progress, chunk_size=chunk_size)
+
+
+def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,
+         max_evaluations: int | None = None, gate: bool = True) -> TuneResult:
+    """`symfunnel tune`: search the scenario's `[tune]` parameters for a design that keeps the funnels within the
+    limits (never the reference or the e1 funnel); `gate=False` skips verify's gate on the result."""
+    from .synthesis.search import tune as _tune
+    return _tune(_scenario(scenario), wall_limit=wall_limit, t_final=t_final, progress=progress,
+                 max_evaluations=max_evaluations, gate=gate)

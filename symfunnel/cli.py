@@ -1,4 +1,5 @@
-"""The `symfunnel` command line: a thin layer over the Python API (scenario, design, checks, simulation, codegen, report)."""
+"""The `symfunnel` command line: the entry point that parses arguments, runs one command of `symfunnel.commands` and
+turns every outcome into an exit code and at most one line on stderr (never a traceback)."""
 
 from __future__ import annotations
 
@@ -7,152 +8,10 @@ import math
 import os
 import sys
 
-from .commands._common import _dump, _load, _progress  # noqa: F401 - shared with the command modules
 from .core.errors import InputError, SymfunnelError
 
 EXIT_INTERNAL = 3
 
-
-# --- derive ---------------------------------------------------------------------------------------
-
-def _read_points(path: str):
-    from .core.inputs import loads_json, read_text
-    expected = '{"t": ..., "q": [...], "dq": [...]} or a list of such objects'
-    data = loads_json(read_text(path, expected="a JSON point file"), file=path, expected=expected)
-    return data
-
-
-def cmd_derive(args) -> int:
-    """`symfunnel derive`: signals with size and free variables; --eval values at points; --latex formulas."""
-    from .design import evaluate
-    from .core.names import compress_names
-    from .pipeline import Run
-    if args.latex:
-        from .core.outputs import check_output_file
-        check_output_file(args.latex, key="--latex")
-    sc = _load(args)
-    d = Run(sc).design
-    if args.eval:
-        data = _read_points(args.eval)
-        if isinstance(data, list):
-            if not data:
-                raise InputError("is an empty list", file=args.eval, expected="at least one point")
-            values = [evaluate(d, p, file=args.eval, key=f"[{i}]") for i, p in enumerate(data)]
-        else:
-            values = evaluate(d, data, file=args.eval)
-        if args.json:
-            print(_dump({"values": values}))
-        else:
-            for i, vals in enumerate(values if isinstance(values, list) else [values]):
-                if isinstance(values, list):
-                    print(f"# point {i}")
-                for k, v in vals.items():
-                    if (k == "Phi" or k.endswith("_dot") and k[:-4] in dict(d.states)) and not args.all:
-                        continue
-                    print(f"{k:>11} = {_short(v)}")
-        return 0
-    names = list(d.signal_info)
-    info = {}
-    for k in names:
-        info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
-    if args.latex:
-        _write_latex(d, names, args.latex)
-    if args.json:
-        print(_dump({"scenario": sc.name, "signals": info}))
-        return 0
-    print(f"scenario {sc.name}: {sc.title}")
-    print(f"  model {sc.model.kind}, n = {sc.n}, C {sc.model.C_source}; design {sc.design.variant}, transform "
-          f"{sc.design.transform}, approximator {sc.design.approximator}"
-          + (f" (N = {sc.esn.size})" if sc.design.approximator == "esn" else ""))
-    print(f"{'signal':>11} {'shape':>7} {'ops':>6}  free variables")
-    for k in names:
-        i = info[k]
-        free = compress_names(i["free"])
-        print(f"{k:>11} {i['shape'][0]:>3}x{i['shape'][1]:<3} {i['ops']:>6}  {free}")
-    if args.latex:
-        print(f"LaTeX written to {args.latex}")
-    return 0
-
-
-def _short(v) -> str:
-    import numpy as np
-    if v is None:
-        return "null (outside its funnel)"
-    a = np.array(v, dtype=float)
-    return np.array2string(a, precision=8, max_line_width=200, threshold=20)
-
-
-def _write_latex(d, names, path) -> None:
-    """A compilable LaTeX document (article + amsmath): each signal small enough to read as a displayed
-    equation (converted from SX), the operation count for the rest."""
-    import sympy
-
-    from .core.io import atomic_write
-    from .sx.tosympy import sx_to_sympy
-    name = _tex_text(d.scenario.name)
-    body = []
-    for k in names:
-        f = d.function(k)
-        ops = d.ops(k)
-        head = f"\\paragraph{{${_tex_name(k)}$ (\\texttt{{{_tex_text(k)}}}, {ops} operations)}}"
-        if ops <= 400 and k not in ("Phi",):
-            m = sx_to_sympy(d.signals[k], [d.sym[x] for x in d.inputs_of(k)])
-            tex = sympy.latex(m[0] if m.shape == (1, 1) else m, mat_delim="[")
-            body += [head, "\\begin{equation*}", f"{_tex_name(k)} = {tex}", "\\end{equation*}", ""]
-        else:
-            body += [head, f"Too large to print ({f.n_instructions()} tape instructions).", ""]
-    lines = [f"% symfunnel derive --latex: scenario {d.scenario.name}",
-             "\\documentclass[10pt]{article}",
-             "\\usepackage[a4paper,landscape,margin=1.5cm]{geometry}",
-             "\\usepackage{amsmath}",
-             "\\setcounter{MaxMatrixCols}{200}",
-             "\\allowdisplaybreaks",
-             "\\begin{document}",
-             f"\\section*{{Signals of scenario \\texttt{{{name}}}}}",
-             "Derived by symfunnel (CasADi SX, converted to sympy). Long expressions may run past the margin.",
-             "", *body, "\\end{document}", ""]
-    atomic_write(path, "\n".join(lines))
-
-
-def _tex_text(s: str) -> str:
-    """Escape plain text for LaTeX."""
-    table = {"\\": r"\textbackslash{}", "{": r"\{", "}": r"\}", "_": r"\_", "%": r"\%", "$": r"\$",
-             "#": r"\#", "&": r"\&", "^": r"\^{}", "~": r"\~{}"}
-    return "".join(table.get(c, c) for c in s)
-
-
-def _tex_name(k: str) -> str:
-    table = {"alpha2": r"\alpha_2", "alpha2_dot": r"\dot\alpha_2", "zeta1": r"\zeta_1", "zeta2": r"\zeta_2",
-             "mu1": r"\mu_1", "mu2": r"\mu_2", "z1_dot": r"\dot z_1", "z2_dot": r"\dot z_2", "tau": r"\tau",
-             "Phi": r"\Phi", "w_hat_dot": r"\dot{\hat W}", "x_esn_dot": r"\dot x_{esn}"}
-    if k in table:
-        return table[k]
-    return r"\mathrm{" + k.replace("_", r"\_") + "}" if "_" in k else k
-
-
-# --- audit ----------------------------------------------------------------------------------------
-
-def cmd_audit(args) -> int:
-    """`symfunnel audit`: model properties and printed claims; --strict exits 1 on any failed check."""
-    from .pipeline import Run
-    sc = _load(args)
-    say = _progress(args.quiet or args.json)
-    results = Run(sc, progress=say).audit
-    failed = [r for r in results if r.status == "fail"]
-    if args.json:
-        print(_dump({"scenario": sc.name, "checks": [r.to_json() for r in results]}))
-    else:
-        print(f"audit of scenario {sc.name} ({sc.file})")
-        from .commands.verify import print_checks
-        print_checks(results)
-        unexpected = [r for r in results if r.unexpected]
-        print(f"{len(results) - len(failed)} passed, {len(failed)} failed "
-              f"({len(failed) - sum(r.expected == 'pass' for r in failed)} expected by the scenario)"
-              + (f"; unexpected: {', '.join(r.id for r in unexpected)}" if unexpected else ""))
-    return 1 if (failed and args.strict) else 0
-
-
-# --- entry point ----------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
@@ -165,20 +24,6 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("scenario", nargs="?", default="paper",
                         help="scenario TOML file or built-in name (default: paper)")
         sp.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
-
-    sp = sub.add_parser("derive", help="build the design; print each signal's size and free variables")
-    common(sp)
-    sp.add_argument("--json", action="store_true", help="machine-readable output")
-    sp.add_argument("--eval", metavar="POINT.json", help="evaluate every signal at a point (or a list)")
-    sp.add_argument("--latex", metavar="FILE", help="write the signals as LaTeX")
-    sp.add_argument("--all", action="store_true", help="with --eval: also print Phi and the ESN/adaptation rates")
-    sp.set_defaults(func=cmd_derive)
-
-    sp = sub.add_parser("audit", help="model properties and printed claims against the exact derivation")
-    common(sp)
-    sp.add_argument("--json", action="store_true", help="machine-readable output")
-    sp.add_argument("--strict", action="store_true", help="exit 1 when any check fails")
-    sp.set_defaults(func=cmd_audit)
 
     for extra in _extra_commands():
         extra(sub, common)
@@ -194,22 +39,27 @@ def build_parser() -> argparse.ArgumentParser:
 BOUNDED = ("derive", "audit", "verify", "codegen", "report", "rate")
 
 
+#: the order of `symfunnel --help` (the pipeline's); a command module not listed here comes after, by name
+ORDER = ("derive", "audit", "simulate", "verify", "certify", "codegen", "rate", "sweep", "tune", "report", "bench",
+         "init")
+
+
 def _extra_commands():
-    """Subcommands that live in their own modules under symfunnel/commands (one module, one command)."""
+    """The subcommands: one module each under symfunnel/commands, discovered, each with `register(sub, common)`."""
     import pkgutil
     from . import commands
+    names = [m.name for m in pkgutil.iter_modules(commands.__path__) if not m.name.startswith("_")]
+    names.sort(key=lambda n: (ORDER.index(n) if n in ORDER else len(ORDER), n))
     out = []
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        m = __import__(f"symfunnel.commands.{info.name}", fromlist=["register"])
+    for name in names:
+        m = __import__(f"symfunnel.commands.{name}", fromlist=["register"])
         if hasattr(m, "register"):
             out.append(m.register)
     return out
 
 
 def _version() -> str:
-    from . import __version__
+    from .core.version import __version__
     return __version__
 
 

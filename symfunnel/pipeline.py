@@ -186,7 +186,7 @@ class Run:
     @cached_property
     def code_trajectory(self) -> dict[str, np.ndarray]:
         """Controller inputs at 50 samples of the simulated run's first 2 s (for the generated main programs)."""
-        from .codegen.contract import trajectory_from_run
+        from .emit.contract import trajectory_from_run
         return trajectory_from_run(self.design, self.closed_loop, self.simulation)
 
     def code(self, lang: str, *, prefix: str | None = None, rate_hz: float | None = None) -> dict[str, str]:
@@ -194,7 +194,7 @@ class Run:
         cache = self.__dict__.setdefault("_code", {})
         key = (lang, prefix, rate_hz)
         if key not in cache:
-            from .codegen.files import generate
+            from .emit.files import generate
             cache[key] = generate(self.design, lang, trajectory=self.code_trajectory, prefix=prefix, rate_hz=rate_hz)
         return cache[key]
 

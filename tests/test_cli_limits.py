@@ -120,7 +120,7 @@ def test_a_1000_joint_chain_is_refused_clearly(tmp_path, capsys):
 
 
 def test_default_report_name_of_a_copied_builtin(tmp_path):
-    from symfunnel.report import default_path
+    from symfunnel.reporting import default_path
     from symfunnel.scenario import load_scenario
     copy = tmp_path / "my_copy.toml"
     copy.write_text(PAPER.read_text())

@@ -13,11 +13,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from symfunnel import codegen as cg
+from symfunnel import emit as cg
 from symfunnel.core import ccompile as build
-from symfunnel.codegen import check
-from symfunnel.codegen.c import STRICT_CFLAGS, parse_trajectory_output
-from symfunnel.codegen.contract import trajectory_inputs
+from symfunnel.emit import check
+from symfunnel.emit.c import STRICT_CFLAGS, parse_trajectory_output
+from symfunnel.emit.contract import trajectory_inputs
 from symfunnel.scenario import load_scenario
 
 from .conftest import private_cache

@@ -48,7 +48,7 @@ def test_python_check_passes(tmp_path, capsys):
 
 
 def test_check_fails_with_exit_1_above_threshold(tmp_path, monkeypatch, capsys):
-    from symfunnel.codegen import check
+    from symfunnel.emit import check
     monkeypatch.setitem(check.THRESHOLDS, "python", 0.0)
     assert main(["codegen", "--lang", "python", "--out", str(tmp_path / "o"), "--check"]) == 1
     assert "FAIL" in capsys.readouterr().out
@@ -82,7 +82,7 @@ def test_unknown_scenario_is_input_error(tmp_path, capsys):
 
 
 def test_existing_directory_is_updated_and_failures_leave_nothing_half_written(tmp_path, monkeypatch):
-    from symfunnel import codegen as cg
+    from symfunnel import emit as cg
     out = tmp_path / "o"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
@@ -101,7 +101,7 @@ def test_existing_directory_is_updated_and_failures_leave_nothing_half_written(t
 def test_generated_python_matches_casadi_at_the_funnel_edge(paper_run):
     """Near the boundary the controller amplifies last-bit differences (z = e/(F - |e|)); the generated Python
     evaluates exp like libm, so it still matches CasADi to round-off at |e| = 0.999 F."""
-    from symfunnel.codegen import check_output
+    from symfunnel.emit import check_output
     files = paper_run.code("python")
     report = check_output(paper_run.design, "python", files, points=2000, fill=0.999)
     assert report.worst <= 1e-13

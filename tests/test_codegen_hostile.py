@@ -11,7 +11,7 @@ from tests.conftest import PAPER
 
 
 def test_control_characters_in_title_give_an_importable_module(tmp_path):
-    from symfunnel.codegen import BASENAME, write_output
+    from symfunnel.emit import BASENAME, write_output
     from symfunnel.scenario import load_scenario
     title = 'a\u0000b\u001b[31m\r\\x """ \u2028 \u00e9'
     text = PAPER.read_text(encoding="utf-8")
@@ -35,7 +35,7 @@ def test_control_characters_in_title_give_an_importable_module(tmp_path):
 
 def test_existing_out_directory_on_another_file_system(tmp_path, monkeypatch):
     """Renames must stay inside the destination: a rename from its parent fails across a mount point (EXDEV)."""
-    from symfunnel.codegen import write_output
+    from symfunnel.emit import write_output
     out = tmp_path / "mnt"
     out.mkdir()
     (out / "keep.txt").write_text("x")

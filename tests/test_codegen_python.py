@@ -12,7 +12,7 @@ import mpmath
 import numpy as np
 import pytest
 
-from symfunnel.codegen.python import SUPPORTED_OPS, emit_python, manifest_entry
+from symfunnel.emit.python import SUPPORTED_OPS, emit_python, manifest_entry
 from symfunnel.sx.tape import read_tape
 
 N_POINTS = 1000

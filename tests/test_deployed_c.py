@@ -10,11 +10,11 @@ import subprocess
 import numpy as np
 import pytest
 
-from symfunnel import codegen as cg
+from symfunnel import emit as cg
 from symfunnel.cli import main
-from symfunnel.codegen import check
-from symfunnel.codegen.c import STRICT_CFLAGS
-from symfunnel.codegen.step import step_function
+from symfunnel.emit import check
+from symfunnel.emit.c import STRICT_CFLAGS
+from symfunnel.emit.step import step_function
 from symfunnel.design import derive
 from symfunnel.deployed.loop import step_library
 from symfunnel.scenario import load_scenario

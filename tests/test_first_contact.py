@@ -120,7 +120,7 @@ def test_convergence_rate_is_printed(capsys):
 
 
 def test_rk_failure_gives_cause_and_a_hint_that_works(paper, paper_design):
-    from symfunnel.simulate import simulate
+    from symfunnel.simulation import simulate
     r = simulate(paper, paper_design, t_final=2.0, integrator="rk")
     assert r.status == "failed"
     assert "cause: " in r.message and "hint: " in r.message and "rk_substeps (now 10)" in r.message
@@ -133,7 +133,7 @@ def test_rk_failure_gives_cause_and_a_hint_that_works(paper, paper_design):
 
 @pytest.mark.slow
 def test_zero_width_failure_names_the_integrator_error_and_the_width(paper, paper_design):
-    from symfunnel.simulate import simulate
+    from symfunnel.simulation import simulate
     with pytest.warns(RuntimeWarning, match="smoothing_width = 0"):
         r = simulate(paper, paper_design, t_final=2.0, width=0.0)
     if r.status == "ok":

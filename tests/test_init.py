@@ -16,7 +16,7 @@ DATA = REPO / "tests" / "data"
 def _runs_as_written(path, t_final: float):
     from symfunnel.design import derive, evaluate
     from symfunnel.scenario import load_scenario
-    from symfunnel.simulate import simulate
+    from symfunnel.simulation import simulate
     text = path.read_text()
     assert sum(line.lstrip().startswith("#") or " # " in line for line in text.splitlines()) >= 10
     sc = load_scenario(path)

@@ -7,7 +7,7 @@ import pytest
 
 from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
-from symfunnel.simulate import simulate
+from symfunnel.simulation import simulate
 
 # The paper run's summary, recorded before the plant's quantities became parameters of the compiled loop
 # (commit e9d59c2, values compiled into the code): parameterising must not change what `simulate` gives.

@@ -29,7 +29,7 @@ SECTIONS = ["overview", "gate", "findings", "scenario", "model", "derivation", "
 def report_path(paper, tmp_path_factory):
     """The paper scenario's report, written once per module."""
     from symfunnel.pipeline import Run, RunOptions
-    from symfunnel.report import build_report
+    from symfunnel.reporting import build_report
     out = tmp_path_factory.mktemp("report") / "paper.html"
     p = build_report(Run(paper, RunOptions(t_final=T_FINAL)), out)
     assert p == out
@@ -92,7 +92,7 @@ def test_no_network_reference(tree, report_text):
             assert not re.search(r"url\(", css)
     stripped = re.sub(r'\sxmlns(:\w+)?="[^"]*"', "", report_text)
     assert "http://" not in stripped and "https://" not in stripped
-    from symfunnel.report.html import no_network_references
+    from symfunnel.reporting.html import no_network_references
     assert no_network_references(report_text) == []
 
 
@@ -112,8 +112,8 @@ def test_code_generation_section(tree):
     sec = next(el for el in tree.iter() if el.get("id") == "codegen")
     text = "".join(sec.itertext())
     import importlib.util
-    if importlib.util.find_spec("symfunnel.codegen") is not None:
-        import symfunnel.codegen as cg
+    if importlib.util.find_spec("symfunnel.emit") is not None:
+        import symfunnel.emit as cg
         if hasattr(cg, "codegen_summary"):
             assert "alpha2_dot" in text and "controller" in text
             return
@@ -174,7 +174,7 @@ def test_failing_scenario_gives_a_report_that_shows_the_failure(write_scenario, 
 
 
 def test_default_path(paper):
-    from symfunnel.report import default_path
+    from symfunnel.reporting import default_path
     assert default_path(paper) == Path("reports") / "paper.html"
 
 

@@ -129,7 +129,7 @@ dq = 0.0
 @needs_chromium
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])
 def test_no_formula_wider_than_the_page(which, tmp_path):
-    from symfunnel.report import build_report
+    from symfunnel.reporting import build_report
     from symfunnel.scenario import load_scenario
     if which == "urdf":
         shutil.copy(DATA / "prismatic.urdf", tmp_path / "prismatic.urdf")

@@ -143,7 +143,7 @@ def paper_arm_numpy():
 @needs_gcc
 @pytest.mark.slow
 def test_pstep_at_10khz_drives_an_independent_numpy_plant_inside_its_funnel():
-    from symfunnel.codegen import generate
+    from symfunnel.emit import generate
     sc = load_scenario("paper")
     design = derive(sc)
     lib = S.step_library(design, generate(design, "c", rate_hz=10000.0))
@@ -179,7 +179,7 @@ def test_pstep_at_10khz_drives_an_independent_numpy_plant_inside_its_funnel():
 @needs_gcc
 def test_sampled_loop_agrees_with_the_continuous_simulation_at_a_high_rate():
     """At 20 kHz the held torque is nearly continuous: q follows the CVODES closed loop to within 1e-3 rad."""
-    from symfunnel.simulate import simulate
+    from symfunnel.simulation import simulate
     sc = load_scenario("paper")
     res = S.simulate_sampled(sc, derive(sc), rate_hz=20000.0, t_final=2.0)
     ref = simulate(sc, derive(sc), t_final=2.0)
@@ -351,7 +351,7 @@ def test_arm7_has_a_finite_minimum_rate_and_holds_at_twice_it(tmp_path):
 @needs_gcc
 def test_the_c_loop_and_the_python_loop_apply_noise_quantisation_and_delay_alike(tmp_path):
     """The fast loop in C (used with the compiled step) against the Python loop (checked above) on the same step."""
-    from symfunnel.codegen import generate
+    from symfunnel.emit import generate
     sc = load_scenario(paper_with(tmp_path, "rate_hz = 4000.0\nnoise_q = 1e-4\nnoise_dq = 1e-3\n"
                                             "encoder_resolution = 1e-4\ndelay_samples = 1\nseed = 3"))
     design = derive(sc)

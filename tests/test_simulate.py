@@ -12,7 +12,7 @@ import pytest
 from symfunnel.cli import main
 from symfunnel.scenario import from_dict, load_scenario
 from symfunnel.design import derive
-from symfunnel.simulate import convergence_study, simulate
+from symfunnel.simulation import convergence_study, simulate
 
 
 def _sd(sc):

@@ -81,7 +81,7 @@ def test_rows_identical_for_any_workers_and_parquet_reads_back(reference, tmp_pa
 
 
 def test_summary_and_worst_scenario_replays(reference, tmp_path):
-    from symfunnel.simulate import simulate
+    from symfunnel.simulation import simulate
     sc, job, ref = reference
     out = tmp_path / "s"
     res = sweep(sc, workers=1, out=out)
@@ -174,8 +174,8 @@ def test_report_sweep_section(reference, tmp_path, capsys):
     """report --sweep DIR: a self-contained page with the three figures; the breach region's axes are the
     quantities that decide breaches (here the initial position, which alone sets e1(0))."""
     from symfunnel.cli import main
-    from symfunnel.report.html import no_network_references
-    from symfunnel.report.sweep import correlation_ratio, load_sweep, strongest_pair
+    from symfunnel.reporting.html import no_network_references
+    from symfunnel.reporting.sweep import correlation_ratio, load_sweep, strongest_pair
     sc, job, ref = reference
     out = tmp_path / "rep"
     sweep(sc, workers=2, out=out, runs=40)

@@ -11,18 +11,10 @@ import importlib
 import pkgutil
 from pathlib import Path
 
+from ._result import result  # noqa: F401 - the areas' result form, also importable from here
+
 # Every module of this package is an area: adding a benchmark area is adding one module with `run(progress)`.
 AREAS = tuple(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if not m.name.startswith("_"))
-
-
-def result(id: str, value: float, unit: str, baseline: str | None = None, baseline_value: float | None = None,
-           ratio: float | None = None, **extra) -> dict:
-    """One bench result in the contract's form (extra keys are allowed and ignored by consumers)."""
-    out = {"id": id, "value": float(value), "unit": unit, "baseline": baseline,
-           "baseline_value": None if baseline_value is None else float(baseline_value),
-           "ratio": None if ratio is None else float(ratio)}
-    out.update(extra)
-    return out
 
 
 def run(areas=None, progress=None) -> list[dict]:

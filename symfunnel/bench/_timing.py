@@ -44,10 +44,10 @@ def time_controller(design: Design, c_files: dict[str, str], py_files: dict[str,
     """
     import subprocess
 
-    from ..codegen import check
+    from ..emit import check
     from ..core.ccompile import compile_cached
-    from ..codegen.c import BASENAME, STRICT_CFLAGS
-    from ..codegen.contract import trajectory_inputs
+    from ..emit.c import BASENAME, STRICT_CFLAGS
+    from ..emit.contract import trajectory_inputs
     from ..sx.tape import count_ops
     ctl = design.controller()
     out = {"operations": count_ops(ctl)["operations"]}

@@ -3,7 +3,7 @@ generated numpy-only Python, side by side in one run, for the paper's controller
 
 from __future__ import annotations
 
-from . import result
+from ._result import result
 
 #: Target of the issue: at most this many ns per compiled-C controller call for the paper's controller.
 TARGET_NS = 5000.0

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import result
+from ._result import result
 
 #: Targets of the issue.
 TARGET_REALTIME = 20.0
@@ -28,7 +28,7 @@ class VMStep:
     """The step function on CasADi's VM, with the compiled step's interface (buffers and raw())."""
 
     def __init__(self, design, rate_hz: float, tau_max=None):
-        from ..codegen.step import step_function, step_initial
+        from ..emit.step import step_function, step_initial
         self.f = step_function(design, rate_hz, tau_max)
         self.x0, self.w0 = step_initial(design)
         n = design.n
@@ -50,10 +50,10 @@ class VMStep:
 
 def run(progress) -> list[dict]:
     """The three results above, for the paper scenario."""
-    from ..codegen.files import generate
+    from ..emit.files import generate
     from ..core.ccompile import compile_cached
-    from ..codegen.c import STRICT_CFLAGS
-    from ..codegen.step import step_function
+    from ..emit.c import STRICT_CFLAGS
+    from ..emit.step import step_function
     from ..design import derive
     from ..deployed.rate import min_rate
     from ..deployed.loop import simulate_sampled

@@ -34,7 +34,7 @@ import tempfile
 import time
 import xml.etree.ElementTree as ET
 
-from . import result
+from ._result import result
 
 NS = tuple(range(2, 8))
 SYMPY_LIMIT_S = 60.0
@@ -111,9 +111,9 @@ def build_design(raw: dict, base_dir: pathlib.Path):
 def compile_controller(design, workdir: pathlib.Path) -> dict:
     """Generate C for Design.controller() and compile it with the C compiler at -O2 into a shared library (no cache)."""
     try:
-        from ..codegen.c import emit_c
+        from ..emit.c import emit_c
         files = emit_c([design.controller()], "controller")
-    except ImportError:      # pragma: no cover - the minimal path, without symfunnel.codegen
+    except ImportError:      # pragma: no cover - the minimal path, without symfunnel.emit
         import casadi as ca
         cg = ca.CodeGenerator("controller.c", {"with_header": True, "casadi_real": "double", "casadi_int": "int"})
         cg.add(design.controller())
@@ -345,23 +345,25 @@ def run(progress, ns=NS, sympy_limit: float = SYMPY_LIMIT_S, sympy: bool = True)
 
 
 def _derive_eval(tmp: pathlib.Path) -> dict:
-    """`symfunnel derive arm7 --eval POINT.json` in-process at a point inside both funnels."""
-    import contextlib
-    import io
-
-    from ..cli import main
+    """What `symfunnel derive arm7 --eval POINT.json --json` does, in-process, at a point inside both funnels:
+    load, derive, read the point file, evaluate every signal, write the JSON."""
+    from ..core.inputs import loads_json, read_text
+    from ..core.io import json_safe
+    from ..design import evaluate
+    from ..pipeline import Run
     from ..scenario import load_scenario
     sc = load_scenario("arm7")
     point = {"t": 0.0, "q": list(sc.q0), "dq": list(sc.dq0)}
     p = tmp / "point.json"
     p.write_text(json.dumps(point), encoding="utf-8")
-    buf = io.StringIO()
     t0 = time.perf_counter()
-    with contextlib.redirect_stdout(buf):
-        code = main(["derive", "arm7", "--eval", str(p), "--json", "--quiet"])
+    design = Run(load_scenario("arm7")).design
+    data = loads_json(read_text(str(p), expected="a JSON point file"), file=str(p), expected="a point")
+    values = evaluate(design, data, file=str(p))
+    text = json.dumps(json_safe({"values": values}), indent=2, allow_nan=False)
     s = time.perf_counter() - t0
-    tau = json.loads(buf.getvalue())["values"]["tau"] if code == 0 else None
-    ok = code == 0 and tau is not None and all(math.isfinite(x) for x in tau)
+    tau = json.loads(text)["values"]["tau"]
+    ok = tau is not None and all(math.isfinite(x) for x in tau)
     return result("models.derive_eval_s.n7", s, "s", target_s=TARGET_DERIVE_EVAL_S,
                   meets_target=bool(s <= TARGET_DERIVE_EVAL_S), finite_tau=ok, n=7, arm="arm7")
 

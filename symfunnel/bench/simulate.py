@@ -14,7 +14,7 @@ import types
 
 import numpy as np
 
-from . import result
+from ._result import result
 
 
 def scipy_rhs(cl):
@@ -23,7 +23,7 @@ def scipy_rhs(cl):
     It accepts x of shape (n_x,) or (n_x, k) (solve_ivp's `vectorized=True`, so the finite-difference Jacobian
     costs one batched call instead of n_x calls): the fair, fast version of what a user would write.
     """
-    from ..codegen.python import emit_python
+    from ..emit.python import emit_python
     src = emit_python([cl.f.expand() if not cl.f.is_a("SXFunction") else cl.f], module_doc="closed loop RHS")
     mod = types.ModuleType("symfunnel_bench_rhs")
     exec(compile(src, "<symfunnel_bench_rhs>", "exec"), mod.__dict__)   # noqa: S102 - our own generated code

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from . import result
+from ._result import result
 
 UNCERTAINTY = [
     {"key": "plant.mass_scale", "dist": "uniform", "low": 0.8, "high": 1.2},

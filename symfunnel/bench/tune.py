@@ -13,7 +13,7 @@ import copy
 import os
 import time
 
-from . import result
+from ._result import result
 
 TARGET_S = 300.0
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 
-from . import result
+from ._result import result
 
 
 def run(progress) -> list[dict]:

@@ -77,7 +77,7 @@ def _state(job: Job):
         from ..simulation.closedloop import build_closed_loop
         from ..design import derive
         from ..scenario import from_dict
-        from ..simulate import compile_closed_loop
+        from ..simulation import compile_closed_loop
         sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -116,7 +116,7 @@ def row_of(result, run: int, columns: list[str], values) -> dict:
 
 def run_chunk(job: Job, run_ids) -> list[dict]:
     """Rows of the given runs (the unit of work of the pool and of dask)."""
-    from ..simulate import simulate
+    from ..simulation import simulate
     from ..scenario.uncertainty import run_inputs
     sc, cl, _, _ = _state(job)
     camp = sc.campaign

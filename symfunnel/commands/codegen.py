@@ -34,13 +34,13 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Generate, write atomically, and optionally cross-check."""
-    from ..codegen.check import FILL, check_output
-    from ..codegen.files import write_output
+    from ..emit.check import FILL, check_output
+    from ..emit.files import write_output
     from ._common import _progress
     from ..core.errors import InputError
     from ..core.outputs import check_count
     from ..pipeline import Run
-    from ..codegen.step import valid_prefix
+    from ..emit.step import valid_prefix
     from ..scenario.implementation import check_rate
     check_count(args.points, key="--points", minimum=1000, maximum=MAX_POINTS, what="a number of check points")
     check_count(args.seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")

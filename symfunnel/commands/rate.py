@@ -21,7 +21,7 @@ def run(args) -> int:
     """Search, print (table or JSON); exit 1 when no rate up to 1 MHz holds."""
     import math
 
-    from ..cli import _dump, _load, _progress
+    from ._common import _dump, _load, _progress
     from ..core.errors import InputError
     from ..deployed.rate import min_rate
     if not (math.isfinite(args.margin) and 0 <= args.margin < 1):

@@ -32,10 +32,10 @@ def run(args) -> int:
     from ._common import _load, _progress
     from ..core.outputs import check_count, check_output_file
     from ..pipeline import Run, RunOptions
-    from ..report import build_report, default_path
+    from ..reporting import build_report, default_path
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     if args.sweep:
-        from ..report.sweep import write_sweep_page
+        from ..reporting.sweep import write_sweep_page
         print(write_sweep_page(args.sweep, args.out))
         return 0
     figures = figures_dir(args.figures) if args.figures is not None else None

@@ -127,7 +127,7 @@ def _table(s: dict) -> None:
 
 def _sampled(args, sc, say) -> int:
     """The sampled-data loop around the generated C step (symfunnel.deployed.loop); exit 1 unless it kept its funnels."""
-    from ..cli import _dump
+    from ._common import _dump
     from ..core.io import atomic_write
     from ..deployed.loop import simulate_sampled
     from ..pipeline import Run

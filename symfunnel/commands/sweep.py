@@ -20,7 +20,7 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Run the campaign and print its summary; exit 0 (breaches are results, not errors)."""
-    from ..cli import _dump, _load, _progress
+    from ._common import _dump, _load, _progress
     from ..campaigns.campaign import sweep
     from ..scenario.uncertainty import check_runs
     if args.runs is not None:

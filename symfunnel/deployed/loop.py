@@ -4,7 +4,7 @@ At each sample t_k = k h (h = 1/rate_hz) the measurements q + noise, dq + noise 
 resolution) go to the compiled `symfunnel_step` of the files `codegen --lang c` writes (loaded with ctypes), so
 the code verified is the code shipped. Its torque is held over the period (one period later with
 delay_samples = 1; zero torque before the first one arrives) and the true plant (dead zone, friction,
-disturbance, the plant's M, C, G: `closedloop.plant_acceleration`) is integrated over the period by CasADi's
+disturbance, the plant's M, C, G: `simulation.closedloop.plant_acceleration`) is integrated over the period by CasADi's
 fixed-step `rk` integrator, expanded to SX and compiled to C. Funnel margins 1 - |e|/F are those of the true
 state at the samples (between samples they are not observed).
 
@@ -150,7 +150,7 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
     """Compile (cached) the generated C pair of `files` as a shared library and wrap its step API."""
     import json
 
-    from ..codegen.files import c_names
+    from ..emit.files import c_names
     from ..core.ccompile import SHARED_FLAGS, compile_cached
     base = c_names(files)[0]
     api = json.loads(files["manifest.json"])["c_api"]["step"]
@@ -258,7 +258,7 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
     `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
     """
-    from ..codegen.files import generate
+    from ..emit.files import generate
     from ..scenario.implementation import implementation_of
     say = progress or (lambda s: None)
     sc = scenario
@@ -359,7 +359,7 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
 def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):
     """Run the loop in C (templates/sampled_loop.c) with the compiled step and plant: (rc, k_end, outside)."""
     from ..core.ccompile import SHARED_FLAGS, compile_cached
-    from ..codegen.c import template
+    from ..emit.c import template
     built = compile_cached({"sampled_loop.c": template("sampled_loop.c")}, ["sampled_loop.c"],
                            "libsfs_loop.so", SHARED_FLAGS, on_build=say)
     lib = ctypes.CDLL(str(built.path))

@@ -1,7 +1,7 @@
 """Data and figures of the deployed controller for the report: minimum rate, design help, torque beside the limits.
 
 `implementation_report(scenario, design)` returns plain data; `torque_figure` (sampled torque as stairs over the
-continuous one) and `rate.margin_rate_figure` (min margin against rate) draw it. The report's wiring is left to report/.
+continuous one) and `deployed.rate.margin_rate_figure` (min margin against rate) draw it. The report's wiring is left to reporting/.
 """
 
 from __future__ import annotations

@@ -129,7 +129,7 @@ class Backstepping:
 
         `offsets` adds a symbol to a signal where it is defined, so every signal computed from it depends on that
         symbol: how the audit finds what depends on a signal through the derivation (circular printed claims).
-        `values` replaces design parameters (keys of `tune_spec.TUNABLE`: controller.k1/k2, adaptation.gamma/sigma,
+        `values` replaces design parameters (keys of `scenario.tune.TUNABLE`: controller.k1/k2, adaptation.gamma/sigma,
         funnel.e2.phi0/phi_inf/a) by expressions, e.g. symbols, so that tune can differentiate the closed loop
         with respect to them.
         """

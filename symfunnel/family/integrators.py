@@ -1,7 +1,7 @@
 """The integrators a simulation may use, one registered options builder each (CasADi plugin name = registry name).
 
 Each builder maps (simulation settings, output step h of this chunk, the run's output step, points K) to the
-plugin's options; `symfunnel.simulate` builds `casadi.integrator(name, plugin, dae, 0, grid, options)` from it.
+plugin's options; `symfunnel.simulation` builds `casadi.integrator(name, plugin, dae, 0, grid, options)` from it.
 """
 
 from __future__ import annotations

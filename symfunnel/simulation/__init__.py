@@ -15,7 +15,7 @@ How a run works (docs/simulation.md has the long version):
   margins m_i = (F_i - |e_i|)/F_i and finiteness are checked on the grid; a breach (or an integrator failure) is
   then located on a 100x finer grid within the output step, and the trajectory up to it is kept.
 * Non-smooth plant terms (Coulomb friction's sign, the dead zone's kinks) are smoothed with the scenario's
-  `simulation.smoothing_width` w (plant.py: sign_w(x) = x/sqrt(x^2 + w^2), ramp_w); w = 0 keeps them exact and
+  `simulation.smoothing_width` w (plant/nonlinearities.py: sign_w(x) = x/sqrt(x^2 + w^2), ramp_w); w = 0 keeps them exact and
   warns. `convergence_study` measures the effect of w. The controller's own |e| terms are the design, not smoothed:
   z = e/(F - |e|) is C^1 and the resulting right-hand side is Lipschitz, which BDF handles.
 

@@ -1,5 +1,5 @@
 """The closed loop compiled for the integrator: its DAE function (states permuted), the Newton Jacobian and the
-logged-signals function, generated as C, compiled once (cached by `codegen.build`) and loaded, or on the CasADi VM.
+logged-signals function, generated as C, compiled once (cached by `core.ccompile`) and loaded, or on the CasADi VM.
 """
 
 from __future__ import annotations

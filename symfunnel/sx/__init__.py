@@ -1,1 +1,1 @@
-"""The ground floor: CasADi SX utilities every layer may use (instruction tape, exact SX -> sympy), importing nothing above."""
+"""CasADi SX utilities: the instruction tape, exact SX -> sympy, small linear algebra and sympy proofs under a time limit."""

@@ -3,7 +3,7 @@
 Used when the scenario has no `[implementation]`: the continuous-time closed loop is smooth in its gains and e2
 funnel, so the simulated constraints have exact derivatives. The tunable parameters z in [0, 1]^d (log scale of
 their bounds) become symbolic values of the design (`design.derive(values=...)`), so the closed loop
-(`closedloop.loop_sx`) has p = [z; plant quantities]; one CVODES call returns the states on a fixed output grid of
+(`simulation.closedloop.loop_sx`) has p = [z; plant quantities]; one CVODES call returns the states on a fixed output grid of
 K points, and CasADi differentiates it (forward sensitivities, d directions). Constraints per grid point and joint,
 on the nominal plant and every uncertainty sample: m1, m2 >= margin (m = 1 - |e|/F) and |tau| <= tau_max when
 given. Objective: peak torque through an epigraph variable s (|tau_i(t_k)| <= s ref on the nominal run) or the
@@ -40,7 +40,7 @@ def ipopt_available() -> bool:
 
 
 def design_values(scenario, vars_, z: ca.SX) -> dict:
-    """The tunable keys as expressions of the log-scale coordinates z (each Variable of `tuning.variables`)."""
+    """The tunable keys as expressions of the log-scale coordinates z (each Variable of `synthesis.search.variables`)."""
     from ..scenario.tune import TUNABLE
     n = scenario.n
     vals: dict[str, list] = {}

@@ -7,7 +7,7 @@ lower the earlier it leaves) and `saturation` (|tau| below tau_max: 1 - max over
 when the torque never saturates, else minus the saturated time fraction). The objective (peak torque, integral
 squared e1, or the minimum sample rate) is minimised over the feasible candidates. Method: without
 `[implementation]` the continuous-time loop is smooth in the parameters, so IPOPT runs over them with exact
-sensitivities of the constraints on an output grid (`tune_gradient`), from the user's values and a few Sobol points;
+sensitivities of the constraints on an output grid (`synthesis.gradient`), from the user's values and a few Sobol points;
 each result is judged by the full simulation above. With `[implementation]` the sampled-data loop (zero-order hold,
 saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so gradients are
 meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated, then Nelder-Mead
@@ -201,7 +201,7 @@ class Evaluator:
         worst = {}
         ctrl = None
         if self.impl is not None:
-            from ..codegen import generate
+            from ..emit import generate
             from ..deployed.loop import step_library
             ctrl = step_library(design, generate(design, "c", rate_hz=self.impl.rate_hz, tau_max=self.impl.tau_max))
         violated = 0
@@ -251,7 +251,7 @@ class Evaluator:
         return g, figs
 
     def _continuous(self, sc, design) -> tuple[dict, dict]:
-        from ..simulate import simulate
+        from ..simulation import simulate
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             res = simulate(sc, design, t_final=self.T)

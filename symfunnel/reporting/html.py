@@ -154,12 +154,15 @@ def _where(w) -> str:
 
 def versions() -> list[tuple[str, str]]:
     """Software versions of this run."""
-    from .. import __version__
+    from importlib import metadata
+
+    from ..core.version import __version__
     out = [("symfunnel", __version__), ("Python", sys.version.split()[0]), ("platform", platform.platform())]
-    for mod in ("casadi", "numpy", "scipy", "sympy", "matplotlib", "jinja2"):
+    for mod, dist in (("casadi", "casadi"), ("numpy", "numpy"), ("scipy", "scipy"), ("sympy", "sympy"),
+                      ("matplotlib", "matplotlib"), ("jinja2", "Jinja2")):
         try:
-            out.append((mod, importlib.import_module(mod).__version__))
-        except Exception:  # noqa: BLE001
+            out.append((mod, metadata.version(dist)))
+        except metadata.PackageNotFoundError:
             out.append((mod, "not available"))
     return out
 
@@ -538,7 +541,7 @@ def tuning_section(run, progress, figures_dir=None) -> dict:
 
 def codegen_section(run, progress) -> dict:
     """The code-generation summary of a Run: both languages generated, compiled/imported and cross-checked."""
-    from ..codegen.check import codegen_summary
+    from ..emit.check import codegen_summary
     progress("code generation: C and Python, compiled/imported and cross-checked")
     t0 = time.perf_counter()
     try:
@@ -636,7 +639,7 @@ def _flatten(d, prefix: str = "") -> list[tuple[str, str]]:
 # --- rendering -------------------------------------------------------------------------------------
 
 def environment():
-    """The Jinja2 environment (autoescape on) reading symfunnel/report/templates."""
+    """The Jinja2 environment (autoescape on) reading symfunnel/reporting/templates."""
     import jinja2
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(Path(__file__).parent / "templates")),
                              autoescape=jinja2.select_autoescape(["html", "j2"], default=True),

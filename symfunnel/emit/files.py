@@ -26,7 +26,7 @@ def _manifest(design: Design, functions: list[casadi.Function], lang: str, files
     """manifest.json: generator, files with their sha256, the functions with their inputs, outputs and sizes."""
     import casadi
 
-    from .. import __version__
+    from ..core.version import __version__
     from .python import manifest_entry
     from ..sx.tape import count_ops
     entries = []

@@ -1,6 +1,6 @@
 """The self-contained HTML report: everything symfunnel knows about one scenario, in one file that opens offline.
 
-    from symfunnel.report import build_report
+    from symfunnel.reporting import build_report
     path = build_report(load_scenario("paper"))          # reports/paper.html
 
 Figures are inline SVG (matplotlib; optionally also PNG and PDF files), equations MathML (sympy's presentation printer), CSS inline; there are no
@@ -98,8 +98,3 @@ def build_report(run, out=None, *, codegen: bool = True, mutants: bool = True, d
     path = Path(out) if out is not None else default_path(run.scenario)
     atomic_write(path, text)
     return path
-
-
-from .._callable import make_callable  # noqa: E402 - after the module body: calling this module is the API function
-
-make_callable(__name__, "report")

@@ -98,7 +98,7 @@ def emit_c(functions: Sequence[casadi.Function], basename: str = BASENAME,
 
 def template(name: str) -> str:
     """Text of a packaged template (main.c, bench.c, Makefile)."""
-    return resources.files("symfunnel.codegen").joinpath("templates", name).read_text(encoding="utf-8")
+    return resources.files("symfunnel.emit").joinpath("templates", name).read_text(encoding="utf-8")
 
 
 def support_files(trajectory: str, subs: dict[str, str] | None = None) -> dict[str, str]:

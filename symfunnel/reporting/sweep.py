@@ -1,6 +1,6 @@
 """The report's robustness-campaign section: figures and figures-with-text from a sweep directory.
 
-    from symfunnel.report.sweep import load_sweep, sweep_section, write_sweep_page
+    from symfunnel.reporting.sweep import load_sweep, sweep_section, write_sweep_page
     section = sweep_section("reports/paper-sweep")     # dict: summary, table rows, SVG figures
 
 `write_sweep_page` writes the section alone as a self-contained HTML file (`symfunnel report --sweep DIR`); the full

@@ -40,7 +40,3 @@ from .files import c_basename, c_names, generate, write_output
 
 __all__ = ["CONTRACT", "BASENAME", "LANGS", "contract_functions", "initial_trajectory", "trajectory_from_run",
            "generate", "write_output", "c_basename", "c_names", "check_output", "main_program", "codegen_summary"]
-
-from .._callable import make_callable  # noqa: E402 - after the module body: calling this module is the API function
-
-make_callable(__name__, "codegen")
