@@ -318,7 +318,7 @@ def test_limits_are_not_too_tight():
 
 
 def test_node_limit(monkeypatch):
-    import symfunnel.expr as expr
+    import symfunnel.expr.parse as expr
     text = "(" + "+".join(["x"] * 30) + ")*(" + "+".join(["y"] * 30) + ")"
     assert parse_expression(text).size() == 2 * 59 + 1
     monkeypatch.setattr(expr, "MAX_NODES", 100)
@@ -394,3 +394,21 @@ def test_random_deep_and_wide_inputs_stay_input_errors():
     pieces = ["(", ")", "sin(", "x", "+", "-", "*", "^", "2", ",", "9", "e"]
     for _ in range(200):
         _only_input_errors("".join(rng.choice(pieces) for _ in range(rng.randint(1, 3000))))
+
+
+def test_both_backends_implement_every_function_and_constant_of_the_language():
+    from symfunnel.expr import casadi_backend, sympy_backend
+    from symfunnel.expr.tree import CONSTANTS
+    elementwise = {k for k, spec in FUNCTIONS.items() if spec.elementwise}
+    assert set(casadi_backend.ELEMENTWISE) == elementwise == set(sympy_backend.ELEMENTWISE)
+    assert set(casadi_backend.CONSTANTS) == set(CONSTANTS) == set(sympy_backend.CONSTANTS)
+
+
+def test_parsing_and_casadi_evaluation_do_not_import_sympy():
+    import subprocess
+    import sys
+    code = ("import sys, casadi as ca\nfrom symfunnel.expr import parse_expression\n"
+            "e = parse_expression('sin(q1)^2 + max(t, 2*pi) + 0.1', {'q1', 't'})\n"
+            "e.to_casadi({'q1': ca.SX.sym('q1'), 't': ca.SX.sym('t')})\nprint('sympy' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
