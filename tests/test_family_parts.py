@@ -12,7 +12,7 @@ import pytest
 
 from symfunnel.cli import main
 
-from symfunnel.reporting.html import scenario_section
+from symfunnel.reporting.sections import scenario_section
 
 from .conftest import MINIMAL_2LINK, alpha2_dot_fd_error
 

@@ -79,7 +79,7 @@ def test_noise_is_dropped_for_display_only():
 
 
 def test_floats_are_rounded_for_display():
-    from symfunnel.reporting.html import mathml_body
+    from symfunnel.reporting.mathml import mathml_body
     e, _ = FM.present(0.00247487373415181 * sympy.sin(q1))
     (f,) = e.atoms(sympy.Float)
     assert float(f) == pytest.approx(0.00247487373415181, rel=1e-6)
@@ -87,7 +87,7 @@ def test_floats_are_rounded_for_display():
 
 
 def test_fences_stretch_and_mfenced_is_rewritten():
-    from symfunnel.reporting.html import mathml_body
+    from symfunnel.reporting.mathml import mathml_body
     m = mathml_body(sympy.Matrix([[q1, 1 / (q1 + q2)], [0, q2]]))
     assert "<mo>[</mo>" not in m and '<mo stretchy="true" symmetric="true" fence="true">[</mo>' in m
     src = '<mfenced open="[" close="]"><mi>a</mi><mfenced><mi>b</mi><mi>c</mi></mfenced></mfenced>'
@@ -99,7 +99,7 @@ def test_fences_stretch_and_mfenced_is_rewritten():
 
 
 def test_matrix_in_a_detail_becomes_a_table():
-    from symfunnel.reporting.html import detail_html
+    from symfunnel.reporting.text import detail_html
     h = str(detail_html("N = Matrix([\n[2*a*sin(q2), f(b, c)],\n[d < 0,      0]]); done"))
     assert "Matrix(" not in h and h.count("<tr>") == 2 and h.count("<td>") == 4
     assert "<code>f(b, c)</code>" in h and "d &lt; 0" in h and h.endswith("; done")
@@ -107,7 +107,7 @@ def test_matrix_in_a_detail_becomes_a_table():
 
 
 def test_builtin_scenario_header(paper):
-    from symfunnel.reporting.html import file_shown
+    from symfunnel.reporting.sections import file_shown
     assert file_shown(paper) == "built-in: paper"
 
 
@@ -204,7 +204,7 @@ def test_figures_option_rejects_a_file_before_any_work(tmp_path, capsys):
 
 
 def test_captions_name_the_paper_figures():
-    from symfunnel.reporting.html import figure_caption
+    from symfunnel.reporting.sections import figure_caption
     c = figure_caption("torque", "Torque", "paper")
     assert "Reproduces Figure 8" in c and "Control signals" in c and "Unknown Dead Zone" in c
     assert "Corresponds to Figure 6" in figure_caption("tracking", "Tracking", "arm7")
@@ -214,7 +214,7 @@ def test_captions_name_the_paper_figures():
 def test_joint_one_formulas_for_seven_joints():
     """n = 7: F1, z1 and alpha2 are still shown (their joint-1 entries), not just their sizes."""
     from symfunnel.design import derive
-    from symfunnel.reporting.html import derivation_section
+    from symfunnel.reporting.sections import derivation_section
     from symfunnel.scenario import load_scenario
     d = derive(load_scenario("arm7"))
     rows = {r["name"]: r for r in derivation_section(d, [], lambda s: None)["signals"]}
@@ -223,7 +223,7 @@ def test_joint_one_formulas_for_seven_joints():
 
 
 def test_a_formula_says_when_round_off_was_left_out():
-    from symfunnel.reporting.html import formula_html
+    from symfunnel.reporting.mathml import formula_html
     h = formula_html("<mi>G</mi>", 9.81 * sympy.sin(q2) + 8.7e-14 * sympy.cos(q1), 50.0)
     assert "1 term(s) with a coefficient below 1e-10" in h and "8.7" not in h and "9.81" in h
     assert "term(s)" not in formula_html("<mi>G</mi>", 9.81 * sympy.sin(q2) + 0.5 * sympy.cos(q1), 50.0)

@@ -215,7 +215,7 @@ def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path)
     from symfunnel.pipeline import Run
     from symfunnel.design import derive
     from symfunnel.deployed.rate import min_rate
-    from symfunnel.reporting.html import tuning_section
+    from symfunnel.reporting.sections import tuning_section
     from symfunnel.scenario.uncertainty import scenario_edits
     orig = paper_doc(1.0, {"runs": 6})
     orig["implementation"] = {"rate_hz": 1000.0, "tau_max": 200.0}

@@ -19,7 +19,14 @@ broadcasting: equal shapes; a 1x1 value against any shape; an (r,1) column again
 ``mtimes`` are the linear-algebra operations (see `FUNCTIONS`).
 """
 
-from .limits import MAX_DEPTH, MAX_EXACT_DIGITS, MAX_EXPONENT, MAX_LENGTH, MAX_LITERAL, MAX_NODES
+from .limits import (
+           MAX_DEPTH,
+           MAX_EXACT_DIGITS,
+           MAX_EXPONENT,
+           MAX_LENGTH,
+           MAX_LITERAL,
+           MAX_NODES,
+)
 from .parse import parse_expression
 from .tree import CONSTANTS, FUNCTIONS, Expression
 

@@ -11,8 +11,28 @@ from typing import Callable, Iterable
 
 from ..core.errors import InputError
 from ..core.validate import did_you_mean
-from .limits import MAX_DEPTH, MAX_EXACT_DIGITS, MAX_EXPONENT, MAX_LENGTH, MAX_LITERAL, MAX_NODES
-from .tree import CONSTANTS, FUNCTIONS, BinOp, Call, Const, Expression, Name, Neg, Node, Num, clip, one_of
+from .limits import (
+    MAX_DEPTH,
+    MAX_EXACT_DIGITS,
+    MAX_EXPONENT,
+    MAX_LENGTH,
+    MAX_LITERAL,
+    MAX_NODES,
+)
+from .tree import (
+    CONSTANTS,
+    FUNCTIONS,
+    BinOp,
+    Call,
+    Const,
+    Expression,
+    Name,
+    Neg,
+    Node,
+    Num,
+    clip,
+    one_of,
+)
 
 _EXPECTED = "an expression of numbers, names, + - * / ^ and the functions " \
             "abs, acos, asin, atan, atan2, cos, cosh, dot, exp, log, max, min, mtimes, outer, " \

@@ -29,6 +29,7 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
     """The report of a pipeline Run as HTML text (its stages are computed here if they were not yet); with
     figures_dir, every figure is also written there as PNG and PDF."""
     from . import html as H
+    from . import sections as S
     say = run.progress or (lambda s: None)
     t_all = time.perf_counter()
     scenario, design = run.scenario, run.design
@@ -38,23 +39,23 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
     t0 = time.perf_counter()
     say("report: scenario, model and derivation sections")
     ctx = {
-        "scenario": H.scenario_section(scenario),
-        "model": H.model_section(scenario, audit_results),
-        "derivation": H.derivation_section(design, verification.checks, say),
+        "scenario": S.scenario_section(scenario),
+        "model": S.model_section(scenario, audit_results),
+        "derivation": S.derivation_section(design, verification.checks, say),
     }
     timings.append(("report: formulas (SX -> sympy -> MathML)", time.perf_counter() - t0))
     t0 = time.perf_counter()
-    ctx["simulation"] = H.simulation_section(verification, say, figures_dir=figures_dir)
+    ctx["simulation"] = S.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
-    ctx["verification"] = H.verification_section(verification)
+    ctx["verification"] = S.verification_section(verification)
     t0 = time.perf_counter()
-    ctx["tuning"] = H.tuning_section(run, say, figures_dir=figures_dir)
+    ctx["tuning"] = S.tuning_section(run, say, figures_dir=figures_dir)
     if ctx["tuning"]["available"]:
         timings.append(("tuning: original against tuned", time.perf_counter() - t0))
     for key, wanted, section, label, reason in (
-            ("deployed", deployed, H.implementation_section, "deployed controller (rate search, design help)",
+            ("deployed", deployed, S.implementation_section, "deployed controller (rate search, design help)",
              "left out of this report (deployed=False)"),
-            ("codegen", codegen, H.codegen_section, "code generation and cross-check",
+            ("codegen", codegen, S.codegen_section, "code generation and cross-check",
              "code generation was skipped for this report (codegen=False)")):
         if not wanted:
             ctx[key] = {"available": False, "reason": reason}
@@ -83,7 +84,7 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
         timings.append(("mutation testing", time.perf_counter() - t0))
     timings.append(("report total (after the stages)", time.perf_counter() - t_all))
     ctx["timings"] = [(k, f"{v:.2f} s") for k, v in timings]
-    ctx["versions"] = H.versions()
+    ctx["versions"] = S.versions()
     ctx["generated"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     say("rendering HTML")
     return H.render(ctx)

@@ -10,9 +10,26 @@ about its source: printed claims, expected outcomes, deviations), and the specs 
 from __future__ import annotations
 
 from .claims import INEQUALITY_NAMES, claim_names
-from .document import (AuditSpec, Claim, DesignSpec, Deviation, ESNSpec, Expectation, PlantSpec, Scenario,
-                       SimulationSpec)
-from .load import BUILTIN, DATA_DIR, TOP_KEYS, from_dict, is_builtin, load_scenario, resolve
+from .document import (
+                       AuditSpec,
+                       Claim,
+                       DesignSpec,
+                       Deviation,
+                       ESNSpec,
+                       Expectation,
+                       PlantSpec,
+                       Scenario,
+                       SimulationSpec,
+)
+from .load import (
+                       BUILTIN,
+                       DATA_DIR,
+                       TOP_KEYS,
+                       from_dict,
+                       is_builtin,
+                       load_scenario,
+                       resolve,
+)
 from .sections import ESN_INPUTS, build_model
 
 __all__ = ["Scenario", "Claim", "Expectation", "PlantSpec", "ESNSpec", "DesignSpec", "SimulationSpec", "AuditSpec",

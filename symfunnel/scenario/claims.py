@@ -1,4 +1,5 @@
-"""What a scenario declares about its source: the printed claims the audit checks, the expected outcomes of other checks (`[[expect]]`) and the deviations from the source."""
+"""What a scenario declares about its source: the printed claims the audit checks, the expected outcomes of other
+checks (`[[expect]]`) and the deviations from the source."""
 
 from __future__ import annotations
 

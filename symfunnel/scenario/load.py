@@ -1,4 +1,5 @@
-"""A built-in name or a TOML path to a validated `Scenario`: reading the file and validating the document section by section."""
+"""A built-in name or a TOML path to a validated `Scenario`: reading the file and validating the document section by
+section."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""One parser per section of a scenario's set-up (model, reference, initial state, funnels, design, ESN, plant, simulation, audit), each returning its validated spec."""
+"""One parser per section of a scenario's set-up (model, reference, initial state, funnels, design, ESN, plant,
+simulation, audit), each returning its validated spec."""
 
 from __future__ import annotations
 
