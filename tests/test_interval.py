@@ -259,9 +259,16 @@ def test_comparisons_logic_sign_and_if_else(backend):
     F = IntervalFunction(OPS_F, backend)
     names = list(OP_EXPRS)
 
+    # python-flint rounds every radius up by 2^-30 relative: arb's [0, 1] is [-9.3e-10, 1 + 9.3e-10]
+    tol = 0.0 if backend == "codac" else 2e-9
+
+    class Near(tuple):
+        def __eq__(self, other):
+            return all(a == b or abs(a - b) <= tol for a, b in zip(self, other))
+
     def ev(x, y):
         L, H = F.eval_flat(np.array([x[0], y[0]]), np.array([x[1], y[1]]))
-        return {n: (L[i], H[i]) for i, n in enumerate(names)}
+        return {n: Near((L[i], H[i])) for i, n in enumerate(names)}
 
     r = ev((-1.0, 2.0), (5.0, 6.0))
     assert r["LT"] == (1, 1) and r["LE"] == (1, 1) and r["EQ"] == (0, 0) and r["NE"] == (1, 1)
@@ -279,8 +286,9 @@ def test_comparisons_logic_sign_and_if_else(backend):
     assert r["DIV"] == (0, 0)
     assert ev((0.0, 2.0), (1.0, 1.0))["SIGN"] == (0, 1)
     r = ev((-1.0, 1.0), (1.0, 1.0))
-    assert r["DIV"][0] < -1.0 and r["INV"] == (-math.inf, math.inf)
+    assert r["DIV"][0] <= -1.0 and r["INV"] == (-math.inf, math.inf)
     assert ev((1.0, 2.0), (-1.0, 1.0))["DIV"] == (-math.inf, math.inf)
+    assert ev((1.0, 2.0), (0.0, 1.0))["DIV"] == (-math.inf, math.inf)      # touching 0 is an error too
 
 
 # --- outward rounding -------------------------------------------------------------------------------------------
@@ -472,15 +480,22 @@ def test_refutes_with_a_confirmed_counterexample(backend):
 
 
 def test_two_dimensional_case_needs_splits():
+    """cos(x - y) + 1.05 written so that x and y each occur twice: the natural enclosure on the whole square is
+    [-0.95, 3.05], so only splitting proves it."""
     y = ca.SX.sym("y")
-    g = ca.Function("g", [x_, y], [ca.cos(x_) * ca.cos(y) + 1.05 - 0.0 * x_ * y], ["x", "y"], ["g"])
-    r = prove(g, {"x": (-3.0, 3.0), "y": (-3.0, 3.0)})
-    assert r.status == "proven" and r.boxes > 50
-    r = prove(g, {"x": (-3.0, 3.0), "y": (-3.0, 3.0)}, relation=">", bound=0.1)
+    g = ca.Function("g", [x_, y], [ca.cos(x_) * ca.cos(y) + ca.sin(x_) * ca.sin(y) + 1.05], ["x", "y"], ["g"])
+    box = {"x": (-3.0, 3.0), "y": (-3.0, 3.0)}
+    r = prove(g, box)
+    assert r.status == "proven" and r.boxes > 50 and 0 < r.lower <= 0.05
+    r = prove(g, box, relation=">", bound=0.1)
     assert r.status == "refuted" and float(g(r.counterexample["x"], r.counterexample["y"])) <= 0.1
     # the upper-bound form: g < 2.06 everywhere, and the prover's upper bound is rigorous and close
-    r = prove(g, {"x": (-3.0, 3.0), "y": (-3.0, 3.0)}, relation="<", bound=2.06)
+    r = prove(g, box, relation="<", bound=2.06)
     assert r.status == "proven" and 2.05 <= r.upper < 2.06
+
+
+C3 = 1.0 / 3.0
+SQ3 = ca.Function("g", [x_], [(x_ - C3) * (x_ - C3)], ["x"], ["g"])
 
 
 def test_undecided_with_a_volume_fraction_on_a_tiny_budget():
@@ -488,19 +503,21 @@ def test_undecided_with_a_volume_fraction_on_a_tiny_budget():
     assert r.status == "undecided" and r.stopped == "boxes" and 0 < r.undecided_fraction < 1
     r = prove(G_POS, {"x": (-10.0, 10.0)}, seconds=0.0)
     assert r.status == "undecided" and r.stopped == "seconds" and r.undecided_fraction == 1.0
-    # g = (x - 1)^2 > 0 fails only at x = 1 exactly, which no midpoint hits: splitting stops at the width limit
-    sq = ca.Function("g", [x_], [(x_ - 1) * (x_ - 1)], ["x"], ["g"])
-    r = prove(sq, {"x": (0.3, 1.7)}, max_boxes=100_000)
+    # (x - 1/3)^2 > 0 fails only at the double 1/3, which no midpoint hits: splitting stops at the width limit
+    r = prove(SQ3, {"x": (0.3, 1.7)}, max_boxes=100_000)
     assert r.status == "undecided" and r.stopped == "min_width" and r.undecided_fraction < 1e-9
 
 
 def test_deterministic():
     y = ca.SX.sym("y")
-    g = ca.Function("g", [x_, y], [ca.sin(3 * x_) * y + 1.2 - ca.cos(y)], ["x", "y"], ["g"])
+    g = ca.Function("g", [x_, y], [(x_ - C3) * (x_ - C3) + (y + C3) * (y + C3)], ["x", "y"], ["g"])
     runs = [prove(g, {"x": (-2.0, 2.0), "y": (-1.0, 1.0)}, max_boxes=400) for _ in range(2)]
     a, b = (r.to_dict() for r in runs)
     a.pop("seconds"), b.pop("seconds")
-    assert a == b and runs[0].boxes > 10
+    assert a == b and runs[0].boxes > 10 and runs[0].status == "undecided"
+    ra, rb = (rigorous_range(g, {"x": (-2.0, 2.0), "y": (-1.0, 1.0)}, max_boxes=300).to_dict() for _ in range(2))
+    ra.pop("seconds"), rb.pop("seconds")
+    assert ra == rb
 
 
 def test_no_split_inputs_stay_whole():
@@ -541,7 +558,7 @@ def test_mass_matrix_is_positive_definite_over_all_q2():
 
 def test_input_gain_condition_2dof():
     """sym(M(q)^-1 D M(q)) > 0 (Sylvester) for dead-zone-like slopes D = diag(d) in a box, over all q2: proven for
-    slopes within 10 % of each other, refuted (with a counterexample that CasADi confirms) for a wide spread."""
+    slopes within 2 % of each other, refuted (with a counterexample that CasADi confirms) for a wide spread."""
     M = design("paper").function("M")
     q, dd = ca.SX.sym("q", 2), ca.SX.sym("d", 2)
     Mq = M(q)
@@ -550,9 +567,9 @@ def test_input_gain_condition_2dof():
     g = ca.Function("gain", [q, dd], [ca.vertcat(S[0, 0], S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0])], ["q", "d"],
                     ["s"])
     qbox = (np.array([0.0, -np.pi]), np.array([0.0, np.pi]))
-    r = prove(g, {"q": qbox, "d": (np.array([0.95, 0.95]), np.array([1.05, 1.05]))}, max_boxes=20_000)
+    r = prove(g, {"q": qbox, "d": (np.array([0.99, 0.99]), np.array([1.01, 1.01]))}, max_boxes=20_000)
     assert r.status == "proven", r
-    r = prove(g, {"q": qbox, "d": (np.array([0.01, 0.01]), np.array([1.0, 1.0]))}, max_boxes=20_000)
+    r = prove(g, {"q": qbox, "d": (np.array([0.8, 0.8]), np.array([1.2, 1.2]))}, max_boxes=20_000)
     assert r.status == "refuted"
     v = np.asarray(g(r.counterexample["q"], r.counterexample["d"])).ravel()
     assert np.any(v <= 0)

@@ -5,7 +5,8 @@ Boxes are bisected at the midpoint of the split variable widest relative to its 
 the interval enclosure decides the predicate there, and a counterexample is only reported once CasADi's own double
 evaluation of the function at the point confirms it. The search is best-first on the enclosure's margin with ties
 broken in creation order, so the same input gives the same boxes and the same result; the wall-clock limit only
-turns an answer into `undecided`.
+turns an answer into `undecided`. Proving goes largest box first (breadth-first); the range search goes best-first
+on the bound.
 """
 
 from __future__ import annotations
@@ -217,9 +218,6 @@ def prove(g, region, *, relation: str = ">", bound: float = 0.0, output: int | s
         ok = (v > c if strict else v >= c) if use_lower else (v < c if strict else v <= c)
         return not bool(np.all(ok))
 
-    def margin(L, H) -> float:                    # priority: the most doubtful box first
-        return float(np.min(L - c)) if use_lower else float(np.min(c - H))
-
     n_boxes = 0
     lower = upper = None
     heap: list = []
@@ -264,7 +262,9 @@ def prove(g, region, *, relation: str = ">", bound: float = 0.0, output: int | s
             r = refutation(mid)
             if r is not None:
                 return r
-        heapq.heappush(heap, (margin(L, H), counter, vol, lo, hi))
+        # largest box first, then creation order: every level of bisection is finished before the next, so the
+        # easy part of the region is proven early and the undecided fraction at a budget stop means something
+        heapq.heappush(heap, (-vol, counter, vol, lo, hi))
         counter += 1
         return None
 
