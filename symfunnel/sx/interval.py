@@ -17,6 +17,15 @@ bounds are not finite, is returned as lo = -inf, hi = +inf: no invalid result ca
 Comparisons and logic give [0, 0], [1, 1] or [0, 1] (undecided); IF_ELSE_ZERO(c, x) is x when 0 is not in c, 0 when
 c is [0, 0], hull(0, x) otherwise; SIGN of an interval with 0 inside is [-1, 1] (of [0, a] it is [0, 1]).
 
+Outward rounding: codac's Interval operations round outward themselves (its sinh, tanh and atanh are widened by
+SLOPPY_ULPS more, see there); arb balls carry rigorous error radii, an input [lo, hi] becomes a ball whose radius
+python-flint rounds up (by ~2^-30 relative: arb's [0, 1] is [-9.3e-10, 1 + 9.3e-10]), and a ball is read back as
+[mid - rad, mid + rad] one ulp outward after the double subtraction.
+
+`eval_point` is CasADi's own double evaluation of the function (what branch and bound tests midpoints with).
+Compiled functions keep the previous box's intervals (rebuilding only the inputs that changed), so one
+IntervalFunction is not to be shared between threads.
+
 The codac backend does not use codac's `AnalyticFunction`: it evaluates expression *trees* (a node shared k times
 is evaluated k times, exponential in the depth of CasADi's CSE'd DAG) and carries a Jacobian per node, which made
 the paper's `tau` take 60 ms per box against ~0.2 ms for this tape walk.
