@@ -42,7 +42,7 @@ from typing import Any, NamedTuple
 import casadi
 import numpy as np
 
-from ..errors import SymfunnelError
+from ..core.errors import SymfunnelError
 from .tape import OP_NAMES, Tape, as_sx_function, read_tape
 
 __all__ = ["IntervalError", "IntervalFunction", "Enclosure", "BACKENDS", "get_backend", "RULE_OPS"]
