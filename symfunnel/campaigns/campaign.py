@@ -302,7 +302,10 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
     elif chunks:
         import concurrent.futures as cf
         import multiprocessing as mp
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        from ..core.threads import pin_blas_threads
+        # one process per core already: a worker's second BLAS thread would only spin against the other workers
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                    initializer=pin_blas_threads) as pool:
             pending = deque(chunks)
             running = {pool.submit(run_chunk, job, pending.popleft())
                        for _ in range(min(window, len(pending)))}

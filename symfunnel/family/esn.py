@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ..core.threads import one_blas_thread
+
 _SCALE_DIGITS = 13          # significant digits kept of the spectral-radius scale factor (see module docstring)
 _MAX_REDRAWS = 100
 _RHO_FLOOR = 1e-8           # a drawn W with a smaller spectral radius is treated as nilpotent and redrawn
@@ -118,7 +120,8 @@ def _spectral_radius(W: np.ndarray) -> float:
             return float(np.max(np.abs(ev)))
         except sl.ArpackError:
             pass
-    return float(np.max(np.abs(np.linalg.eigvals(W))))
+    with one_blas_thread():                        # a second BLAS thread only oversubscribes (core/threads.py)
+        return float(np.max(np.abs(np.linalg.eigvals(W))))
 
 
 def _norm2(W: np.ndarray) -> float:
@@ -132,7 +135,8 @@ def _norm2(W: np.ndarray) -> float:
                                  return_singular_vectors=False)[0])
         except sl.ArpackError:
             pass
-    return float(np.linalg.norm(W, 2))
+    with one_blas_thread():
+        return float(np.linalg.norm(W, 2))
 
 
 def _round_sig(x: float, digits: int) -> float:
