@@ -115,8 +115,7 @@ class Runner:
         return xf.reshape(K, -1)[:, self.inv]
 
     def _run_direct(self, D: sundials.DirectCvodes, p: np.ndarray, x0: np.ndarray, K: int, h: float) -> np.ndarray:
-        grid = h * np.arange(1, K + 1, dtype=float)
-        grid[:] = [h * (k + 1) for k in range(K)]      # the very doubles casadi.integrator's grid holds
+        grid = np.array([h * (k + 1) for k in range(K)], dtype=float)   # the very doubles casadi.integrator's grid holds
         c0 = time.perf_counter()
         try:
             X, st = D.run(p, x0[self.perm], grid)
