@@ -489,6 +489,10 @@ def audit(scenario, design: Design, *, progress=None) -> list[CheckResult]:
     ]
     for i, claim in enumerate(scenario.claims):
         steps.append((f"claim.{claim.name}", lambda r, c=claim: check_claim(design, c, r)))
+    from .consistency import check_funnel_consistency, check_reference_derivatives
+    horizon = float(scenario.simulation.t_final)
+    steps.append(("funnel.consistency", lambda r: check_funnel_consistency(design, horizon)))
+    steps.append(("reference.derivatives", lambda r: check_reference_derivatives(design, horizon)))
     for i, (cid, fn) in enumerate(steps):
         say(f"audit {i + 1}/{len(steps)}: {cid}")
         results.append(fn(np.random.default_rng([seed, i])))
