@@ -24,6 +24,8 @@ from symfunnel.family.funnels import ExpressionFunnel, FunnelSpec
 from symfunnel.pipeline import Run, RunOptions
 from symfunnel.scenario import load_scenario
 
+from .pins import pins
+
 DATA = Path(__file__).parent / "data"
 
 
@@ -176,6 +178,7 @@ t_final = 2.0
     return load_scenario(write_scenario(text))
 
 
+@pins("funnel.consistency", "fail", "pass")
 def test_funnel_consistency_fails_on_a_relative_error_of_1e_6_and_passes_at_1e_12(write_scenario, monkeypatch):
     sc = _one_joint(write_scenario)
     d = derive(sc)
@@ -189,6 +192,7 @@ def test_funnel_consistency_fails_on_a_relative_error_of_1e_6_and_passes_at_1e_1
         assert row["max_relative"] == pytest.approx(factor - 1, rel=1e-3)
 
 
+@pins("funnel.consistency", "fail", "pass")
 def test_funnel_consistency_compares_dF_and_expression_funnels(write_scenario):
     sc = _one_joint(write_scenario, F2='F = "1.5/(1 + t) + 0.2"')
     assert isinstance(sc.funnels["e2"], ExpressionFunnel)
@@ -200,6 +204,7 @@ def test_funnel_consistency_compares_dF_and_expression_funnels(write_scenario):
     assert c.status == "fail" and "dF2" in c.detail and c.where["joint"] == 1
 
 
+@pins("reference.derivatives", "fail", "pass")
 def test_reference_derivatives_pins_each_comparison(write_scenario):
     sc = _one_joint(write_scenario)
     d = derive(sc)
