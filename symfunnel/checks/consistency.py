@@ -17,7 +17,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .audit import CheckResult
+from .result import CheckResult
 
 #: relative disagreement above which an SX twin differs from the declaration (round-off is ~1e-15)
 TWIN_TOL = 1e-9
