@@ -310,7 +310,8 @@ def baseline(root: Path, state: Path, *, package: str = "symfunnel", marker: str
                    "--cov-context=test", "--cov-report=", f"--junitxml={junit}", "-o", "junit_family=xunit1"]
             if marker:
                 cmd += ["-m", marker]
-            if workers > 1:
+            import importlib.util
+            if workers > 1 and importlib.util.find_spec("xdist") is not None:
                 cmd += ["-n", str(workers)]
             cmd += todo if old is not None else []
             env = _env(copy, cache)
