@@ -219,10 +219,11 @@ def _sha(path: Path) -> str:
 
 
 def _digest(root: Path, package: str) -> str:
-    """A hash of what every test's coverage depends on: the package's sources and the tests' shared helpers."""
+    """A hash of what every test's coverage depends on: the package's sources (this tool's own file aside: its
+    mutant list changes no coverage) and the tests' shared helpers."""
     h = hashlib.sha256()
-    files = sorted((root / package).rglob("*.py")) + sorted(p for p in (root / "tests").rglob("*.py")
-                                                             if not p.name.startswith("test_"))
+    files = sorted(p for p in (root / package).rglob("*.py") if p.name != Path(__file__).name)
+    files += sorted(p for p in (root / "tests").rglob("*.py") if not p.name.startswith("test_"))
     for p in files:
         h.update(str(p.relative_to(root)).encode())
         h.update(p.read_bytes())
@@ -494,6 +495,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="pytest-xdist workers of the baseline run (default 2)")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     a = ap.parse_args(argv)
+
+    def stop(signum, frame):                      # SIGTERM: stop the running pytest's process group too
+        raise SystemExit(128 + signum)
+    signal.signal(signal.SIGTERM, stop)
     if a.list:
         for m in MUTANTS:
             print(f"{m.id:<40} {m.kind:<11} {m.file}: {m.description}" + (" [equivalent]" if m.equivalent else ""))
