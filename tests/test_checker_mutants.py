@@ -11,9 +11,12 @@ from symfunnel.bench import AREAS
 from symfunnel.bench.checker_mutants import (CLASSES, MUTANTS, CheckerMutant, MutantError, apply, mutated_lines,
                                              repo_root, run)
 
-CHECK = '''def inside(e, F):
+CHECK = '''SCALE = 1.0
+
+
+def inside(e, F):
     """The funnel is open: |e| = F is outside."""
-    return abs(e) < F
+    return abs(e) < SCALE * F
 
 
 def describe(e, F):
@@ -46,7 +49,10 @@ def _repo(tmp_path):
 def test_one_killed_one_survived_one_equivalent_and_resumed(tmp_path):
     root = _repo(tmp_path)
     mutants = (
-        CheckerMutant("non_strict", "pkg/check.py", "abs(e) < F", "abs(e) <= F", "comparison", "|e| = F inside"),
+        CheckerMutant("non_strict", "pkg/check.py", "abs(e) < SCALE * F", "abs(e) <= SCALE * F", "comparison",
+                      "|e| = F inside"),
+        CheckerMutant("scale", "pkg/check.py", "SCALE = 1.0", "SCALE = 1.001", "constant",
+                      "a module-level constant: runs at import, selects the tests of its module"),
         CheckerMutant("wording", "pkg/check.py", '"inside" if', '"in" if', "constant", "another word"),
         CheckerMutant("docstring", "pkg/check.py", "The funnel is open", "The funnel is closed", "constant",
                       "a docstring", equivalent="a docstring is not executed by any check"),
@@ -60,7 +66,8 @@ def test_one_killed_one_survived_one_equivalent_and_resumed(tmp_path):
     assert rows["non_strict"]["tests"] == 2            # both tests cover the line (describe calls inside)
     assert rows["wording"]["status"] == "survived" and rows["wording"]["tests"] == 1
     assert rows["docstring"]["status"] == "equivalent"
-    assert out["score"] == 0.5 and out["killed"] == 1 and out["survived"] == ["wording"]
+    assert rows["scale"]["status"] == "killed" and rows["scale"]["tests"] == 2
+    assert out["score"] == 2 / 3 and out["killed"] == 2 and out["survived"] == ["wording"]
     assert out["equivalent"] == [{"id": "docstring", "argument": "a docstring is not executed by any check"}]
     assert any("baseline" in s for s in lines)
     # a second run keeps every outcome (nothing changed) and runs no baseline again
@@ -68,7 +75,7 @@ def test_one_killed_one_survived_one_equivalent_and_resumed(tmp_path):
     out2 = run(root=root, state=tmp_path / "state", mutants=mutants, package="pkg", marker=None, workers=1,
                progress=again.append)
     assert [r["status"] for r in out2["rows"]] == [r["status"] for r in out["rows"]]
-    assert not any("baseline" in s for s in again) and sum("kept" in s for s in again) == 2
+    assert not any("baseline" in s for s in again) and sum("kept" in s for s in again) == 3
     # a new test that pins the wording: only its file is measured again, and it kills the survivor
     (root / "tests" / "test_words.py").write_text("from pkg.check import describe\n\n\ndef test_word():\n"
                                                   "    assert describe(0.5, 1.0) == 'inside'\n")
@@ -84,7 +91,7 @@ def test_one_killed_one_survived_one_equivalent_and_resumed(tmp_path):
 
 def test_an_edit_that_no_longer_matches_exactly_once_fails_loudly(tmp_path):
     root = _repo(tmp_path)
-    gone = CheckerMutant("gone", "pkg/check.py", "abs(e) > F", "abs(e) >= F", "comparison", "not in the file")
+    gone = CheckerMutant("gone", "pkg/check.py", "abs(e) > SCALE * F", "abs(e) >= F", "comparison", "not in the file")
     twice = CheckerMutant("twice", "pkg/check.py", "inside", "in", "constant", "occurs several times")
     for m in (gone, twice):
         with pytest.raises(MutantError, match="exactly once"):

@@ -154,6 +154,9 @@ MUTANTS: tuple[CheckerMutant, ...] = (
        "the sampled loop's min margin over e1 only"),
     _m("sampled_breach_e1_only", LO, "bad = np.where(~(M > 0).all(axis=1) & good)[0]",
        "bad = np.where(~(M[:, :n] > 0).all(axis=1) & good)[0]", "index", "a sampled-loop breach of e2 not detected"),
+    _m("loop_delay_shortened", LO, "            p_u[:] = pending\n            pending[:] = taubuf\n",
+       "            pending[:] = taubuf\n            p_u[:] = pending\n", "clamp",
+       "the one-sample delay of the sampled loop shortened to none (the hold applies the new torque at once)"),
     _m("implementation_containment_non_strict", IM, '"pass" if r.min_margin > 0 else "fail"',
        '"pass" if r.min_margin >= -1e-3 else "fail"', "tolerance", "the deployed loop allowed a margin of -1e-3"),
     _m("step_clamp_one_sided", ST, "tau = ca.fmin(ca.fmax(tau, -tm), tm)", "tau = ca.fmin(tau, tm)", "clamp",
@@ -376,19 +379,27 @@ def _contexts(cov_file: Path, copy: Path, package: str) -> dict[str, dict[str, l
 
 
 def select_tests(base: dict, m: CheckerMutant, text: str) -> list[str]:
-    """The tests whose coverage context covers a line the mutant edits, fastest first (failing ones left out)."""
+    """The tests whose coverage context covers a line the mutant edits, fastest first (failing ones left out).
+
+    A line that runs only at import (a module-level constant: no test's context covers it, the import happens at
+    collection) acts through the module's functions, so it selects every test that covers a line of its module."""
     lines = base["contexts"].get(m.file, {})
     chosen = set()
     for ln in mutated_lines(text, m):
         chosen.update(lines.get(str(ln), []))
+    if not chosen and _module_level(text, m):
+        for tests in lines.values():
+            chosen.update(tests)
     chosen -= set(base["failed"])
     dur = base["durations"]
-    return sorted(chosen, key=lambda t: (dur.get(_junit_id(t), dur.get(t, 1e9)), t))
+    return sorted(chosen, key=lambda t: (dur.get(t, 1e9), t))
 
 
-def _junit_id(nodeid: str) -> str:
-    """The junit form of a node id (parametrized ids keep their brackets in both)."""
-    return nodeid
+def _module_level(text: str, m: CheckerMutant) -> bool:
+    """Whether the mutant edits a statement at the top level of its module (no indentation)."""
+    start = text.index(m.old)
+    line_start = text.rfind("\n", 0, start) + 1
+    return not text[line_start:start].strip() and not text[line_start:line_start + 1].isspace()
 
 
 def run_mutant(root: Path, m: CheckerMutant, tests: list[str], base: dict, *, cache: Path,
