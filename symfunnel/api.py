@@ -88,6 +88,7 @@ def _bounded(fn):
     """The call within its `wall_limit=` keyword (also the Run's), a reached limit raised as SimulationError."""
     @functools.wraps(fn)
     def call(*args, **kw):
+        deadline.check_seconds(kw.get("wall_limit"), key="wall_limit", allow_none=True)
         try:
             with deadline.limit(kw.get("wall_limit")):
                 return fn(*args, **kw)

@@ -126,6 +126,8 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         root = _private_root()
         entry, target = root / key[:32], root / key[:32] / output
         tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
+    from . import lifecycle
+    lifecycle.register_temporary(tmp)
     try:
         if on_build is not None:
             on_build(f"compiling {output} (one-time; cached in {root})")
@@ -150,6 +152,8 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        lifecycle.unregister_temporary(tmp)
     return Built(target, key, False)
 
 
@@ -160,15 +164,16 @@ def compile_timeout() -> float:
     except ValueError:
         raise InputError(f"is '{os.environ['SYMFUNNEL_COMPILE_TIMEOUT']}'", key="SYMFUNNEL_COMPILE_TIMEOUT",
                          expected="a number of seconds > 0") from None
-    if not v > 0:
-        raise InputError(f"is {v:g}", key="SYMFUNNEL_COMPILE_TIMEOUT", expected="a number of seconds > 0")
-    return v
+    from .deadline import check_seconds
+    return check_seconds(v, key="SYMFUNNEL_COMPILE_TIMEOUT")
 
 
 def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str]:
     """Run `cmd` in its own process group; kill the whole group on timeout or any exception (Ctrl-C, SIGTERM)."""
+    from . import lifecycle
     proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
+    lifecycle.register_child(proc.pid, group=True)
     try:
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -178,6 +183,8 @@ def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str
     except BaseException:
         _kill_group(proc)
         raise
+    finally:
+        lifecycle.unregister_child(proc.pid)
     return proc.returncode, (out or "") + (err or "")
 
 

@@ -84,7 +84,7 @@ class ExpressionFunnel:
         elif isinstance(value, list) and len(value) == n and all(isinstance(v, str) for v in value):
             exprs = [parse_expression(v, names, file=file, key=V.join(full, i)) for i, v in enumerate(value)]
         else:
-            raise InputError(f"is a {V.type_name(value)}" if not isinstance(value, list)
+            raise InputError(f"is {V.a_type(value)}" if not isinstance(value, list)
                              else f"is an array of {len(value)}", file=file, key=full,
                              expected=f"an expression string in t, or an array of {n} strings (one per joint)")
         for i, e in enumerate(exprs):

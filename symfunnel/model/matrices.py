@@ -29,7 +29,7 @@ def _names(table: dict, file: str) -> tuple[list[str], list[str], list[float]]:
         raise InputError("has duplicates", file=file, key="model.coordinates", expected="distinct names, none of them 'd' + another")
     params = table.get("parameters", {})
     if not isinstance(params, dict):
-        raise InputError(f"is a {V.type_name(params)}", file=file, key="model.parameters", expected="a table")
+        raise InputError(f"is {V.a_type(params)}", file=file, key="model.parameters", expected="a table")
     taken = set(coords) | {"d" + c for c in coords}
     p_names, p_values = [], []
     for k, v in params.items():
@@ -88,7 +88,7 @@ def _matrix(value, rows: int, cols: int, names: set[str], env: dict, file: str, 
             if isinstance(s, (int, float)) and not isinstance(s, bool):
                 s = repr(float(s))
             if not isinstance(s, str):
-                raise InputError(f"is a {V.type_name(s)}", file=file, key=k, expected="an expression string")
+                raise InputError(f"is {V.a_type(s)}", file=file, key=k, expected="an expression string")
             e = parse_expression(s, names, file=file, key=k).to_casadi(env)
             if e.shape != (1, 1):
                 raise InputError(f"has shape {e.shape}", file=file, key=k, expected="a scalar expression")

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..core.errors import InputError
 from ..core.names import IDENT
-from ..core.validate import as_float, did_you_mean, get_list, join, type_name
+from ..core.validate import as_float, did_you_mean, get_list, join, a_type, type_name
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 SNAP = 1e-14           # rotation-matrix entries this close to 0 are exactly 0 (rpy of pi/2 and the like)
@@ -165,7 +165,7 @@ def get_vector(table: dict, key: str, default: Sequence[float] | None, *, file: 
     v = table[key]
     want = " or ".join(str(k) for k in lengths)
     if not isinstance(v, list):
-        raise InputError(f"is a {type_name(v)}", file=file, key=full, expected=f"an array of {want} numbers")
+        raise InputError(f"is {a_type(v)}", file=file, key=full, expected=f"an array of {want} numbers")
     if len(v) not in lengths:
         raise InputError(f"has {len(v)} entries", file=file, key=full, expected=f"an array of {want} numbers")
     return np.array([as_float(x, file=file, key=join(full, i)) for i, x in enumerate(v)])

@@ -9,6 +9,7 @@ from typing import Any
 
 from ..core import validate as V
 from ..core.errors import InputError
+from ..core.deadline import MAX_SECONDS
 from ..expr import Expression, parse_expression
 from ..family.approximators import APPROXIMATORS, ESNApproximator
 from ..family.funnels import parse_funnel
@@ -54,7 +55,7 @@ def expression_list(table: dict, key: str, n: int, file: str, prefix: str, names
         if isinstance(s, (int, float)) and not isinstance(s, bool):
             s = repr(float(s))
         if not isinstance(s, str):
-            raise InputError(f"is a {V.type_name(s)}", file=file, key=V.join(full, i),
+            raise InputError(f"is {V.a_type(s)}", file=file, key=V.join(full, i),
                              expected="an expression string")
         out.append(parse_expression(s, names, file=file, key=V.join(full, i)))
     return out
@@ -189,7 +190,7 @@ def parse_simulation(table: Any, file: str) -> SimulationSpec:
                                     minimum=0),
         convergence_widths=widths,
         wall_limit=V.get_float(table, "wall_limit", d.wall_limit, file=file, prefix=p, minimum=0,
-                               strict_min=True),
+                               strict_min=True, maximum=MAX_SECONDS),
         rk_substeps=V.get_int(table, "rk_substeps", d.rk_substeps, file=file, prefix=p, minimum=1,
                               maximum=10000),
         max_step=V.get_float(table, "max_step", d.max_step, file=file, prefix=p, minimum=0),
@@ -218,7 +219,8 @@ def parse_audit(table: Any, n: int, file: str, model) -> AuditSpec:
         velocity_range=V.per_joint(table, "velocity_range", n, 2.0, file=file, prefix=p, minimum=0,
                                    strict_min=True),
         tolerance=V.get_float(table, "tolerance", d.tolerance, file=file, prefix=p, minimum=0, strict_min=True),
-        sympy_timeout=V.get_float(table, "sympy_timeout", d.sympy_timeout, file=file, prefix=p, minimum=0),
+        sympy_timeout=V.get_float(table, "sympy_timeout", d.sympy_timeout, file=file, prefix=p, minimum=0,
+                                  maximum=MAX_SECONDS),
     )
 
 
