@@ -14,6 +14,7 @@ from .claims import parse_claims, parse_deviations, parse_expectations
 from .document import Scenario
 from .sections import (
     build_model,
+    check_reference,
     check_settings_match,
     parse_audit,
     parse_design,
@@ -127,6 +128,7 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
     x_esn0 = parse_x_esn0(init, esn.size, file)
     plant = parse_plant(raw.get("plant", {}), n, file, model)
     sim = parse_simulation(raw.get("simulation", {}), file)
+    check_reference(reference, sim.t_final, file)
     for key, shape in funnels.items():
         check_positive(shape, sim.t_final, file=file, key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))
     audit = parse_audit(raw.get("audit", {}), n, file, model)

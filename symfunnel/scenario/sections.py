@@ -39,6 +39,27 @@ def parse_reference(table: Any, n: int, file: str, model) -> list[Expression]:
     return expression_list(table, "q", n, file, "reference", {"t"})
 
 
+def check_reference(reference: list, t_final: float, file: str) -> None:
+    """qd, dqd and ddqd finite on a dense grid of [0, t_final] (the design differentiates the reference twice)."""
+    import casadi as ca
+    import numpy as np
+    t = ca.SX.sym("t")
+    grid = np.linspace(0.0, float(t_final), 401)
+    for i, e in enumerate(reference):
+        q = ca.SX(e.to_casadi({"t": t}))
+        dq = ca.jacobian(q, t)
+        f = ca.Function("ref", [t], [q, dq, ca.jacobian(dq, t)]).map(grid.size)
+        vals = [np.asarray(v, dtype=float).ravel() for v in f(grid.reshape(1, -1))]
+        for name, v in zip(("qd", "dqd/dt", "d2qd/dt2"), vals):
+            bad = ~np.isfinite(v)
+            if bad.any():
+                k = int(np.argmax(bad))
+                raise InputError(f"'{e.text}' gives {name} = {v[k]} at t = {grid[k]:.6g} s", file=file,
+                                 key=f"reference.q[{i}]" if len(reference) > 1 else "reference.q",
+                                 expected="a reference finite, with finite first and second derivatives, on "
+                                          f"[0, t_final = {float(t_final):g}]")
+
+
 def expression_list(table: dict, key: str, n: int, file: str, prefix: str, names: set[str],
                default: Any = None) -> list[Expression]:
     """One expression string for every joint, or an array of n strings."""
