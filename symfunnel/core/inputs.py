@@ -157,9 +157,16 @@ def loads_json(text: str, *, file: str | None, expected: str) -> Any:
     """Parse JSON with checked numbers (no NaN/Infinity, no overflow or underflow); InputError otherwise."""
     def constant(name):
         raise InputError(f"holds {name}, which is not JSON", file=file, expected="finite numbers")
+    def pairs(items):
+        seen = {}
+        for k, v in items:
+            if k in seen:
+                raise InputError(f"has the key '{k}' twice", file=file, expected="each key once")
+            seen[k] = v
+        return seen
     try:
         return json.loads(text, parse_float=lambda s: float_literal(s, file=file, text=text),
-                          parse_constant=constant)
+                          parse_constant=constant, object_pairs_hook=pairs)
     except (json.JSONDecodeError, RecursionError) as exc:
         raise InputError(f"is not valid JSON ({exc})", file=file, expected=expected) from None
     except ValueError as exc:

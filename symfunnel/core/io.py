@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import os
 import tempfile
@@ -14,6 +15,9 @@ def umask_mode(directory: bool = False) -> int:
     mask = os.umask(0)
     os.umask(mask)
     return (0o777 if directory else 0o666) & ~mask
+
+
+_FULL = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 
 @contextlib.contextmanager
@@ -29,6 +33,15 @@ def atomic_path(path: str | os.PathLike):
         yield Path(tmp)
         os.chmod(tmp, umask_mode())
         os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        if exc.errno in _FULL:                  # a full disk, a file size limit (ulimit -f), a quota
+            from .errors import InputError
+            raise InputError(f"cannot be written ({exc.strerror or exc})", file=str(path),
+                             expected="space for the file on its device (and no file size limit below it)") \
+                from None
+        raise
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -37,12 +50,47 @@ def atomic_path(path: str | os.PathLike):
         lifecycle.unregister_temporary(tmp)
 
 
-def atomic_write(path: str | os.PathLike, data: str | bytes) -> Path:
-    """Write `data` to `path` atomically (temporary file + rename); returns the path."""
-    with atomic_path(path) as tmp:
+_staging: list[dict] = []
+
+
+@contextlib.contextmanager
+def staged():
+    """Hold back every `atomic_write` of the block and write them all when it succeeds: a command that fails or
+    is stopped half-way (its wall-clock limit, a signal) leaves none of its files, not some of them."""
+    batch: dict[Path, str | bytes] = {}
+    _staging.append(batch)
+    try:
+        yield batch
+    finally:
+        _staging.remove(batch)
+    if _staging:                                # nested: the outer block writes them
+        _staging[-1].update(batch)
+        return
+    with contextlib.ExitStack() as stack:       # every file to its temporary first, then the renames
+        tmps = [(stack.enter_context(atomic_path(path)), data, path) for path, data in batch.items()]
+        for tmp, data, path in tmps:
+            _write(tmp, data, path)
+
+
+def _write(tmp: Path, data: str | bytes, target: Path) -> None:
+    try:
         mode = "wb" if isinstance(data, bytes) else "w"
         with open(tmp, mode, **({} if isinstance(data, bytes) else {"encoding": "utf-8"})) as fh:
             fh.write(data)
+    except OSError as exc:                      # a full disk, a file size limit (ulimit -f), ...
+        from .errors import InputError
+        raise InputError(f"cannot be written ({exc.strerror or exc})", file=str(target),
+                         expected="space for the file on its device (and no file size limit below it)") from None
+
+
+def atomic_write(path: str | os.PathLike, data: str | bytes) -> Path:
+    """Write `data` to `path` atomically (temporary file + rename); returns the path. Inside `staged()` the write
+    happens when the block ends."""
+    if _staging:
+        _staging[-1][Path(path)] = data
+        return Path(path)
+    with atomic_path(path) as tmp:
+        _write(tmp, data, Path(path))
     return Path(path)
 
 

@@ -10,7 +10,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..core.errors import InputError
-from ..core.names import IDENT
+from ..core.names import IDENT, KEYWORDS
 from ..core.validate import as_float, did_you_mean, get_list, join, a_type, type_name
 
 MOVABLE = ("revolute", "continuous", "prismatic")
@@ -147,9 +147,10 @@ def get_coordinates(table: dict, n: int, *, file: str, prefix: str) -> list[str]
         raise InputError(f"has {len(names)} names but the model has {n} movable joints", file=file,
                          key=key, expected=f"an array of {n} names")
     for i, c in enumerate(names):
-        if not isinstance(c, str) or not IDENT.match(c):
+        if not isinstance(c, str) or not IDENT.match(c) or c in KEYWORDS:
             raise InputError(f"is {c!r}", file=file, key=join(key, i),
-                             expected="a name of letters, digits and '_' not starting with a digit")
+                             expected="a name of letters, digits and '_' not starting with a digit, and not a "
+                                      "Python or C keyword")
     dup = sorted({c for c in names if names.count(c) > 1})
     if dup:
         raise InputError(f"names '{dup[0]}' twice", file=file, key=key, expected="distinct names")

@@ -129,7 +129,8 @@ def parse_expectations(items: Any, n: int, claims: list[Claim], file: str) -> li
         seen.add(cid)
         status = V.get_str(e, "status", file=file, prefix=p, choices=list(EXPECT_STATUSES))
         reason = V.get_str(e, "reason", file=file, prefix=p).strip()
-        if not reason:
+        from ..core.text import invisible
+        if not any(not invisible(c) and not c.isspace() for c in reason):
             raise InputError("is empty", file=file, key=p + ".reason", expected="why the outcome is expected")
         out.append(Expectation(cid, status, reason))
     return out
