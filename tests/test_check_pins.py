@@ -694,6 +694,7 @@ def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
         m = 0.05 + 0.1 * math.log(rate_hz / 1234.0)
         return SimpleNamespace(ok=m > -0.3, min_margin=m, status="ok" if m > -0.3 else "breach")
     monkeypatch.setattr(loop, "simulate_sampled", fake)
+    monkeypatch.setattr(loop, "min_rate_hz", lambda scenario: 1.0)          # no plant-step floor in this fake
     sc = SimpleNamespace(file=None, implementation=None)
     for start in (100.0, 1e5):
         out = min_rate(sc, None, margin=0.05, rel_tol=0.05, start=start)

@@ -23,6 +23,8 @@ class CheckResult:
     evidence: dict = field(default_factory=dict)
     expected: str = "pass"
     reason: str = ""
+    #: a claim's verdict: "proven", "refuted" or "not proven" (a sampled agreement is never a proof)
+    verdict: str = ""
 
     @property
     def unexpected(self) -> bool:
@@ -35,6 +37,8 @@ class CheckResult:
                "method": self.method}
         if self.reason:
             out["reason"] = self.reason
+        if self.verdict:
+            out["verdict"] = self.verdict
         if self.margin is not None:
             out["margin"] = self.margin
         if self.where is not None:
