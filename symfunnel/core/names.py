@@ -5,6 +5,13 @@ import re
 #: a scenario identifier (coordinate, parameter, claim name)
 IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
+#: names no coordinate or parameter may take: Python's and C's keywords (the generated code names its variables
+#: after them) and the values of the expression language
+KEYWORDS = frozenset(__import__("keyword").kwlist) | frozenset(__import__("keyword").softkwlist) | frozenset("""
+auto break case char const continue default do double else enum extern float for goto if inline int long register
+restrict return short signed sizeof static struct switch typedef union unsigned void volatile while _Bool _Complex
+_Imaginary nan inf""".split())
+
 # name -> (description, funnel level needed: 0 none, 1 funnel e1, 2 funnels e1 and e2)
 SIGNALS: dict[str, tuple[str, int]] = {
     "qd": ("reference position q_d(t)", 0),
@@ -62,7 +69,7 @@ EXPECT_STATUSES = ("pass", "fail")
 
 #: ids of the audit's and verify's checks (claims aside: claim.<name>); per-joint ids come from `check_ids`
 AUDIT_CHECKS = ("model.M_symmetric", "model.M_positive_definite", "model.skew_symmetry", "model.coriolis_consistent",
-                "funnel.parameters", "funnel.initial_condition")
+                "funnel.parameters", "funnel.initial_condition", "funnel.consistency", "reference.derivatives")
 VERIFY_CHECKS = ("simulation.completed", "design.identity.vdot", "lyapunov.rho_positive", "lyapunov.decay",
                  "lyapunov.bound", "lyapunov.falsification", "lyapunov.guarantee", "assumption.input_gain",
                  "bounded.tau", "bounded.w_hat", "bounded.x_esn", "implementation.containment",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,8 +48,15 @@ class FunnelSpec:
         return phi0 * ca.exp(-a * t) + phi_inf
 
     def value(self, t: float) -> list[float]:
-        """F at time t, per joint."""
-        return [p0 * math.exp(-a * t) + pi for p0, pi, a in zip(self.phi0, self.phi_inf, self.a)]
+        """F at time t, per joint, evaluated from `sx` (one source: no numeric re-implementation to drift)."""
+        return sx_value(self, t)
+
+    def declared(self, t):
+        """The declared F as a sympy expression in the sympy symbol t, from the numbers as written (the independent
+        evaluation `funnel.consistency` compares the SX with)."""
+        import sympy
+        return [sympy.Float(p0) * sympy.exp(-sympy.Float(a) * t) + sympy.Float(pi)
+                for p0, pi, a in zip(self.phi0, self.phi_inf, self.a)]
 
     def text(self, i: int) -> str:
         """Joint i's F as readable text."""
@@ -67,8 +73,6 @@ class ExpressionFunnel:
     def __init__(self, exprs: list[Expression], parameters: dict[str, float] | None = None):
         self.exprs = list(exprs)
         self.parameters = dict(parameters or {})
-        t = ca.SX.sym("t")
-        self._f = ca.Function("F", [t], [self.sx(t)])
 
     @classmethod
     def parse(cls, table: dict, n: int, file: str, prefix: str, defaults=None,
@@ -84,7 +88,7 @@ class ExpressionFunnel:
         elif isinstance(value, list) and len(value) == n and all(isinstance(v, str) for v in value):
             exprs = [parse_expression(v, names, file=file, key=V.join(full, i)) for i, v in enumerate(value)]
         else:
-            raise InputError(f"is a {V.type_name(value)}" if not isinstance(value, list)
+            raise InputError(f"is {V.a_type(value)}" if not isinstance(value, list)
                              else f"is an array of {len(value)}", file=file, key=full,
                              expected=f"an expression string in t, or an array of {n} strings (one per joint)")
         for i, e in enumerate(exprs):
@@ -99,12 +103,28 @@ class ExpressionFunnel:
         return ca.vertcat(*[ca.SX(e.to_casadi({"t": t, **self.parameters})) for e in self.exprs])
 
     def value(self, t: float) -> list[float]:
-        """F at time t, per joint."""
-        return np.asarray(self._f(float(t))).ravel().tolist()
+        """F at time t, per joint, evaluated from `sx`."""
+        return sx_value(self, t)
+
+    def declared(self, t):
+        """The declared F as sympy expressions in the sympy symbol t (the expression language's sympy backend)."""
+        return [e.to_sympy({"t": t, **self.parameters}) for e in self.exprs]
 
     def text(self, i: int) -> str:
         """Joint i's F as written."""
         return self.exprs[i].text
+
+
+def sx_function(shape: Any) -> ca.Function:
+    """t -> (F, dF/dt) of a shape, from its SX (dF by AD): what the design, value() and the checks evaluate."""
+    t = ca.SX.sym("t")
+    F = shape.sx(t)
+    return ca.Function("F", [t], [F, ca.jtimes(F, t, ca.SX(1))], ["t"], ["F", "dF"])
+
+
+def sx_value(shape: Any, t: float) -> list[float]:
+    """F of a shape at one time, per joint, from its SX."""
+    return np.asarray(sx_function(shape)(float(t))[0]).ravel().tolist()
 
 
 def horizon_grid(t_final: float) -> np.ndarray:
@@ -126,6 +146,10 @@ def extremes(shape: Any, t_final: float) -> tuple[np.ndarray, np.ndarray, np.nda
     return vals.min(axis=1), vals.max(axis=1), grid[np.argmin(vals, axis=1)]
 
 
+#: the largest funnel value accepted (F = 1e8 around an error of 1e-2 already spends 10 of the 16 digits)
+MAX_F = 1e8
+
+
 def check_positive(shape: Any, t_final: float, *, file: str, key: str) -> None:
     """InputError naming `key` (e.g. funnel.e2.F) and the first time F is not a finite positive number, on the
     dense grid of [0, t_final] (and its derivative is finite there: the design differentiates F)."""
@@ -134,6 +158,12 @@ def check_positive(shape: Any, t_final: float, *, file: str, key: str) -> None:
     F = shape.sx(t)
     dvals = np.asarray(ca.Function("dF", [t], [ca.jtimes(F, t, ca.SX(1))]).map(grid.size)(grid.reshape(1, -1)))
     bad = ~(np.isfinite(vals) & (vals > 0) & np.isfinite(dvals))
+    if (np.isfinite(vals) & (vals > MAX_F)).any() and not bad.any():
+        k = int(np.argmax((vals > MAX_F).any(axis=0)))
+        j = int(np.argmax(vals[:, k] > MAX_F))
+        raise InputError(f"is {vals[j, k]:.6g} at t = {grid[k]:.6g} s", file=file, key=key,
+                         expected=f"F(t) at most {MAX_F:g} (errors bounded by a larger funnel lose their precision "
+                                  "in double arithmetic)")
     if bad.any():
         k = int(np.argmax(bad.any(axis=0)))                 # the first bad time, then its first bad joint
         j = int(np.argmax(bad[:, k]))
