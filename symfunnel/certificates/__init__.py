@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from ..core.names import CERTIFY_CHECKS
 from .problem import Budget, Context
 from .region import parameter_box
 from .result import CHECK_STATUS, Certificate, Certification
@@ -20,10 +21,10 @@ from .result import CHECK_STATUS, Certificate, Certification
 __all__ = ["run_certificates", "CERTIFICATES", "DEFAULT_WORK", "Certificate", "Certification", "CHECK_STATUS"]
 
 #: the certificate ids, in the order they are reported
-CERTIFICATES = ("certify.input_gain", "certify.bounds", "certify.invariance")
+CERTIFICATES = CERTIFY_CHECKS
 #: the deterministic work budget of each certificate, in tape operations x boxes (a certificate with a 600-operation
 #: tape gets ~80,000 boxes; a wall-clock limit can only stop a search earlier)
-DEFAULT_WORK = {"certify.input_gain": 2e7, "certify.bounds": 5e7, "certify.invariance": 5e7}
+DEFAULT_WORK = {"certify.input_gain": 4e7, "certify.bounds": 5e7, "certify.invariance": 5e7}
 #: the order they are computed in (bounds uses a proven invariance certificate's margin and W_hat ball)
 _ORDER = ("certify.input_gain", "certify.invariance", "certify.bounds")
 

@@ -43,8 +43,10 @@ M_GRID = tuple(sorted(set([round(float(v), 12) for v in np.geomspace(1e-4, 1e-2,
                           [round(0.01 * k, 12) for k in range(1, 100)])))
 #: witness points sampled per margin
 WITNESS_SAMPLES = 256
-#: margins for which a proof is attempted (the most promising ones, after the refutations)
+#: margins for which a proof is attempted (the largest plausible ones, after the refutations)
 PROOF_ATTEMPTS = 4
+#: a margin is plausible when its witness needs less than this fraction of the level the margin allows
+PLAUSIBLE = 0.5
 _SAFE = 1e-9
 
 
@@ -130,7 +132,9 @@ def certify_invariance(ctx: Context, budget: Budget) -> Certificate:
         else:
             row.update(refuted=False, ratio=(max(V0_hi, delta_w / rho_w) / c_max) if rho_w > 0 else np.inf)
         rows.append(row)
-    open_rows = sorted([r for r in rows if not r["refuted"]], key=lambda r: r["ratio"])
+    # proofs are tried at the largest open margins first (the most informative guarantee), among those whose
+    # witness does not already come close to refuting them
+    open_rows = sorted([r for r in rows if not r["refuted"]], key=lambda r: (r["ratio"] >= PLAUSIBLE, -r["m"]))
     summary = _summary(rows)
     region = {"t": [0.0, float(ctx.t_final)], "margins": [float(M_GRID[0]), float(M_GRID[-1])],
               "grid": len(M_GRID), "parameters": ctx.params.describe(),

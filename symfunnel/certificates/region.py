@@ -308,10 +308,35 @@ def region_signals(design, exprs: dict[str, ca.SX]):
     return [t, s1, s2, m], outs, names, state_syms, rewritten
 
 
+def structurally_zero(e: ca.SX) -> bool:
+    """Whether every entry of e is 0 once CasADi's common-subexpression elimination has merged identical nodes
+    (x - x of the same node is 0): a graph identity, no numbers involved."""
+    if e.nnz() == 0:
+        return True
+    return bool(replace_nodes([e], ca.SX(0, 1), ca.SX(0, 1))[0].is_zero())
+
+
 def true_unknown(design, p: ca.SX, width: float = 0.0) -> dict[str, ca.SX]:
-    """f_true = ddq_plant - ddq_nominal in the design's symbols and the plant's p (exact nonlinearities at width 0),
-    with the applied torque: what the plant adds to the nominal model under the design's torque."""
+    """f_true = ddq_plant - ddq_nominal in the design's symbols and the plant's p (exact nonlinearities at width 0):
+    what the plant adds to the nominal model under the design's torque, and the applied torque.
+
+    Written directly, f_true = M_p^-1 (D(tau) - C_p dq - G_p - friction - d) - ddq_nom subtracts two large, nearly
+    equal terms (tau contains M ddq_nom), which interval arithmetic cannot cancel. When the design's torque is, by a
+    graph identity (`structurally_zero`), the nominal model's inverse dynamics tau = M ddq_nom + C dq + G, the
+    same function is
+        f_true = M_p^-1 ((D(tau) - tau) + (M - M_p) ddq_nom + (C - C_p) dq + (G - G_p) - friction - d),
+    whose terms are small where the plant is close to the model (exactly 0 where it equals it); otherwise (a mutant
+    design, another variant) the direct form is used. `form` says which.
+    """
+    from ..sx.linalg import ldl_solve
     sc = design.scenario
     S = design.signals
-    pl = plant_acceleration(sc, design.sym["q"], design.sym["dq"], design.sym["t"], S["tau"], width, p=p)
-    return {"f_true": pl["ddq"] - S["ddq"], "tau_applied": pl["tau_applied"]}
+    q, dq = design.sym["q"], design.sym["dq"]
+    pl = plant_acceleration(sc, q, dq, design.sym["t"], S["tau"], width, p=p)
+    resid = S["tau"] - (ca.mtimes(S["M"], S["ddq"]) + ca.mtimes(S["C"], dq) + S["G"])
+    if structurally_zero(resid):
+        rhs = ((pl["tau_applied"] - S["tau"]) + ca.mtimes(S["M"] - pl["M"], S["ddq"])
+               + ca.mtimes(S["C"] - pl["C"], dq) + (S["G"] - pl["G"]) - pl["friction"] - pl["disturbance"])
+        f = ca.solve(pl["M"], rhs) if design.n == 1 else ldl_solve(pl["M"], rhs)
+        return {"f_true": f, "tau_applied": pl["tau_applied"], "form": "inverse dynamics"}
+    return {"f_true": pl["ddq"] - S["ddq"], "tau_applied": pl["tau_applied"], "form": "direct"}

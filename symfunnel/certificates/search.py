@@ -31,8 +31,8 @@ from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 
 _INF = math.inf
 _EPS = 2.0 ** -52
-#: boxes a proven positive-definiteness search may spend refining its lower bound, at least
-REFINE_MIN = 2000
+#: boxes a proven positive-definiteness search may spend refining its lower bound (at least; else as many as the proof took)
+REFINE_MIN = 1000
 
 
 def _split_children(LO, HI, k):

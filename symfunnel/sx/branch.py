@@ -92,8 +92,8 @@ class _Region:
 
 
 def _as_interval_function(g, backend: str, form: str) -> IntervalFunction:
-    if isinstance(g, IntervalFunction) or (hasattr(g, "eval_flat") and hasattr(g, "eval_point_flat")):
-        return g                    # an IntervalFunction or an evaluator with its interface (sx.centered)
+    if isinstance(g, IntervalFunction):
+        return g
     if isinstance(g, casadi.Function):
         return IntervalFunction(g, backend=backend, form=form)
     raise TypeError(f"expected an IntervalFunction or a casadi.Function, got {type(g).__name__}")
