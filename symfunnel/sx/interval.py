@@ -33,6 +33,7 @@ the paper's `tau` take 60 ms per box against ~0.2 ms for this tape walk.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import operator
 from collections.abc import Callable, Mapping, Sequence
@@ -97,12 +98,47 @@ class Backend:
     bounds: Callable[[Any], tuple[float, float]]   # outward (lo, hi); (-inf, inf) for an error / unbounded value
     rules: dict[str, Callable]
     error: Callable[[], Any]                       # a fresh error value
+    #: the context its operations must run in (codac: the FPU's upward rounding mode, see `rounding`)
+    guard: Callable[[], Any] = contextlib.nullcontext
+
+
+# --- the FPU rounding mode -----------------------------------------------------------------------------------
+# codac 2.1.2's interval arithmetic is only outward-rounded while the processor rounds upward: importing codac
+# switches the *whole process* to upward rounding and never switches back, which silently changes every later
+# floating-point result (numpy, CasADi, the simulation). The codac backend therefore restores the mode right after
+# the import and switches to upward rounding only around its own evaluations (`Backend.guard`).
+
+def _libm():
+    import ctypes
+    import ctypes.util
+    return ctypes.CDLL(ctypes.util.find_library("m") or "libm.so.6")
+
+
+_FE = {}
+
+
+@contextlib.contextmanager
+def rounding(mode: int):
+    """The FPU rounding mode `mode` (a C fenv value) inside the block, the previous one restored after it."""
+    lib = _FE.setdefault("libm", _libm())
+    old = lib.fegetround()
+    lib.fesetround(mode)
+    try:
+        yield
+    finally:
+        lib.fesetround(old)
 
 
 def _codac_backend() -> Backend:
     """codac 2 Intervals through the `*Op.fwd` interval functions: in codac 2.1.2 `codac.acos` and `codac.sinh`
     called on an Interval build an expression node instead (the overloads resolve to the symbolic ones)."""
+    lib = _FE.setdefault("libm", _libm())
+    before = lib.fegetround()
     import codac
+    up = lib.fegetround()
+    lib.fesetround(before)                  # undo the import's process-wide switch to upward rounding
+    if up == before:
+        up = 0x800                          # FE_UPWARD on x86-64 glibc (an import elsewhere already switched)
     I = codac.Interval  # noqa: E741
     empty = I.empty
     ZERO, ONE, UNDEC = I(0.0), I(1.0), I(0.0, 1.0)
@@ -303,7 +339,8 @@ def _codac_backend() -> Backend:
         "LT": lt, "LE": le, "EQ": eq, "NE": ne, "NOT": not_, "AND": and_, "OR": or_,
         "IF_ELSE_ZERO": if_else_zero,
     }
-    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty)
+    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty,
+                   guard=lambda: rounding(up))
 
 
 def _arb_backend() -> Backend:
@@ -730,14 +767,16 @@ class IntervalFunction:
         """Enclosures of the output nonzeros (flat, output after output) over a box given by flat nonzero bounds."""
         be = self.backend
         ctx: list = []
-        vals = self._run(self._inputs(lo, hi), ctx)
+        with be.guard():
+            vals = self._run(self._inputs(lo, hi), ctx)
         bounds = be.bounds
         L = np.empty(len(vals))
         H = np.empty(len(vals))
         for k, v in enumerate(vals):
             L[k], H[k] = bounds(v)
         if self._jac is not None and not ctx:
-            L, H = self._mean_value(lo, hi, L, H)
+            with be.guard():
+                L, H = self._mean_value(lo, hi, L, H)
         return L, H
 
     def _inputs(self, lo: np.ndarray, hi: np.ndarray) -> list:
@@ -760,7 +799,8 @@ class IntervalFunction:
     def eval_values(self, lo: np.ndarray, hi: np.ndarray) -> tuple[tuple, bool]:
         """The backend's raw values of the output nonzeros over a flat box, and whether no discontinuity switched."""
         ctx: list = []
-        vals = self._run(self._inputs(lo, hi), ctx)
+        with self.backend.guard():
+            vals = self._run(self._inputs(lo, hi), ctx)
         return vals, not ctx
 
     def eval_point(self, values) -> list[np.ndarray]:
