@@ -22,7 +22,7 @@ import casadi as ca
 import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes, improve, unknown_exprs
-from .search import extremum
+from .search import extrema
 from .result import Certificate
 
 CID = "certify.bounds"
@@ -76,23 +76,22 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     if with_eps:
         exprs["eps"] = unknown_exprs(ctx, p, ctx.W_star)["eps"]
     prob = RegionProblem(ctx, exprs, p, "bounds")
-    from ..sx.tape import count_ops
-    budget.set_tape(3 * count_ops(prob.function)["operations"])
+    budget.set_tape(prob.work_per_box())
     region = prob.region(m, states)
     F = prob.F
     lo, hi = prob.flat(region)
     split = prob.split_indices(lo, hi)
     first = prob.initial_boxes(lo, hi)
     searches = [(k, j, sgn) for k in exprs for j in range(n) for sgn in (1.0, -1.0)]
+    objectives = []
+    for k, j, sgn in searches:
+        objectives.append((F.out_off[F.out_names.index(k)] + list(F.out_nz[F.out_names.index(k)]).index(j), sgn))
+    found = extrema(F, lo, hi, split, objectives, max_boxes=budget.boxes, seconds=budget.seconds(),
+                    rel_tol=RANGE_REL_TOL, initial=first)
+    boxes = found[0].boxes if found else 0
     encl: dict = {}
-    boxes, witness = 0, {}
-    for i, (k, j, sgn) in enumerate(searches):
-        left = len(searches) - i
-        pos = F.out_off[F.out_names.index(k)] + list(F.out_nz[F.out_names.index(k)]).index(j)
-        ex = extremum(F, lo, hi, split, pos, sgn, max_boxes=max(64, budget.boxes // left),
-                      seconds=budget.seconds(1.0 / left), rel_tol=RANGE_REL_TOL, initial=first)
-        budget.boxes -= ex.boxes
-        boxes += ex.boxes
+    witness = {}
+    for (k, j, sgn), (pos, _), ex in zip(searches, objectives, found):
         x, best = ex.argbest, ex.best
         if k == "tau":                          # the torque's extremes: improved over every input, states included
             x2, b2 = improve(prob.function, x, lo, hi, pos, -sgn)
@@ -102,8 +101,7 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
         side = "lo" if sgn > 0 else "hi"
         e[side] = sgn * ex.bound               # min of sgn*g >= bound: g >= bound (sgn 1), g <= -bound (sgn -1)
         e[side + "_seen"] = sgn * best
-        e.setdefault("converged", True)
-        e["converged"] = e["converged"] and ex.converged
+        e["converged"] = e.get("converged", True) and ex.converged
         witness[(k, j, side)] = x
     finite = all(np.isfinite(e["lo"]) and np.isfinite(e["hi"]) for v in encl.values() for e in v)
     tau = encl["tau"]

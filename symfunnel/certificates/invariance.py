@@ -89,8 +89,7 @@ def certify_invariance(ctx: Context, budget: Budget) -> Certificate:
             return Certificate(CID, "undecided", "x_esn(0) is outside the reservoir's invariant box |x| <= 1/leak",
                                undecided_fraction=1.0, seconds=time.monotonic() - t0)
     prob = RegionProblem(ctx, {"rho": lyap["rho"], "delta": lyap["delta"]}, p, "invariance")
-    from ..sx.tape import count_ops
-    budget.set_tape(3 * count_ops(prob.function)["operations"])
+    budget.set_tape(prob.work_per_box())
     F = prob.F
     pos_rho = F.out_off[F.out_names.index("rho")]
     pos_delta = F.out_off[F.out_names.index("delta")]

@@ -123,6 +123,13 @@ class RegionProblem:
             idx += [j for j in range(F.in_off[i], F.in_off[i + 1]) if lo[j] < hi[j]]
         return np.array(idx, dtype=int)
 
+    def work_per_box(self) -> int:
+        """Tape operations one box costs the centered form: the function twice (box, center) and its Jacobian."""
+        from ..sx.tape import count_ops
+        f = count_ops(self.F.natural.function)["operations"]
+        j = count_ops(self.F.jac.function)["operations"]
+        return 2 * f + j
+
     def initial_boxes(self, lo: np.ndarray, hi: np.ndarray, limit: int = 4096):
         """(LO, HI) of the first boxes: the region cut at the normalised errors where the transformation switches
         formula (its BREAKPOINTS, e.g. the log transformation's series for s/atanh(s)), while at most `limit`."""
@@ -190,16 +197,24 @@ class RegionProblem:
         return out
 
 
+_WITNESS: dict = {}
+
+
 def improve(f: ca.Function, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, pos: int, sign: float,
             iterations: int = 40) -> tuple[np.ndarray, float]:
     """A better witness for max sign * g[pos] near the flat point x of the flat box: sign-gradient steps of
     shrinking size on every input (controller states included), each kept only if CasADi's double value improves.
     `f` is the region Function (flat inputs concatenated in order)."""
     xin = f.sx_in()
-    outs = f.call(xin)
-    y = ca.vertcat(*[ca.SX(o).nz[:] for o in outs])[pos]
-    xs = ca.vertcat(*[v.nz[:] for v in xin])
-    fx = ca.Function("witness", xin, [y, ca.jacobian(y, xs)])
+    key = (id(f), pos)
+    if key not in _WITNESS or _WITNESS[key][0] is not f:
+        outs = f.call(xin)
+        y = ca.vertcat(*[ca.SX(o).nz[:] for o in outs])[pos]
+        xs = ca.vertcat(*[v.nz[:] for v in xin])
+        _WITNESS[key] = (f, ca.Function("witness", xin, [y, ca.jacobian(y, xs)]))
+        while len(_WITNESS) > 64:
+            _WITNESS.pop(next(iter(_WITNESS)))
+    fx = _WITNESS[key][1]
     offs = np.cumsum([0] + [v.nnz() for v in xin])
 
     def call(z):

@@ -110,45 +110,75 @@ class Extremum:
 
 
 def extremum(F: BatchCenteredForm | BatchIntervalFunction, lo: np.ndarray, hi: np.ndarray, split: np.ndarray,
-             pos: int, sign: float, *, max_boxes: int = 4000, seconds: float | None = None, rel_tol: float = 1e-3,
-             abs_tol: float = 0.0, batch: int = 64, initial: tuple | None = None) -> Extremum:
-    """min of sign * F[pos] over the flat box [lo, hi], bisecting only the flat indices `split`; `initial` (LO, HI)
-    are the first boxes (a partition of the box) instead of the box itself."""
+             pos: int, sign: float, **kw) -> Extremum:
+    """min of sign * F[pos] over the flat box [lo, hi] (one objective of `extrema`)."""
+    return extrema(F, lo, hi, split, [(pos, sign)], **kw)[0]
+
+
+def extrema(F: BatchCenteredForm | BatchIntervalFunction, lo: np.ndarray, hi: np.ndarray, split: np.ndarray,
+            objectives: list[tuple[int, float]], *, max_boxes: int = 4000, seconds: float | None = None,
+            rel_tol: float = 1e-3, abs_tol: float = 0.0, per_round: int = 16,
+            initial: tuple | None = None) -> list[Extremum]:
+    """min of sign * F[pos] over the flat box [lo, hi] for every objective (pos, sign) at once, bisecting only the
+    flat indices `split`: one pool of boxes whose every evaluation serves all objectives; each round every open
+    objective picks its `per_round` best boxes (best-first on its bound), they are split at their most sensitive
+    variable for that objective and all children are evaluated in one batch. `initial` (LO, HI): the first boxes
+    (a partition of the box) instead of the box itself."""
     t0 = time.monotonic()
     split = np.asarray(split, dtype=int)
     scale = np.where(hi - lo > 0, hi - lo, 1.0)
     centered = isinstance(F, BatchCenteredForm)
-    wpos = {int(j): i for i, j in enumerate(F.w_flat)} if centered else {}
-    heap: list = []
+    wpos = np.array([{int(j): i for i, j in enumerate(F.w_flat)}.get(int(j), -1) for j in split]) if centered \
+        else np.full(split.size, -1)
+    nobj = len(objectives)
+    pos = np.array([o[0] for o in objectives], dtype=int)
+    sgn = np.array([o[1] for o in objectives], dtype=float)
+    store_lo, store_hi, store_b, store_sens, alive = [], [], [], [], []
+    heaps: list[list] = [[] for _ in range(nobj)]
+    thin: list[list[float]] = [[] for _ in range(nobj)]
+    best = np.full(nobj, _INF)
+    arg = [_mid(lo[None, :], hi[None, :])[0] for _ in range(nobj)]
     counter = 0
     boxes = 0
-    best, arg = _INF, _mid(lo[None, :], hi[None, :])[0]
-    thin: list[float] = []
 
     def evaluate(LO, HI):
-        nonlocal counter, boxes, best, arg
+        nonlocal counter, boxes
         if centered:
             L, H, _, J = F.eval_batch(LO, HI, with_jacobian=True)
             culprit = F.last_culprit
-            sens = np.full((LO.shape[0], split.size), np.nan)
-            for c, j in enumerate(split):
-                if int(j) in wpos:
-                    sens[:, c] = J[:, pos, wpos[int(j)]] * (HI[:, j] - LO[:, j])
         else:
             L, H, _, culprit = F.eval_batch_culprit(LO, HI)
-            sens = None
+            J = None
         boxes += LO.shape[0]
-        b = sign * L[:, pos] if sign > 0 else sign * H[:, pos]
-        b = np.where(np.isnan(b), -_INF, b)
-        sens = _blame(F, culprit, ~np.isfinite(b), LO, HI, split, scale, sens)
+        B = np.where(sgn > 0, sgn * L[:, pos], sgn * H[:, pos])              # (K, nobj) lower bounds of sign*g
+        B = np.where(np.isnan(B), -_INF, B)
         M = _mid(LO, HI)
-        v = sign * F.eval_points(M)[:, pos]
-        v = np.where(np.isfinite(v), v, _INF)
-        i = int(np.argmin(v))
-        if v[i] < best:
-            best, arg = float(v[i]), M[i]
+        V = sgn * F.eval_points(M)[:, pos]
+        V = np.where(np.isfinite(V), V, _INF)
+        for o in range(nobj):
+            i = int(np.argmin(V[:, o]))
+            if V[i, o] < best[o]:
+                best[o], arg[o] = float(V[i, o]), M[i]
+        width = HI[:, split] - LO[:, split]
         for r in range(LO.shape[0]):
-            heapq.heappush(heap, (float(b[r]), counter, LO[r], HI[r], None if sens is None else sens[r]))
+            if J is not None:
+                S = np.where(wpos >= 0, J[r][:, np.maximum(wpos, 0)] * width[r], np.nan)[pos]   # (nobj, nsplit)
+            else:
+                S = np.full((nobj, split.size), np.nan)
+            invalid = ~np.isfinite(B[r])
+            if invalid.any() and culprit[r] >= 0:
+                blamed = _blame(F, culprit[r:r + 1], np.array([True]), LO[r:r + 1], HI[r:r + 1], split, scale,
+                                None)
+                if blamed is not None:
+                    S[invalid] = blamed[0]
+            k = len(store_lo)
+            store_lo.append(LO[r])
+            store_hi.append(HI[r])
+            store_b.append(B[r])
+            store_sens.append(S)
+            alive.append(True)
+            for o in range(nobj):
+                heapq.heappush(heaps[o], (float(B[r, o]), counter, k))
             counter += 1
 
     if initial is None:
@@ -156,32 +186,58 @@ def extremum(F: BatchCenteredForm | BatchIntervalFunction, lo: np.ndarray, hi: n
     else:
         for a in range(0, initial[0].shape[0], 512):
             evaluate(initial[0][a:a + 512], initial[1][a:a + 512])
-    converged, stopped = False, None
-    while heap:
-        tol = max(abs_tol, rel_tol * abs(best)) if np.isfinite(best) else 0.0
-        if best - heap[0][0] <= tol:
-            converged = True
+    converged = np.zeros(nobj, dtype=bool)
+    stopped = None
+    while True:
+        chosen: dict[int, int] = {}             # box -> the objective that splits it
+        for o in range(nobj):
+            h = heaps[o]
+            while h and not alive[h[0][2]]:
+                heapq.heappop(h)
+            if not h:
+                converged[o] = not thin[o] or best[o] - min(thin[o]) <= max(abs_tol, rel_tol * abs(best[o]))
+                continue
+            tol = max(abs_tol, rel_tol * abs(best[o])) if np.isfinite(best[o]) else 0.0
+            if best[o] - h[0][0] <= tol:
+                converged[o] = True
+                continue
+            converged[o] = False
+            taken, keep = 0, []
+            while h and taken < per_round:
+                item = heapq.heappop(h)
+                if not alive[item[2]]:
+                    continue
+                keep.append(item)
+                if item[2] not in chosen:
+                    chosen[item[2]] = o
+                    taken += 1
+            for item in keep:
+                heapq.heappush(h, item)
+        if not chosen:
             break
         if boxes >= max_boxes or (seconds is not None and time.monotonic() - t0 > seconds):
             stopped = "boxes" if boxes >= max_boxes else "seconds"
             break
-        items = [heapq.heappop(heap) for _ in range(min(batch, len(heap)))]
-        LO = np.array([it[2] for it in items])
-        HI = np.array([it[3] for it in items])
-        sens = None if items[0][4] is None else np.array([it[4] for it in items])
-        k = _choose(LO, HI, sens, split, scale) if split.size else np.full(len(items), -1)
+        ids = list(chosen)
+        LO = np.array([store_lo[i] for i in ids])
+        HI = np.array([store_hi[i] for i in ids])
+        sens = np.array([store_sens[i][chosen[i]] for i in ids])
+        k = _choose(LO, HI, sens, split, scale) if split.size else np.full(len(ids), -1)
+        for i, kk in zip(ids, k):
+            alive[i] = False
+            if kk < 0:                          # too thin to split: its bounds stay in the result
+                for o in range(nobj):
+                    thin[o].append(float(store_b[i][o]))
         keep = k >= 0
-        for it, kk in zip(items, keep):
-            if not kk:
-                thin.append(it[0])
-        if not keep.any():
-            continue
-        LO2, HI2 = _split_children(LO[keep], HI[keep], k[keep])
-        evaluate(LO2, HI2)
-    bound = min(([heap[0][0]] if heap else []) + thin) if (heap or thin) else best
-    if thin:
-        converged = converged and best - min(thin) <= max(abs_tol, rel_tol * abs(best))
-    return Extremum(float(bound), best, arg, boxes, converged, stopped)
+        if keep.any():
+            LO2, HI2 = _split_children(LO[keep], HI[keep], k[keep])
+            evaluate(LO2, HI2)
+    out = []
+    for o in range(nobj):
+        live = [it[0] for it in heaps[o] if alive[it[2]]]
+        bound = min(live + thin[o]) if (live or thin[o]) else best[o]
+        out.append(Extremum(float(bound), float(best[o]), arg[o], boxes, bool(converged[o]), stopped))
+    return out
 
 
 # --- a matrix positive definite ---------------------------------------------------------------------------

@@ -508,9 +508,12 @@ class BatchIntervalFunction(IntervalFunction):
     def eval_points(self, X: np.ndarray) -> np.ndarray:
         """CasADi's double values of the output nonzeros at K flat points (K, n_in_nz) -> (K, n_out_nz)."""
         X = np.asarray(X, float).reshape(-1, self.n_in_nz)
-        K = X.shape[0]
+        K0 = X.shape[0]
+        K = 1 << max(0, (K0 - 1).bit_length())          # a few map sizes only (building one costs more than a call)
+        if K > K0:
+            X = np.concatenate([X, np.repeat(X[-1:], K - K0, axis=0)])
         if K not in self._map:
-            self._map = {K: self.function.map(K)}
+            self._map[K] = self.function.map(K)
         f = self._map[K]
         args = []
         for i in range(len(self.in_names)):
@@ -525,7 +528,7 @@ class BatchIntervalFunction(IntervalFunction):
         for k, (r, c) in enumerate(self.out_sx_shapes):
             A = np.asarray(casadi.DM(res[k]).full()).reshape(r, K, c).transpose(1, 2, 0).reshape(K, r * c)
             cols.append(A[:, list(self.out_nz[k])])
-        return np.concatenate(cols, axis=1) if cols else np.zeros((K, 0))
+        return (np.concatenate(cols, axis=1) if cols else np.zeros((K, 0)))[:K0]
 
     def __repr__(self) -> str:
         return f"BatchIntervalFunction({self.name!r}, inputs={list(self.in_names)}, outputs={list(self.out_names)})"
