@@ -535,9 +535,12 @@ class BatchIntervalFunction(IntervalFunction):
 
 
 class BatchCenteredForm:
-    """The mean-value form of `sx.centered`, batched: f(W, U) in f(w_m, U) + J_w(W, U) (W - w_m), intersected with
-    the natural enclosure, on boxes where no discontinuous operation switches and the natural enclosure is valid
-    (which shows f defined on the box); also returns max |J_w| per output and w-variable (for splitting)."""
+    """The mean-value (centered) form in the inputs `wrt`, batched: f(W, U) in f(w_m, U) + J_w(W, U) (W - w_m) with
+    w_m the midpoint of W and J_w = df/dw by CasADi's AD of the same graph, intersected with the natural enclosure,
+    on boxes where no discontinuous operation switches (the mean-value theorem needs f continuous in w there) and
+    the natural enclosure is valid (which shows f defined on the box). Its overestimation shrinks with the square of
+    the box width (the natural form's only linearly). Also returns max |J_w| per output and w-variable, with which
+    the branch and bound splits by sensitivity."""
 
     def __init__(self, f: casadi.Function, wrt):
         self.natural = BatchIntervalFunction(f)
