@@ -44,6 +44,7 @@ import casadi
 import numpy as np
 
 from ..core.errors import SymfunnelError
+from . import rounding
 from .tape import OP_NAMES, Tape, as_sx_function, read_tape
 
 __all__ = ["IntervalError", "IntervalFunction", "Enclosure", "BACKENDS", "get_backend", "RULE_OPS"]
@@ -98,47 +99,15 @@ class Backend:
     bounds: Callable[[Any], tuple[float, float]]   # outward (lo, hi); (-inf, inf) for an error / unbounded value
     rules: dict[str, Callable]
     error: Callable[[], Any]                       # a fresh error value
-    #: the context its operations must run in (codac: the FPU's upward rounding mode, see `rounding`)
-    guard: Callable[[], Any] = contextlib.nullcontext
-
-
-# --- the FPU rounding mode -----------------------------------------------------------------------------------
-# codac 2.1.2's interval arithmetic is only outward-rounded while the processor rounds upward: importing codac
-# switches the *whole process* to upward rounding and never switches back, which silently changes every later
-# floating-point result (numpy, CasADi, the simulation). The codac backend therefore restores the mode right after
-# the import and switches to upward rounding only around its own evaluations (`Backend.guard`).
-
-def _libm():
-    import ctypes
-    import ctypes.util
-    return ctypes.CDLL(ctypes.util.find_library("m") or "libm.so.6")
-
-
-_FE = {}
-
-
-@contextlib.contextmanager
-def rounding(mode: int):
-    """The FPU rounding mode `mode` (a C fenv value) inside the block, the previous one restored after it."""
-    lib = _FE.setdefault("libm", _libm())
-    old = lib.fegetround()
-    lib.fesetround(mode)
-    try:
-        yield
-    finally:
-        lib.fesetround(old)
+    #: the rounding mode every evaluation runs in (codac is outward only under upward rounding)
+    mode: Callable[[], Any] = contextlib.nullcontext
 
 
 def _codac_backend() -> Backend:
     """codac 2 Intervals through the `*Op.fwd` interval functions: in codac 2.1.2 `codac.acos` and `codac.sinh`
     called on an Interval build an expression node instead (the overloads resolve to the symbolic ones)."""
-    lib = _FE.setdefault("libm", _libm())
-    before = lib.fegetround()
-    import codac
-    up = lib.fegetround()
-    lib.fesetround(before)                  # undo the import's process-wide switch to upward rounding
-    if up == before:
-        up = 0x800                          # FE_UPWARD on x86-64 glibc (an import elsewhere already switched)
+    with rounding.keeping_mode():            # importing codac sets the process's rounding upward
+        import codac
     I = codac.Interval  # noqa: E741
     empty = I.empty
     ZERO, ONE, UNDEC = I(0.0), I(1.0), I(0.0, 1.0)
@@ -339,8 +308,7 @@ def _codac_backend() -> Backend:
         "LT": lt, "LE": le, "EQ": eq, "NE": ne, "NOT": not_, "AND": and_, "OR": or_,
         "IF_ELSE_ZERO": if_else_zero,
     }
-    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty,
-                   guard=lambda: rounding(up))
+    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty, rounding.upward)
 
 
 def _arb_backend() -> Backend:
@@ -767,15 +735,14 @@ class IntervalFunction:
         """Enclosures of the output nonzeros (flat, output after output) over a box given by flat nonzero bounds."""
         be = self.backend
         ctx: list = []
-        with be.guard():
+        with be.mode():
             vals = self._run(self._inputs(lo, hi), ctx)
-        bounds = be.bounds
-        L = np.empty(len(vals))
-        H = np.empty(len(vals))
-        for k, v in enumerate(vals):
-            L[k], H[k] = bounds(v)
-        if self._jac is not None and not ctx:
-            with be.guard():
+            bounds = be.bounds
+            L = np.empty(len(vals))
+            H = np.empty(len(vals))
+            for k, v in enumerate(vals):
+                L[k], H[k] = bounds(v)
+            if self._jac is not None and not ctx:
                 L, H = self._mean_value(lo, hi, L, H)
         return L, H
 
@@ -799,7 +766,7 @@ class IntervalFunction:
     def eval_values(self, lo: np.ndarray, hi: np.ndarray) -> tuple[tuple, bool]:
         """The backend's raw values of the output nonzeros over a flat box, and whether no discontinuity switched."""
         ctx: list = []
-        with self.backend.guard():
+        with self.backend.mode():
             vals = self._run(self._inputs(lo, hi), ctx)
         return vals, not ctx
 
