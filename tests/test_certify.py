@@ -265,6 +265,7 @@ def _ordinary_batch(prob, X, names):
     return {k: np.array(v) for k, v in zip(prob.names, res) if k in names}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["paper", NONE], ids=["paper", "certify_none"])
 def test_bounds_enclosures_contain_1e5_random_points(name):
     r = run_of(name)
