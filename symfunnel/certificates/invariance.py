@@ -251,8 +251,10 @@ def _prove_at(ctx, prob, m, c_max, V0_hi, base_states, Ws, gamma, budget, pos_rh
             r = math.sqrt(2 * gamma * c) * (1 + 1e-9)
             states["w_hat"] = (Ws - r, Ws + r)
         lo, hi = prob.flat(prob.region(m, states))
+        # the search decides (2), it does not tighten delta: a gap below 1 % of the largest delta that could
+        # still close at this margin (c_max rho) ends it (a delta near 0 never meets a relative tolerance)
         ex = extremum(F, lo, hi, split, pos_delta, -1.0, max_boxes=share, seconds=budget.seconds(0.25),
-                      rel_tol=1e-2, initial=prob.initial_boxes(lo, hi))
+                      rel_tol=1e-2, abs_tol=1e-2 * c_max * rho, initial=prob.initial_boxes(lo, hi))
         boxes += ex.boxes
         delta = -float(ex.bound)
         if not np.isfinite(delta):
