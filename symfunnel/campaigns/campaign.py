@@ -311,6 +311,15 @@ def _scheduler_address(address) -> tuple[str, int]:
     return u.hostname, port
 
 
+def _pool_worker_start() -> None:
+    """A pool worker dies with its parent and runs one BLAS thread (one process per core already: a second thread
+    would only spin against the other workers)."""
+    from ..core import lifecycle
+    from ..core.threads import pin_blas_threads
+    lifecycle.die_with_parent()
+    pin_blas_threads()
+
+
 def _chunks(ids: list[int], size: int) -> list[list[int]]:
     return [ids[i:i + size] for i in range(0, len(ids), size)]
 
@@ -358,7 +367,7 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
         import multiprocessing as mp
         from ..core import lifecycle
         pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                      initializer=lifecycle.die_with_parent)
+                                      initializer=_pool_worker_start)
         try:
             pending = deque(chunks)
             running = {pool.submit(run_chunk, job, pending.popleft())
