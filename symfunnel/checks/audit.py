@@ -36,6 +36,7 @@ class CheckResult:
     evidence: dict = field(default_factory=dict)
     expected: str = "pass"
     reason: str = ""
+    value: float | None = None           # the check's measured quantity where it has one (e.g. an agreement error)
 
     @property
     def unexpected(self) -> bool:
@@ -50,6 +51,8 @@ class CheckResult:
             out["reason"] = self.reason
         if self.margin is not None:
             out["margin"] = self.margin
+        if self.value is not None:
+            out["value"] = self.value
         if self.where is not None:
             out["where"] = self.where
         if self.evidence:
