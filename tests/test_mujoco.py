@@ -218,6 +218,21 @@ def test_engine_and_symfunnel_plant_agree_to_round_off_at_the_same_substeps(arm7
     assert mujoco.get_mjcb_passive() is None          # the callback slot is restored
 
 
+def test_without_friction_or_disturbance_the_callback_is_left_out(tmp_path):
+    """The planar arm of `symfunnel init` without friction: no passive-force callback, and the MJCF written from its
+    link tree gives the same trajectory as symfunnel's plant (dead zone on the held torque only)."""
+    p = init_scenario(tmp_path)
+    p.write_text(p.read_text().replace("viscous = 0.5 ", "viscous = 0.0 ").replace("coulomb = 0.2 ", "coulomb = 0.0 "))
+    sc = load_scenario(p)
+    assert sc.plant.viscous == [0.0, 0.0] and sc.plant.coulomb == [0.0, 0.0] and sc.plant.dead_zone is not None
+    d = derive(sc)
+    k = plant_substeps(sc, 1 / 400.0)
+    sym = simulate_sampled(sc, d, rate_hz=400.0, t_final=1.0)
+    mj = simulate_sampled(sc, d, rate_hz=400.0, t_final=1.0, engine="mujoco", plant=run_plant(sc, substeps=k))
+    assert not mj.stats["engine_force_callback"] and sym.ok and mj.ok
+    assert np.abs(mj.q - sym.q).max() < 1e-10
+
+
 def test_engine_substeps_converge_at_fourth_order(arm7):
     """Halving MuJoCo's step: the error against a 128-step reference falls about 16x per halving (RK4, with the
     time-varying disturbance evaluated at each stage's time), and the default step is already well converged."""
@@ -282,6 +297,33 @@ def test_delay_noise_and_quantisation_are_the_same_loop(tmp_path, arm7):
     mj = simulate_sampled(sc, d, t_final=0.2, engine="mujoco", plant=run_plant(sc, substeps=k))
     assert sym.rate_hz == mj.rate_hz == RATE and mj.stats["delay_samples"] == 1
     assert np.all(mj.tau[0] == 0) and np.abs(mj.q - sym.q).max() < 1e-10
+
+
+def test_saturation_on_the_engine(tmp_path, arm7):
+    """implementation.saturation on the mujoco plant: with a torque limit below the run's peak it fails, with the
+    fraction per joint; the limit is the step's (the same on both plants)."""
+    from symfunnel.checks.implementation import implementation_checks
+    _, d = arm7
+    sc = load_scenario(arm7_with(tmp_path, f"[implementation]\nrate_hz = {RATE}\ntau_max = 30.0\n"))
+    checks = {c.id: c for c in implementation_checks(sc, d, t_final=0.2, engine="mujoco")}
+    sat = checks["implementation.saturation"]
+    assert sat.status == "fail" and max(sat.evidence["saturated_fraction"]) > 0
+    assert checks["implementation.containment"].evidence["engine"] == "mujoco"
+    assert max(checks["implementation.containment"].evidence["max_abs_tau"]) <= 30.0 + 1e-9
+    ok = {c.id: c for c in implementation_checks(load_scenario(arm7_with(
+        tmp_path, f"[implementation]\nrate_hz = {RATE}\ntau_max = 500.0\n", name="b.toml")), d, t_final=0.2,
+        engine="mujoco")}
+    assert ok["implementation.saturation"].status == "pass"
+
+
+def test_the_engine_from_the_scenario_file(arm7):
+    """derivations/arm7_mujoco_heavy.toml names the engine and an engine-only mass scale of 1.3 itself."""
+    _, d = arm7
+    sc = load_scenario(TESTS.parent / "derivations" / "arm7_mujoco_heavy.toml")
+    assert sc.plant.engine == "mujoco" and sc.plant.mujoco.mass_scale == [1.3] * 7
+    r = simulate_sampled(sc, d, t_final=0.1)
+    assert r.stats["engine"] == "mujoco" and r.rate_hz == RATE
+    assert r.stats["engine_mass_scale"] == pytest.approx([1.43] * 7)
 
 
 def test_a_diverging_engine_run_fails_without_a_log_file(tmp_path, arm7, monkeypatch):

@@ -129,9 +129,10 @@ def check_engine_agreement(scenario, *, samples: int = SAMPLES, seed: int = 0,
         if value > tolerance:
             sym_ok = max(p["M"], p["bias"]) <= tolerance
             mj_ok = max(p["M_vs_engine"], p["bias_vs_engine"]) <= tolerance
-            third += (" (Pinocchio sides with symfunnel: MuJoCo's reading of the file differs)" if sym_ok and not mj_ok
-                      else " (Pinocchio sides with MuJoCo: symfunnel's model of the file differs)" if mj_ok and not sym_ok
-                      else "")
+            if sym_ok and not mj_ok:
+                third += " (Pinocchio sides with symfunnel: MuJoCo's reading of the file differs)"
+            elif mj_ok and not sym_ok:
+                third += " (Pinocchio sides with MuJoCo: symfunnel's model of the file differs)"
     extras = []
     for key, what in (("damping", "joint damping"), ("frictionloss", "friction loss"), ("armature", "armature")):
         if key in engine_only:
@@ -144,6 +145,10 @@ def check_engine_agreement(scenario, *, samples: int = SAMPLES, seed: int = 0,
     if ms is not None and any(v != 1.0 for v in ms):
         deliberate.append(f"engine mass scale {_fmt(ms)} (plant.mujoco.mass_scale)")
     tail = ""
+    if eng.notes.mimic:
+        tail += "; <mimic> ignored on " + ", ".join(eng.notes.mimic) + " (by both: each joint is a coordinate)"
+    if eng.notes.floored:
+        tail += "; zero principal moments raised for MuJoCo on " + ", ".join(eng.notes.floored)
     if extras:
         tail += "; in the engine, not in the controller's model: " + ", ".join(extras)
     if deliberate:
@@ -159,13 +164,14 @@ def check_engine_agreement(scenario, *, samples: int = SAMPLES, seed: int = 0,
                   f"links it carries){third}{tail}")
         status = "fail"
     evidence = {"M": r["M"], "bias": r["bias"], "abs_M": r["abs_M"], "abs_bias": r["abs_bias"],
-                "per_joint_M": dict(zip(names, r["per_joint_M"])), "per_joint_bias": dict(zip(names, r["per_joint_bias"])),
+                "per_joint_M": dict(zip(names, r["per_joint_M"])),
+                "per_joint_bias": dict(zip(names, r["per_joint_bias"])),
                 "worst_state": r["worst_state"], "samples": samples, "seed": seed, "tolerance": tolerance,
                 "source": src, "notes": eng.notes.lines(), "engine_only": engine_only,
                 "deliberate": deliberate, "seconds": seconds}
     if "others" in r:
         evidence["others"] = r["others"]
-    where = None if status == "pass" else {"joint": deepest, "largest_M": names[worst_M], "largest_bias": names[worst_b],
-                                            **(r["worst_state"] or {})}
+    where = None if status == "pass" else {"joint": deepest, "largest_M": names[worst_M],
+                                            "largest_bias": names[worst_b], **(r["worst_state"] or {})}
     return CheckResult("plant.engine_agreement", status, detail, method="MuJoCo vs symfunnel's model (and Pinocchio)",
                        margin=tolerance - value, where=where, evidence=evidence, value=value)

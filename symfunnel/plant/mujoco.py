@@ -74,7 +74,8 @@ class EngineNotes:
         if self.fused:
             out.append("fixed links merged into their parent body (fusestatic): " + ", ".join(self.fused))
         if self.mimic:
-            out.append("<mimic> ignored (each is its own coordinate, as in symfunnel's model): " + ", ".join(self.mimic))
+            out.append("<mimic> ignored (each is its own coordinate, as in symfunnel's model): "
+                       + ", ".join(self.mimic))
         if self.floored:
             out.append("zero principal moments raised for MuJoCo: " + ", ".join(
                 f"{k} (+{v:.2g} kg m^2)" for k, v in self.floored.items()))
@@ -84,7 +85,8 @@ class EngineNotes:
 
 
 def _inertia_floor(I: np.ndarray) -> tuple[np.ndarray, float]:
-    """The tensor with each principal moment below the floor raised to it (along its own axis), and the largest raise."""
+    """The tensor with each principal moment below the floor raised to it (along its own axis), and the largest
+    raise."""
     lam, V = np.linalg.eigh(0.5 * (I + I.T))
     floor = REL_FLOOR * max(float(lam[-1]), 0.0) + ABS_FLOOR
     add = np.maximum(floor - lam, 0.0)
