@@ -514,8 +514,16 @@ def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline
         say(f"IPOPT start {i + 1} of {len(starts)}")
         # IPOPT gets the time left but what the full simulation of its result needs
         try:
-            r = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
-                         progress=say)
+            # in a forked worker: IPOPT inside one C call hears no signal and no limit, the waiting parent does
+            from ..core.lifecycle import run_killable
+            from ..core import deadline as _deadline
+            try:
+                r = run_killable(gp.solve, np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0),
+                                 wall_s=0.9 * left, progress=say, wall_limit=left + 2.0, what="solving with IPOPT")
+            except _deadline.WallLimitReached:
+                if _deadline.expired_limit() is not None:     # a limit around tune: it ends the command
+                    raise
+                raise _OutOfTime("search stopped at the wall-clock limit (IPOPT did not stop by itself)") from None
         except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
             from ..core.lifecycle import reraise_interrupt
             reraise_interrupt(exc)
