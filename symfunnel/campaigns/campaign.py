@@ -689,9 +689,9 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
                     "t_final": job.t_final, "failed": s["failed"], "compile_time": info["compile_time"],
                     "compile_cache_hit": info["cache_hit"], "wall_time": time.perf_counter() - t0,
                     "columns": camp.columns, "worst": s["worst"], "min_margin": s["min_margin"],
-                    "max_abs_tau": s["max_abs_tau"], "out": str(out), "engine": engine})
-    if rate is not None:
-        summary["rate_hz"] = rate
+                    "max_abs_tau": s["max_abs_tau"], "out": str(out), "engine": job.engine})
+    if job.engine != "symfunnel":
+        summary["rate_hz"] = float(job.raw["implementation"]["rate_hz"])
     if s["worst_run"] is not None:
         atomic_write(out / "worst.toml", worst_scenario(job, camp, s["worst_run"], scenario.n))
     atomic_write(out / "summary.json", json.dumps(json_safe(summary), indent=2, allow_nan=False))
