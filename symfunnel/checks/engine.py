@@ -18,7 +18,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from .audit import CheckResult
+from .result import CheckResult
 
 __all__ = ["check_engine_agreement", "TOLERANCE", "SAMPLES"]
 
