@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-mujoco = pytest.importorskip("mujoco")
+import mujoco  # noqa: E402,F401 - a declared test dependency ([test] extra): missing, these tests error, never skip
 
 from symfunnel.checks.engine import check_engine_agreement  # noqa: E402
 from symfunnel.cli import main  # noqa: E402
@@ -28,6 +28,7 @@ from symfunnel.plant.mujoco import agreement, load_engine  # noqa: E402
 from symfunnel.scenario import DATA_DIR, load_scenario  # noqa: E402
 
 from .conftest import private_cache  # noqa: E402
+from .pins import pins  # noqa: E402
 
 TESTS = Path(__file__).parent
 URDFS = {"branched": TESTS / "data" / "branched.urdf", "prismatic": TESTS / "data" / "prismatic.urdf",
@@ -73,6 +74,7 @@ def run_plant(sc, **mujoco):
 
 # --- loading and agreement ---------------------------------------------------------------------------
 
+@pins("plant.engine_agreement", "pass")
 @pytest.mark.parametrize("robot", ["arm7", "branched", "prismatic", "panda", "planar"])
 def test_engine_agreement_passes_on_the_shipped_and_test_robots(tmp_path, robot):
     """MuJoCo's M and C dq + G equal symfunnel's (and Pinocchio's) to round-off at 200 states: <= 1e-8 required."""
@@ -161,6 +163,7 @@ def test_rotated_inertia_frame_and_joint_damping_agree(rotated):
     assert "in the engine, not in the controller's model: joint damping [0, 0.7, 0.2]" in c.detail
 
 
+@pins("plant.engine_agreement", "fail")
 def test_a_wrong_rpy_convention_in_symfunnels_import_is_found_at_its_joint(rotated, monkeypatch):
     """The mutant: symfunnel's URDF import composes rpy in the wrong order (R = Rx Ry Rz instead of Rz Ry Rx). Only
     l2's inertial frame has a rotation about several axes, so the models part at joint j2, and Pinocchio (which
@@ -176,6 +179,7 @@ def test_a_wrong_rpy_convention_in_symfunnels_import_is_found_at_its_joint(rotat
     assert not c.unexpected or c.expected == "pass"
 
 
+@pins("plant.engine_agreement", "fail")
 def test_an_engine_that_reads_a_mass_wrong_is_found_at_its_joint(tmp_path):
     """The other side's mutant: the engine's body of the prismatic robot's third joint 0.1 % too heavy."""
     sc = load_scenario(init_scenario(tmp_path, URDFS["prismatic"]))
@@ -191,6 +195,36 @@ def test_an_engine_that_reads_a_mass_wrong_is_found_at_its_joint(tmp_path):
     assert c.where["joint"] == eng.names[2]
     assert c.evidence["per_joint_M"][eng.names[2]] > 1e-6
     assert "Pinocchio sides with symfunnel" in c.detail
+
+
+@pins("plant.engine_agreement", "fail", "pass")
+def test_agreement_fails_at_1_5_times_its_tolerance_and_passes_at_0_6_times(tmp_path):
+    """Near the boundary: the engine's body of the prismatic robot's joint 'turn' heavier by 4.1e-8 (relative
+    error of C dq + G about 1.5e-8 > 1e-8: fail, at a joint carrying that body) and by 1.65e-8 (about 6e-9: pass). A tolerance doubled
+    or halved, or a relative error taken against the wrong scale, moves one of the two outcomes."""
+    sc = load_scenario(init_scenario(tmp_path, URDFS["prismatic"]))
+    setup = engine_setup(sc)
+    eng = setup.engine
+    k = eng.names.index("turn")
+    b = eng.bodies[k]
+    m0 = eng.nominal["body_mass"][b]
+    out = {}
+    try:
+        for eps in (4.14e-8, 1.65e-8):
+            eng.nominal["body_mass"][b] = m0 * (1 + eps)
+            out[eps] = check_engine_agreement(sc, setup=setup)
+    finally:
+        eng.nominal["body_mass"][b] = m0
+    bad, ok = out[4.14e-8], out[1.65e-8]
+    assert bad.status == "fail" and 1.2e-8 < bad.value < 2e-8 and bad.margin < 0, bad.detail
+    pj = bad.evidence["per_joint_bias"]
+    worst = max(pj, key=pj.get)
+    assert bad.where["largest_bias"] == worst and pj[worst] == pytest.approx(bad.value)
+    assert worst in ("slide_x", "lift", "turn")            # the joints that carry the body ...
+    assert max(bad.evidence["per_joint_M"]["tele"], pj["tele"]) < 1e-12      # ... not its child's
+    assert ok.status == "pass" and 4e-9 < ok.value < 8e-9 and ok.margin > 0, ok.detail
+    assert ok.value == pytest.approx(bad.value * 1.65 / 4.14, rel=1e-3)      # linear in the mass error
+    assert ok.to_json()["value"] == ok.value
 
 
 def test_zero_principal_moments_are_raised_and_reported(tmp_path):
