@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from ..deployed.loop import SampledResult, simulate_sampled
-from .audit import CheckResult
+from .result import CheckResult
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -30,9 +30,9 @@ def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz:
     physics engine without a rate (no rate_hz, no [implementation]) the run is at twice the minimum rate found
     on that engine, as the report does.
     """
-    engine = engine or getattr(scenario.plant, "engine", "symfunnel")
     found = None
     if result is None:
+        engine = engine or getattr(scenario.plant, "engine", "symfunnel")
         if getattr(scenario, "implementation", None) is None and rate_hz is None:
             if engine == "symfunnel":
                 return []

@@ -41,13 +41,14 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
     impl = getattr(scenario, "implementation", None)
     r = float(start or (impl.rate_hz if impl is not None else 1000.0))
     tried: list[dict] = []
-    engine = engine or getattr(scenario.plant, "engine", "symfunnel")
+    engine = engine or getattr(getattr(scenario, "plant", None), "engine", "symfunnel")
+    on_engine = {} if engine == "symfunnel" else {"engine": engine}     # symfunnel's plant: today's call
     if engine != "symfunnel" and scenario.plant.mujoco.timestep is not None:
         raise InputError("fixes MuJoCo's step, but a rate search changes the sample period", file=scenario.file,
                          key="plant.mujoco.timestep", expected="plant.mujoco.substeps (steps per period) for `rate`")
 
     def holds(rate: float) -> bool:
-        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, engine=engine)
+        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, **on_engine)
         ok = res.ok and res.min_margin >= margin
         m = res.min_margin
         tried.append({"rate_hz": rate, "status": res.status, "min_margin": m if math.isfinite(m) else None,
