@@ -203,7 +203,7 @@ def certify(scenario, *, only=None, wall_limit: float | None = None, t_final: fl
         raise InputError(f"is {wall_limit!r}", key="--wall-limit", expected="a number of seconds > 0")
     sc = _scenario(scenario)
     r = Run(sc, RunOptions(t_final=t_final, certify_only=certify_ids(only), certify_wall_limit=wall_limit,
-                           wall_limit=wall_limit), progress)
+                           wall_limit=wall_limit, certify_work=1.0), progress)
     res = CertifyResult(sc, r.certification)
     if strict and res.unexpected:
         raise CheckFailed("certify: unexpected outcomes: " + ", ".join(res.unexpected))

@@ -49,6 +49,7 @@ class RunOptions:
     certify: bool = True            # verify includes the certificates (mutation testing leaves them out)
     certify_only: tuple[str, ...] | None = None   # which certificates (None: all)
     certify_wall_limit: float | None = None       # seconds for the certificates' searches (None: no limit)
+    certify_work: float = 0.1       # share of the certificates' full work budget (verify: a tenth; certify: all)
 
 
 @dataclass
@@ -187,7 +188,7 @@ class Run:
                 wh = self.closed_loop.unpack(res.x).get("w_hat")
                 if wh is not None and len(wh):
                     wr = (np.min(wh, axis=0), np.max(wh, axis=0))
-        key = _certification_key(self.scenario, self.t_final, only, o.mutant)
+        key = _certification_key(self.scenario, self.t_final, only, o.mutant, o.certify_work)
         if o.certify_wall_limit is None and key in _CERTIFICATIONS:
             return _CERTIFICATIONS[key]
         wall = o.certify_wall_limit
@@ -196,7 +197,7 @@ class Run:
         self._say("certificates: interval branch and bound on the design's graph")
         cert = self._timed("certify", lambda: run_certificates(
             self.scenario, design, t_final=self.t_final, W_star=W, w_star_info=info, w_hat_range=wr, only=only,
-            wall_limit=wall, progress=self.progress), "proving the certificates")
+            wall_limit=wall, work=scaled_work(o.certify_work), progress=self.progress), "proving the certificates")
         if o.certify_wall_limit is None:
             _CERTIFICATIONS[key] = cert
             while len(_CERTIFICATIONS) > 8:
@@ -265,10 +266,18 @@ class Run:
 _CERTIFICATIONS: dict = {}
 
 
-def _certification_key(scenario, t_final: float, only, mutant=None) -> str:
+def scaled_work(share: float) -> dict:
+    """Each certificate's work budget times `share` (verify's gate runs them at a tenth of `certify`'s budget, so a
+    verify on a new scenario stays interactive; a search cut short says `undecided`, never a wrong verdict)."""
+    from .certificates import DEFAULT_WORK
+    return {k: float(v) * float(share) for k, v in DEFAULT_WORK.items()}
+
+
+def _certification_key(scenario, t_final: float, only, mutant=None, work: float = 1.0) -> str:
     import hashlib
     import json
-    text = json.dumps([str(scenario.path), scenario.raw, float(t_final), sorted(only) if only else None, mutant],
+    text = json.dumps([str(scenario.path), scenario.raw, float(t_final), sorted(only) if only else None, mutant,
+                       float(work)],
                       sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 

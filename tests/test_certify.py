@@ -43,9 +43,11 @@ _RUNS: dict = {}
 
 
 def run_of(name):
-    """One pipeline Run per scenario for the module (stages computed once)."""
+    """One pipeline Run per scenario for the module (stages computed once), at `certify`'s full work budget."""
     if name not in _RUNS:
-        _RUNS[name] = sf.run(name)
+        from symfunnel.pipeline import Run, RunOptions
+        from symfunnel.scenario import load_scenario
+        _RUNS[name] = Run(load_scenario(name), RunOptions(certify_work=1.0))
     return _RUNS[name]
 
 

@@ -37,7 +37,7 @@ def run(args) -> int:
     only = certify_ids(args.only)
     sc = _load(args)
     say = _progress(args.quiet or args.json)
-    r = Run(sc, RunOptions(t_final=args.t_final, certify_only=only, certify_wall_limit=wl, wall_limit=wl), say)
+    r = Run(sc, RunOptions(t_final=args.t_final, certify_only=only, certify_wall_limit=wl, wall_limit=wl, certify_work=1.0), say)
     res = CertifyResult(sc, r.certification)
     if args.json:
         print(_dump(res.to_json()))
