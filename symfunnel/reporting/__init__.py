@@ -65,6 +65,8 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
         t0 = time.perf_counter()
         ctx[key] = section(run, say)
         timings.append((label, time.perf_counter() - t0))
+    from .engine import engine_section
+    ctx["engine"] = engine_section(run, say) if deployed else {"available": False, "reason": "deployed=False"}
     checks = verification.checks
     guarantee = next((c for c in checks if c.id == "lyapunov.guarantee"), None)
     ctx["overview"] = {
