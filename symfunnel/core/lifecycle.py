@@ -36,7 +36,7 @@ from . import deadline
 
 __all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt", "run_killable",
            "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
-           "exit_code", "die_with_parent", "GRACE"]
+           "exit_code", "die_with_parent", "signals_deferred", "GRACE"]
 
 #: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
 GRACE = 1.0
@@ -51,7 +51,7 @@ _children: dict[int, bool] = {}   # pid -> True when it leads its own process gr
 _lock = threading.Lock()
 _announced: list[str] = []
 _done = threading.Event()
-_state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None}
+_state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None, "deferred": 0}
 
 
 class Terminated(BaseException):
@@ -68,7 +68,23 @@ def _exception(signum: int) -> BaseException:
 
 def _raise(signum, frame):
     _pending.append(int(signum))
+    if _state["deferred"]:                  # inside signals_deferred(): raised when that block ends
+        return
     raise _exception(int(signum))
+
+
+@contextlib.contextmanager
+def signals_deferred():
+    """A block no terminating signal interrupts: one that arrives is recorded and raised as the block ends. For
+    the few statements between starting a child process and registering it (`register_child`): a signal landing
+    there would leave a child nobody kills."""
+    _state["deferred"] += 1
+    try:
+        yield
+    finally:
+        _state["deferred"] -= 1
+        if not _state["deferred"]:
+            check()
 
 
 def pending() -> int | None:
@@ -325,7 +341,10 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
         sys.stdout.flush()
         sys.stderr.flush()
     rfd, wfd = os.pipe()
-    pid = os.fork()
+    with signals_deferred():                                # the child is registered before any signal can land
+        pid = os.fork()
+        if pid:
+            register_child(pid)
     if pid == 0:                                            # the worker
         code = 0
         try:
@@ -345,7 +364,6 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
         finally:
             os._exit(code)
     os.close(wfd)
-    register_child(pid)
     chunks: list[bytes] = []
     status = None
     try:
@@ -386,6 +404,7 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
 
 def _worker_setup() -> None:
     _state["worker"] = True
+    _state["deferred"] = 0
     die_with_parent()
     with contextlib.suppress(ValueError, OSError):
         signal.set_wakeup_fd(-1)
