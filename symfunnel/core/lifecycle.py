@@ -36,7 +36,7 @@ from . import deadline
 
 __all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt", "run_killable",
            "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
-           "exit_code", "die_with_parent", "signals_deferred", "GRACE"]
+           "exit_code", "die_with_parent", "signals_deferred", "committing", "late_signal", "GRACE"]
 
 #: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
 GRACE = 1.0
@@ -51,7 +51,8 @@ _children: dict[int, bool] = {}   # pid -> True when it leads its own process gr
 _lock = threading.Lock()
 _announced: list[str] = []
 _done = threading.Event()
-_state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None, "deferred": 0}
+_state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None, "deferred": 0,
+          "committed": None, "late": None}
 
 
 class Terminated(BaseException):
@@ -67,6 +68,9 @@ def _exception(signum: int) -> BaseException:
 
 
 def _raise(signum, frame):
+    if _state["committed"] is not None:     # the command's output is complete: too late to stop it (`committing`)
+        _state["late"] = int(signum)
+        return
     _pending.append(int(signum))
     if _state["deferred"]:                  # inside signals_deferred(): raised when that block ends
         return
@@ -85,6 +89,34 @@ def signals_deferred():
         _state["deferred"] -= 1
         if not _state["deferred"]:
             check()
+
+
+@contextlib.contextmanager
+def committing(code: int = 0):
+    """The block that writes a command's last output (nothing but reporting follows it). No signal interrupts the
+    block; once it has completed, the command has succeeded, and a signal that arrived during it or arrives later
+    neither undoes nor denies that: the command prints what is left and exits with its own code (`code`, should the
+    watchdog have to end a process that does not get there), one line saying the signal came too late
+    (`late_signal`). A block that fails raises the signal as `signals_deferred` does."""
+    _state["deferred"] += 1
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        _state["deferred"] -= 1
+        if ok:
+            _state["committed"] = int(code)
+            if _pending:
+                _state["late"] = _pending[-1]
+                _pending.clear()
+        elif not _state["deferred"]:
+            check()
+
+
+def late_signal() -> int | None:
+    """A terminating signal that arrived after the command's output was complete (`committing`), or None."""
+    return _state["late"]
 
 
 def pending() -> int | None:
@@ -212,6 +244,10 @@ def die_with_parent() -> None:
 # --- the watchdog -----------------------------------------------------------------------------------------
 
 def _hard_stop(code: int, line: str) -> None:
+    if _state["committed"] is not None:         # the output is complete: the command succeeded, only its report hangs
+        why = "the wall-clock limit" if _state["late"] is None else f"signal {_state['late']}"
+        code, line = _state["committed"], f"symfunnel: {why} came after the output was complete; stopped " \
+            "before the rest of the report"
     _kill_children()
     _remove_temporaries()
     announce(line)
@@ -276,6 +312,7 @@ def install() -> None:
     _pending.clear()
     _announced.clear()
     _done.clear()
+    _state["committed"] = _state["late"] = None
     if threading.current_thread() is not threading.main_thread():
         return
     for sig in TERMINATING:
@@ -310,6 +347,7 @@ def uninstall() -> None:
         signal.signal(sig, _saved.pop(sig))
     _saved.clear()
     _pending.clear()
+    _state["committed"] = _state["late"] = None
 
 
 def _one_line(message, category, filename, lineno, file=None, line=None):
