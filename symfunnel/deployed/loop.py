@@ -307,11 +307,11 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     n = sc.n
     h = 1.0 / impl.rate_hz
     T = float(t_final if t_final is not None else sc.simulation.t_final)
+    subs = plant_substeps(sc, h)              # first: a rate too low for the plant is refused before any work
     from ..core.validate import check_horizon
     check_horizon(T, h, key="--t-final" if t_final is not None else "simulation.t_final",
                   file=None if t_final is not None else sc.file, step_name="sample period 1/rate_hz")
     K = int(math.floor(T * impl.rate_hz + 1e-9))
-    subs = plant_substeps(sc, h)              # first: a rate too low for the plant is refused before any work
     if controller is None:
         files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
         controller = step_library(design, files, on_build=say)
