@@ -36,7 +36,7 @@ from . import deadline
 
 __all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt", "run_killable",
            "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
-           "exit_code", "die_with_parent", "signals_deferred", "committing", "late_signal", "GRACE"]
+           "exit_code", "die_with_parent", "quiet_c_output", "user_stderr", "signals_deferred", "committing", "late_signal", "GRACE"]
 
 #: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
 GRACE = 1.0
@@ -53,6 +53,7 @@ _announced: list[str] = []
 _done = threading.Event()
 _state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None, "deferred": 0,
           "committed": None, "late": None}
+_user: dict = {"err": None}       # the terminal's stderr while quiet_c_output captures the rest
 
 
 class Terminated(BaseException):
@@ -180,7 +181,7 @@ def announce(line: str) -> None:
             return
         _announced.append(line)
     try:
-        print(line, file=sys.stderr, flush=True)
+        print(line, file=user_stderr(), flush=True)
     except (OSError, ValueError):
         pass
 
@@ -353,7 +354,7 @@ def uninstall() -> None:
 def _one_line(message, category, filename, lineno, file=None, line=None):
     from .text import one_line
     text = one_line(str(message))
-    print(f"symfunnel: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+    print(f"symfunnel: warning: {text}", file=user_stderr() if file is None else file, flush=True)
 
 
 # --- the killable worker ----------------------------------------------------------------------------------
@@ -438,6 +439,69 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
     if kind == "err":
         raise value
     return value
+
+
+def user_stderr():
+    """Where the lines meant for the user (progress, warnings, the closing line) go: sys.stderr, or the terminal's
+    stderr while `quiet_c_output` captures everything else."""
+    return _user["err"] or sys.stderr
+
+
+@contextlib.contextmanager
+def quiet_c_output(what: str):
+    """Everything CasADi and the solvers print during the block -- their C-level writes to fds 1 and 2 (IPOPT's banner,
+    SUNDIALS' messages) and what CasADi routes through Python's sys.stdout / sys.stderr (its warnings and the
+    argument dumps of a failed evaluation) -- goes to a temporary file; the lines meant for the user still reach
+    the terminal (`user_stderr`). Afterwards one warning line says how many lines were silenced and shows the first
+    message among them. Yields a dict that holds "lines" (the count) and "first" at the end."""
+    import io
+    import tempfile
+    out = {"lines": 0, "first": None}
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    try:
+        saved = [os.dup(fd) for fd in (1, 2)]
+    except OSError:
+        yield out
+        return
+    cap = tempfile.TemporaryFile()
+    prev = (sys.stdout, sys.stderr, _user["err"])
+    err = _user["err"] or os.fdopen(os.dup(saved[1]), "w", buffering=1, encoding="utf-8", errors="backslashreplace")
+    py = io.TextIOWrapper(os.fdopen(os.dup(cap.fileno()), "wb"), encoding="utf-8", errors="replace",
+                          line_buffering=True)
+    try:
+        for fd in (1, 2):
+            os.dup2(cap.fileno(), fd)
+        sys.stdout = sys.stderr = py
+        _user["err"] = err
+        yield out
+    finally:
+        with contextlib.suppress(Exception):
+            py.flush()
+        with contextlib.suppress(Exception):
+            ctypes.CDLL(None).fflush(None)            # C stdio buffers (printf) into the file, not after the block
+        for fd, keep in zip((1, 2), saved):
+            os.dup2(keep, fd)
+            os.close(keep)
+        sys.stdout, sys.stderr, _user["err"] = prev
+        with contextlib.suppress(Exception):
+            py.close()
+        if err is not prev[2]:
+            with contextlib.suppress(Exception):
+                err.close()
+        cap.seek(0)
+        text = cap.read().decode("utf-8", "replace")
+        cap.close()
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        out["lines"] = len(lines)
+        if lines:
+            from .text import one_line
+            first = next((ln for ln in lines if 'returned "' in ln), None) or \
+                next((ln for ln in lines if "WARNING" in ln or "rror" in ln), lines[0])
+            out["first"] = one_line(first.split('WARNING("', 1)[-1], 200)
+            warnings.warn(f"{what}: {len(lines)} line(s) of CasADi/solver output silenced, the first message: "
+                          f"{out['first']}", RuntimeWarning, stacklevel=3)
 
 
 def _worker_setup() -> None:

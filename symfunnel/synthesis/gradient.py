@@ -144,7 +144,15 @@ class GradientProblem:
 
     def solve(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int = MAX_ITER,
               progress=None) -> dict:
-        """IPOPT from z0: {"z", "status", "success", "iterations", "f"}; limited-memory Hessian."""
+        """IPOPT from z0: {"z", "status", "success", "iterations", "f"}; limited-memory Hessian. What CasADi and IPOPT
+        print themselves (a failed evaluation dumps its arguments, hundreds of lines) is silenced at the file
+        descriptors and summarised in one warning line."""
+        from ..core.lifecycle import quiet_c_output
+        with quiet_c_output("IPOPT"):
+            return self._solve(z0, objective=objective, ref=ref, wall_s=wall_s, max_iter=max_iter,
+                               progress=progress)
+
+    def _solve(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int, progress) -> dict:
         say = progress or (lambda s: None)
         d = self.d
         zM = self._z
