@@ -124,3 +124,15 @@ def read_only_dir(tmp_path):
         yield ro
     finally:
         subprocess.run(["umount", str(ro)], capture_output=True)
+
+
+@pytest.fixture(autouse=True)
+def _rounding_stays_to_nearest():
+    """Every test leaves the process rounding to nearest: a library that switches the mode (codac does at import)
+    would otherwise change every later computation of the run without anyone noticing."""
+    yield
+    from symfunnel.sx import rounding
+    if not rounding.rounds_to_nearest():
+        mode = rounding.get_mode()
+        rounding.set_mode(0)
+        pytest.fail(f"the test left the process's floating-point rounding mode at {mode:#x}, not to nearest")

@@ -232,7 +232,8 @@ def test_every_op_encloses_exact_and_double_values(backend):
 
 def test_codac_transcendentals_against_arb():
     """codac's own sinh, tanh, atanh miss the exact value by up to 1 ulp (codac 2.1.2); the backend's widened rules
-    and every other transcendental rule contain the 200-bit value at 4000 random points each."""
+    and every other transcendental rule contain the 200-bit value at 4000 random points each (rules called as the
+    compiled tape calls them: under upward rounding, the backend's mode)."""
     from flint import arb, ctx
     be = iv.get_backend("codac")
     rng = np.random.default_rng(4)
@@ -246,7 +247,8 @@ def test_codac_transcendentals_against_arb():
                           else rng.choice([-1, 1]) * 10.0 ** rng.uniform(-300, 2))
                 if name in ("LOG", "SQRT"):
                     x = abs(x)
-                r = rule(be.point(x))
+                with be.mode():
+                    r = rule(be.point(x))
                 ex = getattr(arb(x), name.lower())()
                 assert not (ex < arb(r.lb()) or ex > arb(r.ub())), (name, x)     # certainly outside
     finally:
@@ -329,14 +331,44 @@ def test_outward_rounding_against_exact_rationals(backend):
 
 def test_round_to_nearest_add_is_caught(monkeypatch):
     """The exact-arithmetic check fails once ADD rounds to nearest: the rounding direction is what it tests."""
-    import codac
     from flint import arb
+
+    from symfunnel.sx import rounding
+    with rounding.keeping_mode():
+        import codac
     be = iv.get_backend("codac")
     monkeypatch.setitem(be.rules, "ADD", lambda a, b: codac.Interval(a.lb() + b.lb(), a.ub() + b.ub()))
     assert _exact_violations(IntervalFunction(ARITH, "codac"), np.random.default_rng(3)) > 0
     be = iv.get_backend("arb")
     monkeypatch.setitem(be.rules, "ADD", lambda a, b: arb(float((a + b).mid())))
     assert _exact_violations(IntervalFunction(ARITH, "arb"), np.random.default_rng(3)) > 0
+
+
+def test_codac_leaves_the_process_rounding_to_nearest_and_is_outward_whatever_the_callers_mode():
+    """Importing codac sets the process's rounding upward (it computes lower bounds as -(-a - b)); the backend
+    restores the caller's mode, runs every evaluation under upward rounding, and so stays outward when the caller
+    rounds to nearest -- without that context the same codac arithmetic is not outward."""
+    from symfunnel.sx import rounding
+    F = IntervalFunction(ARITH, "codac")
+    F.eval_flat(np.array([1.0, 3.0]), np.array([1.0, 3.0]))
+    assert rounding.rounds_to_nearest() and float("3.7525") == 3.7525 and repr(float("3.7525")) == "3.7525"
+    L, H = F.eval_flat(np.array([1.0, 3.0]), np.array([1.0, 3.0]))
+    assert Fraction(L[3]) < Fraction(1, 3) < Fraction(H[3])
+    assert _exact_violations(F, np.random.default_rng(3)) == 0 and rounding.rounds_to_nearest()
+
+
+def test_without_upward_rounding_codac_is_not_outward(monkeypatch):
+    """The rounding context is what makes codac outward: replaced by a no-op, 1/3 is not enclosed."""
+    import contextlib
+
+    from symfunnel.sx import rounding
+    be = iv.get_backend("codac")
+    monkeypatch.setattr(be, "mode", contextlib.nullcontext)
+    F = IntervalFunction(ARITH, "codac")
+    assert rounding.rounds_to_nearest()
+    L, H = F.eval_flat(np.array([1.0, 3.0]), np.array([1.0, 3.0]))
+    assert not Fraction(L[3]) < Fraction(1, 3) < Fraction(H[3])
+    assert _exact_violations(F, np.random.default_rng(3)) > 0
 
 
 # --- refusals ---------------------------------------------------------------------------------------------------

@@ -110,8 +110,9 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         problem = verify_entry(entry, output, key)
         if problem is None:
             return Built(target, key, True)
-        warnings.warn(f"compile cache entry {entry} is damaged ({problem}); rebuilding it", RuntimeWarning,
-                      stacklevel=2)
+        if problem != LEGACY:                  # an earlier version's entry is rebuilt without a warning
+            warnings.warn(f"compile cache entry {entry} is damaged ({problem}); rebuilding it", RuntimeWarning,
+                          stacklevel=2)
         if not _discard(entry, root):
             root = _private_root()
             entry, target = root / key[:32], root / key[:32] / output
@@ -221,6 +222,10 @@ def _write_record(directory: Path, output: str, key: str | None = None) -> None:
         json.dump(rec, fh)
 
 
+#: what `verify_entry` says of an entry an earlier symfunnel wrote (its record has no key): rebuilt, not damaged
+LEGACY = "written by an earlier symfunnel (its record names no key)"
+
+
 def verify_entry(entry: Path, output: str, key: str | None = None) -> str | None:
     """None when `entry` holds `output` with the size and sha256 its record names, and (given `key`) the record
     names that key (an entry copied over another's is not this one); else what is wrong."""
@@ -233,6 +238,8 @@ def verify_entry(entry: Path, output: str, key: str | None = None) -> str | None
         return "no integrity record"
     except (OSError, ValueError, KeyError, TypeError):
         return "unreadable integrity record"
+    if key is not None and "key" not in rec:
+        return LEGACY
     if key is not None and rec.get("key") != key:
         return "its record names another key (an entry copied over this one)"
     try:

@@ -33,6 +33,7 @@ the paper's `tau` take 60 ms per box against ~0.2 ms for this tape walk.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import operator
 from collections.abc import Callable, Mapping, Sequence
@@ -43,6 +44,7 @@ import casadi
 import numpy as np
 
 from ..core.errors import SymfunnelError
+from . import rounding
 from .tape import OP_NAMES, Tape, as_sx_function, read_tape
 
 __all__ = ["IntervalError", "IntervalFunction", "Enclosure", "BACKENDS", "get_backend", "RULE_OPS"]
@@ -97,12 +99,15 @@ class Backend:
     bounds: Callable[[Any], tuple[float, float]]   # outward (lo, hi); (-inf, inf) for an error / unbounded value
     rules: dict[str, Callable]
     error: Callable[[], Any]                       # a fresh error value
+    #: the rounding mode every evaluation runs in (codac is outward only under upward rounding)
+    mode: Callable[[], Any] = contextlib.nullcontext
 
 
 def _codac_backend() -> Backend:
     """codac 2 Intervals through the `*Op.fwd` interval functions: in codac 2.1.2 `codac.acos` and `codac.sinh`
     called on an Interval build an expression node instead (the overloads resolve to the symbolic ones)."""
-    import codac
+    with rounding.keeping_mode():            # importing codac sets the process's rounding upward
+        import codac
     I = codac.Interval  # noqa: E741
     empty = I.empty
     ZERO, ONE, UNDEC = I(0.0), I(1.0), I(0.0, 1.0)
@@ -303,7 +308,7 @@ def _codac_backend() -> Backend:
         "LT": lt, "LE": le, "EQ": eq, "NE": ne, "NOT": not_, "AND": and_, "OR": or_,
         "IF_ELSE_ZERO": if_else_zero,
     }
-    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty)
+    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty, rounding.upward)
 
 
 def _arb_backend() -> Backend:
@@ -730,14 +735,15 @@ class IntervalFunction:
         """Enclosures of the output nonzeros (flat, output after output) over a box given by flat nonzero bounds."""
         be = self.backend
         ctx: list = []
-        vals = self._run(self._inputs(lo, hi), ctx)
-        bounds = be.bounds
-        L = np.empty(len(vals))
-        H = np.empty(len(vals))
-        for k, v in enumerate(vals):
-            L[k], H[k] = bounds(v)
-        if self._jac is not None and not ctx:
-            L, H = self._mean_value(lo, hi, L, H)
+        with be.mode():
+            vals = self._run(self._inputs(lo, hi), ctx)
+            bounds = be.bounds
+            L = np.empty(len(vals))
+            H = np.empty(len(vals))
+            for k, v in enumerate(vals):
+                L[k], H[k] = bounds(v)
+            if self._jac is not None and not ctx:
+                L, H = self._mean_value(lo, hi, L, H)
         return L, H
 
     def _inputs(self, lo: np.ndarray, hi: np.ndarray) -> list:
@@ -760,7 +766,8 @@ class IntervalFunction:
     def eval_values(self, lo: np.ndarray, hi: np.ndarray) -> tuple[tuple, bool]:
         """The backend's raw values of the output nonzeros over a flat box, and whether no discontinuity switched."""
         ctx: list = []
-        vals = self._run(self._inputs(lo, hi), ctx)
+        with self.backend.mode():
+            vals = self._run(self._inputs(lo, hi), ctx)
         return vals, not ctx
 
     def eval_point(self, values) -> list[np.ndarray]:
