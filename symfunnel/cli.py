@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
 
 from .core.errors import InputError, SymfunnelError
@@ -70,12 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         code = _run(argv, deadline, lifecycle)
     finally:
+        late = lifecycle.late_signal()
         lifecycle.uninstall()
     if argv is None:
         # the process's own command line: its exit code is decided, and a signal during the interpreter's
-        # shutdown would only turn a finished command into a killed one
-        for sig in lifecycle.TERMINATING:
-            signal.signal(sig, signal.SIG_IGN)
+        # shutdown would only turn a finished command into a killed one (it is said, once)
+        lifecycle.finished(late)
     return code
 
 
@@ -92,9 +91,6 @@ def _run(argv, deadline, lifecycle) -> int:
         with deadline.limit(seconds):
             code = args.func(args)
         lifecycle.check()               # a signal swallowed on its way (a finalizer, a C callback) still counts
-        late = lifecycle.late_signal()
-        if late is not None:
-            lifecycle.announce(f"symfunnel: signal {late} came after the output was complete; the command finished")
     except SystemExit:
         raise
     except deadline.WallLimitReached as exc:

@@ -36,7 +36,7 @@ from . import deadline
 
 __all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt", "run_killable",
            "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
-           "exit_code", "die_with_parent", "quiet_c_output", "user_stderr", "signals_deferred", "committing", "late_signal", "GRACE"]
+           "exit_code", "die_with_parent", "quiet_c_output", "user_stderr", "signals_deferred", "committing", "late_signal", "too_late", "finished", "GRACE"]
 
 #: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
 GRACE = 1.0
@@ -70,7 +70,7 @@ def _exception(signum: int) -> BaseException:
 
 def _raise(signum, frame):
     if _state["committed"] is not None:     # the command's output is complete: too late to stop it (`committing`)
-        _state["late"] = int(signum)
+        too_late(signum)
         return
     _pending.append(int(signum))
     if _state["deferred"]:                  # inside signals_deferred(): raised when that block ends
@@ -109,10 +109,33 @@ def committing(code: int = 0):
         if ok:
             _state["committed"] = int(code)
             if _pending:
-                _state["late"] = _pending[-1]
+                too_late(_pending[-1])
                 _pending.clear()
         elif not _state["deferred"]:
             check()
+
+
+LATE = "symfunnel: signal {} came after the command's work was complete; its exit code stands"
+
+
+def too_late(signum, frame=None) -> None:
+    """Record a signal that came after the command's output was complete and say so on stderr, once (a signal
+    handler too: the CLI's after its exit code is decided, so the line is never lost)."""
+    first = _state["late"] is None
+    _state["late"] = int(signum)
+    if first:
+        with contextlib.suppress(OSError):
+            os.write(2, (LATE.format(int(signum)) + "\n").encode())
+
+
+def finished(late: int | None = None) -> None:
+    """The CLI's exit code is decided (the policy is uninstalled): a terminating signal during the interpreter's
+    shutdown would only turn a finished command into a killed one, so from now on it is only said (`too_late`)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    _state["late"] = late
+    for sig in TERMINATING:
+        signal.signal(sig, too_late)
 
 
 def late_signal() -> int | None:
