@@ -48,6 +48,8 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
     ctx["simulation"] = S.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
     ctx["verification"] = S.verification_section(verification)
+    from .certify import certify_section
+    ctx["certify"] = certify_section(run, say)
     t0 = time.perf_counter()
     ctx["tuning"] = S.tuning_section(run, say, figures_dir=figures_dir)
     if ctx["tuning"]["available"]:
