@@ -91,8 +91,9 @@ class RoundoffBound:
         g = self.function
         if len(args) != g.n_in():
             raise ValueError(f"expected {g.n_in()} inputs, got {len(args)}")
-        rows = [np.asarray(a, dtype=float).reshape(g.nnz_in(i), -1) for i, a in enumerate(args)]
-        K = max([r.shape[1] for r in rows if r.size] or [1])
+        arrays = [np.asarray(a, dtype=float) for a in args]
+        K = max([a.size // g.nnz_in(i) for i, a in enumerate(arrays) if g.nnz_in(i) and a.size] or [1])
+        rows = [a.reshape(g.nnz_in(i), K if not g.nnz_in(i) else -1) for i, a in enumerate(arrays)]
         with np.errstate(all="ignore"):
             vals, mags = self._run(rows, np.zeros(K))
             mags = [np.where(np.isnan(m), np.inf, m) for m in mags]
