@@ -67,9 +67,15 @@ def main(argv: list[str] | None = None) -> int:
     from .core import deadline, lifecycle
     lifecycle.install()                 # first: a signal from here on ends in 130/143 and one line
     try:
-        return _run(argv, deadline, lifecycle)
+        code = _run(argv, deadline, lifecycle)
     finally:
+        late = lifecycle.late_signal()
         lifecycle.uninstall()
+    if argv is None:
+        # the process's own command line: its exit code is decided, and a signal during the interpreter's
+        # shutdown would only turn a finished command into a killed one (it is said, once)
+        lifecycle.finished(late)
+    return code
 
 
 def _run(argv, deadline, lifecycle) -> int:

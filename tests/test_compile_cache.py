@@ -180,6 +180,43 @@ def test_signal_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path, s
     assert list(cache.iterdir()) == []
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_right_after_the_compiler_starts_still_kills_it(tmp_path, sig):
+    """The race behind a rare failure of the test above under load: the signal landed between the fork inside
+    Popen and the try that kills the compiler's group, and the compiler lived on. Here the signal is sent at that
+    very instant, deterministically (Popen wrapped to signal the process as it returns)."""
+    cache = tmp_path / "cache"
+    prog = textwrap.dedent(f"""
+        import os, signal, subprocess, sys
+        from symfunnel.core import lifecycle
+        from symfunnel.core.ccompile import compile_cached, SHARED_FLAGS
+        lifecycle.install()
+        real = subprocess.Popen
+        class Popen(real):
+            def __init__(self, *a, **k):
+                super().__init__(*a, **k)
+                if "--version" in a[0]:                # the compiler's identity, asked before the build
+                    return
+                while not os.path.exists({str(tmp_path / "child.pid")!r}):
+                    pass
+                os.kill(os.getpid(), {int(sig)})       # raised at the next bytecode: inside Popen's caller
+        subprocess.Popen = Popen
+        try:
+            compile_cached({SRC!r}, ["f.c"], "libf.so", SHARED_FLAGS, cache={str(cache)!r}, timeout=300)
+        except lifecycle.Terminated:
+            sys.exit(143)
+        except KeyboardInterrupt:
+            sys.exit(130)
+        sys.exit(0)
+        """)
+    env = {**os.environ, "CC": str(_slow_cc(tmp_path))}
+    p = subprocess.Popen([sys.executable, "-c", prog], env=env)
+    assert p.wait(timeout=60) == (143 if sig == signal.SIGTERM else 130)
+    cc_pid, child = _wait_for(tmp_path / "cc.pid"), _wait_for(tmp_path / "child.pid")
+    assert _wait_dead(cc_pid, 5) and _wait_dead(child, 5)
+    assert list(cache.iterdir()) == []
+
+
 def test_truncated_closed_loop_library_is_repaired(tmp_path):
     """End to end: a truncated symfunnel_cl.so (formerly 'Bus error' on every run) costs one warning line."""
     env = {**os.environ, "SYMFUNNEL_CACHE": str(tmp_path)}

@@ -156,17 +156,26 @@ def prepare(job: Job) -> dict:
 
 
 def row_of(result, run: int, columns: list[str], values) -> dict:
-    """One results row of a simulated run."""
+    """One results row of a simulated run (margins and peak torque also between output points)."""
     s = result.signals
-    m1 = float(np.min(s["m1"])) if s["m1"].size else math.nan
-    m2 = float(np.min(s["m2"])) if s["m2"].size else math.nan
+
+    def extreme(key):                   # a result without samples between points: its output points alone
+        if hasattr(result, "extreme"):
+            return result.extreme(key)
+        a = s[key] if key != "tau" else np.abs(s[key])
+        return list(a.min(axis=0) if key != "tau" else a.max(axis=0)) if a.size else []
+    m1s = [v for v in extreme("m1") if v is not None]
+    m2s = [v for v in extreme("m2") if v is not None]
+    m1 = float(min(m1s)) if s["m1"].size and m1s else math.nan
+    m2 = float(min(m2s)) if s["m2"].size and m2s else math.nan
     b = result.breach
     if b is not None:
         if b["funnel"] == "e1":
             m1 = min(m1, b["margin"]) if not math.isnan(m1) else b["margin"]
         else:
             m2 = min(m2, b["margin"]) if not math.isnan(m2) else b["margin"]
-    tau = float(np.max(np.abs(s["tau"]))) if s["tau"].size and np.isfinite(s["tau"]).all() else math.nan
+    taus = [v for v in extreme("tau") if v is not None]
+    tau = float(max(taus)) if s["tau"].size and np.isfinite(s["tau"]).all() and taus else math.nan
     row = {"run": int(run)}
     row.update({c: float(v) for c, v in zip(columns, values)})
     row.update({"status": ROW_STATUS[result.status], "t_end": float(result.t[-1]) if result.t.size else 0.0,

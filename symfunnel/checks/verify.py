@@ -125,6 +125,14 @@ def check_containment(res, n: int) -> list[CheckResult]:
     t = res.t
     b = res.breach or {}
     t_end = float(t[-1]) if t.size else 0.0
+    bw = getattr(res, "between", None) or {}
+    how = f"simulation ({t.size} output points"
+    if bw.get("points"):
+        how += (f" and {bw['points']} samples between them, up to {bw['per_output_step']} per output step as dense "
+                f"as the integrator's steps, {bw.get('refined_steps', 0)} output steps refined on "
+                f"{bw.get('refine_points')} points)")
+    else:
+        how += ")"
     for key, mk, Fk in (("e1", "m1", "F1"), ("e2", "m2", "F2")):
         for j in range(n):
             cid = f"funnel.containment.{key}.joint{j + 1}"
@@ -140,6 +148,12 @@ def check_containment(res, n: int) -> list[CheckResult]:
                     i = int(np.nanargmin(np.where(np.isfinite(m), m, np.inf)))
                 mmin, tmin = float(m[i]), float(t[i])
                 absm = float(F[i] - abs(e[i]))
+                where_ = ""
+                mb = (bw.get(f"min_margin_{key}") or [None] * n)[j]
+                if mb is not None and mb < mmin:
+                    mmin, tmin = float(mb), float(bw[f"t_min_margin_{key}"][j])
+                    absm = mmin * float(np.interp(tmin, t, F))
+                    where_ = ", between output points"
             if breached:
                 mb = float(b.get("margin", 0.0))
                 out.append(CheckResult(
@@ -154,7 +168,7 @@ def check_containment(res, n: int) -> list[CheckResult]:
             status = "pass" if mmin > 0 else "fail"
             out.append(CheckResult(
                 cid, status, f"|{key}| < F{key[1]} {span}: smallest margin (F - |{key}|)/F = {mmin:.4g} "
-                f"(F - |{key}| = {absm:.4g}) at t = {tmin:.4g} s", method=f"simulation ({t.size} output points)",
+                f"(F - |{key}| = {absm:.4g}) at t = {tmin:.4g} s{where_}", method=how,
                 margin=mmin, where={"t": tmin, "joint": j + 1}, evidence={"abs_margin": absm}))
     return out
 
@@ -259,19 +273,32 @@ def check_bounded(res, design, L: LyapunovTrajectory | None) -> list[CheckResult
     fin = bool(np.isfinite(tau).all())
     a = np.abs(tau)
     i, j = np.unravel_index(int(np.nanargmax(np.where(np.isfinite(a), a, -1))), a.shape)
+    peak, t_peak = float(a[i, j]), float(t[i])
     q = max(1, int(0.75 * len(t)))
     early = float(np.nanmax(a[:q])) if q else float("nan")
     late = float(np.nanmax(a[q:])) if q < len(t) else early
+    # the peaks between output points (simulation.between) count where they fall
+    bw = getattr(res, "between", None) or {}
+    t_split = float(t[q]) if q < len(t) else np.inf
+    for jj, (v, tv) in enumerate(zip(bw.get("max_abs_tau") or [], bw.get("t_max_abs_tau") or [])):
+        if v is None:
+            continue
+        if v > peak:
+            peak, t_peak, j = float(v), float(tv), jj
+        if tv >= t_split:
+            late = max(late, float(v))
+        else:
+            early = max(early, float(v))
     grow = late / max(early, 1e-300) - 1
     method = ("finite horizon: finite everywhere, and the peak |tau| over the last quarter of the run at most "
               f"{1 + TAU_GROWTH_ALLOWANCE:g} x the peak before it (no growth at the end)")
     ok = fin and grow <= TAU_GROWTH_ALLOWANCE
     out.append(CheckResult("bounded.tau", "pass" if ok else "fail",
-                           f"max |tau| = {_g(a[i, j])} at t = {t[i]:.4g} s, joint {j + 1}; last-quarter peak "
+                           f"max |tau| = {_g(peak)} at t = {t_peak:.4g} s, joint {j + 1}; last-quarter peak "
                            f"{_g(late)} vs earlier peak {_g(early)}" + ("" if fin else "; NON-FINITE values"),
                            method=method, margin=float(TAU_GROWTH_ALLOWANCE - grow) if fin else None,
-                           where={"t": float(t[i]), "joint": int(j + 1)},
-                           evidence={"max_abs": float(a[i, j]), "late_peak": late, "early_peak": early}))
+                           where={"t": t_peak, "joint": int(j + 1)},
+                           evidence={"max_abs": peak, "late_peak": late, "early_peak": early}))
     if "w_hat" not in s:
         return out + [CheckResult(f"bounded.{k}", "skip", "this design has no such state (no approximator)",
                                   method="design layout") for k in ("w_hat", "x_esn")]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 
@@ -14,7 +13,8 @@ def _progress(quiet: bool):
     t0 = time.perf_counter()
 
     def say(s: str) -> None:
-        print(f"[{time.perf_counter() - t0:6.1f}s] {s}", file=sys.stderr, flush=True)
+        from ..core.lifecycle import user_stderr
+        print(f"[{time.perf_counter() - t0:6.1f}s] {s}", file=user_stderr(), flush=True)
     return say
 
 

@@ -36,7 +36,7 @@ def register(sub, common) -> None:
 def run(args) -> int:
     """Generate, write atomically, and optionally cross-check."""
     from ..emit.check import FILL, check_output
-    from ..emit.files import write_output
+    from ..emit.files import foreign_files, write_output
     from ._common import _progress
     from ..core.errors import InputError
     from ..core.outputs import check_count
@@ -61,19 +61,27 @@ def run(args) -> int:
     run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
     sc, design = run.scenario, run.design
     files = run.code(args.lang, prefix=args.prefix, rate_hz=args.rate)
-    paths = write_output(files, args.out, force=args.force)
-    summary = {"scenario": sc.name, "language": args.lang, "out": str(args.out),
-               "files": [{"name": p.name, "bytes": len(files[p.name].encode("utf-8"))} for p in paths]}
+    from ..core.lifecycle import committing
     code = 0
     report = None
+    if not args.force and foreign_files(files, args.out):
+        write_output(files, args.out)          # refused, naming the file, before a check that would be wasted
     if args.check:
+        # the check runs on the files in memory before any is written: a command stopped during the check
+        # leaves nothing; a failing check still writes them (to read), with exit 1
         try:
             report = check_output(design, args.lang, files, points=args.points, seed=args.seed)
         except RuntimeError as exc:            # compiler diagnostics, a failing main.c: the check failed
             from ..core.errors import CheckFailed
+            write_output(files, args.out, force=args.force)
             raise CheckFailed(f"codegen --check: {exc}") from None
-        summary["check"] = report.to_json()
         code = 0 if report.passed else 1
+    with committing(code):                     # the command's output: from here on it has succeeded
+        paths = write_output(files, args.out, force=args.force)
+    summary = {"scenario": sc.name, "language": args.lang, "out": str(args.out),
+               "files": [{"name": p.name, "bytes": len(files[p.name].encode("utf-8"))} for p in paths]}
+    if report is not None:
+        summary["check"] = report.to_json()
     if args.json:
         print(json.dumps(summary, indent=2, allow_nan=False))
         return code

@@ -59,7 +59,9 @@ def cmd_derive(args) -> int:
     for k in names:
         info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
     if args.latex:
-        _write_latex(d, names, args.latex)
+        from ..core.lifecycle import committing
+        with committing():              # the command's one file: from here on it has succeeded
+            _write_latex(d, names, args.latex)
     if args.json:
         print(_dump({"scenario": sc.name, "signals": info}))
         return 0

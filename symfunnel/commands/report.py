@@ -46,7 +46,7 @@ def run(args) -> int:
     engine = _engine(args, sc)
     run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples, engine=engine), _progress(args.quiet))
     from ..core.io import staged
-    with staged():                      # the report and its --figures files all at the end, or none of them
+    with staged(commit=True):           # the report and its --figures files all at the end, or none of them
         path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants,
                             deployed=not args.no_deployed, figures_dir=figures)
     print(path)

@@ -70,7 +70,10 @@ def run(args) -> int:
                                             progress=say)
     summary = res.summary()
     if args.out:
-        path = res.save_npz(args.out, run.trajectory_arrays() if res.t.size else None)
+        from ..core.lifecycle import committing
+        arrays = run.trajectory_arrays() if res.t.size else None
+        with committing(0 if res.status == "ok" else 1):    # the command's one file: from here on it has succeeded
+            path = res.save_npz(args.out, arrays)
         say(f"trajectory written to {path}")
     if args.json:
         print(_dump(summary))
@@ -155,7 +158,9 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
         import numpy as np
         buf = io.BytesIO()
         np.savez_compressed(buf, t=res.t, q=res.q, dq=res.dq, tau=res.tau, margins=res.margins)
-        atomic_write(args.out, buf.getvalue())
+        from ..core.lifecycle import committing
+        with committing(0 if res.status == "ok" else 1):
+            atomic_write(args.out, buf.getvalue())
         say(f"trajectory written to {args.out}")
     if args.json:
         print(_dump(summary))

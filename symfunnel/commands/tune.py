@@ -69,7 +69,10 @@ def run(args) -> int:
     with _stdout_to_stderr():
         r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals)
     if args.out is not None:
-        atomic_write(args.out, dumps(r.tuned_raw))
+        from ..core.lifecycle import committing
+        text = dumps(r.tuned_raw)
+        with committing(0 if r.status == "ok" else 1):      # the command's one file: from here on it has succeeded
+            atomic_write(args.out, text)
     if args.json:
         print(_dump(r.to_json()))
     else:

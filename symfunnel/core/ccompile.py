@@ -172,20 +172,26 @@ def compile_timeout() -> float:
 def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str]:
     """Run `cmd` in its own process group; kill the whole group on timeout or any exception (Ctrl-C, SIGTERM)."""
     from . import lifecycle
-    proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    lifecycle.register_child(proc.pid, group=True)
+    proc = None
     try:
+        # a signal between the fork inside Popen and the registration would leave the compiler running: the two
+        # happen with signals deferred, and the signal is raised here, inside the try that kills the group
+        with lifecycle.signals_deferred():
+            proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True, start_new_session=True)
+            lifecycle.register_child(proc.pid, group=True)
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         _kill_group(proc)
         raise RuntimeError(f"compiling with {cmd[0]} took longer than {timeout:g} s and was stopped "
                            "(raise $SYMFUNNEL_COMPILE_TIMEOUT if the code is large)") from None
     except BaseException:
-        _kill_group(proc)
+        if proc is not None:
+            _kill_group(proc)
         raise
     finally:
-        lifecycle.unregister_child(proc.pid)
+        if proc is not None:
+            lifecycle.unregister_child(proc.pid)
     return proc.returncode, (out or "") + (err or "")
 
 

@@ -54,9 +54,10 @@ _staging: list[dict] = []
 
 
 @contextlib.contextmanager
-def staged():
+def staged(commit: bool = False):
     """Hold back every `atomic_write` of the block and write them all when it succeeds: a command that fails or
-    is stopped half-way (its wall-clock limit, a signal) leaves none of its files, not some of them."""
+    is stopped half-way (its wall-clock limit, a signal) leaves none of its files, not some of them. With `commit`
+    they are the command's last output: written under `lifecycle.committing`."""
     batch: dict[Path, str | bytes] = {}
     _staging.append(batch)
     try:
@@ -66,7 +67,10 @@ def staged():
     if _staging:                                # nested: the outer block writes them
         _staging[-1].update(batch)
         return
+    from . import lifecycle
     with contextlib.ExitStack() as stack:       # every file to its temporary first, then the renames
+        if commit:
+            stack.enter_context(lifecycle.committing())
         tmps = [(stack.enter_context(atomic_path(path)), data, path) for path, data in batch.items()]
         for tmp, data, path in tmps:
             _write(tmp, data, path)

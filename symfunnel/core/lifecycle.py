@@ -36,7 +36,7 @@ from . import deadline
 
 __all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt", "run_killable",
            "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
-           "exit_code", "die_with_parent", "GRACE"]
+           "exit_code", "die_with_parent", "quiet_c_output", "user_stderr", "signals_deferred", "committing", "late_signal", "too_late", "finished", "GRACE"]
 
 #: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
 GRACE = 1.0
@@ -51,7 +51,9 @@ _children: dict[int, bool] = {}   # pid -> True when it leads its own process gr
 _lock = threading.Lock()
 _announced: list[str] = []
 _done = threading.Event()
-_state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None}
+_state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None, "deferred": 0,
+          "committed": None, "late": None}
+_user: dict = {"err": None}       # the terminal's stderr while quiet_c_output captures the rest
 
 
 class Terminated(BaseException):
@@ -67,8 +69,78 @@ def _exception(signum: int) -> BaseException:
 
 
 def _raise(signum, frame):
+    if _state["committed"] is not None:     # the command's output is complete: too late to stop it (`committing`)
+        too_late(signum)
+        return
     _pending.append(int(signum))
+    if _state["deferred"]:                  # inside signals_deferred(): raised when that block ends
+        return
     raise _exception(int(signum))
+
+
+@contextlib.contextmanager
+def signals_deferred():
+    """A block no terminating signal interrupts: one that arrives is recorded and raised as the block ends. For
+    the few statements between starting a child process and registering it (`register_child`): a signal landing
+    there would leave a child nobody kills."""
+    _state["deferred"] += 1
+    try:
+        yield
+    finally:
+        _state["deferred"] -= 1
+        if not _state["deferred"]:
+            check()
+
+
+@contextlib.contextmanager
+def committing(code: int = 0):
+    """The block that writes a command's last output (nothing but reporting follows it). No signal interrupts the
+    block; once it has completed, the command has succeeded, and a signal that arrived during it or arrives later
+    neither undoes nor denies that: the command prints what is left and exits with its own code (`code`, should the
+    watchdog have to end a process that does not get there), one line saying the signal came too late
+    (`late_signal`). A block that fails raises the signal as `signals_deferred` does."""
+    _state["deferred"] += 1
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        _state["deferred"] -= 1
+        if ok:
+            _state["committed"] = int(code)
+            if _pending:
+                too_late(_pending[-1])
+                _pending.clear()
+        elif not _state["deferred"]:
+            check()
+
+
+LATE = "symfunnel: signal {} came after the command's work was complete; its exit code stands"
+
+
+def too_late(signum, frame=None) -> None:
+    """Record a signal that came after the command's output was complete and say so on stderr, once (a signal
+    handler too: the CLI's after its exit code is decided, so the line is never lost)."""
+    first = _state["late"] is None
+    _state["late"] = int(signum)
+    if first:
+        with contextlib.suppress(OSError):
+            os.write(2, (LATE.format(int(signum)) + "\n").encode())
+
+
+def finished(late: int | None = None) -> None:
+    """The CLI's exit code is decided (the policy is uninstalled): a terminating signal during the interpreter's
+    shutdown would only turn a finished command into a killed one, so from now on it is only said (`too_late`)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    _state["late"] = late
+    for sig in TERMINATING:
+        signal.signal(sig, too_late)
+
+
+def late_signal() -> int | None:
+    """A terminating signal that arrived after the command's output was complete (`committing`), or None."""
+    return _state["late"]
 
 
 def pending() -> int | None:
@@ -132,7 +204,7 @@ def announce(line: str) -> None:
             return
         _announced.append(line)
     try:
-        print(line, file=sys.stderr, flush=True)
+        print(line, file=user_stderr(), flush=True)
     except (OSError, ValueError):
         pass
 
@@ -196,6 +268,10 @@ def die_with_parent() -> None:
 # --- the watchdog -----------------------------------------------------------------------------------------
 
 def _hard_stop(code: int, line: str) -> None:
+    if _state["committed"] is not None:         # the output is complete: the command succeeded, only its report hangs
+        why = "the wall-clock limit" if _state["late"] is None else f"signal {_state['late']}"
+        code, line = _state["committed"], f"symfunnel: {why} came after the output was complete; stopped " \
+            "before the rest of the report"
     _kill_children()
     _remove_temporaries()
     announce(line)
@@ -260,6 +336,7 @@ def install() -> None:
     _pending.clear()
     _announced.clear()
     _done.clear()
+    _state["committed"] = _state["late"] = None
     if threading.current_thread() is not threading.main_thread():
         return
     for sig in TERMINATING:
@@ -294,12 +371,13 @@ def uninstall() -> None:
         signal.signal(sig, _saved.pop(sig))
     _saved.clear()
     _pending.clear()
+    _state["committed"] = _state["late"] = None
 
 
 def _one_line(message, category, filename, lineno, file=None, line=None):
     from .text import one_line
     text = one_line(str(message))
-    print(f"symfunnel: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+    print(f"symfunnel: warning: {text}", file=user_stderr() if file is None else file, flush=True)
 
 
 # --- the killable worker ----------------------------------------------------------------------------------
@@ -325,7 +403,10 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
         sys.stdout.flush()
         sys.stderr.flush()
     rfd, wfd = os.pipe()
-    pid = os.fork()
+    with signals_deferred():                                # the child is registered before any signal can land
+        pid = os.fork()
+        if pid:
+            register_child(pid)
     if pid == 0:                                            # the worker
         code = 0
         try:
@@ -345,7 +426,6 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
         finally:
             os._exit(code)
     os.close(wfd)
-    register_child(pid)
     chunks: list[bytes] = []
     status = None
     try:
@@ -384,8 +464,72 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
     return value
 
 
+def user_stderr():
+    """Where the lines meant for the user (progress, warnings, the closing line) go: sys.stderr, or the terminal's
+    stderr while `quiet_c_output` captures everything else."""
+    return _user["err"] or sys.stderr
+
+
+@contextlib.contextmanager
+def quiet_c_output(what: str):
+    """Everything CasADi and the solvers print during the block -- their C-level writes to fds 1 and 2 (IPOPT's banner,
+    SUNDIALS' messages) and what CasADi routes through Python's sys.stdout / sys.stderr (its warnings and the
+    argument dumps of a failed evaluation) -- goes to a temporary file; the lines meant for the user still reach
+    the terminal (`user_stderr`). Afterwards one warning line says how many lines were silenced and shows the first
+    message among them. Yields a dict that holds "lines" (the count) and "first" at the end."""
+    import io
+    import tempfile
+    out = {"lines": 0, "first": None}
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    try:
+        saved = [os.dup(fd) for fd in (1, 2)]
+    except OSError:
+        yield out
+        return
+    cap = tempfile.TemporaryFile()
+    prev = (sys.stdout, sys.stderr, _user["err"])
+    err = _user["err"] or os.fdopen(os.dup(saved[1]), "w", buffering=1, encoding="utf-8", errors="backslashreplace")
+    py = io.TextIOWrapper(os.fdopen(os.dup(cap.fileno()), "wb"), encoding="utf-8", errors="replace",
+                          line_buffering=True)
+    try:
+        for fd in (1, 2):
+            os.dup2(cap.fileno(), fd)
+        sys.stdout = sys.stderr = py
+        _user["err"] = err
+        yield out
+    finally:
+        with contextlib.suppress(Exception):
+            py.flush()
+        with contextlib.suppress(Exception):
+            ctypes.CDLL(None).fflush(None)            # C stdio buffers (printf) into the file, not after the block
+        for fd, keep in zip((1, 2), saved):
+            os.dup2(keep, fd)
+            os.close(keep)
+        sys.stdout, sys.stderr, _user["err"] = prev
+        with contextlib.suppress(Exception):
+            py.close()
+        if err is not prev[2]:
+            with contextlib.suppress(Exception):
+                err.close()
+        cap.seek(0)
+        text = cap.read().decode("utf-8", "replace")
+        cap.close()
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        out["lines"] = len(lines)
+        if lines:
+            from .text import one_line
+            first = next((ln for ln in lines if 'returned "' in ln), None) or \
+                next((ln for ln in lines if "WARNING" in ln or "rror" in ln), lines[0])
+            out["first"] = one_line(first.split('WARNING("', 1)[-1], 200)
+            warnings.warn(f"{what}: {len(lines)} line(s) of CasADi/solver output silenced, the first message: "
+                          f"{out['first']}", RuntimeWarning, stacklevel=3)
+
+
 def _worker_setup() -> None:
     _state["worker"] = True
+    _state["deferred"] = 0
     die_with_parent()
     with contextlib.suppress(ValueError, OSError):
         signal.set_wakeup_fd(-1)

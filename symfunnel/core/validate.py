@@ -10,6 +10,19 @@ from .errors import InputError
 
 _MISSING = object()
 
+#: the shortest horizon a simulation accepts, in output steps (or sample periods): a check over fewer points says
+#: next to nothing, and a horizon of 1e-300 s "holds at all 2 points"
+MIN_HORIZON_STEPS = 10
+
+
+def check_horizon(t_final: float, step: float, *, key: str, file: str | None = None,
+                  step_name: str = "output step dt") -> None:
+    """InputError unless t_final spans at least MIN_HORIZON_STEPS steps of `step` seconds."""
+    if not (math.isfinite(t_final) and t_final >= MIN_HORIZON_STEPS * step * (1 - 1e-9)):
+        raise InputError(f"is {t_final:.6g} s, {t_final / step:.3g} of the {step_name} = {step:.6g} s", file=file,
+                         key=key, expected=f"a horizon of at least {MIN_HORIZON_STEPS} of them "
+                         f"(t_final >= {MIN_HORIZON_STEPS * step:.6g} s)")
+
 
 def join(prefix: str, key: str | int) -> str:
     """Dotted key path: join('model', 'links') -> 'model.links'; join('links', 2) -> 'links[2]'."""

@@ -6,7 +6,8 @@ the code verified is the code shipped. Its torque is held over the period (one p
 delay_samples = 1; zero torque before the first one arrives) and the true plant (dead zone, friction,
 disturbance, the plant's M, C, G: `simulation.closedloop.plant_acceleration`) is integrated over the period by CasADi's
 fixed-step `rk` integrator, expanded to SX and compiled to C. Funnel margins 1 - |e|/F are those of the true
-state at the samples (between samples they are not observed).
+state, at the samples and, between them, at every RK4 step of the plant (`between_margins`: per period the smallest
+over its steps; the controller only sees the samples, the plant's state leaves a funnel wherever it does).
 
 API::
 
@@ -30,6 +31,7 @@ import numpy as np
 
 from ..core.errors import InputError
 from .cfun import _CFun, _compiled
+from ..simulation.between import margin_function
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -62,6 +64,7 @@ class SampledResult:
     tau_max: tuple | None
     wall_time: float
     stats: dict = field(default_factory=dict)
+    between_margins: np.ndarray | None = None     # (K, 2n) per period the smallest true margins over its RK4 steps
 
     @property
     def ok(self) -> bool:
@@ -70,9 +73,16 @@ class SampledResult:
 
     @property
     def min_margin(self) -> float:
-        """The smallest true funnel margin over samples, joints and both funnels (-inf when it failed)."""
-        m = self.margins[np.all(np.isfinite(self.margins), axis=1)]
+        """The smallest true funnel margin over samples, the plant's steps between them, joints and both funnels
+        (-inf when it failed)."""
+        m = self._all_margins()
+        m = m[np.all(np.isfinite(m), axis=1)]
         return float(m.min()) if m.size and self.status != "failed" else -math.inf
+
+    def _all_margins(self) -> np.ndarray:
+        if self.between_margins is None or self.between_margins.size == 0:
+            return self.margins
+        return np.concatenate([self.margins, self.between_margins])
 
     @property
     def saturated_fraction(self) -> list[float] | None:
@@ -85,7 +95,7 @@ class SampledResult:
     def summary(self) -> dict:
         """Plain data for JSON output."""
         n = self.q.shape[1]
-        m = self.margins
+        m = self._all_margins()
         return {"scenario": self.scenario, "rate_hz": self.rate_hz, "status": self.status, "message": self.message,
                 "t_end": float(self.t[-1]), "samples": int(self.tau.shape[0]),
                 "min_margin_e1": np.nanmin(m[:, :n], axis=0).tolist() if m.size else None,
@@ -209,35 +219,44 @@ def min_rate_hz(scenario) -> float:
     return 1.0 / (MAX_PLANT_SUBSTEPS * h_max)
 
 
-def plant_step_function(scenario, substeps: int, name: str = "sfs_plant") -> ca.Function:
-    """([t0, h], x = [q; dq], tau) -> x at t0 + h with tau held: CasADi's rk integrator (RK4, `substeps` steps).
+def plant_step_function(scenario, substeps: int, name: str = "sfs_plant", design=None) -> ca.Function:
+    """([t0, h], x = [q; dq], tau) -> x at t0 + h with tau held: CasADi's rk integrator (RK4, `substeps` steps);
+    with `design` also the smallest true margins [e1; e2] over the states after each step (the second output).
 
     The ODE is integrated in s = (t - t0)/h over [0, 1], so one compiled function serves every period h.
     """
     from ..simulation.closedloop import plant_acceleration
     n = scenario.n
     q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
-    s, th, tau = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n)
-    ddq = plant_acceleration(scenario, q, dq, th[0] + th[1] * s, tau, scenario.simulation.smoothing_width)["ddq"]
+    s, th, tau, s0 = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n), ca.SX.sym("s0")
     x = ca.vertcat(q, dq)
+    X, TH, U = ca.MX.sym("x", 2 * n), ca.MX.sym("th", 2), ca.MX.sym("tau", n)
     # simplify: the fixed-step scheme as a plain MX graph (a loop over the substeps' SX step), which generates
     # compact C; expanding it to SX would unroll every substep and make large models slow to compile
-    F = ca.integrator("plant", "rk", {"x": x, "p": ca.vertcat(th, tau), "t": s,
-                                      "ode": th[1] * ca.vertcat(dq, ddq)}, 0.0, 1.0,
-                      {"number_of_finite_elements": substeps, "simplify": True})
-    X, TH, U = ca.MX.sym("x", 2 * n), ca.MX.sym("th", 2), ca.MX.sym("tau", n)
-    xf = F(x0=X, p=ca.vertcat(TH, U))["xf"]
-    return ca.Function(name, [TH, X, U], [xf], ["th", "x", "tau"], ["xf"])
+    if design is None:
+        ddq = plant_acceleration(scenario, q, dq, th[0] + th[1] * s, tau, scenario.simulation.smoothing_width)["ddq"]
+        F = ca.integrator("plant", "rk", {"x": x, "p": ca.vertcat(th, tau), "t": s,
+                                          "ode": th[1] * ca.vertcat(dq, ddq)}, 0.0, 1.0,
+                          {"number_of_finite_elements": substeps, "simplify": True})
+        xf = F(x0=X, p=ca.vertcat(TH, U))["xf"]
+        return ca.Function(name, [TH, X, U], [xf], ["th", "x", "tau"], ["xf"])
+    # the same RK4 steps one at a time (s = s0 + s' over [0, 1/substeps]), keeping every step's state: the last
+    # one is bit for bit the plain step's
+    ddq = plant_acceleration(scenario, q, dq, th[0] + th[1] * (s0 + s), tau,
+                             scenario.simulation.smoothing_width)["ddq"]
+    G = ca.integrator("plant", "rk", {"x": x, "p": ca.vertcat(th, tau, s0), "t": s,
+                                      "ode": th[1] * ca.vertcat(dq, ddq)}, 0.0, 1.0 / substeps,
+                      {"number_of_finite_elements": 1, "simplify": True})
+    XX, PP = ca.MX.sym("x", 2 * n), ca.MX.sym("p", 3 + n)
+    step = ca.Function("plant_step", [XX, PP], [G(x0=XX, p=PP)["xf"]])
+    starts = ca.DM([j / substeps for j in range(substeps)]).T
+    xs = step.mapaccum("plant_steps", substeps)(X, ca.vertcat(ca.repmat(ca.vertcat(TH, U), 1, substeps), starts))
+    ts = TH[0] + TH[1] * ca.DM([(j + 1) / substeps for j in range(substeps)]).T
+    m = margin_function(design).map(substeps)(ts, xs[:n, :], xs[n:, :])
+    mmin = ca.vertcat(*[ca.mmin(m[i, :]) for i in range(2 * n)])
+    return ca.Function(name, [TH, X, U], [xs[:, -1], mmin], ["th", "x", "tau"], ["xf", "between"])
 
 
-def _margin_function(design) -> ca.Function:
-    """(t, q, dq) -> true margins [1 - |e1|/F1; 1 - |e2|/F2] with the scenario's reference."""
-    s, S = design.sym, design.signals
-    ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
-    ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
-    m = ca.vertcat(1 - ca.fabs(S["e1"]) / S["F1"], 1 - ca.fabs(S["e2"]) / S["F2"])
-    m = ca.substitute([m], ref_syms, ref_t)[0]
-    return ca.Function("margins", [s["t"], s["q"], s["dq"]], [m])
 
 
 def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | None = None,
@@ -259,25 +278,29 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     n = sc.n
     h = 1.0 / impl.rate_hz
     T = float(t_final if t_final is not None else sc.simulation.t_final)
-    K = int(math.floor(T * impl.rate_hz + 1e-9))
     engine = engine or getattr(sc.plant, "engine", "symfunnel")
     if engine == "symfunnel":
         subs = plant_substeps(sc, h)          # first: a rate too low for the plant is refused before any work
+    from ..core.validate import check_horizon
+    check_horizon(T, h, key="--t-final" if t_final is not None else "simulation.t_final",
+                  file=None if t_final is not None else sc.file, step_name="sample period 1/rate_hz")
+    K = int(math.floor(T * impl.rate_hz + 1e-9))
     if controller is None:
         files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
         controller = step_library(design, files, on_build=say)
     controller.init()
     if engine != "symfunnel":
         return _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, say)
-    plant = _compiled(plant_step_function(sc, subs, name=f"sfs_plant_{subs}"), on_build=say)
+    plant = _compiled(plant_step_function(sc, subs, name=f"sfs_plant_{subs}_m", design=design), on_build=say)
     p_t, p_x, p_u = plant.inputs
-    xf = plant.outputs[0]
+    xf, mb = plant.outputs
     rng = np.random.default_rng(impl.seed)
     nq = rng.standard_normal((K, n)) * impl.noise_q if impl.noise_q > 0 else None
     ndq = rng.standard_normal((K, n)) * impl.noise_dq if impl.noise_dq > 0 else None
     res = impl.encoder_resolution
     X = np.full((K + 1, 2 * n), np.nan)
     TAU = np.zeros((K, n))
+    MB = np.full((K, 2 * n), np.nan)
     p_x[:n], p_x[n:] = sc.q0, sc.dq0
     X[0] = p_x
     xq, xdq = p_x[:n], p_x[n:]
@@ -290,7 +313,7 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     start = time.perf_counter()
     if isinstance(controller, StepLibrary):
         rc, k_end, outside = _c_loop(controller, plant, n, K, h, nq, ndq, res, impl.delay_samples, stop_on_breach,
-                                     X, TAU, say)
+                                     X, TAU, MB, say)
         if rc < 0 and outside is None:
             status, message = "failed", (f"the step function returned {rc} at t = {k_end * h:g} s" if rc > -100
                                          else "the plant function failed")
@@ -326,6 +349,7 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
         plant()
         p_x[:] = xf
         X[k + 1] = p_x
+        MB[k] = mb
         if stop_on_breach and outside is not None and k - outside >= 1:
             k_end = k + 1
             break
@@ -333,24 +357,45 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall,
                    {"engine": "symfunnel", "plant_substeps": subs, "delay_samples": impl.delay_samples,
                     "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
-                    "encoder_resolution": impl.encoder_resolution})
+                    "encoder_resolution": impl.encoder_resolution,
+                    "between_checked": "the true margins at every RK4 step of the plant between samples"},
+                   MB=MB, subs=subs)
 
 
-def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats) -> SampledResult:
-    """The SampledResult of a loop that ended at sample k_end: true margins at the samples, breach, status."""
+def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, MB=None, subs=None) -> SampledResult:
+    """The SampledResult of a loop that ended at sample k_end: true margins at the samples (and at the plant's steps
+    between them, MB, where the loop has them), breach, status."""
     n = sc.n
+    if MB is None:
+        MB = np.full((k_end, 2 * n), np.nan)
     tt = np.arange(k_end + 1) * h
     Q, DQ, TAU = X[:k_end + 1, :n], X[:k_end + 1, n:], TAU[:k_end]
-    mf = _margin_function(design).map(k_end + 1)
+    mf = margin_function(design).map(k_end + 1)
     good = np.all(np.isfinite(Q), axis=1) & np.all(np.isfinite(DQ), axis=1)
     M = np.full((k_end + 1, 2 * n), np.nan)
     if good.any():
         M[good] = np.array(mf(tt[None, :], np.nan_to_num(Q.T), np.nan_to_num(DQ.T))).T[good]
+    MB = MB[:k_end]
     breach = None
     bad = np.where(~(M > 0).all(axis=1) & good)[0]
+    # a period whose plant steps leave a funnel before the next sample shows it (the state may come back by then)
+    finite_mb = np.all(np.isfinite(MB), axis=1)
+    bad_mb = np.where(~(MB > 0).all(axis=1) & finite_mb & good[1:])[0]
     if status == "ok" and not good.all() and not bad.size:
         status, message = "failed", f"the plant state is not finite at t = {tt[-1]:g} s"
-    if bad.size and status != "failed":
+    if bad_mb.size and status != "failed" and (not bad.size or bad_mb[0] + 1 <= bad[0]):
+        kb = int(bad_mb[0])
+        tb, j, mj = _between_breach(sc, subs, design, tt[kb], h, X[kb], TAU[kb])
+        breach = {"time": tb, "funnel": "e1" if j < n else "e2", "joint": j % n + 1, "margin": mj,
+                  "between_samples": [float(tt[kb]), float(tt[kb + 1])]}
+        status = "breach"
+        message = (f"left funnel {breach['funnel']} (joint {breach['joint']}) at t = {tb:.6g} s, between the samples "
+                   f"at {tt[kb]:g} and {tt[kb + 1]:g} s (the plant's state; the controller sees the samples only)")
+        if stop_on_breach:                 # as the loop stops after a sample outside: at the period's end
+            k_end = kb + 1
+            tt, Q, DQ, TAU, M, MB = (tt[:k_end + 1], Q[:k_end + 1], DQ[:k_end + 1], TAU[:k_end], M[:k_end + 1],
+                                     MB[:k_end])
+    elif bad.size and status != "failed":
         i = int(bad[0])
         j = int(np.nanargmin(M[i]))
         breach = {"time": float(tt[i]), "funnel": "e1" if j < n else "e2", "joint": j % n + 1,
@@ -358,7 +403,7 @@ def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats) ->
         status = "breach"
         message = f"left funnel {breach['funnel']} (joint {breach['joint']}) at t = {tt[i]:g} s"
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
-                         stats)
+                         stats, between_margins=MB)
 
 
 #: what the engine loop's negative return codes mean
@@ -401,7 +446,8 @@ def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, s
              "engine_notes": eng.notes.lines(), "engine_warnings": out["warnings"],
              "engine_last_warning": out["last_warning"] or None, "engine_force_callback": out["force_callback"],
              "delay_samples": impl.delay_samples, "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
-             "encoder_resolution": impl.encoder_resolution}
+             "encoder_resolution": impl.encoder_resolution,
+             "between_checked": "none: the engine's margins are checked at the samples only"}
     return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats)
 
 
@@ -411,7 +457,27 @@ def _engine_mass_scale(setup, run) -> list[float]:
     return [s * (1.0 if ms is None else float(v)) for v in (ms or [1.0] * setup.engine.n)]
 
 
-def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):
+def _between_breach(sc, subs: int, design, t0: float, h: float, x0: np.ndarray, tau: np.ndarray):
+    """The first plant step of the period from (t0, x0) under tau whose state is outside a funnel: (t, index of the
+    margin [e1 columns, then e2], margin)."""
+    n = sc.n
+    from ..simulation.closedloop import plant_acceleration
+    q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
+    s, th, u = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n)
+    ddq = plant_acceleration(sc, q, dq, th[0] + th[1] * s, u, sc.simulation.smoothing_width)["ddq"]
+    grid = [(j + 1) / subs for j in range(subs)]
+    F = ca.integrator("plant", "rk", {"x": ca.vertcat(q, dq), "p": ca.vertcat(th, u), "t": s,
+                                      "ode": th[1] * ca.vertcat(dq, ddq)}, 0.0, grid,
+                      {"number_of_finite_elements": subs})
+    xs = np.array(F(x0=x0, p=np.concatenate([[t0, h], tau]))["xf"])
+    ts = t0 + h * np.array(grid)
+    m = np.array(margin_function(design).map(subs)(ts[None, :], xs[:n], xs[n:]))
+    j_step = int(np.argmax(~(m > 0).all(axis=0)))
+    j = int(np.argmin(m[:, j_step]))
+    return float(ts[j_step]), j, float(m[j, j_step])
+
+
+def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, MB, say):
     """Run the loop in C (templates/sampled_loop.c) with the compiled step and plant: (rc, k_end, outside)."""
     from ..core.ccompile import SHARED_FLAGS, compile_cached
     from ..emit.c import template
@@ -422,7 +488,7 @@ def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay,
     f.restype = ctypes.c_int
     vp = ctypes.c_void_p
     f.argtypes = [vp, vp, vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_long, ctypes.c_double, vp, vp,
-                  ctypes.c_double, ctypes.c_int, ctypes.c_int, vp, vp, vp, vp]
+                  ctypes.c_double, ctypes.c_int, ctypes.c_int, vp, vp, vp, vp, vp]
     k_end, outside = ctypes.c_long(), ctypes.c_long()
     step_ptr = ctypes.cast(controller._step, vp)
     plant_ptr = ctypes.cast(plant._f, vp)
@@ -431,5 +497,6 @@ def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay,
     rc = f(step_ptr, controller._state_p, plant_ptr, ctypes.addressof(plant._arg), ctypes.addressof(plant._res),
            ctypes.addressof(plant._iw), ctypes.addressof(plant._w), n, K, h,
            None if nqa is None else nqa.ctypes.data, None if ndqa is None else ndqa.ctypes.data, res, int(delay),
-           int(bool(stop)), X.ctypes.data, TAU.ctypes.data, ctypes.byref(k_end), ctypes.byref(outside))
+           int(bool(stop)), X.ctypes.data, TAU.ctypes.data, MB.ctypes.data, ctypes.byref(k_end),
+           ctypes.byref(outside))
     return rc, int(k_end.value), (None if outside.value < 0 else int(outside.value))

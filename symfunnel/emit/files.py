@@ -156,6 +156,7 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike, *, force: bo
     same name that symfunnel did not write (the user's own Makefile or main.c). Other files are left alone.
     """
     from ..core.errors import InputError
+    from ..core import lifecycle
     from ..core.io import umask_mode
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -173,6 +174,7 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike, *, force: bo
         parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
         os.chmod(tmp, umask_mode(directory=True))
+        lifecycle.register_temporary(tmp)
     except OSError as exc:
         raise InputError(f"cannot be created ({exc.strerror})", file=str(out), key="--out",
                          expected="a writable directory") from None
@@ -193,5 +195,6 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike, *, force: bo
                          expected="a writable directory") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        lifecycle.unregister_temporary(tmp)
     return [out / n for n in files]
 

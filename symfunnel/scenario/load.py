@@ -145,6 +145,8 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
     expectations = parse_expectations(raw.get("expect", []), n, claims, file)
     from .uncertainty import parse_campaign
     campaign = parse_campaign(raw, file=file, n=n, model=model, plant=plant)
+    if campaign is not None and campaign.sweep.t_final is not None:
+        V.check_horizon(campaign.sweep.t_final, sim.dt, key="sweep.t_final", file=file)
     impl = None
     if "implementation" in raw:
         from .implementation import parse_implementation

@@ -228,6 +228,7 @@ def parse_simulation(table: Any, file: str) -> SimulationSpec:
     if t_final / dt > 1e6:
         raise InputError(f"gives {t_final / dt:.3g} output points", file=file, key="simulation.dt",
                          expected="at most 1e6 output points (t_final/dt)")
+    V.check_horizon(t_final, dt, key="simulation.t_final", file=file)
     widths = V.get_list(table, "convergence_widths", d.convergence_widths, file=file, prefix=p)
     widths = [V.as_float(w, file=file, key=f"simulation.convergence_widths[{i}]", minimum=0, strict_min=True)
               for i, w in enumerate(widths)]

@@ -117,26 +117,35 @@ def breach_result(comp: Compiled, n: int, good_t: list, good_X: list, tb: float,
 
 
 def locate_failure(runner: Runner, comp: Compiled, n: int, k: int, x: np.ndarray, Kc: int, h: float, start: float,
-                   limit: float) -> dict:
-    """The chunk from grid index k failed: advance point by point, then locate within the failing step."""
+                   limit: float, sub: int = 1, between=None) -> dict:
+    """The chunk from grid index k failed: advance point by point (sampling `sub` points per step between them into
+    `between`, a `simulation.between.Between`), then locate within the failing step."""
     t_acc, X_acc = [], []
     t = k * h
     for j in range(Kc):
         if time.perf_counter() - start > limit:
             break
         try:
-            Xj = runner.run(t, x, 1)
+            Xj, tb, Xb = runner.run_dense(t, x, 1, sub)
         except RuntimeError:
             res = locate_within(runner, comp, n, t, x, h)
             return {"t": ([np.array(t_acc)] if t_acc else []) + res["t"],
                     "X": ([np.array(X_acc)] if X_acc else []) + res["X"],
                     "status": res["status"], "message": res["message"], "breach": res["breach"]}
-        oj = evaluate_outputs(comp, n, np.array([t + h]), Xj)
-        bi, _ = bad_index(oj, Xj)
+        ta = np.concatenate([tb, [t + h]])
+        Xa = np.concatenate([Xb, Xj])
+        oa = evaluate_outputs(comp, n, ta, Xa)
+        bi, _ = bad_index(oa, Xa)
+        if between is not None:
+            upto = ta.size - 1 if bi is None else bi
+            between.update(ta[:upto], {key: v[:upto] for key, v in oa.items()}, sub)
         if bi is not None:
-            res = locate_within(runner, comp, n, t, x, h)
-            return {"t": ([np.array(t_acc)] if t_acc else []) + res["t"],
-                    "X": ([np.array(X_acc)] if X_acc else []) + res["X"],
+            ts, xs = (float(ta[bi - 1]), Xa[bi - 1]) if bi > 0 else (t, x)
+            res = locate_within(runner, comp, n, ts, xs, float(ta[bi]) - ts)
+            inner = [ta[:bi]] if bi > 0 else []
+            inner_X = [Xa[:bi]] if bi > 0 else []
+            return {"t": ([np.array(t_acc)] if t_acc else []) + inner + res["t"],
+                    "X": ([np.array(X_acc)] if X_acc else []) + inner_X + res["X"],
                     "status": res["status"], "message": res["message"], "breach": res["breach"]}
         t_acc.append(t + h)
         X_acc.append(Xj[0])
@@ -145,4 +154,3 @@ def locate_failure(runner: Runner, comp: Compiled, n: int, k: int, x: np.ndarray
            f"stopped at t = {t:.6g} s")
     return {"t": [np.array(t_acc)] if t_acc else [], "X": [np.array(X_acc)] if X_acc else [],
             "status": "failed", "message": msg, "breach": None}
-

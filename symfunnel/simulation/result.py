@@ -46,8 +46,32 @@ class SimResult:
             return sig[name]
         raise AttributeError(name)
 
+    @property
+    def between(self) -> dict:
+        """What the samples between the output points showed (`simulation.between`; empty without any)."""
+        return self.stats.get("between") or {}
+
+    def extreme(self, key: str) -> list[float | None]:
+        """Per joint, over the output points and the samples between them: the smallest margin (key 'm1', 'm2') or
+        the largest |tau| ('tau', 'tau_applied'); None where neither has a value."""
+        a = self.signals.get(key)
+        lowest = key in ("m1", "m2")
+        b = self.between.get({"m1": "min_margin_e1", "m2": "min_margin_e2", "tau": "max_abs_tau",
+                              "tau_applied": "max_abs_tau_applied"}[key]) or [None] * self.n
+        out = []
+        for j in range(self.n):
+            vals = []
+            if a is not None and a.shape[0]:
+                col = a[:, j] if lowest else np.abs(a[:, j])
+                vals.append(float(np.min(col) if lowest else np.max(col)))
+            if b[j] is not None:
+                vals.append(float(b[j]))
+            out.append((min(vals) if lowest else max(vals)) if vals else None)
+        return out
+
     def summary(self) -> dict:
-        """The JSON summary: margins, torque, ESN estimation error, wall time, integrator statistics."""
+        """The JSON summary: margins, torque (both over the output points and the samples between them), ESN
+        estimation error, wall time, integrator statistics."""
         s = self.signals
         T = self.t.size
 
@@ -64,11 +88,11 @@ class SimResult:
             "t_end": float(self.t[-1]) if T else 0.0,
             "t_final": self.stats.get("t_final"),
             "points": int(T),
-            "min_margin_e1": per_joint(lambda a: np.min(a, axis=0), "m1"),
-            "min_margin_e2": per_joint(lambda a: np.min(a, axis=0), "m2"),
+            "min_margin_e1": self.extreme("m1"),
+            "min_margin_e2": self.extreme("m2"),
             "max_abs_e1": per_joint(lambda a: np.max(np.abs(a), axis=0), "e1"),
-            "max_abs_tau": per_joint(lambda a: np.max(np.abs(a), axis=0), "tau"),
-            "max_abs_tau_applied": per_joint(lambda a: np.max(np.abs(a), axis=0), "tau_applied"),
+            "max_abs_tau": self.extreme("tau"),
+            "max_abs_tau_applied": self.extreme("tau_applied"),
             "rms_esn_error": per_joint(lambda a: np.sqrt(np.mean(a ** 2, axis=0)), "esn_error"),
             "rms_f_true": per_joint(lambda a: np.sqrt(np.mean(a ** 2, axis=0)), "f_true"),
             "max_abs_w_hat": float(np.max(np.abs(s["w_hat"]))) if T and "w_hat" in s else None,
@@ -88,6 +112,7 @@ class SimResult:
             "error_test_failures": self.stats.get("error_test_failures"),
             "events": self.stats.get("events"),
             "event_counts": self.stats.get("event_counts"),
+            "between_points": self.between or None,
         }
         if self.convergence is not None:
             out["convergence"] = self.convergence
@@ -178,9 +203,16 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
     sw = stats.get("sim_wall_time")
     t_end = float(t[-1]) if t.size else 0.0
     stats["realtime_factor"] = t_end / sw if sw else None
+    res = SimResult(scenario=sc.name, t=t, x=X, signals=signals, status=status, message=message, breach=breach,
+                    stats=stats, n=cl.n, gamma=gamma)
     if status == "ok":
-        message = (f"reached t = {t_end:g} s inside both funnels (min margin e1 "
-                   f"{np.min(o['m1']):.3g}, e2 {np.min(o['m2']):.3g})")
-    return SimResult(scenario=sc.name, t=t, x=X, signals=signals, status=status, message=message, breach=breach,
-                     stats=stats, n=cl.n, gamma=gamma)
+        res.message = ok_message(res)
+    return res
+
+
+def ok_message(res: SimResult) -> str:
+    """The message of a run that reached its final time inside both funnels (margins also between output points)."""
+    m1 = min(v for v in res.extreme("m1") if v is not None)
+    m2 = min(v for v in res.extreme("m2") if v is not None)
+    return (f"reached t = {float(res.t[-1]):g} s inside both funnels (min margin e1 {m1:.3g}, e2 {m2:.3g})")
 

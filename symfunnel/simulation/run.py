@@ -13,10 +13,13 @@ import numpy as np
 from ..core import deadline
 from .closedloop import ClosedLoop, build_closed_loop
 from ..core.errors import InputError
+from ..core.validate import check_horizon
 from ..family.integrators import INTEGRATORS
+from .between import (BETWEEN_MAX, MAX_REFINED_PER_CHUNK, SCAN_DIP, Between, MarginScan, density, refine,
+                      refine_peaks, scan_dips)
 from .breach import bad_index, describe_breach, locate_failure, locate_within
 from .compiled import APPROX_ESN_JACOBIAN, compile_closed_loop, evaluate_outputs
-from .result import SimResult, finish
+from .result import SimResult, finish, ok_message
 from .runner import Runner, Timeout
 
 if TYPE_CHECKING:
@@ -32,6 +35,56 @@ def _grid(t_final: float, dt: float) -> tuple[int, float]:
     """Number of output steps and the step that divides t_final evenly (at most dt)."""
     M = max(1, int(math.ceil(t_final / dt - 1e-9)))
     return M, t_final / M
+
+
+def _density(method: str, sim, sub: int) -> int:
+    """Samples per output step between output points: CVODES' own density (`sub`), or the fixed-step methods'."""
+    if method == "cvodes":
+        return sub
+    return density(sim.rk_substeps if method == "rk" else max(1, sim.rk_substeps // 2), 1)
+
+
+def _refine_chunk(runner, comp, n, mscan, t0, x, tc, X, ta, Xa, oa, is_out, between, used, lowest):
+    """The output steps of a chunk where its margins come closest to 0 -- the one holding its smallest sampled margin,
+    and those where the margin scan between samples dips -- integrated again on REFINE_POINTS points. Returns the
+    run's stop (as the chunk loop takes it) when such a step leaves a funnel, else None (its samples counted)."""
+    samp = np.fmin(oa["m1"].min(axis=1), oa["m2"].min(axis=1))
+    start_m = mscan.margins(np.array([t0]), x[None, mscan.q], x[None, mscan.dq])[0].min()
+    _, scan_m = mscan(np.concatenate([[t0], ta]), np.concatenate([x[None, :], Xa]))
+    gaps = scan_dips(scan_m, np.concatenate([[start_m], samp]))[:MAX_REFINED_PER_CHUNK]
+    iw = int(np.argmin(np.where(np.isfinite(samp), samp, np.inf)))
+    steps = set()
+    if samp[iw] < lowest + SCAN_DIP:     # it may be the run's smallest margin (or a breach): refine it
+        k_w = int(np.searchsorted(tc, ta[iw], side="left"))     # output step (tc[k-1], tc[k]] holds the sample
+        steps = {k_w, k_w + 1} if is_out[iw] else {k_w}           # at an output point: the step after it too
+    for g in gaps:                       # gap g lies between sample g - 1 (the start for g = 0) and sample g
+        steps.add(int(np.searchsorted(tc, ta[g], side="left")))
+    for q_ in sorted(k for k in steps if k < tc.size):
+        t_a, x_a = (t0, x) if q_ == 0 else (float(tc[q_ - 1]), X[q_ - 1])
+        r = refine(runner, comp, n, t_a, x_a, float(tc[q_]) - t_a)
+        if r is None:
+            continue
+        tr, Xr, orr = r
+        br, _ = bad_index(orr, Xr)
+        if br is None:                   # the scan inside the refined step: a dip narrower than its samples
+            Xg = np.concatenate([x_a[None, :], Xr])
+            st, sm = mscan(np.concatenate([[t_a], tr]), Xg)
+            flat = sm.min(axis=2).reshape(-1)
+            if flat.size and np.nanmin(flat) <= 0:
+                i = int(np.argmax(flat <= 0))
+                g, j = divmod(i, sm.shape[1])
+                t_s, x_s = float(st[g, j]), mscan.state(Xg, g, j)
+                o_s = evaluate_outputs(comp, n, np.array([t_s]), x_s[None, :])
+                tr, Xr = np.concatenate([tr[:g], [t_s]]), np.concatenate([Xr[:g], x_s[None, :]])
+                orr = {key: np.concatenate([v[:g], o_s[key]]) for key, v in orr.items()}
+                br = g
+        if br is not None:               # the run ends in this output step
+            before = ta <= t_a
+            return (np.concatenate([ta[before], tr]), np.concatenate([Xa[before], Xr]),
+                    {key: np.concatenate([v[before], orr[key]]) for key, v in oa.items()},
+                    np.concatenate([is_out[before], np.zeros(tr.size, bool)]), int(before.sum()) + br, used)
+        between.update(tr, orr, 0)
+    return None
 
 
 def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None, integrator: str | None = None,
@@ -56,6 +109,8 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
     if tf / sim.dt > 1e6:
         raise InputError(f"gives {tf / sim.dt:.3g} output points", key="--t-final",
                          expected="at most 1e6 output points (t_final/dt)")
+    check_horizon(float(tf), sim.dt, key="--t-final" if t_final is not None else "simulation.t_final",
+                  file=None if t_final is not None else sc.file)
     method = integrator or sim.integrator
     INTEGRATORS.get(method, key="--integrator")
     limit = sim.wall_limit if wall_limit is None else float(wall_limit)
@@ -128,6 +183,12 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
     k = 0                      # grid index reached
     x = x0
     K = 25
+    sub = BETWEEN_MAX          # samples per output step between the output points (the first chunk: the most)
+    between = Between(n)
+    lowest = float(np.min(np.fmin(o0["m1"], o0["m2"])))      # the smallest margin sampled so far
+    mscan = cl.__dict__.get("_margin_scan")
+    if mscan is None:
+        mscan = cl.__dict__["_margin_scan"] = MarginScan(design if closed_loop is None else cl.design, cl.slices)
     last_report = sim_start
     with deadline.paused():                    # the loop stops at `limit` itself, keeping the trajectory
         try:
@@ -138,35 +199,63 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
                 if elapsed > limit:
                     raise Timeout()
                 c0 = time.perf_counter()
+                steps0 = runner.stats["steps"]
                 try:
-                    X = runner.run(t0, x, Kc)
+                    X, tb, Xb = runner.run_dense(t0, x, Kc, _density(method, sim, sub))
                     failed = False
                 except RuntimeError:
                     X, failed = None, True
                 if failed:
                     # redo point by point to find the last good grid point, then locate within the step
-                    res = locate_failure(runner, comp, n, k, x, Kc, h, start, limit)
+                    res = locate_failure(runner, comp, n, k, x, Kc, h, start, limit, _density(method, sim, sub),
+                                         between)
                     t_list.extend(res["t"])
                     X_list.extend(res["X"])
                     status, message, breach = res["status"], res["message"], res["breach"]
                     break
+                used = _density(method, sim, sub)
+                if method == "cvodes":
+                    sub = density(runner.stats["steps"] - steps0, Kc)    # the integrator's own density
+                    if sub > used:                     # more steps than this chunk was sampled for: sample again
+                        X, tb, Xb = runner.run_dense(t0, x, Kc, sub)
+                        used = sub
                 tc = t0 + h * np.arange(1, Kc + 1)
                 tc[-1] = min(tc[-1], float(tf)) if k + Kc == M else tc[-1]
-                o = evaluate_outputs(comp, n, tc, X)
-                bi, kind = bad_index(o, X)
+                # every sample in time order: the output points and the samples between them
+                ta = np.concatenate([tc, tb])
+                order = np.argsort(ta, kind="stable")
+                ta, Xa = ta[order], np.concatenate([X, Xb])[order]
+                is_out = order < Kc
+                oa = evaluate_outputs(comp, n, ta, Xa)
+                bi, kind = bad_index(oa, Xa)
+                stop = None            # (samples in time order, their outputs, which are output points, first bad)
                 if bi is not None:
-                    t_list.append(tc[:bi])
-                    X_list.append(X[:bi])
-                    xs = X[bi - 1] if bi > 0 else x
-                    ts = tc[bi - 1] if bi > 0 else t0
-                    res = locate_within(runner, comp, n, ts, xs, h)
+                    stop = (ta, Xa, oa, is_out, bi, used)
+                else:
+                    stop = _refine_chunk(runner, comp, n, mscan, t0, x, tc, X, ta, Xa, oa, is_out, between, used,
+                                         lowest)
+                    samp_min = float(np.nanmin(np.fmin(oa["m1"].min(axis=1), oa["m2"].min(axis=1))))
+                    lowest = min(lowest, samp_min, float(np.nanmin(np.fmin(between.m1, between.m2))))
+                if stop is not None:
+                    sa, sX, so, sout, bi, used_ = stop
+                    inb = ~sout[:bi]
+                    between.update(sa[:bi][inb], {key: v[:bi][inb] for key, v in so.items()}, used_)
+                    last_out = int(np.flatnonzero(sout[:bi])[-1]) if sout[:bi].any() else -1
+                    t_list.append(sa[:bi][sout[:bi]])
+                    X_list.append(sX[:bi][sout[:bi]])
+                    if bi - last_out > 1:              # samples after the last good output point, up to the breach
+                        t_list.append(sa[last_out + 1:bi])
+                        X_list.append(sX[last_out + 1:bi])
+                    ts, xs = (float(sa[bi - 1]), sX[bi - 1]) if bi > 0 else (t0, x)
+                    res = locate_within(runner, comp, n, ts, xs, float(sa[bi]) - ts)
                     t_list.extend(res["t"])
                     X_list.extend(res["X"])
                     status, message, breach = res["status"], res["message"], res["breach"]
                     break
+                between.update(ta[~is_out], {key: v[~is_out] for key, v in oa.items()}, used)
                 t_list.append(tc)
                 X_list.append(X)
-                O_list.append(o)
+                O_list.append({key: np.array(v[is_out], order="F") for key, v in oa.items()})
                 k += Kc
                 x = X[-1]
                 spent = time.perf_counter() - c0
@@ -189,6 +278,13 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
             status = "timeout"
             message = (f"wall-clock limit of {limit:g} s reached at t = {tr:.6g} s of {tf:g} s; the trajectory so "
                        f"far is kept (raise simulation.wall_limit, or check the scenario for stiffness)")
+    between.unchecked = runner.unchecked
+    stats["between"] = between.to_json()
     stats["sim_wall_time"] = time.perf_counter() - sim_start
-    return finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list)
+    result = finish(sc, cl, comp, t_list, X_list, status, message, breach, stats, runner, start, O_list)
+    refine_peaks(result, runner, comp, between)
+    result.stats["between"] = between.to_json()
+    if result.status == "ok":
+        result.message = ok_message(result)
+    return result
 

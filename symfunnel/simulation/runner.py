@@ -33,20 +33,35 @@ class Runner:
         self._integrators: dict = comp.integrators
         self.stats = {"steps": 0, "rhs_evaluations": 0, "jacobian_evaluations": 0, "error_test_failures": 0,
                       "integrate_time": 0.0}
+        self.unchecked = 0          # chunks whose samples between output points could not be taken
 
-    def integrator(self, K: int, h: float | None = None) -> tuple[ca.Function, Buffered | None]:
+    def integrator(self, K: int, h: float | None = None, sub: int = 1) -> tuple[ca.Function, Buffered | None]:
         """An integrator over the relative output grid h, 2h, ..., K h (p = the chunk's start time), with its
-        evaluation on numpy buffers (None when an input or output is sparse)."""
+        evaluation on numpy buffers (None when an input or output is sparse). With sub > 1 (CVODES) the grid also
+        has sub - 1 points inside every step after the first (`between` module: the same steps as without)."""
         h = self.h if h is None else h
         key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps,
-               self.sim.max_step)
+               self.sim.max_step, sub)
         if key not in self._integrators:
-            sim = self.sim
-            grid = [h * (k + 1) for k in range(K)]
+            grid = self.grid(K, h, sub)
             opts = self._options(K, h)
-            F = ca.integrator(f"sim_{K}", self.method, self.comp.dae, 0.0, grid, opts)
+            if sub > 1:
+                # CVODES counts its step limit per output point: per stored output step as without the extra points
+                opts["max_num_steps"] = -(-opts["max_num_steps"] // sub)
+            F = ca.integrator(f"sim_{K}" + (f"x{sub}" if sub > 1 else ""), self.method, self.comp.dae, 0.0, grid,
+                              opts)
             self._integrators[key] = (F, Buffered(F, stats=True) if Buffered.supports(F) else None)
         return self._integrators[key]
+
+    @staticmethod
+    def grid(K: int, h: float, sub: int = 1) -> list[float]:
+        """The relative output times h, 2h, ..., K h, with sub - 1 points inside every step after the first."""
+        grid = []
+        for k in range(K):
+            grid.append(h * (k + 1))                  # the plain grid's times, bit for bit
+            if sub > 1 and k + 1 < K:
+                grid += [h * (k + 1) + j * (h / sub) for j in range(1, sub)]
+        return grid
 
     def _options(self, K: int, h: float) -> dict:
         opts = INTEGRATORS.get(self.method)(self.sim, h, self.h, K)
@@ -72,16 +87,54 @@ class Runner:
             self._integrators[key] = d
         return self._integrators[key]
 
-    def run(self, t0: float, x0: np.ndarray, K: int, h: float | None = None) -> np.ndarray:
-        """States (K, n_x), public order, at t0 + h, ..., t0 + K h; RuntimeError when the integrator fails."""
+    def run_dense(self, t0: float, x0: np.ndarray, K: int, sub: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """States (K, n_x) at t0 + h, ..., t0 + K h -- the same as `run`'s -- and samples between them about as dense
+        as the integrator's steps (`between` module): (X, t_between (B,), X_between (B, n_x)). RuntimeError when the
+        chunk's integration fails; a failing extra integration only leaves its samples out (`self.unchecked`)."""
+        h = self.h
+        none = np.zeros(0), np.zeros((0, x0.size))
+        if sub <= 1:
+            return self.run(t0, x0, K), *none
+        if self.method != "cvodes":
+            X = self.run(t0, x0, K)
+            try:
+                Xf = self.run(t0, x0, K * sub, h / sub, count=False)
+            except RuntimeError:
+                self.unchecked += 1
+                return X, *none
+            keep = np.arange(K * sub) % sub != sub - 1
+            tf = t0 + (h / sub) * np.arange(1, K * sub + 1)
+            return X, tf[keep], Xf[keep]
+        try:
+            Xg = self.run(t0, x0, K, sub=sub)
+        except RuntimeError:
+            return self.run(t0, x0, K), *none        # the plain grid decides (its failure is the run's)
+        idx = np.arange(Xg.shape[0])
+        stored = idx % sub == 0
+        X = Xg[stored]
+        t_in = np.concatenate([[h * (k + 1) + j * (h / sub) for j in range(1, sub)] for k in range(K - 1)]) \
+            if K > 1 else np.zeros(0)
+        tb, Xb = t0 + t_in, Xg[~stored]
+        try:                                           # the first output step: its own grid of sub points
+            X1 = self.run(t0, x0, sub, h / sub, count=False)
+            t1 = t0 + (h / sub) * np.arange(1, sub)
+            tb, Xb = np.concatenate([t1, tb]), np.concatenate([X1[:-1], Xb])
+        except RuntimeError:
+            self.unchecked += 1
+        return X, tb, Xb
+
+    def run(self, t0: float, x0: np.ndarray, K: int, h: float | None = None, *, sub: int = 1,
+            count: bool = True) -> np.ndarray:
+        """States (K, n_x), public order, at t0 + h, ..., t0 + K h (with `sub`, the dense grid of `integrator`);
+        RuntimeError when the integrator fails. `count=False`: an extra integration, left out of the statistics."""
         p = np.concatenate([[t0], self.comp.pvals])
         D = self.direct()
         if D is not None:
             self.stats["cvodes_backend"] = "direct"
-            return self._run_direct(D, p, x0, K, self.h if h is None else h)
+            return self._run_direct(D, p, x0, K, self.h if h is None else h, sub, count)
         if self.method == "cvodes":
             self.stats["cvodes_backend"] = "casadi"
-        F, B = self.integrator(K, h)
+        F, B = self.integrator(K, h, sub)
         c0 = time.perf_counter()
         xf = None
         if B is not None:
@@ -104,7 +157,9 @@ class Runner:
                 raise
             st = F.stats()
         self.stats["integrate_time"] += time.perf_counter() - c0
-        if self.method == "cvodes":
+        if not count:
+            pass
+        elif self.method == "cvodes":
             self.stats["steps"] += int(st.get("nsteps", 0))
             self.stats["rhs_evaluations"] += int(st.get("nfevals", 0))
             self.stats["jacobian_evaluations"] += int(st.get("n_call_jacF", 0))
@@ -112,10 +167,11 @@ class Runner:
         else:
             self.stats["steps"] += int(st.get("n_call_step", 0)) * 1
             self.stats["rhs_evaluations"] += int(st.get("n_call_daeF", 0))
-        return xf.reshape(K, -1)[:, self.inv]
+        return xf.reshape(-1, self.comp.dae.nnz_out(0))[:, self.inv]
 
-    def _run_direct(self, D: sundials.DirectCvodes, p: np.ndarray, x0: np.ndarray, K: int, h: float) -> np.ndarray:
-        grid = np.array([h * (k + 1) for k in range(K)], dtype=float)   # the very doubles casadi.integrator's grid holds
+    def _run_direct(self, D: sundials.DirectCvodes, p: np.ndarray, x0: np.ndarray, K: int, h: float, sub: int = 1,
+                    count: bool = True) -> np.ndarray:
+        grid = np.array(self.grid(K, h, sub), dtype=float)   # the very doubles casadi.integrator's grid holds
         c0 = time.perf_counter()
         try:
             X, st = D.run(p, x0[self.perm], grid)
@@ -124,6 +180,8 @@ class Runner:
             raise
         finally:
             self.stats["integrate_time"] += time.perf_counter() - c0
+        if not count:
+            return X[:, self.inv]
         self.stats["steps"] += st["nsteps"]
         self.stats["rhs_evaluations"] += st["nfevals"]
         self.stats["jacobian_evaluations"] += st["n_call_jacF"]

@@ -194,9 +194,16 @@ class GradientProblem:
         return r
 
     def _solve(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int, say, warm: bool = False) -> dict:
-        """One IPOPT run on this problem's horizon; `warm`: z0 is feasible and near a solution, so the barrier starts
-        small (IPOPT's default mu_init = 0.1 first pushes the epigraph variable and every slack away from their
-        bounds, which costs iterations to undo)."""
+        """One IPOPT run on this problem's horizon. What CasADi and IPOPT print themselves (a failed evaluation dumps
+        its arguments, hundreds of lines) is silenced at the file descriptors and summarised in one warning line."""
+        from ..core.lifecycle import quiet_c_output
+        with quiet_c_output("IPOPT"):
+            return self._ipopt(z0, objective=objective, ref=ref, wall_s=wall_s, max_iter=max_iter, say=say, warm=warm)
+
+    def _ipopt(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int, say, warm: bool = False) -> dict:
+        """`_solve`'s IPOPT run; `warm`: z0 is feasible and near a solution, so the barrier starts small (IPOPT's
+        default mu_init = 0.1 first pushes the epigraph variable and every slack away from their bounds, which costs
+        iterations to undo)."""
         d = self.d
         zM = self._z
         if objective == "peak_torque":

@@ -12,11 +12,12 @@ typedef int (*sfs_casadi_fn)(const double **arg, double **res, int *iw, double *
 
 /* Returns 0 at the end, 1 when stopped after leaving a funnel, the step's code (< 0) on its error, -100 when the
  * plant function failed, -101 for too many joints. k_end: samples done; outside: first sample outside (or -1).
- * Plant arguments: arg[0] = t0 (1), arg[1] = x (2n), arg[2] = tau (n); res[0] = x at t0 + h (2n).
- * X: (K+1) x 2n states, row 0 set by the caller; TAU: K x n applied torques. */
+ * Plant arguments: arg[0] = t0 (1), arg[1] = x (2n), arg[2] = tau (n); res[0] = x at t0 + h (2n), res[1] (when MB
+ * is not NULL) = the smallest true margins over the plant's steps within the period (2n).
+ * X: (K+1) x 2n states, row 0 set by the caller; TAU: K x n applied torques; MB: K x 2n or NULL. */
 int sfs_loop(sfs_step_fn step, void *state, sfs_casadi_fn plant, const double **arg, double **res, int *iw,
              double *w, int n, long K, double h, const double *nq, const double *ndq, double resolution,
-             int delay, int stop_on_breach, double *X, double *TAU, long *k_end, long *outside) {
+             int delay, int stop_on_breach, double *X, double *TAU, double *MB, long *k_end, long *outside) {
   double qm[SFS_MAX_N], dqm[SFS_MAX_N], tau[SFS_MAX_N], pending[SFS_MAX_N];
   double *t0 = (double *) arg[0], *xin = (double *) arg[1], *u = (double *) arg[2];
   const double *xf = res[0];
@@ -56,6 +57,7 @@ int sfs_loop(sfs_step_fn step, void *state, sfs_casadi_fn plant, const double **
       return -100;
     }
     memcpy(X + (k + 1) * 2 * n, xf, 2 * n * sizeof(double));
+    if (MB) memcpy(MB + k * 2 * n, res[1], 2 * n * sizeof(double));
     if (stop_on_breach && *outside >= 0 && k - *outside >= 1) {
       *k_end = k + 1;
       return 1;
