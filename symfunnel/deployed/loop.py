@@ -359,10 +359,11 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
                     "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
                     "encoder_resolution": impl.encoder_resolution,
                     "between_checked": "the true margins at every RK4 step of the plant between samples"},
-                   MB=MB, subs=subs)
+                   MB=MB, subs=subs, stop_on_breach=stop_on_breach)
 
 
-def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, MB=None, subs=None) -> SampledResult:
+def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, MB=None, subs=None,
+            stop_on_breach: bool = True) -> SampledResult:
     """The SampledResult of a loop that ended at sample k_end: true margins at the samples (and at the plant's steps
     between them, MB, where the loop has them), breach, status."""
     n = sc.n
@@ -448,7 +449,8 @@ def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, s
              "delay_samples": impl.delay_samples, "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
              "encoder_resolution": impl.encoder_resolution,
              "between_checked": "none: the engine's margins are checked at the samples only"}
-    return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats)
+    return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats,
+                   stop_on_breach=stop_on_breach)
 
 
 def _engine_mass_scale(setup, run) -> list[float]:

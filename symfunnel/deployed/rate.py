@@ -61,8 +61,11 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
         hi = r
         while lo is None:
             r2 = hi / 4
+            from ..core.validate import MIN_HORIZON_STEPS
             from .loop import min_rate_hz
-            if r2 < max(MIN_RATE_HZ, min_rate_hz(scenario)):
+            T = float(t_final if t_final is not None else scenario.simulation.t_final)
+            # no lower than the plant's own floor, nor than a period the horizon holds MIN_HORIZON_STEPS of
+            if r2 < max(MIN_RATE_HZ, min_rate_hz(scenario), MIN_HORIZON_STEPS / T):
                 return {"min_rate_hz": hi, "margin": margin, "tried": tried, "engine": engine}
             if holds(r2):
                 hi = r2
