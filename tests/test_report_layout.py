@@ -27,6 +27,7 @@ MIN_FONT_PX = 9.0       # smallest readable glyph (the page's base size is 16 px
 
 PROBE = r"""<script>
 window.addEventListener('load', function () {
+  document.querySelectorAll('details').forEach(function (d) { d.open = true; });   // measure what a click shows
   var out = {width: document.documentElement.clientWidth, maths: []};
   document.querySelectorAll('math').forEach(function (m) {
     var r = {left: 1e9, right: -1e9, top: 1e9, bottom: -1e9}, fs = 1e9;

@@ -72,6 +72,20 @@ class SampledResult:
         return float(m.min()) if m.size and self.status != "failed" else -math.inf
 
     @property
+    def min_margin_after_transient(self) -> float:
+        """The smallest true margin over the samples at t >= the settle time (`simulation.margins`), joints and both
+        funnels; at a breach the breach's margin wherever it happened; -inf when the run failed or ended before."""
+        if self.status == "failed":
+            return -math.inf
+        from ..simulation.margins import after_transient
+        mins, _ = after_transient(self.t, self.margins, float(self.stats.get("settle_time", 0.0)))
+        vals = [v for v in mins if v is not None]
+        m = min(vals) if vals else -math.inf
+        if self.breach is not None:
+            m = min(m, float(self.breach["margin"]))
+        return float(m)
+
+    @property
     def saturated_fraction(self) -> list[float] | None:
         """Per joint, the fraction of the run's time its torque sat at tau_max (None without a limit)."""
         if self.tau_max is None or self.tau.shape[0] == 0:
@@ -87,12 +101,22 @@ class SampledResult:
                 "t_end": float(self.t[-1]), "samples": int(self.tau.shape[0]),
                 "min_margin_e1": np.nanmin(m[:, :n], axis=0).tolist() if m.size else None,
                 "min_margin_e2": np.nanmin(m[:, n:], axis=0).tolist() if m.size else None,
+                **({} if not m.size else self._post_transient(n)),
                 "max_abs_tau": np.max(np.abs(self.tau), axis=0).tolist() if self.tau.size else None,
                 "tau_max": None if self.tau_max is None else list(self.tau_max),
                 "saturated_fraction": self.saturated_fraction, "breach": self.breach,
                 "wall_time": self.wall_time,
                 "realtime_factor": float(self.t[-1] / self.wall_time) if self.wall_time > 0 else None,
                 **self.stats}
+
+
+    def _post_transient(self, n: int) -> dict:
+        from ..simulation.margins import after_transient
+        ts = float(self.stats.get("settle_time", 0.0))
+        m1, t1 = after_transient(self.t, self.margins[:, :n], ts)
+        m2, t2 = after_transient(self.t, self.margins[:, n:], ts)
+        return {"min_margin_e1_after_transient": m1, "min_margin_e2_after_transient": m2,
+                "t_min_margin_e1_after_transient": t1, "t_min_margin_e2_after_transient": t2}
 
 
 class StepLibrary:
@@ -351,9 +375,21 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
                   "margin": float(M[i, j])}
         status = "breach"
         message = f"left funnel {breach['funnel']} (joint {breach['joint']}) at t = {tt[i]:g} s"
+        from ..simulation.hints import breach_hint
+        from ..simulation.result import scenario_arg
+        st = {}
+        if isinstance(controller, StepLibrary):
+            st = {"x_esn": np.array(controller.x_esn), "w_hat": np.array(controller.w_hat)}
+        breach["hint"] = breach_hint(design, t=float(tt[i]), q=Q[i], dq=DQ[i], funnel=breach["funnel"],
+                                     joint=breach["joint"], tau_max=impl.tau_max, sampled_rate=impl.rate_hz,
+                                     scenario_arg=scenario_arg(sc), **st)
+        message += f"; what to do: {breach['hint']}"
+    from ..simulation.margins import settle_time
+    ts, how = settle_time(design, T, sc.simulation.settle_time)
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
                          {"plant_substeps": subs, "delay_samples": impl.delay_samples, "noise_q": impl.noise_q,
-                          "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution})
+                          "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution,
+                          "settle_time": ts, "settle_source": how})
 
 
 def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):

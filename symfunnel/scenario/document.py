@@ -105,6 +105,7 @@ class SimulationSpec:
     wall_limit: float = 300.0
     rk_substeps: int = 10
     max_step: float = 0.0            # CVODES' largest step in seconds, 0 = unlimited
+    settle_time: float | None = None  # start of the post-transient margins [s]; None: where the funnels settle
 
 
 @dataclass

@@ -169,7 +169,8 @@ def parse_plant(table: Any, n: int, file: str, model) -> PlantSpec:
 def parse_simulation(table: Any, file: str) -> SimulationSpec:
     p = "simulation"
     V.check_keys(table, ["t_final", "dt", "integrator", "rtol", "atol", "smoothing_width",
-                         "convergence_widths", "wall_limit", "rk_substeps", "max_step"], file=file, prefix=p)
+                         "convergence_widths", "wall_limit", "rk_substeps", "max_step", "settle_time"], file=file,
+                 prefix=p)
     d = SimulationSpec()
     t_final = V.get_float(table, "t_final", d.t_final, file=file, prefix=p, minimum=0, strict_min=True,
                           maximum=1e6)
@@ -193,6 +194,8 @@ def parse_simulation(table: Any, file: str) -> SimulationSpec:
         rk_substeps=V.get_int(table, "rk_substeps", d.rk_substeps, file=file, prefix=p, minimum=1,
                               maximum=10000),
         max_step=V.get_float(table, "max_step", d.max_step, file=file, prefix=p, minimum=0),
+        settle_time=(None if "settle_time" not in table else
+                     V.get_float(table, "settle_time", 0.0, file=file, prefix=p, minimum=0, maximum=t_final)),
     )
 
 

@@ -64,8 +64,7 @@ class SimResult:
             "t_end": float(self.t[-1]) if T else 0.0,
             "t_final": self.stats.get("t_final"),
             "points": int(T),
-            "min_margin_e1": per_joint(lambda a: np.min(a, axis=0), "m1"),
-            "min_margin_e2": per_joint(lambda a: np.min(a, axis=0), "m2"),
+            **self.margins(),
             "max_abs_e1": per_joint(lambda a: np.max(np.abs(a), axis=0), "e1"),
             "max_abs_tau": per_joint(lambda a: np.max(np.abs(a), axis=0), "tau"),
             "max_abs_tau_applied": per_joint(lambda a: np.max(np.abs(a), axis=0), "tau_applied"),
@@ -91,6 +90,17 @@ class SimResult:
         if self.convergence is not None:
             out["convergence"] = self.convergence
         return json_safe(out)
+
+    def margins(self) -> dict:
+        """Whole-run and post-transient margin minima per joint, with their times and the settle time used
+        (`simulation.margins`)."""
+        from .margins import margin_summary
+        s = self.signals
+        n = max(self.n, 1)
+        m1 = s.get("m1", np.zeros((0, n)))
+        m2 = s.get("m2", np.zeros((0, n)))
+        return margin_summary(self.t, m1, m2, float(self.stats.get("settle_time", 0.0)),
+                              self.stats.get("settle_source", ""))
 
     def to_json(self) -> dict:
         """The JSON summary (as `simulate --json`)."""
@@ -174,12 +184,32 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
     stats["event_counts"] = ev
     stats["events"] = int(sum(ev.values())) + (1 if status == "breach" else 0)
     stats["wall_time"] = wall
+    if "settle_time" not in stats:
+        from .margins import settle_time
+        stats["settle_time"], stats["settle_source"] = settle_time(
+            cl.design, stats.get("t_final") or sc.simulation.t_final, sc.simulation.settle_time)
     sw = stats.get("sim_wall_time")
     t_end = float(t[-1]) if t.size else 0.0
     stats["realtime_factor"] = t_end / sw if sw else None
     if status == "ok":
         message = (f"reached t = {t_end:g} s inside both funnels (min margin e1 "
                    f"{np.min(o['m1']):.3g}, e2 {np.min(o['m2']):.3g})")
+    elif status in ("breach", "initial_outside") and breach is not None and t.size:
+        from .hints import breach_hint
+        p = parts
+        hint = breach_hint(cl.design, t=float(t[-1]), q=p["q"][-1], dq=p["dq"][-1],
+                           x_esn=p["x_esn"][-1] if "x_esn" in p else None,
+                           w_hat=p["w_hat"][-1] if "w_hat" in p else None, funnel=breach["funnel"],
+                           joint=int(breach["joint"]), tau_max=sc.tune.tau_max if sc.tune is not None else None,
+                           scenario_arg=scenario_arg(sc))
+        breach = {**breach, "hint": hint}
+        message += f"; what to do: {hint}"
     return SimResult(scenario=sc.name, t=t, x=X, signals=signals, status=status, message=message, breach=breach,
                      stats=stats, n=cl.n, gamma=gamma)
 
+
+
+def scenario_arg(sc) -> str:
+    """How a command line names the scenario: its built-in name or its file."""
+    from ..scenario import is_builtin
+    return sc.name if is_builtin(sc.path) else str(sc.file)

@@ -48,6 +48,17 @@ GRADIENT_SOBOL_STARTS = 2
 INFEASIBLE = 1e3
 #: feasible designs (best first) that go through verify's gate before tune reports infeasible
 GATE_TRIES = 3
+#: share of --wall-limit the search may use; the rest is kept for the re-check after rounding and verify's gate
+#: (the gate of the paper takes 11 s of a 240 s limit here, a new design's first compile adds about 7 s)
+SEARCH_SHARE = 0.8
+#: the gradient path is chosen (method "auto") only when this many IPOPT iterations fit the search's time, each
+#: costing about d + 2 forward solves of the sensitivity problem (one timed forward solve decides, measured in a
+#: child process killed at its share of the time: on the paper one forward solve takes 17 s, so 8 iterations of 7
+#: solves would need about 950 s, and the derivative-free search is chosen)
+MIN_IPOPT_ITERATIONS = 8
+#: significant digits of the gains tune writes (re-checked after rounding; more digits when rounding breaks them)
+DIGITS = 4
+METHODS = ("auto", "gradient", "derivative-free")
 
 
 class _OutOfTime(Exception):
@@ -235,7 +246,9 @@ class Evaluator:
     def _sampled(self, sc, design, ctrl) -> tuple[dict, dict]:
         from ..deployed.loop import simulate_sampled
         res = simulate_sampled(sc, t_final=self.T, design=design, controller=ctrl)
-        g = {"containment": self._containment(res.ok, res.min_margin, float(res.t[-1]))}
+        # ranked by the margin after the transient: the margin at t = 0 is the initial condition's, the same for
+        # every candidate (a breach counts wherever it happened)
+        g = {"containment": self._containment(res.ok, res.min_margin_after_transient, float(res.t[-1]))}
         peak = float(np.max(np.abs(res.tau))) if res.tau.size else 0.0
         if res.tau_max is not None:
             frac = max(res.saturated_fraction or [0.0])
@@ -256,7 +269,8 @@ class Evaluator:
             warnings.simplefilter("ignore")
             res = simulate(sc, design, t_final=self.T)
         s = res.signals
-        mm = [float(np.min(s[k])) for k in ("m1", "m2") if s[k].size]
+        mg = res.margins()          # ranked by the margin after the transient (see _sampled)
+        mm = [v for k in ("e1", "e2") for v in mg[f"min_margin_{k}_after_transient"] if v is not None]
         if res.breach is not None:
             mm.append(float(res.breach["margin"]))
         t_end = float(res.t[-1]) if res.t.size else 0.0
@@ -315,6 +329,7 @@ class TuneResult:
     gate: dict
     tuned_raw: dict
     notes: list[str]
+    tuned_text: str = ""
     comparison: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -328,8 +343,16 @@ class TuneResult:
 
 
 def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,
-         max_evaluations: int | None = None, gate: bool = True) -> TuneResult:
-    """Search the `[tune]` parameters of a scenario (see the module doc); never changes the specification."""
+         max_evaluations: int | None = None, gate: bool = True, method: str = "auto") -> TuneResult:
+    """Search the `[tune]` parameters of a scenario (see the module doc); never changes the specification.
+
+    The whole call keeps `wall_limit` seconds (the search stops at SEARCH_SHARE of it, an evaluation in progress
+    is interrupted at the limit, IPOPT runs in a child process that is killed at the limit) and at most
+    `max_evaluations` full-simulation evaluations of candidates. `method`: "auto" (the gradient path without
+    `[implementation]` when a timed forward solve says MIN_IPOPT_ITERATIONS iterations fit the time, else
+    derivative-free), "gradient" or "derivative-free". Gains are rounded to DIGITS significant digits and the
+    rounded design is re-checked.
+    """
     from scipy.optimize import minimize
     from scipy.stats import qmc
     say = progress or (lambda s: None)
@@ -337,7 +360,11 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     if spec.objective == "min_rate" and scenario.implementation is None:
         raise InputError("is 'min_rate' but the scenario has no [implementation]", file=scenario.file,
                          key="tune.objective", expected="an [implementation] section or peak_torque / ise")
+    if method not in METHODS:
+        raise InputError(f"is {method!r}", key="--method", expected="one of " + ", ".join(METHODS))
     t0 = time.perf_counter()
+    m0 = time.monotonic()
+    search_end = t0 + SEARCH_SHARE * wall_limit
     ev = Evaluator(scenario, spec, t_final=t_final, progress=say)
     vars_ = variables(scenario, spec)
     d = len(vars_)
@@ -347,7 +374,10 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         f"{spec.objective}, margin {spec.margin:g}, {len(ev.samples)} uncertainty sample(s) + nominal, horizon "
         f"{ev.T:g} s, {loop}")
     user = [v.user_x() for v in vars_]
-    before = ev.evaluate(vars_, user)
+    from ..core import deadline as DL
+    with DL.until(m0 + wall_limit, wall_limit, m0):
+        before = ev.evaluate(vars_, user)
+    t_user = time.perf_counter() - t0
     say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
         + ", ".join(f"{k} {g:+.3g}" for k, g in before.constraints.items()))
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
@@ -366,20 +396,33 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         key = tuple(round(x, 10) for x in xs)
         if key in seen:
             return _score(seen[key], spec.objective, ref)
-        if final:
-            pass
-        elif time.perf_counter() - t0 > wall_limit:
-            raise _OutOfTime(f"search stopped at the wall-clock limit ({wall_limit:g} s)")
-        if max_evaluations and ev.count >= max_evaluations:
+        now = time.perf_counter()
+        if not final and now >= search_end:
+            raise _OutOfTime(f"search stopped at the wall-clock limit ({SEARCH_SHARE:.0%} of --wall-limit "
+                             f"{wall_limit:g} s; the rest is kept for the checks of the result)")
+        if not final and max_evaluations and ev.count >= max_evaluations:
             raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
-        c = ev.evaluate(vars_, xs)
+        # an evaluation in progress is interrupted at the limit (a simulation stops there, a compile is killed)
+        try:
+            with DL.until(m0 + (search_end - t0) if not final else m0 + wall_limit, wall_limit, m0):
+                c = ev.evaluate(vars_, xs)
+        except DL.WallLimitReached:
+            raise _OutOfTime(f"search stopped at the wall-clock limit ({SEARCH_SHARE:.0%} of --wall-limit "
+                             f"{wall_limit:g} s) during an evaluation") from None
         seen[key] = c
         s = record(c)
         b = best[0]
-        say(f"eval {ev.count}: {'feasible' if c.feasible else 'infeasible'} "
+        elapsed = time.perf_counter() - t0
+        per = elapsed / max(ev.count, 1)
+        left = search_end - time.perf_counter()
+        if max_evaluations:
+            left = min(left, per * max(max_evaluations - ev.count, 0))
+        say(f"eval {ev.count}{f' of at most {max_evaluations}' if max_evaluations else ''}: "
+            f"{'feasible' if c.feasible else 'infeasible'} "
             + ", ".join(f"{k} {g:+.3g}" for k, g in c.constraints.items())
             + (f", {spec.objective} {c.figures.get(spec.objective, math.nan):.4g}" if c.figures else f" ({c.note})")
-            + f" | best {'feasible' if b.feasible else 'infeasible'} {_score(b, spec.objective, ref):.4g}")
+            + f" | best {'feasible' if b.feasible else 'infeasible'} {_score(b, spec.objective, ref):.4g}"
+            + f" | {elapsed:.0f} s, ETA {max(left, 0.0):.0f} s")
         return s
 
     if all(v.lo <= x <= v.hi for v, x in zip(vars_, user)):
@@ -390,14 +433,21 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
     method, why = METHOD, WHY
     stopped = None
-    if scenario.implementation is None:
+    if scenario.implementation is None and method != "derivative-free":
         use, reason = _gradient_sound()
+        gp = None
+        if use:
+            from .gradient import GradientProblem
+            gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max,
+                                 sample_values=ev.sample_values)
+        if use and method == "auto":
+            use, reason = _gradient_fits(gp, z_user, len(vars_), search_end - time.perf_counter(), say)
         if use:
             method, why = GRADIENT_METHOD, GRADIENT_WHY
             say(f"method: {method} ({why})")
             failed = None
             try:
-                _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, deadline=t0 + wall_limit,
+                _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, deadline=search_end,
                                  max_evaluations=max_evaluations)
             except _OutOfTime as exc:
                 stopped = str(exc)
@@ -417,6 +467,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 why = f"{GRADIENT_WHY}; IPOPT stopped with an error ({failed}) after a design that holds"
         else:
             why = f"{WHY_NO_GRADIENT} ({reason})"
+    elif scenario.implementation is None:
+        why = "derivative-free search requested (method derivative-free)"
     if method.endswith(METHOD) and stopped is None:
         if method == METHOD:
             say(f"method: {method} ({why})")
@@ -450,8 +502,20 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                                                                          zip(vars_, c.xs))),
                         key=lambda c: _score(c, spec.objective, ref))
         for i, c in enumerate(ranked[:GATE_TRIES]):
-            say(f"verify's gate on the tuned scenario (design {i + 1} of the ranking)")
-            gate_info = verify_gate(ev.scenario(apply(scenario.raw, vars_, c.xs)), progress=say)
+            try:
+                with DL.until(m0 + wall_limit, wall_limit, m0):
+                    c = _rounded(c, vars_, ev, say)
+                    say(f"verify's gate on the tuned scenario (design {i + 1} of the ranking)")
+                    gate_info = verify_gate(ev.scenario(apply(scenario.raw, vars_, c.xs)), progress=say)
+            except DL.WallLimitReached:
+                gate_info = {"status": "not completed", "unexpected": []}
+                notes.append(f"verify's gate on design {i + 1} did not finish within --wall-limit {wall_limit:g} s")
+                status = "infeasible"
+                binding = binding + ["verify.gate (not completed within --wall-limit)"]
+                break
+            if c is None:
+                notes.append(f"design {i + 1} of the ranking does not hold once its values are rounded")
+                continue
             if gate_info["status"] == "pass":
                 b = c
                 break
@@ -459,6 +523,12 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         else:
             status = "infeasible"
             binding = binding + [f"verify.{c}" for c in gate_info.get("unexpected", [])]
+    if b.feasible and not gate and best[0] is not None:
+        with DL.until(m0 + wall_limit, wall_limit, m0):
+            b = _rounded(b, vars_, ev, say) or b
+    elif not b.feasible:               # the closest design, written readably (it does not hold either way)
+        b = Candidate([min(v.hi, max(v.lo, round_sig(x, DIGITS))) for v, x in zip(vars_, b.xs)], b.constraints,
+                      b.figures, b.note, b.worst_run)
     tuned = apply(scenario.raw, vars_, b.xs)
     changes = []
     for v, x in zip(vars_, b.xs):
@@ -476,7 +546,68 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                      "worst_run": b.worst_run, "before_feasible": before.feasible},
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
         gate=gate_info, tuned_raw=tuned, notes=notes,
+        tuned_text=tuned_toml(scenario, tuned, sorted({v.key for v in vars_})),
         comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
+
+
+def tuned_toml(scenario, tuned: dict, keys: list[str]) -> str:
+    """The tuned scenario as TOML: the user's own file edited (tomlkit: comments, order and layout kept), the tuned
+    keys set (each keeping its line's comment) and the new `[[deviations]]` entries appended; a scenario without a
+    readable file is written whole."""
+    import tomlkit
+    from ..core.toml_write import dumps
+    try:
+        doc = tomlkit.parse(scenario.path.read_text(encoding="utf-8"))
+    except (OSError, TypeError, AttributeError, tomlkit.exceptions.TOMLKitError):
+        return dumps(tuned)
+    orig = scenario.raw
+    for key in keys:
+        *path, leaf = key.split(".")
+        new, old = tuned, orig
+        for p in path + [leaf]:
+            new = new.get(p) if isinstance(new, dict) else None
+            old = old.get(p) if isinstance(old, dict) else None
+        if new is None or new == old:
+            continue
+        t = doc
+        for p in path:
+            if p not in t:
+                t[p] = tomlkit.table()
+            t = t[p]
+        item = tomlkit.item(new)
+        prev = t.get(leaf) if hasattr(t, "get") else None
+        if prev is not None and hasattr(prev, "trivia") and prev.trivia.comment:
+            item.trivia.comment_ws = prev.trivia.comment_ws or "  "
+            item.trivia.comment = prev.trivia.comment
+        t[leaf] = item
+    added = (tuned.get("deviations") or [])[len(orig.get("deviations") or []):]
+    if added:
+        if "deviations" not in doc:
+            doc["deviations"] = tomlkit.aot()
+        for d in added:
+            doc["deviations"].append(dict(d))
+    return tomlkit.dumps(doc)
+
+
+def round_sig(x: float, digits: int) -> float:
+    """x rounded to `digits` significant digits."""
+    return float(f"{float(x):.{int(digits)}g}")
+
+
+def _rounded(c: Candidate, vars_, ev: Evaluator, say) -> Candidate | None:
+    """The candidate with its values rounded to DIGITS significant digits (more, up to 8, when rounding breaks a
+    constraint), re-checked by a full evaluation; None when no rounding holds (the exact values are never
+    written: a file with 17 digits is not what a user can read or type)."""
+    for digits in range(DIGITS, 9):
+        xs = [min(v.hi, max(v.lo, round_sig(x, digits))) for v, x in zip(vars_, c.xs)]
+        if xs == list(c.xs):
+            return c
+        r = ev.evaluate(vars_, xs)
+        say(f"rounded to {digits} significant digits: {'holds' if r.feasible else 'does not hold'} ("
+            + ", ".join(f"{k} {g:+.3g}" for k, g in r.constraints.items()) + ")")
+        if r.feasible:
+            return r
+    return None
 
 
 def _last_line(exc: Exception) -> str:
@@ -493,14 +624,113 @@ def _gradient_sound() -> tuple[bool, str]:
     return True, ""
 
 
-def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline: float,
+def _gradient_fits(gp, z0, d: int, budget: float, say) -> tuple[bool, str]:
+    """Whether MIN_IPOPT_ITERATIONS IPOPT iterations (about d + 2 forward solves each) fit `budget` seconds: one
+    forward solve is timed in a child process that is killed at its share of the budget."""
+    share = budget / (MIN_IPOPT_ITERATIONS * (d + 2))
+    say(f"timing one forward solve of the sensitivity problem (at most {share:.1f} s, the share that "
+        f"{MIN_IPOPT_ITERATIONS} IPOPT iterations may have)")
+    t = time.perf_counter()
+    kind, _ = _in_child(lambda send: np.asarray(gp.g(np.asarray(z0, float)), float).size, share, say)
+    took = time.perf_counter() - t
+    if kind == "done":
+        return True, ""
+    if kind == "timeout":
+        return False, (f"one forward solve of the sensitivity problem takes more than {share:.1f} s, so "
+                       f"{MIN_IPOPT_ITERATIONS} IPOPT iterations of about {d + 2} solves each would not fit the "
+                       f"{budget:.0f} s the search has (measured; force it with --method gradient)")
+    return False, f"the sensitivity problem does not evaluate at the user's design ({_})"
+
+
+def _in_child(fn, timeout: float, say=None):
+    """Run fn(send) in a forked child process and wait at most `timeout` s: ("done", result), ("timeout", None)
+    or ("error", text). `send(("say", line))` prints a progress line in the parent, `send(("best", obj))` keeps
+    obj (the last one is returned as the result of a timeout: ("timeout", obj)). The child runs in its own process
+    group, which is killed at the timeout, on an interrupt and on any error of the parent (nothing is left behind).
+
+    A CasADi call (an IPOPT iteration, a CVODES solve) cannot be interrupted by a signal in the process that makes
+    it; a child process can be killed."""
+    import os
+    import pickle
+    import select
+    import signal
+    import struct
+    say = say or (lambda s: None)
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                  # the child: compute, report, exit without cleanup handlers
+        code = 0
+        try:
+            os.close(r)
+            os.setpgid(0, 0)
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+            def send(obj):
+                data = pickle.dumps(obj)
+                data = struct.pack("!I", len(data)) + data
+                while data:
+                    data = data[os.write(w, data):]
+            try:
+                send(("done", fn(send)))
+            except BaseException as exc:          # noqa: BLE001 - reported to the parent
+                send(("error", f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"))
+        except BaseException:                     # noqa: BLE001
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(w)
+    end = time.monotonic() + max(float(timeout), 0.0)
+    buf, best, result = b"", None, None
+    alive = True
+    try:
+        while True:
+            wait = end - time.monotonic()
+            if wait <= 0:
+                return "timeout", best
+            ready, _, _ = select.select([r], [], [], wait)
+            if not ready:
+                continue
+            chunk = os.read(r, 1 << 16)
+            if not chunk:
+                break
+            buf += chunk
+            while len(buf) >= 4:
+                k = struct.unpack("!I", buf[:4])[0]
+                if len(buf) < 4 + k:
+                    break
+                kind, obj = pickle.loads(buf[4:4 + k])
+                buf = buf[4 + k:]
+                if kind == "say":
+                    say(obj)
+                elif kind == "best":
+                    best = obj
+                else:
+                    result = (kind, obj)
+        os.waitpid(pid, 0)
+        alive = False
+        return result if result is not None else ("error", "the child process ended without a result")
+    finally:
+        os.close(r)
+        if alive:
+            for target in (lambda: os.killpg(pid, signal.SIGKILL), lambda: os.kill(pid, signal.SIGKILL)):
+                try:
+                    target()
+                    break
+                except (ProcessLookupError, PermissionError):
+                    continue
+            try:
+                os.waitpid(pid, 0)
+            except ChildProcessError:
+                pass
+
+
+def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
                      max_evaluations: int | None) -> None:
     """IPOPT from the user's values, then from Sobol points, while time remains; every result is judged by `f`
-    (the full simulation of the Evaluator), which records the best candidate."""
+    (the full simulation of the Evaluator), which records the best candidate. Each IPOPT run is a child process
+    killed at the deadline (its best grid-feasible iterate so far is then the result)."""
     from scipy.stats import qmc
-
-    from .gradient import GradientProblem
-    gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max, sample_values=ev.sample_values)
     say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
         "points)")
     starts = [z_user, *qmc.Sobol(len(vars_), scramble=True, seed=0).random(GRADIENT_SOBOL_STARTS)]
@@ -511,15 +741,24 @@ def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline
             raise _OutOfTime("search stopped at the wall-clock limit")
         if max_evaluations and ev.count >= max_evaluations:
             raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
-        say(f"IPOPT start {i + 1} of {len(starts)}")
-        # IPOPT gets the time left but what the full simulation of its result needs
-        try:
-            r = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
-                         progress=say)
-        except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
-            from ..core.lifecycle import reraise_interrupt
-            reraise_interrupt(exc)
-            say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
+        say(f"IPOPT start {i + 1} of {len(starts)} (at most {left:.0f} s)")
+
+        def solve(send, z0=z0, left=left):
+            def line(msg):
+                send(("say", msg))
+            out = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
+                           progress=line, on_best=lambda fz: send(("best", fz)))
+            return out
+        kind, r = _in_child(solve, left, say)
+        if kind == "timeout":
+            if r is None:
+                say(f"IPOPT start {i + 1}: stopped at the wall-clock limit before a feasible iterate")
+                raise _OutOfTime("search stopped at the wall-clock limit during an IPOPT iteration")
+            say(f"IPOPT start {i + 1}: stopped at the wall-clock limit; its best feasible iterate is judged")
+            f(np.clip(np.asarray(r[1], float), 0.0, 1.0), final=True)
+            raise _OutOfTime("search stopped at the wall-clock limit during an IPOPT iteration")
+        if kind == "error":          # e.g. the start itself does not integrate: next start
+            say(f"IPOPT start {i + 1}: skipped ({r})")
             continue
         say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
         f(r["z"], final=True)
