@@ -124,9 +124,7 @@ def test_rk_failure_gives_cause_and_a_hint_that_works(paper, paper_design):
     r = simulate(paper, paper_design, t_final=2.0, integrator="rk")
     assert r.status == "failed"
     assert "cause: " in r.message and "hint: " in r.message and "rk_substeps (now 10)" in r.message
-    sc = copy.copy(paper)
-    sc.simulation = copy.copy(paper.simulation)
-    sc.simulation.rk_substeps = 100                            # what the hint says
+    sc = paper.replace(simulation__rk_substeps=100)            # what the hint says
     from symfunnel.design import derive
     assert simulate(sc, derive(sc), t_final=2.0, integrator="rk").status == "ok"
 

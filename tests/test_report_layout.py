@@ -150,3 +150,33 @@ def test_no_formula_wider_than_the_page(which, tmp_path):
         assert not found, f"{which} at {w} px: " + "; ".join(found[:8])
     if which == "paper":
         assert 'id="alpha2-dot-formula"' in text            # the key result is there, laid out
+
+
+#: the paper report's height at 1400 px before issue 22 (main at 46770e9: 25,644 px, measured with this probe on
+#: `build_report(Run(paper, t_final=2, samples=200), codegen=True, mutants=False, deployed=True)`); the target is
+#: at most 60 % of it
+HEIGHT_BEFORE_PX = 25644
+
+
+@pytest.mark.slow
+@needs_chromium
+def test_paper_report_is_at_most_60_percent_of_its_former_height(tmp_path):
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.reporting import build_report
+    from symfunnel.scenario import load_scenario
+    out = build_report(Run(load_scenario("paper"), RunOptions(t_final=2.0, samples=200)), tmp_path / "r.html",
+                       codegen=True, mutants=False, deployed=True)
+    text = out.read_text(encoding="utf-8").replace(
+        "</body>", "<script>window.addEventListener('load', function () { var p = document.createElement('pre');"
+                   " p.id = 'height-probe'; p.textContent = document.documentElement.scrollHeight;"
+                   " document.body.appendChild(p); });</script></body>")
+    page = tmp_path / "h.html"
+    page.write_text(text, encoding="utf-8")
+    exe = _chromium()
+    r = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                        f"--user-data-dir={tmp_path / 'p'}", "--window-size=1400,2000", "--virtual-time-budget=10000",
+                        "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=240,
+                       env={**os.environ, "HOME": str(tmp_path)})
+    m = re.search(r'<pre id="height-probe">(\d+)</pre>', r.stdout)
+    assert m, r.stderr[-1000:]
+    assert int(m.group(1)) <= 0.6 * HEIGHT_BEFORE_PX, int(m.group(1))

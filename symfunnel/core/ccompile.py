@@ -166,10 +166,25 @@ def compile_timeout() -> float:
 
 
 def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str]:
-    """Run `cmd` in its own process group; kill the whole group on timeout or any exception (Ctrl-C, SIGTERM)."""
-    proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    """Run `cmd` in its own process group; kill the whole group on timeout or any exception (Ctrl-C, SIGTERM).
+
+    SIGINT and SIGTERM are blocked while the process starts: the compiler may already run before Popen returns
+    (on a loaded machine), and a signal raised in between would leave it with no handle to kill it by; a signal
+    that came meanwhile is delivered once they are unblocked, inside the block that kills the group."""
+    block = {signal.SIGINT, signal.SIGTERM}
+    masked = hasattr(signal, "pthread_sigmask")
+    if masked:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, block)
     try:
+        proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, start_new_session=True)
+    except BaseException:
+        if masked:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        raise
+    try:
+        if masked:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         _kill_group(proc)

@@ -166,6 +166,43 @@ class Scenario:
     rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
     tune: TuneSpec | None = None    # of [tune], or None
 
+    def __post_init__(self):
+        object.__setattr__(self, "_sealed", True)
+
+    def __setattr__(self, name, value):
+        if self.__dict__.get("_sealed") and not name.startswith("_"):
+            raise AttributeError(f"a Scenario is validated as a whole when it is loaded, so {name} cannot be set on "
+                                 f"it; use scenario.replace(**{{'<table>.<key>': value}}) (e.g. "
+                                 f"scenario.replace(**{{'controller.k2': [1, 1]}}) or controller__k2=[1, 1]), which "
+                                 "validates the changed document like the loader")
+        object.__setattr__(self, name, value)
+
+    def replace(self, changes: dict | None = None, /, **kw) -> Scenario:
+        """A new Scenario with the scenario-file keys changed (dotted keys, `__` for the dot in keyword form:
+        `replace(controller__k2=[1, 1])`, `replace({"funnel.e2.phi0": 0.5})`; None removes a key), validated
+        like the loader (InputError naming the key otherwise); this one is unchanged."""
+        import copy
+
+        from .load import from_dict
+        raw = copy.deepcopy(self.raw)
+        items = dict(changes or {})
+        items.update({k.replace("__", "."): v for k, v in kw.items()})
+        for key, value in items.items():
+            *path, leaf = key.split(".")
+            t = raw
+            for p in path:
+                nxt = t.setdefault(p, {})
+                if not isinstance(nxt, dict):
+                    from ..core.errors import InputError
+                    raise InputError(f"is not a table, so '{key}' cannot be set", file=self.file, key=p,
+                                     expected="a dotted key of the scenario file")
+                t = nxt
+            if value is None:
+                t.pop(leaf, None)
+            else:
+                t[leaf] = value
+        return from_dict(raw, file=self.file, base_dir=self.path.parent, default_name=self.name)
+
     @property
     def n(self) -> int:
         """Number of joints."""

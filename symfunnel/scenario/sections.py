@@ -28,7 +28,7 @@ ESN_INPUTS = list(ESNApproximator.INPUTS)
 def build_model(table: Any, *, file: str, base_dir: Path):
     """Dispatch `[model]` on its `type` to the model builder that owns that type."""
     V.check_keys(table, ["type", "coordinates", "parameters", "matrices", "path", "gravity", "links",
-                         "convention", "joint_range"], file=file, prefix="model", required=["type"])
+                         "convention", "joint_range", "fixed_joints"], file=file, prefix="model", required=["type"])
     kind = V.get_str(table, "type", file=file, prefix="model", choices=MODEL_TYPES.names())
     return MODEL_TYPES.get(kind)(table, file=file, base_dir=base_dir)
 

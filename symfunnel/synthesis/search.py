@@ -362,6 +362,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                          key="tune.objective", expected="an [implementation] section or peak_torque / ise")
     if method not in METHODS:
         raise InputError(f"is {method!r}", key="--method", expected="one of " + ", ".join(METHODS))
+    requested = method
     t0 = time.perf_counter()
     m0 = time.monotonic()
     search_end = t0 + SEARCH_SHARE * wall_limit
@@ -433,14 +434,14 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
     method, why = METHOD, WHY
     stopped = None
-    if scenario.implementation is None and method != "derivative-free":
+    if scenario.implementation is None and requested != "derivative-free":
         use, reason = _gradient_sound()
         gp = None
         if use:
             from .gradient import GradientProblem
             gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max,
                                  sample_values=ev.sample_values)
-        if use and method == "auto":
+        if use and requested == "auto":
             use, reason = _gradient_fits(gp, z_user, len(vars_), search_end - time.perf_counter(), say)
         if use:
             method, why = GRADIENT_METHOD, GRADIENT_WHY
