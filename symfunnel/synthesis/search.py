@@ -170,6 +170,7 @@ class Evaluator:
         self.sample_values = []
         self.samples = self._samples()
         self.count = 0
+        self.rechecks = 0               # evaluations of rounded gains (not counted against --max-evals)
 
     def _samples(self) -> list[dict]:
         """Scenario edits of the N uncertainty samples (none without [[uncertainty]])."""
@@ -330,6 +331,7 @@ class TuneResult:
     tuned_raw: dict
     notes: list[str]
     tuned_text: str = ""
+    rechecks: int = 0
     comparison: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -337,7 +339,8 @@ class TuneResult:
         from ..core.io import json_safe
         return json_safe({"status": self.status, "method": self.method, "why": self.why,
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
-                          "wall_s": self.wall_s, "evaluations": self.evaluations, "constraints": self.constraints,
+                          "wall_s": self.wall_s, "evaluations": self.evaluations, "rechecks": self.rechecks,
+                          "constraints": self.constraints,
                           "uncertainty_samples": self.samples, "confidence_eps_0.05": self.confidence,
                           "gate": self.gate, "notes": self.notes, "comparison": self.comparison})
 
@@ -547,7 +550,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                      "worst_run": b.worst_run, "before_feasible": before.feasible},
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
         gate=gate_info, tuned_raw=tuned, notes=notes,
-        tuned_text=tuned_toml(scenario, tuned, sorted({v.key for v in vars_})),
+        tuned_text=tuned_toml(scenario, tuned, sorted({v.key for v in vars_})), rechecks=ev.rechecks,
         comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
 
 
@@ -603,7 +606,10 @@ def _rounded(c: Candidate, vars_, ev: Evaluator, say) -> Candidate | None:
         xs = [min(v.hi, max(v.lo, round_sig(x, digits))) for v, x in zip(vars_, c.xs)]
         if xs == list(c.xs):
             return c
+        n = ev.count
         r = ev.evaluate(vars_, xs)
+        ev.count = n                    # a re-check, not one of the search's --max-evals evaluations
+        ev.rechecks += 1
         say(f"rounded to {digits} significant digits: {'holds' if r.feasible else 'does not hold'} ("
             + ", ".join(f"{k} {g:+.3g}" for k, g in r.constraints.items()) + ")")
         if r.feasible:
