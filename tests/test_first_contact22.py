@@ -237,3 +237,81 @@ def test_tune_keeps_its_wall_limit_even_when_an_evaluation_is_long(tmp_path, cap
     res = json.loads(capsys.readouterr().out)
     assert code in (0, 1) and wall <= limit + 5.0, wall
     assert any("wall-clock limit" in n for n in res["notes"])
+
+
+# --- the numpy step against the C step ----------------------------------------------------------------------
+
+def _python_module(design, tmp_path, **kw):
+    import importlib.util
+    from symfunnel.emit import generate
+    files = generate(design, "python", **kw)
+    p = tmp_path / "ctl.py"
+    p.write_text(files["symfunnel_controller.py"], encoding="utf-8")
+    spec = importlib.util.spec_from_file_location(f"ctl_{id(p)}", p)
+    m = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(m)
+    return m
+
+
+def _cross_check_steps(design, tmp_path, rate_hz, tau_max, points=1000):
+    from symfunnel.deployed.loop import step_library
+    from symfunnel.emit import generate
+    m = _python_module(design, tmp_path, rate_hz=rate_hz, tau_max=tau_max)
+    lib = step_library(design, generate(design, "c", rate_hz=rate_hz, tau_max=tau_max))
+    py = m.Step(rate_hz)
+    assert lib.init() == 0 and py.init() == 0
+    assert np.allclose(lib.x_esn, py.x_esn.ravel()) and np.allclose(lib.w_hat, py.w_hat.ravel(order="F"))
+    rng = np.random.default_rng(7)
+    n = design.n
+    ref = design.reference
+    rcs, worst = set(), 0.0
+    for k in range(points):
+        t = float(rng.uniform(0, 5))
+        qd, dqd, _ = (np.asarray(a, float).ravel() for a in ref(t))
+        F1, _, F2, _ = (np.asarray(a, float).ravel() for a in m.funnels(t))
+        wide = 1.0 if k % 4 else 2.0                                       # one point in four mostly outside
+        q = qd + rng.uniform(-0.95, 0.95, n) * F1 * wide
+        a2 = np.asarray(m.alpha2(t, q, qd, dqd), float).ravel()
+        dq = a2 + rng.uniform(-0.95, 0.95, n) * F2 * wide
+        x = rng.uniform(-0.5, 0.5, py.x_esn.shape)
+        w = rng.uniform(-0.2, 0.2, py.w_hat.shape)
+        lib.x_esn[:] = x.ravel()
+        lib.w_hat[:] = w.ravel(order="F")
+        py.x_esn, py.w_hat = x.copy(), w.copy()
+        rc_c, tau_c = lib.step(t, q, dq)
+        rc_p, tau_p = py.step(t, q, dq)
+        assert rc_c == rc_p, (k, rc_c, rc_p)
+        rcs.add(rc_c)
+        scale = max(1.0, float(np.max(np.abs(tau_c))))
+        worst = max(worst, float(np.max(np.abs(tau_c - tau_p))) / scale,
+                    float(np.max(np.abs(lib.x_esn - py.x_esn.ravel()))),
+                    float(np.max(np.abs(lib.w_hat - py.w_hat.ravel(order="F")))),
+                    float(np.max(np.abs(lib.margin - py.margin))))
+        if tau_max is not None:
+            assert np.all(np.abs(tau_p) <= np.asarray(tau_max) * (1 + 1e-12))
+    assert rcs == {0, 1}                       # both inside and outside a funnel were exercised
+    assert worst < 1e-10, worst
+    assert py.step(0.0, [np.nan] * n, [0.0] * n)[0] == lib.step(0.0, [np.nan] * n, [0.0] * n)[0] == -2
+    return py
+
+
+def test_numpy_step_is_the_c_step_at_1000_points(paper, tmp_path):
+    from symfunnel.design import derive
+    py = _cross_check_steps(derive(paper), tmp_path, 2000.0, [200.0, 150.0])
+    assert py.steps == 1000 + 0 and py.rate_hz == 2000.0
+
+
+@pytest.mark.slow
+def test_numpy_step_is_the_c_step_on_a_urdf_robot(tmp_path):
+    from symfunnel.design import derive
+    from symfunnel.scenario import load_scenario
+    _cross_check_steps(derive(load_scenario("arm7")), tmp_path, 1000.0, None, points=300)
+
+
+def test_numpy_reference_is_the_scenarios(paper, tmp_path):
+    from symfunnel.design import derive
+    m = _python_module(derive(paper), tmp_path)
+    for t in (0.0, 0.7, 3.1):
+        qd, dqd, ddqd = (np.asarray(a, float).ravel() for a in m.reference(t))
+        assert np.allclose(qd, 0.3 * np.sin(t)) and np.allclose(dqd, 0.3 * np.cos(t))
+        assert np.allclose(ddqd, -0.3 * np.sin(t))
