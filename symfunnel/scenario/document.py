@@ -177,32 +177,6 @@ class Scenario:
                                  "validates the changed document like the loader")
         object.__setattr__(self, name, value)
 
-    def replace(self, changes: dict | None = None, /, **kw) -> Scenario:
-        """A new Scenario with the scenario-file keys changed (dotted keys, `__` for the dot in keyword form:
-        `replace(controller__k2=[1, 1])`, `replace({"funnel.e2.phi0": 0.5})`; None removes a key), validated
-        like the loader (InputError naming the key otherwise); this one is unchanged."""
-        import copy
-
-        from .load import from_dict
-        raw = copy.deepcopy(self.raw)
-        items = dict(changes or {})
-        items.update({k.replace("__", "."): v for k, v in kw.items()})
-        for key, value in items.items():
-            *path, leaf = key.split(".")
-            t = raw
-            for p in path:
-                nxt = t.setdefault(p, {})
-                if not isinstance(nxt, dict):
-                    from ..core.errors import InputError
-                    raise InputError(f"is not a table, so '{key}' cannot be set", file=self.file, key=p,
-                                     expected="a dotted key of the scenario file")
-                t = nxt
-            if value is None:
-                t.pop(leaf, None)
-            else:
-                t[leaf] = value
-        return from_dict(raw, file=self.file, base_dir=self.path.parent, default_name=self.name)
-
     @property
     def n(self) -> int:
         """Number of joints."""
