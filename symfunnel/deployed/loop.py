@@ -380,7 +380,15 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
         st = {}
         if isinstance(controller, StepLibrary):
             st = {"x_esn": np.array(controller.x_esn), "w_hat": np.array(controller.w_hat)}
-        breach["hint"] = breach_hint(design, t=float(tt[i]), q=Q[i], dq=DQ[i], funnel=breach["funnel"],
+        k = max(i - 1, 0)              # the last sample inside: the design's torque is not defined outside
+        what = breach["funnel"]
+        if impl.tau_max is not None and TAU.shape[0]:
+            sat = np.nonzero(np.any(np.abs(TAU[:i]) >= np.asarray(impl.tau_max) * (1 - 1e-12), axis=1))[0]
+            if sat.size:               # the torque saturated first: what it asked for there is the cause
+                k = int(sat[0])
+                what = f"{what} (after the torque saturated from t = {tt[k]:g} s)"
+                st = {}
+        breach["hint"] = breach_hint(design, t=float(tt[k]), q=Q[k], dq=DQ[k], funnel=what,
                                      joint=breach["joint"], tau_max=impl.tau_max, sampled_rate=impl.rate_hz,
                                      scenario_arg=scenario_arg(sc), **st)
         message += f"; what to do: {breach['hint']}"

@@ -109,8 +109,8 @@ def breach_hint(design, *, t: float, q, dq, x_esn=None, w_hat=None, funnel: str,
         ratio = abs(float(T["e2"][j])) / float(T["F2"][j]) if float(T["F2"][j]) > 0 else float("nan")
         parts.append(f"{head}; {label} is {100 * mags[key] / total:.0f} % of it (|e2|/F2 = {ratio:.2f}): {advice}")
     if sampled_rate is not None:
-        parts.append(f"the sampled loop at {sampled_rate:g} Hz may be too slow: raise implementation.rate_hz "
-                     f"(`symfunnel rate {scenario_arg}` finds the minimum)")
+        parts.append(f"if the continuous-time run keeps the funnels, the sampled loop at {sampled_rate:g} Hz is too "
+                     f"slow: raise implementation.rate_hz (`symfunnel rate {scenario_arg}` finds the minimum)")
     limit_key = "implementation.tau_max" if design.scenario.implementation is not None else "tune.tau_max"
     parts.append(f"or let `symfunnel tune {scenario_arg} --out tuned.toml` search controller.k1/k2 and funnel.e2 "
                  f"(phi0, phi_inf, a) within {limit_key}")

@@ -197,9 +197,10 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
     elif status in ("breach", "initial_outside") and breach is not None and t.size:
         from .hints import breach_hint
         p = parts
-        hint = breach_hint(cl.design, t=float(t[-1]), q=p["q"][-1], dq=p["dq"][-1],
-                           x_esn=p["x_esn"][-1] if "x_esn" in p else None,
-                           w_hat=p["w_hat"][-1] if "w_hat" in p else None, funnel=breach["funnel"],
+        k = -2 if t.size >= 2 else -1      # the last point inside: the design's torque is not defined outside
+        hint = breach_hint(cl.design, t=float(t[k]), q=p["q"][k], dq=p["dq"][k],
+                           x_esn=p["x_esn"][k] if "x_esn" in p else None,
+                           w_hat=p["w_hat"][k] if "w_hat" in p else None, funnel=breach["funnel"],
                            joint=int(breach["joint"]), tau_max=sc.tune.tau_max if sc.tune is not None else None,
                            scenario_arg=scenario_arg(sc))
         breach = {**breach, "hint": hint}
