@@ -439,13 +439,19 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     stopped = None
     if scenario.implementation is None and requested != "derivative-free":
         use, reason = _gradient_sound()
-        gp = None
+        gp, timed = None, False
         if use:
             from .gradient import GradientProblem
-            gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max,
-                                 sample_values=ev.sample_values)
+            try:
+                gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max,
+                                     sample_values=ev.sample_values)
+            except RuntimeError as exc:            # CasADi could not build the sensitivity problem
+                from ..core.lifecycle import reraise_interrupt
+                reraise_interrupt(exc)
+                use, reason = False, f"the sensitivity problem could not be built ({_last_line(exc)})"
         if use and requested == "auto":
             use, reason = _gradient_fits(gp, z_user, len(vars_), search_end - time.perf_counter(), say)
+            timed = not use
         if use:
             method, why = GRADIENT_METHOD, GRADIENT_WHY
             say(f"method: {method} ({why})")
@@ -469,6 +475,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 say("falling back to the derivative-free search: " + why)
             elif failed:
                 why = f"{GRADIENT_WHY}; IPOPT stopped with an error ({failed}) after a design that holds"
+        elif timed:
+            why = f"no [implementation], but the gradient path was not chosen: {reason}"
         else:
             why = f"{WHY_NO_GRADIENT} ({reason})"
     elif scenario.implementation is None:
