@@ -238,19 +238,42 @@ def test_codac_transcendentals_against_arb():
     rng = np.random.default_rng(4)
     old, ctx.prec = ctx.prec, 200
     try:
-        for name in ("EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN", "ACOS", "ATAN", "SINH", "COSH", "TANH",
-                     "ATANH"):
-            rule = be.rules[name]
-            for _ in range(4000):
-                x = float(rng.uniform(-1, 1) if name in ("ASIN", "ACOS", "ATANH")
-                          else rng.choice([-1, 1]) * 10.0 ** rng.uniform(-300, 2))
-                if name in ("LOG", "SQRT"):
-                    x = abs(x)
-                r = rule(be.point(x))
-                ex = getattr(arb(x), name.lower())()
-                assert not (ex < arb(r.lb()) or ex > arb(r.ub())), (name, x)     # certainly outside
+        with iv.ROUNDING.up():             # the rules called directly: with the mode codac's operations need
+            _transcendentals(be, rng, arb)
     finally:
         ctx.prec = old
+
+
+def _transcendentals(be, rng, arb):
+    """Every transcendental rule of the codac backend against arb's 200-bit value at 4000 random points."""
+    for name in ("EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN", "ACOS", "ATAN", "SINH", "COSH", "TANH",
+                 "ATANH"):
+        rule = be.rules[name]
+        for _ in range(4000):
+            x = float(rng.uniform(-1, 1) if name in ("ASIN", "ACOS", "ATANH")
+                      else rng.choice([-1, 1]) * 10.0 ** rng.uniform(-300, 2))
+            if name in ("LOG", "SQRT"):
+                x = abs(x)
+            r = rule(be.point(x))
+            ex = getattr(arb(x), name.lower())()
+            assert not (ex < arb(r.lb()) or ex > arb(r.ub())), (name, x)     # certainly outside
+
+
+def test_an_interval_evaluation_leaves_the_rounding_mode_of_the_process_alone():
+    """codac sets the C rounding mode upward (on import and in its operations) and leaves it; every float operation
+    after it would then round up (a simulation, sympy's numbers). The codac backend gives the mode back."""
+    import casadi as ca
+    mode = iv.ROUNDING.get()
+    if mode is None:
+        pytest.skip("no fegetround on this platform")
+    x = ca.SX.sym("x")
+    F = IntervalFunction(ca.Function("f", [x], [ca.exp(x) / 3 + ca.sinh(x)]), "codac")
+    L, H = F.eval_flat(np.array([0.5]), np.array([0.7]))
+    assert L[0] < H[0] and iv.ROUNDING.get() == mode
+    assert 0.1 + 0.2 == 0.30000000000000004 and 1.0 / 3.0 * 3.0 == 1.0 and 5e-324 * 0.5 == 0.0   # nearest
+    with iv.ROUNDING.up():
+        assert 5e-324 * 0.5 == 5e-324                        # upward inside the block: the probe sees the mode
+    assert iv.ROUNDING.get() == mode
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
