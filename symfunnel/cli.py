@@ -81,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except InputError as exc:
         print(f"symfunnel: error: {exc}", file=sys.stderr)
+        if exc.example:
+            print("\n".join("    " + line for line in exc.example.splitlines()), file=sys.stderr)
         return 2
     except SymfunnelError as exc:
         print(f"symfunnel: {exc}", file=sys.stderr)

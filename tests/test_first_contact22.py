@@ -100,8 +100,11 @@ def test_sweep_without_uncertainty_prints_an_example():
     from symfunnel.scenario import load_scenario
     with pytest.raises(InputError) as e:
         make_job(load_scenario("paper"))
-    msg = str(e.value)
-    assert "[[uncertainty]]" in msg and 'key = "plant.mass_scale"' in msg and "low = 0.8" in msg
+    msg, ex = str(e.value), e.value.example
+    assert "[[uncertainty]]" in msg and "\n" not in msg                    # the message itself is one line
+    import tomllib
+    u = tomllib.loads(ex)["uncertainty"][0]
+    assert (u["key"], u["dist"], u["low"], u["high"]) == ("plant.mass_scale", "uniform", 0.8, 1.2)
 
 
 # --- messages that say what to do ----------------------------------------------------------------------------

@@ -51,11 +51,11 @@ class Job:
 
 
 #: what a user adds to a scenario to sweep it (printed when the table is missing)
-UNCERTAINTY_EXAMPLE = """  [[uncertainty]]
-  key = "plant.mass_scale"    # any plant, [initial] or [implementation] key; docs/sweep.md lists them
-  dist = "uniform"
-  low = 0.8
-  high = 1.2"""
+UNCERTAINTY_EXAMPLE = """[[uncertainty]]
+key = "plant.mass_scale"    # any plant, [initial] or [implementation] key; docs/sweep.md lists them
+dist = "uniform"
+low = 0.8
+high = 1.2"""
 
 _STATE: dict = {}        # (fingerprint, thread) -> (scenario, closed loop, compile time, cache hit)
 
@@ -64,9 +64,12 @@ def make_job(scenario, *, runs: int | None = None) -> Job:
     """The campaign of a scenario with its `[[uncertainty]]` (InputError without one)."""
     c = scenario.campaign
     if c is None or not c.uncertainties:
+        from ..scenario import is_builtin
+        where = (f"copy it with `symfunnel init --from {scenario.name} --out my.toml` and append to the copy"
+                 if is_builtin(scenario.path) else "append to the file")
         raise InputError("has no [[uncertainty]] table", file=scenario.file, key="uncertainty",
-                         expected="at least one [[uncertainty]] table for a sweep, e.g. (append to the file):\n"
-                                  + UNCERTAINTY_EXAMPLE)
+                         expected=f"at least one [[uncertainty]] table for a sweep; for example, {where}:",
+                         example=UNCERTAINTY_EXAMPLE)
     n_runs = c.sweep.runs if runs is None else runs
     tf = float(c.sweep.t_final if c.sweep.t_final is not None else scenario.simulation.t_final)
     raw = copy.deepcopy(scenario.raw)
