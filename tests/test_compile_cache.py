@@ -143,8 +143,11 @@ def test_compiler_timeout_kills_it_and_its_children(tmp_path, monkeypatch):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path, sig):
     cache = tmp_path / "cache"
+    # Ctrl-C as a terminal delivers it: a process started in the background (nohup, `cmd &` in a script, some CI
+    # runners) inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler at all
     prog = textwrap.dedent(f"""
-        import sys
+        import signal, sys
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         from symfunnel.core import lifecycle
         from symfunnel.core.ccompile import compile_cached, SHARED_FLAGS
         lifecycle.install()

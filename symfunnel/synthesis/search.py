@@ -18,6 +18,7 @@ finds nothing that holds. The best feasible designs then go through verify's gat
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import time
@@ -379,9 +380,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         f"{ev.T:g} s, {loop}")
     user = [v.user_x() for v in vars_]
     from ..core import deadline as DL
-    with DL.until(m0 + wall_limit, wall_limit, m0):
+    with _whole(m0, wall_limit, "evaluating the user's design"):
         before = ev.evaluate(vars_, user)
-    t_user = time.perf_counter() - t0
     say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
         + ", ".join(f"{k} {g:+.3g}" for k, g in before.constraints.items()))
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
@@ -407,10 +407,13 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         if not final and max_evaluations and ev.count >= max_evaluations:
             raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
         # an evaluation in progress is interrupted at the limit (a simulation stops there, a compile is killed)
+        end = m0 + (search_end - t0) if not final else m0 + wall_limit
         try:
-            with DL.until(m0 + (search_end - t0) if not final else m0 + wall_limit, wall_limit, m0):
+            with DL.until(end, wall_limit, m0):
                 c = ev.evaluate(vars_, xs)
-        except DL.WallLimitReached:
+        except (DL.WallLimitReached, SystemError, RuntimeError) as exc:
+            if not (isinstance(exc, DL.WallLimitReached) or _expired(end, exc)):
+                raise
             raise _OutOfTime(f"search stopped at the wall-clock limit ({SEARCH_SHARE:.0%} of --wall-limit "
                              f"{wall_limit:g} s) during an evaluation") from None
         seen[key] = c
@@ -519,7 +522,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                     c = _rounded(c, vars_, ev, say)
                     say(f"verify's gate on the tuned scenario (design {i + 1} of the ranking)")
                     gate_info = verify_gate(ev.scenario(apply(scenario.raw, vars_, c.xs)), progress=say)
-            except DL.WallLimitReached:
+            except (DL.WallLimitReached, SystemError, RuntimeError) as exc:
+                if not (isinstance(exc, DL.WallLimitReached) or _expired(m0 + wall_limit, exc)):
+                    raise
                 gate_info = {"status": "not completed", "unexpected": []}
                 notes.append(f"verify's gate on design {i + 1} did not finish within --wall-limit {wall_limit:g} s")
                 status = "infeasible"
@@ -536,7 +541,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
             status = "infeasible"
             binding = binding + [f"verify.{c}" for c in gate_info.get("unexpected", [])]
     if b.feasible and not gate and best[0] is not None:
-        with DL.until(m0 + wall_limit, wall_limit, m0):
+        with _whole(m0, wall_limit, "re-checking the rounded gains"):
             b = _rounded(b, vars_, ev, say) or b
     elif not b.feasible:               # the closest design, written readably (it does not hold either way)
         b = Candidate([min(v.hi, max(v.lo, round_sig(x, DIGITS))) for v, x in zip(vars_, b.xs)], b.constraints,
@@ -599,6 +604,33 @@ def tuned_toml(scenario, tuned: dict, keys: list[str]) -> str:
         for d in added:
             doc["deviations"].append(dict(d))
     return tomlkit.dumps(doc)
+
+
+@contextlib.contextmanager
+def _whole(m0: float, wall_limit: float, step: str):
+    """The block under the command's whole limit; the alarm seen through a CasADi call is the limit, said so."""
+    from ..core import deadline as DL
+    try:
+        with DL.until(m0 + wall_limit, wall_limit, m0):
+            yield
+    except (SystemError, RuntimeError) as exc:
+        if not _expired(m0 + wall_limit, exc):
+            raise
+        raise DL.WallLimitReached(wall_limit, step, time.monotonic() - m0) from None
+
+
+def _expired(end: float, exc: BaseException) -> bool:
+    """Whether an error is the wall-clock alarm seen through a C extension: raised inside a CasADi call, the
+    deadline's exception comes back as that call's SystemError or RuntimeError once the limit has passed."""
+    from ..core.lifecycle import reraise_interrupt
+    reraise_interrupt(exc) if isinstance(exc, RuntimeError) else None
+    chain = exc
+    while chain is not None:
+        from ..core import deadline as DL
+        if isinstance(chain, DL.WallLimitReached):
+            return True
+        chain = chain.__cause__ or chain.__context__
+    return time.monotonic() >= end
 
 
 def round_sig(x: float, digits: int) -> float:
