@@ -88,6 +88,7 @@ def _bounded(fn):
     """The call within its `wall_limit=` keyword (also the Run's), a reached limit raised as SimulationError."""
     @functools.wraps(fn)
     def call(*args, **kw):
+        deadline.check_seconds(kw.get("wall_limit"), key="wall_limit", allow_none=True)
         try:
             with deadline.limit(kw.get("wall_limit")):
                 return fn(*args, **kw)
@@ -144,16 +145,16 @@ def verify(scenario, *, strict: bool = False, mutants: bool = False, t_final: fl
 @_bounded
 def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix: str | None = None,
             rate_hz: float | None = None, points: int = 1000, seed: int = 0, t_final: float | None = None,
-            wall_limit: float | None = None) -> CodegenResult:
-    """`symfunnel codegen`: the generated files (written to `out` when given), cross-checked with `check=True`
-    (a failed cross-check raises CheckFailed); `prefix` and `rate_hz` as `--prefix`, `--rate` of the C step."""
+            wall_limit: float | None = None, force: bool = False) -> CodegenResult:
+    """`symfunnel codegen`: the generated files (written to `out` when given; `force` as `--force`), cross-checked
+    with `check=True` (a failed cross-check raises CheckFailed); `prefix` and `rate_hz` as `--prefix`, `--rate`."""
     from .emit.check import check_output
     from .emit.files import write_output
     r = run(scenario, t_final=t_final, wall_limit=wall_limit)
     files = r.code(lang, prefix=prefix, rate_hz=rate_hz)
     res = CodegenResult(r.scenario.name, lang, files)
     if out is not None:
-        res.paths = write_output(files, out)
+        res.paths = write_output(files, out, force=force)
     if check:
         res.check = check_output(r.design, lang, files, points=points, seed=seed)
         if not res.check.passed:

@@ -4,7 +4,6 @@ turns every outcome into an exit code and at most one line on stderr (never a tr
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 
@@ -65,45 +64,57 @@ def _version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; bad input ends in one line and exit 2, failed checks exit 1, never a traceback."""
-    from .core import lifecycle
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    from .core import deadline
-    lifecycle.install()
+    from .core import deadline, lifecycle
+    lifecycle.install()                 # first: a signal from here on ends in 130/143 and one line
     try:
+        return _run(argv, deadline, lifecycle)
+    finally:
+        lifecycle.uninstall()
+
+
+def _run(argv, deadline, lifecycle) -> int:
+    def closing(code: int, line: str) -> int:
+        lifecycle.announce(line)
+        return code
+
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
         seconds = getattr(args, "command_wall_limit", None)
-        if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
-            raise InputError(f"is {seconds:g}", key="--wall-limit", expected="a number of seconds > 0")
+        deadline.check_seconds(seconds, key="--wall-limit", allow_none=True)
         with deadline.limit(seconds):
             code = args.func(args)
+        lifecycle.check()               # a signal swallowed on its way (a finalizer, a C callback) still counts
+    except SystemExit:
+        raise
     except deadline.WallLimitReached as exc:
-        print(f"symfunnel: timeout: {exc}", file=sys.stderr)
-        return 1
+        return closing(*(lifecycle.exit_code(exc) or (1, f"symfunnel: timeout: {exc}")))
     except InputError as exc:
-        print(f"symfunnel: error: {exc}", file=sys.stderr)
-        if exc.example:
-            print("\n".join("    " + line for line in exc.example.splitlines()), file=sys.stderr)
-        return 2
+        code = closing(*(lifecycle.exit_code(exc) or (2, f"symfunnel: error: {_line(exc)}")))
+        if code == 2 and exc.example:      # what to write instead, below the one-line message
+            print("\n".join("    " + _line(line) for line in exc.example.splitlines()), file=sys.stderr)
+        return code
     except SymfunnelError as exc:
-        print(f"symfunnel: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except KeyboardInterrupt:
-        print("symfunnel: interrupted", file=sys.stderr)
-        return 130
-    except lifecycle.Terminated as exc:
-        print(f"symfunnel: terminated by signal {exc.signum}", file=sys.stderr)
-        return 128 + exc.signum
+        return closing(*(lifecycle.exit_code(exc) or (exc.exit_code, f"symfunnel: {_line(exc)}")))
+    except (KeyboardInterrupt, lifecycle.Terminated) as exc:
+        return closing(*lifecycle.exit_code(exc))
     except BrokenPipeError:
         return 0
     except Exception as exc:  # noqa: BLE001 - the contract: nothing escapes as a traceback
+        stopped = lifecycle.exit_code(exc)          # a signal or the limit that a C call turned into this error
+        if stopped is not None:
+            return closing(*stopped)
         if os.environ.get("SYMFUNNEL_DEBUG"):
             raise
-        print(f"symfunnel: internal error: {type(exc).__name__}: {exc} "
-              f"(set SYMFUNNEL_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
-        return EXIT_INTERNAL
-    finally:
-        lifecycle.uninstall()
+        return closing(EXIT_INTERNAL, f"symfunnel: internal error: {type(exc).__name__}: {_line(exc)} "
+                                      f"(set SYMFUNNEL_DEBUG=1 for the traceback; please report it)")
     return code
+
+
+def _line(exc: BaseException) -> str:
+    """An error's message as one printable line of bounded length (control characters escaped)."""
+    from .core.text import one_line
+    return one_line(str(exc))
 
 
 if __name__ == "__main__":

@@ -135,3 +135,15 @@ def pytest_collection_modifyitems(config, items):
         defs = getattr(info, "name2fixturedefs", {}) if info is not None else {}
         if any(d.scope == "module" for ds in defs.values() for d in ds):
             item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+
+
+@pytest.fixture(autouse=True)
+def _rounding_stays_to_nearest():
+    """Every test leaves the process rounding to nearest: a library that switches the mode (codac does at import)
+    would otherwise change every later computation of the run without anyone noticing."""
+    yield
+    from symfunnel.sx import rounding
+    if not rounding.rounds_to_nearest():
+        mode = rounding.get_mode()
+        rounding.set_mode(0)
+        pytest.fail(f"the test left the process's floating-point rounding mode at {mode:#x}, not to nearest")

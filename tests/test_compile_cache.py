@@ -50,6 +50,21 @@ def test_entry_records_size_and_sha256(tmp_path, cc):
     assert _build(tmp_path).cached and verify_entry(b.path.parent, "libf.so") is None
 
 
+def test_an_entry_of_an_earlier_version_is_rebuilt_without_a_warning(tmp_path, cc):
+    """A record without the key field (written before records named their key) is rebuilt silently, then named."""
+    import warnings
+    b = _build(tmp_path)
+    rec_path = b.path.parent / RECORD
+    rec = json.loads(rec_path.read_text())
+    key = rec.pop("key")
+    rec_path.write_text(json.dumps(rec))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        again = _build(tmp_path)
+    assert not again.cached and _call(again.path, 3.0) == 7.0
+    assert json.loads(rec_path.read_text())["key"] == key and _build(tmp_path).cached
+
+
 @pytest.mark.parametrize("damage, why", [
     (lambda p: p.write_bytes(p.read_bytes()[:1000]), "bytes, recorded"),     # truncated: was a Bus error
     (lambda p: p.write_bytes(b""), "0 bytes"),                               # empty: was a CasADi dump

@@ -208,24 +208,23 @@ def test_tuned_file_keeps_comments_order_and_rounds(tmp_path):
     assert round_sig(0.000123456, 4) == 0.0001235 and round_sig(1234567.0, 4) == 1235000.0
 
 
-def test_child_is_killed_at_its_timeout_with_its_process_group():
-    from symfunnel.synthesis.search import _in_child
-    kind, r = _in_child(lambda send: 6 * 7, 30.0)
-    assert (kind, r) == ("done", 42)
-    pids = []
+def test_the_gradient_path_is_chosen_by_a_timed_forward_solve(paper_design, monkeypatch):
+    """method auto: IPOPT only when MIN_IPOPT_ITERATIONS iterations of d + 2 forward solves fit the time, measured
+    on one forward solve in a worker killed at its share (a slow solve is never waited for)."""
+    from symfunnel.synthesis import search as T
 
-    def slow(send):
-        send(("best", [0.5]))
-        send(("say", str(os.getpid())))
-        time.sleep(300)
+    class Slow:
+        def g(self, z):
+            time.sleep(300)
+
+    class Fast:
+        def g(self, z):
+            return np.zeros(3)
     t0 = time.monotonic()
-    kind, r = _in_child(slow, 2.0, pids.append)
-    assert kind == "timeout" and r == [0.5] and time.monotonic() - t0 < 20
-    pid = int(pids[0])
-    with pytest.raises(ProcessLookupError):
-        os.killpg(pid, 0)                                  # the child's process group is gone
-    kind, r = _in_child(lambda send: 1 / 0, 30.0)
-    assert kind == "error" and "ZeroDivisionError" in r
+    use, why = T._gradient_fits(Slow(), np.zeros(2), 2, 10.0, lambda s: None)
+    assert not use and "takes more than 0.3 s" in why and "--method gradient" in why
+    assert time.monotonic() - t0 < 15
+    assert T._gradient_fits(Fast(), np.zeros(2), 2, 10.0, lambda s: None) == (True, "")
 
 
 @pytest.mark.slow

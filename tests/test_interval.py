@@ -232,48 +232,27 @@ def test_every_op_encloses_exact_and_double_values(backend):
 
 def test_codac_transcendentals_against_arb():
     """codac's own sinh, tanh, atanh miss the exact value by up to 1 ulp (codac 2.1.2); the backend's widened rules
-    and every other transcendental rule contain the 200-bit value at 4000 random points each."""
+    and every other transcendental rule contain the 200-bit value at 4000 random points each (rules called as the
+    compiled tape calls them: under upward rounding, the backend's mode)."""
     from flint import arb, ctx
     be = iv.get_backend("codac")
     rng = np.random.default_rng(4)
     old, ctx.prec = ctx.prec, 200
     try:
-        with iv.ROUNDING.up():             # the rules called directly: with the mode codac's operations need
-            _transcendentals(be, rng, arb)
+        for name in ("EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN", "ACOS", "ATAN", "SINH", "COSH", "TANH",
+                     "ATANH"):
+            rule = be.rules[name]
+            for _ in range(4000):
+                x = float(rng.uniform(-1, 1) if name in ("ASIN", "ACOS", "ATANH")
+                          else rng.choice([-1, 1]) * 10.0 ** rng.uniform(-300, 2))
+                if name in ("LOG", "SQRT"):
+                    x = abs(x)
+                with be.mode():
+                    r = rule(be.point(x))
+                ex = getattr(arb(x), name.lower())()
+                assert not (ex < arb(r.lb()) or ex > arb(r.ub())), (name, x)     # certainly outside
     finally:
         ctx.prec = old
-
-
-def _transcendentals(be, rng, arb):
-    """Every transcendental rule of the codac backend against arb's 200-bit value at 4000 random points."""
-    for name in ("EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN", "ACOS", "ATAN", "SINH", "COSH", "TANH",
-                 "ATANH"):
-        rule = be.rules[name]
-        for _ in range(4000):
-            x = float(rng.uniform(-1, 1) if name in ("ASIN", "ACOS", "ATANH")
-                      else rng.choice([-1, 1]) * 10.0 ** rng.uniform(-300, 2))
-            if name in ("LOG", "SQRT"):
-                x = abs(x)
-            r = rule(be.point(x))
-            ex = getattr(arb(x), name.lower())()
-            assert not (ex < arb(r.lb()) or ex > arb(r.ub())), (name, x)     # certainly outside
-
-
-def test_an_interval_evaluation_leaves_the_rounding_mode_of_the_process_alone():
-    """codac sets the C rounding mode upward (on import and in its operations) and leaves it; every float operation
-    after it would then round up (a simulation, sympy's numbers). The codac backend gives the mode back."""
-    import casadi as ca
-    mode = iv.ROUNDING.get()
-    if mode is None:
-        pytest.skip("no fegetround on this platform")
-    x = ca.SX.sym("x")
-    F = IntervalFunction(ca.Function("f", [x], [ca.exp(x) / 3 + ca.sinh(x)]), "codac")
-    L, H = F.eval_flat(np.array([0.5]), np.array([0.7]))
-    assert L[0] < H[0] and iv.ROUNDING.get() == mode
-    assert 0.1 + 0.2 == 0.30000000000000004 and 1.0 / 3.0 * 3.0 == 1.0 and 5e-324 * 0.5 == 0.0   # nearest
-    with iv.ROUNDING.up():
-        assert 5e-324 * 0.5 == 5e-324                        # upward inside the block: the probe sees the mode
-    assert iv.ROUNDING.get() == mode
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -352,14 +331,44 @@ def test_outward_rounding_against_exact_rationals(backend):
 
 def test_round_to_nearest_add_is_caught(monkeypatch):
     """The exact-arithmetic check fails once ADD rounds to nearest: the rounding direction is what it tests."""
-    import codac
     from flint import arb
+
+    from symfunnel.sx import rounding
+    with rounding.keeping_mode():
+        import codac
     be = iv.get_backend("codac")
     monkeypatch.setitem(be.rules, "ADD", lambda a, b: codac.Interval(a.lb() + b.lb(), a.ub() + b.ub()))
     assert _exact_violations(IntervalFunction(ARITH, "codac"), np.random.default_rng(3)) > 0
     be = iv.get_backend("arb")
     monkeypatch.setitem(be.rules, "ADD", lambda a, b: arb(float((a + b).mid())))
     assert _exact_violations(IntervalFunction(ARITH, "arb"), np.random.default_rng(3)) > 0
+
+
+def test_codac_leaves_the_process_rounding_to_nearest_and_is_outward_whatever_the_callers_mode():
+    """Importing codac sets the process's rounding upward (it computes lower bounds as -(-a - b)); the backend
+    restores the caller's mode, runs every evaluation under upward rounding, and so stays outward when the caller
+    rounds to nearest -- without that context the same codac arithmetic is not outward."""
+    from symfunnel.sx import rounding
+    F = IntervalFunction(ARITH, "codac")
+    F.eval_flat(np.array([1.0, 3.0]), np.array([1.0, 3.0]))
+    assert rounding.rounds_to_nearest() and float("3.7525") == 3.7525 and repr(float("3.7525")) == "3.7525"
+    L, H = F.eval_flat(np.array([1.0, 3.0]), np.array([1.0, 3.0]))
+    assert Fraction(L[3]) < Fraction(1, 3) < Fraction(H[3])
+    assert _exact_violations(F, np.random.default_rng(3)) == 0 and rounding.rounds_to_nearest()
+
+
+def test_without_upward_rounding_codac_is_not_outward(monkeypatch):
+    """The rounding context is what makes codac outward: replaced by a no-op, 1/3 is not enclosed."""
+    import contextlib
+
+    from symfunnel.sx import rounding
+    be = iv.get_backend("codac")
+    monkeypatch.setattr(be, "mode", contextlib.nullcontext)
+    F = IntervalFunction(ARITH, "codac")
+    assert rounding.rounds_to_nearest()
+    L, H = F.eval_flat(np.array([1.0, 3.0]), np.array([1.0, 3.0]))
+    assert not Fraction(L[3]) < Fraction(1, 3) < Fraction(H[3])
+    assert _exact_violations(F, np.random.default_rng(3)) > 0
 
 
 # --- refusals ---------------------------------------------------------------------------------------------------

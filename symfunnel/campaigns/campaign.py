@@ -9,6 +9,7 @@ few seconds and at the end: a killed sweep loses at most its runs in flight and 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import json
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import InputError
-from ..core.io import atomic_path, atomic_write, json_safe
+from ..core.io import atomic_path, atomic_write, exclusive_lock, json_safe
 
 ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "timeout": "failed", "failed": "failed"}
 RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau",
@@ -48,6 +49,7 @@ class Job:
     t_final: float
     runs: int
     fingerprint: str
+    files: tuple = ()        # (path, sha256) of every input file besides the TOML: a worker checks it reads the same
 
 
 #: what a user adds to a scenario to sweep it (printed when the table is missing)
@@ -76,9 +78,19 @@ def make_job(scenario, *, runs: int | None = None) -> Job:
     sim = raw.setdefault("simulation", {})
     if scenario.simulation.integrator == "cvodes" and "max_step" not in sim:
         sim["max_step"] = MAX_STEP_OF_DT * float(scenario.simulation.dt)   # in worst.toml too: replays exactly
-    blob = json.dumps({"raw": raw, "runs": n_runs, "t_final": tf}, sort_keys=True, default=str)
+    files = input_files(scenario)
+    from ..core.version import __version__
+    blob = json.dumps({"raw": raw, "runs": n_runs, "t_final": tf, "files": files, "version": __version__},
+                      sort_keys=True, default=str)
     fp = hashlib.sha256(blob.encode()).hexdigest()[:20]
-    return Job(raw, scenario.file, str(Path(scenario.file).resolve().parent), scenario.name, tf, n_runs, fp)
+    return Job(raw, scenario.file, str(Path(scenario.file).resolve().parent), scenario.name, tf, n_runs, fp,
+               tuple(sorted(files.items())))
+
+
+def input_files(scenario) -> dict[str, str]:
+    """{path: sha256} of every file besides the scenario's own TOML that its campaign depends on (a URDF, ...)."""
+    own = os.path.realpath(scenario.file)
+    return {k: v for k, v in getattr(scenario, "inputs", {}).items() if k != own}
 
 
 def _state(job: Job):
@@ -91,6 +103,10 @@ def _state(job: Job):
         from ..scenario import from_dict
         from ..simulation import compile_closed_loop
         sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
+        changed = sorted(p for p, d in job.files if input_files(sc).get(p) != d)
+        if changed:
+            raise InputError("changed while the campaign ran (its rows would mix two robots)", file=changed[0],
+                             expected="the input files of a campaign unchanged until it ends")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cl = build_closed_loop(sc, derive(sc))
@@ -206,7 +222,12 @@ class ResultStore:
         import pyarrow.parquet as pq
         tables = []
         if self.final.exists():
-            tables.append(pq.read_table(str(self.final)))
+            try:
+                tables.append(pq.read_table(str(self.final)))
+            except Exception as exc:  # noqa: BLE001 - a damaged file of the user's: bad input, named
+                raise InputError(f"cannot be read ({type(exc).__name__}: {exc})", file=str(self.final),
+                                 expected="results.parquet written by `symfunnel sweep` (delete it, or the "
+                                 "directory, to start afresh)") from None
         if self.parts.is_dir():
             for p in sorted(self.parts.glob("*.parquet")):
                 try:
@@ -216,12 +237,20 @@ class ResultStore:
         if not tables:
             return _table([], self.columns)
         schema = _schema(self.columns)
-        t = pa.concat_tables([x.select(schema.names).cast(schema) for x in tables])
+        try:
+            t = pa.concat_tables([x.select(schema.names).cast(schema) for x in tables])
+        except (KeyError, ValueError, pa.ArrowInvalid) as exc:
+            raise InputError(f"has other columns than this campaign ({exc})", file=str(self.final),
+                             expected="results of the same campaign") from None
         t = t.take(pc.sort_indices(t, sort_keys=[("run", "ascending")]))
         runs = t.column("run").to_numpy()
         keep = np.ones(runs.size, dtype=bool)
         keep[1:] = runs[1:] != runs[:-1]
         return t.filter(pa.array(keep))
+
+    def has_rows(self) -> bool:
+        """Whether any result of an earlier sweep is on disk."""
+        return self.final.exists() or (self.parts.is_dir() and any(self.parts.glob("*.parquet")))
 
     def done(self) -> set[int]:
         """Run ids already on disk."""
@@ -262,8 +291,14 @@ def connect(address: str, timeout: float = 10.0, worker_timeout: float = 30.0):
     except ImportError:  # pragma: no cover - a regular dependency
         raise InputError("needs the 'distributed' package", key="--scheduler",
                          expected="pip install distributed") from None
-    if not (isinstance(address, str) and "://" in address):
-        raise InputError(f"is '{address}'", key="--scheduler", expected="an address such as tcp://HOST:PORT")
+    host, port = _scheduler_address(address)
+    import socket
+    try:                        # a plain connection first: a failed Client leaves a finalizer that hangs and prints
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as exc:
+        raise InputError(f"cannot reach the scheduler at {address} ({exc.strerror or type(exc).__name__})",
+                         key="--scheduler", expected="the address of a running dask scheduler (tcp://HOST:PORT)") \
+            from None
     try:
         client = Client(address, timeout=f"{timeout:g}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
@@ -277,6 +312,25 @@ def connect(address: str, timeout: float = 10.0, worker_timeout: float = 30.0):
         raise InputError(f"the scheduler at {address} has no workers (waited {worker_timeout:g} s)",
                          key="--scheduler", expected="a scheduler with `dask worker` processes attached") from None
     return client
+
+
+def _scheduler_address(address) -> tuple[str, int]:
+    """(host, port) of a tcp://HOST:PORT address; InputError naming --scheduler otherwise."""
+    from urllib.parse import urlsplit
+    expected = "a dask scheduler address tcp://HOST:PORT"
+    if not isinstance(address, str) or "://" not in address:
+        raise InputError(f"is '{address}'", key="--scheduler", expected=expected)
+    u = urlsplit(address)
+    if u.scheme == "tls":
+        raise InputError(f"is '{address}': a tls:// scheduler needs certificates, which symfunnel does not "
+                         "configure", key="--scheduler", expected=expected + " (or a tcp:// tunnel)")
+    try:
+        port = u.port
+    except ValueError:
+        port = None
+    if u.scheme != "tcp" or not u.hostname or port is None or u.path not in ("", "/") or u.query:
+        raise InputError(f"is '{address}'", key="--scheduler", expected=expected)
+    return u.hostname, port
 
 
 def _chunks(ids: list[int], size: int) -> list[list[int]]:
@@ -324,18 +378,40 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
     elif chunks:
         import concurrent.futures as cf
         import multiprocessing as mp
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        from ..core import lifecycle
+        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                      initializer=lifecycle.die_with_parent)
+        try:
             pending = deque(chunks)
             running = {pool.submit(run_chunk, job, pending.popleft())
                        for _ in range(min(window, len(pending)))}
+            for pid in list(getattr(pool, "_processes", {}) or {}):
+                lifecycle.register_child(pid)
             while running:
-                finished, running = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                finished, running = cf.wait(running, timeout=0.5, return_when=cf.FIRST_COMPLETED)
+                lifecycle.check()
                 for fut in finished:
                     rows = fut.result()
                     on_rows(rows)
                     tick(len(rows))
                     if pending:
                         running.add(pool.submit(run_chunk, job, pending.popleft()))
+        except BaseException:
+            # a signal, a limit or a failed chunk: the workers stop now, not after their chunks
+            procs = list((getattr(pool, "_processes", {}) or {}).values())
+            for proc in procs:
+                with contextlib.suppress(Exception):
+                    proc.kill()
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                with contextlib.suppress(Exception):
+                    proc.join(timeout=1.0)
+            raise
+        else:
+            pool.shutdown(wait=True)
+        finally:
+            for pid in list(getattr(pool, "_processes", {}) or {}):
+                lifecycle.unregister_child(pid)
     end = time.perf_counter()
     wall = end - t0
     steady = None
@@ -453,18 +529,46 @@ def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume
     out = Path(out) if out is not None else Path("reports") / f"{scenario.name}-sweep"
     if out.exists() and not out.is_dir():
         raise InputError("is a file", file=str(out), key="--out", expected="a directory")
+    if resume and not out.is_dir():
+        raise InputError("does not exist", file=str(out), key="--resume",
+                         expected="the directory of an interrupted sweep")
+    with exclusive_lock(out, what="sweep"):
+        return _sweep_locked(scenario, job, camp, out, resume=resume, workers=workers, scheduler=scheduler,
+                             say=say, chunk_size=chunk_size)
+
+
+def _read_meta(path: Path) -> dict:
+    """campaign.json of an interrupted sweep (InputError naming it when it is not one)."""
+    from ..core.inputs import loads_json, read_text
+    meta = loads_json(read_text(path, expected="campaign.json written by `symfunnel sweep`"), file=str(path),
+                      expected="campaign.json written by `symfunnel sweep`")
+    if not isinstance(meta, dict) or not isinstance(meta.get("fingerprint"), str):
+        raise InputError("is not a campaign record (no fingerprint)", file=str(path), key="--resume",
+                         expected="campaign.json written by `symfunnel sweep`")
+    return meta
+
+
+def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler, say, chunk_size) -> SweepResult:
     client = connect(scheduler) if scheduler else None
     try:
         store = ResultStore(out, camp.columns)
         meta = {"fingerprint": job.fingerprint, "scenario": scenario.name, "runs": job.runs,
                 "design": camp.sweep.design, "seed": camp.sweep.seed, "t_final": job.t_final,
-                "columns": camp.columns}
+                "columns": camp.columns, "files": dict(job.files)}
         meta_path = out / "campaign.json"
         if resume and meta_path.exists():
-            old = json.loads(meta_path.read_text(encoding="utf-8"))
+            old = _read_meta(meta_path)
             if old.get("fingerprint") != job.fingerprint:
-                raise InputError("holds a different campaign (scenario, runs or horizon changed)", file=str(out),
-                                 key="--resume", expected="the same scenario and --runs as the interrupted sweep")
+                changed = [p for p, d in job.files if (old.get("files") or {}).get(p) != d]
+                what = f"{changed[0]} changed" if changed and isinstance(old.get("files"), dict) else \
+                    "scenario, its files, runs or horizon changed"
+                raise InputError(f"holds a different campaign ({what})", file=str(out),
+                                 key="--resume", expected="the same scenario, input files and --runs as the "
+                                 "interrupted sweep")
+        elif resume and store.has_rows():
+            raise InputError("holds results but no campaign.json: which campaign they belong to cannot be told",
+                             file=str(out), key="--resume", expected="a directory of an interrupted sweep "
+                             "(or run without --resume to start afresh)")
         elif not resume:
             store.clear()
         say(f"sweep of {scenario.name}: {job.runs} runs ({camp.sweep.design}, seed {camp.sweep.seed}) of "

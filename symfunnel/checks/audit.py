@@ -36,6 +36,8 @@ class CheckResult:
     evidence: dict = field(default_factory=dict)
     expected: str = "pass"
     reason: str = ""
+    #: a claim's verdict: "proven", "refuted" or "not proven" (a sampled agreement is never a proof)
+    verdict: str = ""
 
     @property
     def unexpected(self) -> bool:
@@ -48,6 +50,8 @@ class CheckResult:
                "method": self.method}
         if self.reason:
             out["reason"] = self.reason
+        if self.verdict:
+            out["verdict"] = self.verdict
         if self.margin is not None:
             out["margin"] = self.margin
         if self.where is not None:
@@ -348,17 +352,26 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
         funnels[claim.funnel] = claim.spec
         ok, text, ev, margin = funnel_initial(design, funnels)
         return CheckResult(cid, "pass" if ok else "fail", f"{claim.source or 'printed'} funnel {claim.funnel}: {text}",
-                           method="exact", margin=margin, where={"t": 0.0}, evidence=ev)
+                           method="exact", margin=margin, where={"t": 0.0}, evidence=ev,
+                           verdict="proven" if ok else "refuted")
     exact = design.signals[claim.signal]
     printed = claim_expression(design, claim)
     diff = printed - exact
-    k = sc.audit.claim_samples
-    pts = funnel_states(design, k, rng)
+    k_inside = sc.audit.claim_samples
+    k_edge = max(50, k_inside // 4)
+    k = k_inside + k_edge
     f = ca.Function("claim", [design.sym[x] for x in design.inputs], [exact, printed], list(design.inputs),
                     ["exact", "printed"])
-    ex, pr = eval_mapped(f, pts, k)
     r, c = exact.shape
-    ex, pr = ex.reshape(r, k, c), pr.reshape(r, k, c)    # map puts sample j in columns j*c .. j*c + c - 1
+    batches = []
+    # inside the funnels, and crowding their boundaries (where a printed form may differ only near |e| = F)
+    for kk, edge in ((k_inside, False), (k_edge, True)):
+        pts_b = funnel_states(design, kk, rng, edge=edge)
+        ex_b, pr_b = eval_mapped(f, pts_b, kk)
+        batches.append((pts_b, ex_b.reshape(r, kk, c), pr_b.reshape(r, kk, c)))
+    pts = {key: np.concatenate([b[0][key] for b in batches], axis=-1) for key in batches[0][0]}
+    ex = np.concatenate([b[1] for b in batches], axis=1)
+    pr = np.concatenate([b[2] for b in batches], axis=1)
     d = np.abs(pr - ex)
     scale = np.maximum(np.abs(ex), np.abs(pr))
     rel = np.where(d == 0, 0.0, d / np.maximum(scale, 1e-300))
@@ -398,16 +411,64 @@ def check_claim(design: Design, claim, rng) -> CheckResult:
         if notes:
             detail += "; " + "; ".join(notes)
         return CheckResult(cid, "fail", detail, method=f"sampled ({k} points inside the funnels)",
-                           margin=-float(rel_pt[j]), where=where, evidence=ev)
+                           margin=-float(rel_pt[j]), where=where, evidence=ev, verdict="refuted")
     inputs = [design.sym[x] for x in design.inputs]
-    proven, _ = sympy_is_zero(diff, inputs, sc.audit.sympy_timeout)
+    proven, simp = sympy_is_zero(diff, inputs, sc.audit.sympy_timeout)
     if proven:
         return CheckResult(cid, "pass", f"{head}: equivalent to the exact signal (sympy: difference = 0)",
-                           method="symbolic", margin=0.0, evidence=ev)
-    return CheckResult(cid, "pass", f"{head}: agrees with the exact signal at {k} points inside the funnels "
-                       f"(worst relative difference {rel_pt[j]:.3g}); sympy could not prove it",
-                       method=f"sampled ({k} points inside the funnels)",
-                       margin=float(sc.audit.tolerance - rel_pt[j]), where=where, evidence=ev)
+                           method="symbolic", margin=0.0, evidence=ev, verdict="proven")
+    refuted = _refute(simp, inputs, design, pts, ex, min(k, 40), sc.audit.sympy_timeout)
+    if refuted is not None:
+        jj, value, expr = refuted
+        where = point_of(pts, jj)
+        ev["sympy_difference"] = expr[:200]
+        return CheckResult(cid, "fail", f"{head}: NOT equivalent to the exact signal: sympy's difference "
+                           f"printed - exact = {expr[:120]} is {value:.3g} at t = {where['t']:.4g}, "
+                           f"q = {_fmt_vec(where['q'])} (evaluated to 50 digits; below the sampling tolerance "
+                           f"{sc.audit.tolerance:g} but no rounding)", method="symbolic (refuted at a point)",
+                           margin=-abs(value), where=where, evidence=ev, verdict="refuted")
+    return CheckResult(cid, "warn", f"{head}: not proven: agrees with the exact signal at {k} points inside the "
+                       f"funnels and at their boundaries (worst relative difference {rel_pt[j]:.3g}), but sympy "
+                       f"could not prove the difference zero, so the claim may fail elsewhere",
+                       method=f"sampled ({k} points inside the funnels); not proven",
+                       margin=float(sc.audit.tolerance - rel_pt[j]), where=where, evidence=ev, verdict="not proven")
+
+
+#: a difference sympy evaluates above this, relative to the signal, is no rounding of the 53-bit constants
+REFUTE_REL = 1e-13
+
+
+def _refute(simp, inputs, design, pts, ex, count: int, timeout: float):
+    """(sample index, value, text) where sympy's simplified difference is clearly nonzero (50 digits), or None."""
+    if simp is None or all(e == 0 for e in simp):
+        return None
+    import sympy
+
+    from ..sx.proof import _Timeout, time_limit
+    from ..sx.tosympy import sx_to_sympy
+    names = list(design.inputs)
+    nonzero = [(i, e) for i, e in enumerate(simp) if e != 0]
+    k = ex.shape[1]
+    try:
+        with time_limit(min(timeout, 10.0)):
+            syms = list(sx_to_sympy(ca.vertcat(*[ca.vec(x) for x in inputs]), inputs))
+            for jj in range(count):
+                parts = []
+                for name in names:        # block jj of each input (casadi's map layout), column-major
+                    a = np.asarray(pts[name])
+                    c = a.shape[1] // k
+                    parts.append(a[:, jj * c:(jj + 1) * c].ravel(order="F"))
+                point = np.concatenate(parts)
+                subs = {s_: sympy.Float(float(v), 60) for s_, v in zip(syms, point)}
+                scale = max(float(np.max(np.abs(ex[:, jj, :]))), 1e-300)
+                for _, e in nonzero:
+                    val = complex(sympy.N(e.subs(subs), 50))
+                    if abs(val) > REFUTE_REL * scale:
+                        return jj, abs(val), str(e)
+    except (_Timeout, RecursionError, MemoryError, TypeError, ValueError, ZeroDivisionError):
+        return None
+    return None
+    return None
 
 
 def circular_names(design: Design, claim) -> list[str]:
@@ -438,8 +499,11 @@ def check_inequality(design: Design, claim, rng) -> CheckResult:
         if e.shape != (1, 1):
             raise InputError(f"has shape {e.shape[0]}x{e.shape[1]}", file=sc.file, key=f"claims.{claim.name}.{side}",
                              expected="a scalar (use dot(a, b) for sums over joints)")
-    k = max(sc.audit.claim_samples, 1000)
-    pts = funnel_states(design, k, rng)
+    k_inside = max(sc.audit.claim_samples, 1000)
+    k = k_inside + k_inside // 4
+    # inside the funnels, and a quarter crowding their boundaries
+    a_, b_ = funnel_states(design, k_inside, rng), funnel_states(design, k - k_inside, rng, edge=True)
+    pts = {key: np.concatenate([a_[key], b_[key]], axis=-1) for key in a_}
     pts["W_star"] = rng.normal(0.0, 1.0, (nr, k * n)) if nr else np.zeros((0, k * n))
     F = ca.Function("ineq", [design.sym[x] for x in design.inputs] + [Ws], [lhs, rhs], list(design.inputs) + ["W_star"],
                     ["lhs", "rhs"])
@@ -456,9 +520,10 @@ def check_inequality(design: Design, claim, rng) -> CheckResult:
         return CheckResult(cid, "fail", f"{head}: counterexample at {int(viol.sum())} of {k} states; worst at t = "
                            f"{where['t']:.4g}, q = {_fmt_vec(where['q'])}, dq = {_fmt_vec(where['dq'])}: lhs = "
                            f"{L[j]:.4g} > rhs = {R[j]:.4g}", method=method, margin=-float(gap[j]), where=where,
-                           evidence=ev)
-    return CheckResult(cid, "pass", f"{head}: no counterexample at {k} states (largest lhs - rhs {gap[j]:.3g})",
-                       method=method, margin=-float(gap[j]), where=where, evidence=ev)
+                           evidence=ev, verdict="refuted")
+    return CheckResult(cid, "warn", f"{head}: not proven: no counterexample at {k} states inside the funnels and "
+                       f"at their boundaries (largest lhs - rhs {gap[j]:.3g}); a search is no proof",
+                       method=method, margin=-float(gap[j]), where=where, evidence=ev, verdict="not proven")
 
 
 def _leakage(design: Design, law: ca.SX, rng, k: int = 200) -> dict:

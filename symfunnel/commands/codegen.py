@@ -29,6 +29,7 @@ def register(sub, common) -> None:
     sp.add_argument("--rate", type=float, metavar="HZ", help="C: sample rate the generated step advances the "
                     "controller state by (default: [implementation].rate_hz, else 1000)")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
+    sp.add_argument("--force", action="store_true", help="overwrite files in DIR that symfunnel did not write")
     sp.set_defaults(func=run)
 
 
@@ -52,10 +53,15 @@ def run(args) -> int:
                          "not '__' or '_' + capital)")
     if args.rate is not None:
         check_rate(args.rate, file=None, key="--rate")
+    if args.lang != "c":
+        for opt, value in (("--prefix", args.prefix), ("--rate", args.rate)):
+            if value is not None:
+                raise InputError(f"is given with --lang {args.lang}", key=opt,
+                                 expected="--lang c (the Python module has no step API to name or time)")
     run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
     sc, design = run.scenario, run.design
     files = run.code(args.lang, prefix=args.prefix, rate_hz=args.rate)
-    paths = write_output(files, args.out)
+    paths = write_output(files, args.out, force=args.force)
     summary = {"scenario": sc.name, "language": args.lang, "out": str(args.out),
                "files": [{"name": p.name, "bytes": len(files[p.name].encode("utf-8"))} for p in paths]}
     code = 0

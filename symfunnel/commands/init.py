@@ -211,7 +211,7 @@ def scenario_from_urdf(urdf: str, out: Path, name: str, joints: list[str] | None
         home.append(h)
         amp.append(a)
         q0.append(h + off)
-        joints.append(f"{j.name} ({j.type}, range [{lo:.4g}, {hi:.4g}])")
+        joints.append(f"{_toml_text(j.name)} ({_toml_text(j.type)}, range [{lo:.4g}, {hi:.4g}])")
     ref = [(f"{_fmt(h)} + " if round(h, 6) != 0 else "") + f"{_fmt(a)}*sin({_fmt(0.5 + 0.1 * (i % 5))}*t)"
            for i, (h, a) in enumerate(zip(home, amp))]
     phi0_e2 = _e2_funnel(Path(urdf).absolute().as_posix(), name, ref, q0, n, fixed)

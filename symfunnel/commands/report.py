@@ -42,8 +42,10 @@ def run(args) -> int:
     sc = _load(args)
     check_output_file(args.out if args.out is not None else default_path(sc))
     run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), _progress(args.quiet))
-    path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants,
-                        deployed=not args.no_deployed, figures_dir=figures)
+    from ..core.io import staged
+    with staged():                      # the report and its --figures files all at the end, or none of them
+        path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants,
+                            deployed=not args.no_deployed, figures_dir=figures)
     print(path)
     return 0
 

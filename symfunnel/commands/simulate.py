@@ -39,8 +39,8 @@ def run(args) -> int:
 
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
-    if args.wall_limit is not None and not (math.isfinite(args.wall_limit) and args.wall_limit > 0):
-        raise InputError(f"is {args.wall_limit:g}", key="--wall-limit", expected="a number > 0")
+    from ..core.deadline import check_seconds
+    check_seconds(args.wall_limit, key="--wall-limit", allow_none=True)
     if args.width is not None and not (math.isfinite(args.width) and args.width >= 0):
         raise InputError(f"is {args.width:g}", key="--width", expected="a number >= 0")
     if args.out and not args.out.endswith(".npz"):

@@ -60,8 +60,8 @@ def run(args) -> int:
     from ..core.toml_write import dumps
     from ..synthesis.search import tune
     from ._common import _dump, _load, _progress
-    if not (math.isfinite(args.wall_limit) and args.wall_limit > 0):
-        raise InputError(f"is {args.wall_limit:g}", key="--wall-limit", expected="a number of seconds > 0")
+    from ..core.deadline import check_seconds
+    check_seconds(args.wall_limit, key="--wall-limit")
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
     if args.max_evals is not None and args.max_evals < 1:

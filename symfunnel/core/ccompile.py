@@ -107,11 +107,12 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
     entry = root / key[:32]
     target = entry / output
     if entry.exists():
-        problem = verify_entry(entry, output)
+        problem = verify_entry(entry, output, key)
         if problem is None:
             return Built(target, key, True)
-        warnings.warn(f"compile cache entry {entry} is damaged ({problem}); rebuilding it", RuntimeWarning,
-                      stacklevel=2)
+        if problem != LEGACY:                  # an earlier version's entry is rebuilt without a warning
+            warnings.warn(f"compile cache entry {entry} is damaged ({problem}); rebuilding it", RuntimeWarning,
+                          stacklevel=2)
         if not _discard(entry, root):
             root = _private_root()
             entry, target = root / key[:32], root / key[:32] / output
@@ -126,6 +127,8 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         root = _private_root()
         entry, target = root / key[:32], root / key[:32] / output
         tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
+    from . import lifecycle
+    lifecycle.register_temporary(tmp)
     try:
         if on_build is not None:
             on_build(f"compiling {output} (one-time; cached in {root})")
@@ -139,17 +142,19 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         returncode, err = run_compiler(cmd, cwd=tmp, timeout=compile_timeout() if timeout is None else timeout)
         if returncode != 0 or err.strip():
             raise RuntimeError(f"compiling {output} failed ({' '.join(cmd)}):\n{err.strip()}")
-        _write_record(tmp, output)
+        _write_record(tmp, output, key)
         try:
             os.rename(tmp, entry)
         except OSError:
-            if verify_entry(entry, output) is not None:     # lost a race with a broken entry: rebuild next time
+            if verify_entry(entry, output, key) is not None:   # lost a race with a broken entry: rebuild next time
                 raise
             shutil.rmtree(tmp, ignore_errors=True)
             return Built(target, key, True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        lifecycle.unregister_temporary(tmp)
     return Built(target, key, False)
 
 
@@ -160,9 +165,8 @@ def compile_timeout() -> float:
     except ValueError:
         raise InputError(f"is '{os.environ['SYMFUNNEL_COMPILE_TIMEOUT']}'", key="SYMFUNNEL_COMPILE_TIMEOUT",
                          expected="a number of seconds > 0") from None
-    if not v > 0:
-        raise InputError(f"is {v:g}", key="SYMFUNNEL_COMPILE_TIMEOUT", expected="a number of seconds > 0")
-    return v
+    from .deadline import check_seconds
+    return check_seconds(v, key="SYMFUNNEL_COMPILE_TIMEOUT")
 
 
 def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str]:
@@ -171,6 +175,7 @@ def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str
     SIGINT and SIGTERM are blocked while the process starts: the compiler may already run before Popen returns
     (on a loaded machine), and a signal raised in between would leave it with no handle to kill it by; a signal
     that came meanwhile is delivered once they are unblocked, inside the block that kills the group."""
+    from . import lifecycle
     block = {signal.SIGINT, signal.SIGTERM}
     masked = hasattr(signal, "pthread_sigmask")
     if masked:
@@ -178,6 +183,7 @@ def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str
     try:
         proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True, start_new_session=True)
+        lifecycle.register_child(proc.pid, group=True)
     except BaseException:
         if masked:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
@@ -193,6 +199,8 @@ def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str
     except BaseException:
         _kill_group(proc)
         raise
+    finally:
+        lifecycle.unregister_child(proc.pid)
     return proc.returncode, (out or "") + (err or "")
 
 
@@ -216,15 +224,20 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _write_record(directory: Path, output: str) -> None:
+def _write_record(directory: Path, output: str, key: str | None = None) -> None:
     path = directory / output
-    rec = {"output": output, "size": path.stat().st_size, "sha256": _sha256(path)}
+    rec = {"output": output, "size": path.stat().st_size, "sha256": _sha256(path), "key": key}
     with open(directory / RECORD, "w", encoding="utf-8") as fh:
         json.dump(rec, fh)
 
 
-def verify_entry(entry: Path, output: str) -> str | None:
-    """None when `entry` holds `output` with the size and sha256 its record names; else what is wrong."""
+#: what `verify_entry` says of an entry an earlier symfunnel wrote (its record has no key): rebuilt, not damaged
+LEGACY = "written by an earlier symfunnel (its record names no key)"
+
+
+def verify_entry(entry: Path, output: str, key: str | None = None) -> str | None:
+    """None when `entry` holds `output` with the size and sha256 its record names, and (given `key`) the record
+    names that key (an entry copied over another's is not this one); else what is wrong."""
     target = entry / output
     try:
         with open(entry / RECORD, encoding="utf-8") as fh:
@@ -234,6 +247,10 @@ def verify_entry(entry: Path, output: str) -> str | None:
         return "no integrity record"
     except (OSError, ValueError, KeyError, TypeError):
         return "unreadable integrity record"
+    if key is not None and "key" not in rec:
+        return LEGACY
+    if key is not None and rec.get("key") != key:
+        return "its record names another key (an entry copied over this one)"
     try:
         actual = target.stat().st_size
     except OSError:

@@ -19,7 +19,11 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-__all__ = ["WallLimitReached", "limit", "until", "remaining", "check", "paused", "step", "current_step"]
+__all__ = ["WallLimitReached", "limit", "until", "remaining", "check", "paused", "step", "current_step",
+           "command_expiry", "expired_limit", "MAX_SECONDS", "check_seconds"]
+
+#: the longest limit accepted anywhere (--wall-limit, wall_limit, sympy_timeout, $SYMFUNNEL_COMPILE_TIMEOUT): a week
+MAX_SECONDS = 604800.0
 
 
 class WallLimitReached(BaseException):
@@ -42,6 +46,48 @@ class _Deadline:
 _stack: list[_Deadline] = []
 _steps: list[str] = []
 _paused: list[bool] = []
+_hooks: list[Callable[[], None]] = []     # lifecycle's re-raise of a swallowed signal, run by every check
+
+
+def check_seconds(value, *, key: str, file: str | None = None, allow_none: bool = False):
+    """A limit in seconds: a finite number in (0, MAX_SECONDS] (InputError naming `key` otherwise)."""
+    from .errors import InputError
+    if value is None and allow_none:
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not (ok and 0 < value <= MAX_SECONDS):
+        shown = f"{value:g}" if isinstance(value, float) else repr(value)
+        raise InputError(f"is {shown}", file=file, key=key,
+                         expected=f"a number of seconds > 0 and at most {MAX_SECONDS:g} (a week)")
+    return float(value)
+
+
+def on_check(hook: Callable[[], None] | None) -> None:
+    """Run `hook` at every `check()` (None: no hook); the CLI's signal policy re-raises a swallowed signal there."""
+    _hooks.clear()
+    if hook is not None:
+        _hooks.append(hook)
+
+
+def command_expiry() -> float | None:
+    """The earliest expiry of an open wall-clock limit (a WallLimitReached deadline), None without one."""
+    ds = [d.expiry for d in list(_stack) if d.make is None]
+    return min(ds) if ds else None
+
+
+def expired_limit() -> "WallLimitReached | None":
+    """The exception of an expired wall-clock limit (not an inner time limit), None when none has expired."""
+    now = time.monotonic()
+    for d in list(_stack):
+        if d.make is None and now >= d.expiry:
+            return _error(d)
+    return None
+
+
+def rearm() -> None:
+    """Fire the alarm again soon (its exception was swallowed where it was raised)."""
+    if _main() and _stack and not (_paused and _paused[-1]):
+        signal.setitimer(signal.ITIMER_REAL, 0.05)
 
 
 def _main() -> bool:
@@ -82,7 +128,7 @@ def _arm() -> None:
         return
     wait = min(d.expiry for d in _stack) - time.monotonic()
     signal.signal(signal.SIGALRM, _handler)
-    signal.setitimer(signal.ITIMER_REAL, max(wait, 1e-4))
+    signal.setitimer(signal.ITIMER_REAL, min(max(wait, 1e-4), MAX_SECONDS))
 
 
 def remaining() -> float:
@@ -96,8 +142,11 @@ def check(what: str | None = None) -> None:
     """Raise the expired deadline's exception, if one has expired (for code a signal cannot interrupt)."""
     if not _main():
         return
+    for hook in _hooks:
+        hook()
     d = _expired()
     if d is not None:
+        signal.setitimer(signal.ITIMER_REAL, 0)         # raised here: the alarm must not fire again in the unwinding
         if what:
             _steps.append(what)
         try:

@@ -27,10 +27,12 @@ class InputError(SymfunnelError):
             parts.append(str(file))
         if key:
             parts.append(f"key '{key}'")
-        head = ": ".join(parts)
+        from .text import one_line
+        head = one_line(": ".join(parts), 200)
+        message = one_line(message, 250)
         text = f"{head}: {message}" if head else message
         if expected:
-            text += f" (expected {expected})"
+            text += f" (expected {one_line(expected, 250)})"
         super().__init__(text)
 
     def at(self, file: str | None = None, key: str | None = None) -> "InputError":

@@ -9,6 +9,8 @@ digits than Python converts (4300).
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import math
 import os
@@ -23,6 +25,27 @@ from .errors import InputError
 MAX_INPUT_BYTES = 16 * 1024 * 1024
 
 _TINY = sys.float_info.min          # smallest positive normal double, 2.2e-308
+_recorders: list[dict] = []         # open `recording()` blocks: path -> sha256 of every file read
+
+
+@contextlib.contextmanager
+def recording():
+    """Collect {resolved path: sha256} of every file `read_input` reads inside the block (a campaign's inputs)."""
+    seen: dict[str, str] = {}
+    _recorders.append(seen)
+    try:
+        yield seen
+    finally:
+        _recorders.remove(seen)
+
+
+def file_digest(path: str | os.PathLike) -> str | None:
+    """sha256 of a file's content now (None when it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            return hashlib.sha256(fh.read()).hexdigest()
+    except OSError:
+        return None
 
 
 def read_input(path: str | os.PathLike, *, expected: str, limit: int = MAX_INPUT_BYTES) -> bytes:
@@ -58,7 +81,12 @@ def read_input(path: str | os.PathLike, *, expected: str, limit: int = MAX_INPUT
             total += len(b)
             if total > limit:
                 raise InputError(f"is larger than the limit of {limit} bytes", file=file, expected=expected)
-        return b"".join(chunks)
+        data = b"".join(chunks)
+        if _recorders:
+            digest = hashlib.sha256(data).hexdigest()
+            for seen in _recorders:
+                seen[os.path.realpath(file)] = digest
+        return data
     finally:
         os.close(fd)
 
@@ -129,9 +157,16 @@ def loads_json(text: str, *, file: str | None, expected: str) -> Any:
     """Parse JSON with checked numbers (no NaN/Infinity, no overflow or underflow); InputError otherwise."""
     def constant(name):
         raise InputError(f"holds {name}, which is not JSON", file=file, expected="finite numbers")
+    def pairs(items):
+        seen = {}
+        for k, v in items:
+            if k in seen:
+                raise InputError(f"has the key '{k}' twice", file=file, expected="each key once")
+            seen[k] = v
+        return seen
     try:
         return json.loads(text, parse_float=lambda s: float_literal(s, file=file, text=text),
-                          parse_constant=constant)
+                          parse_constant=constant, object_pairs_hook=pairs)
     except (json.JSONDecodeError, RecursionError) as exc:
         raise InputError(f"is not valid JSON ({exc})", file=file, expected=expected) from None
     except ValueError as exc:

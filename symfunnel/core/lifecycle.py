@@ -1,18 +1,57 @@
-"""Process-level behaviour of the CLI: SIGTERM unwinds like Ctrl-C, and warnings print as one line on stderr.
+"""Process-level behaviour of the CLI: one signal policy for every long call, and warnings as one line on stderr.
 
-SIGTERM is turned into the `Terminated` exception so that every `finally` / `except BaseException` clean-up runs
-(atomic writes remove their temporary files, the compile cache removes its half-built directory and kills the
-compiler), exactly as for SIGINT.
+The policy (docs/architecture.md, "Signals and long calls"):
+
+- SIGINT, SIGTERM and SIGHUP are recorded and raised in the main thread (`KeyboardInterrupt`, `Terminated`), so
+  every `finally` / `except BaseException` clean-up runs (atomic writes remove their temporary files, the compile
+  cache its half-built directory, the compiler and forked workers are killed).
+- A raise that lands where Python cannot deliver it (a weakref callback or a finalizer swallows it, a C callback
+  turns it into a SystemError or CasADi's "... KeyboardInterrupt" RuntimeError) is not lost: `check()` re-raises a
+  recorded signal, a swallowed one is re-delivered to the main thread, and the CLI reads the record.
+- A watchdog thread hears every signal at once (through the wakeup fd, also while the main thread is inside one
+  long C call) and watches the command's wall-clock limit. When the main thread has not finished unwinding
+  `GRACE` seconds after a signal (or after the limit), the watchdog stops the process itself: it kills the
+  registered child processes, removes the registered temporary files, prints the one line and exits with
+  128 + signal (1 for the limit).
+- Heavy calls that no signal can interrupt (a large CasADi Jacobian, code generation of a huge graph, IPOPT) run
+  in a forked worker, `run_killable(fn, *args, wall_limit=S)`, which the caller kills at a signal or a deadline, so
+  the Python API's `wall_limit=` bounds them too.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import os
+import pickle
+import select
+import shutil
 import signal
 import sys
+import threading
+import time
 import warnings
 
+from . import deadline
+
+__all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt", "run_killable",
+           "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
+           "exit_code", "die_with_parent", "GRACE"]
+
+#: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
+GRACE = 1.0
+#: exit code per terminating signal
+TERMINATING = {int(getattr(signal, n)): 128 + int(getattr(signal, n)) for n in ("SIGINT", "SIGTERM", "SIGHUP")
+               if hasattr(signal, n)}
+
 _saved: dict = {}
-_pending: list[int] = []          # signals received (CasADi may swallow the exception raised for them)
+_pending: list[int] = []          # signals received and not yet turned into an exit code by the CLI
+_temporaries: dict[str, None] = {}    # paths (files or directories) a stopped process must not leave behind
+_children: dict[int, bool] = {}   # pid -> True when it leads its own process group (kill the group)
+_lock = threading.Lock()
+_announced: list[str] = []
+_done = threading.Event()
+_state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None}
 
 
 class Terminated(BaseException):
@@ -23,45 +62,361 @@ class Terminated(BaseException):
         self.signum = signum
 
 
+def _exception(signum: int) -> BaseException:
+    return KeyboardInterrupt() if signum == signal.SIGINT else Terminated(signum)
+
+
 def _raise(signum, frame):
-    _pending.append(signum)
-    raise Terminated(signum)
+    _pending.append(int(signum))
+    raise _exception(int(signum))
+
+
+def pending() -> int | None:
+    """The last terminating signal received and not yet handled by the CLI (None: none)."""
+    return _pending[-1] if _pending else None
+
+
+def check() -> None:
+    """Raise the recorded signal again (for a raise that was swallowed on its way: finalizers, C callbacks)."""
+    if _pending and threading.current_thread() is threading.main_thread():
+        raise _exception(_pending[-1])
 
 
 def reraise_interrupt(exc: BaseException) -> None:
-    """Re-raise a termination or Ctrl-C that a CasADi call turned into a RuntimeError ('... KeyboardInterrupt')."""
-    if _pending:
-        raise Terminated(_pending[-1]) from None
+    """Re-raise a signal or a reached limit that a C call turned into another exception (a RuntimeError
+    '... KeyboardInterrupt' from CasADi, a SystemError 'returned a result with an exception set', ...)."""
+    check()
+    cause = _cause(exc)
+    if cause is not None:
+        raise cause from None
+    deadline.check()
     if "KeyboardInterrupt" in str(exc):
         raise KeyboardInterrupt from None
 
 
-def _one_line(message, category, filename, lineno, file=None, line=None):
-    text = " ".join(str(message).split())
-    print(f"symfunnel: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+def _cause(exc: BaseException | None) -> BaseException | None:
+    """A signal's or a limit's exception in the chain of `exc` (its causes and contexts), if any."""
+    seen = 0
+    while exc is not None and seen < 20:
+        if isinstance(exc, (Terminated, KeyboardInterrupt, deadline.WallLimitReached)):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return None
+
+
+def exit_code(exc: BaseException) -> tuple[int, str] | None:
+    """(exit code, one line) when `exc` is, hides or follows a signal or the command's wall-clock limit."""
+    c = _cause(exc)
+    if isinstance(c, deadline.WallLimitReached):
+        return 1, f"symfunnel: timeout: {c}"
+    if _pending or isinstance(c, (Terminated, KeyboardInterrupt)):
+        signum = _pending[-1] if _pending else (c.signum if isinstance(c, Terminated) else int(signal.SIGINT))
+        return _signal_exit(signum)
+    expired = deadline.expired_limit()
+    if expired is not None:
+        return 1, f"symfunnel: timeout: {expired}"
+    return None
+
+
+def _signal_exit(signum: int) -> tuple[int, str]:
+    if signum == signal.SIGINT:
+        return 130, "symfunnel: interrupted"
+    return 128 + signum, f"symfunnel: terminated by signal {signum}"
+
+
+def announce(line: str) -> None:
+    """Print the command's one closing line on stderr, once per process (the watchdog and the CLI both may)."""
+    with _lock:
+        if _announced:
+            return
+        _announced.append(line)
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+# --- what a stopped process must not leave behind ---------------------------------------------------------
+
+def register_temporary(path) -> None:
+    """Remove `path` (a file or a directory) if the process is stopped before `unregister_temporary(path)`."""
+    _temporaries[str(path)] = None
+
+
+def unregister_temporary(path) -> None:
+    """`path` is finished (renamed into place or removed): forget it."""
+    _temporaries.pop(str(path), None)
+
+
+def register_child(pid: int, group: bool = False) -> None:
+    """Kill process `pid` (its whole process group with `group`) if the process is stopped."""
+    _children[int(pid)] = bool(group)
+
+
+def unregister_child(pid: int) -> None:
+    """Process `pid` has been reaped: forget it."""
+    _children.pop(int(pid), None)
+
+
+def _kill_children() -> None:
+    for pid, group in list(_children.items()):
+        with contextlib.suppress(OSError):
+            (os.killpg if group else os.kill)(pid, signal.SIGKILL)
+
+
+def _remove_temporaries() -> None:
+    for path in list(_temporaries):
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+
+
+def die_with_parent() -> None:
+    """Make the kernel SIGKILL this process when its parent dies (Linux; elsewhere a thread watches the parent)."""
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)          # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:                               # the parent died before prctl
+        os._exit(1)
+
+    def watch():
+        while True:
+            time.sleep(0.5)
+            if os.getppid() != parent:
+                os._exit(1)
+    threading.Thread(target=watch, name="symfunnel-parent-watch", daemon=True).start()
+
+
+# --- the watchdog -----------------------------------------------------------------------------------------
+
+def _hard_stop(code: int, line: str) -> None:
+    _kill_children()
+    _remove_temporaries()
+    announce(line)
+    os._exit(code)
+
+
+def _watch(rfd: int) -> None:
+    stop_at, why, ignore = None, None, 0
+    while not _done.is_set():
+        try:
+            ready, _, _ = select.select([rfd], [], [], 0.02 if _state.get("redeliver") else 0.1)
+            data = os.read(rfd, 512) if ready else b""
+        except (OSError, ValueError):
+            return
+        now = time.monotonic()
+        for b in data:
+            if b in TERMINATING and ignore:                 # our own re-delivery (interrupt_main writes it too)
+                ignore -= 1
+            elif b in TERMINATING:
+                if stop_at is not None:                     # a second signal: stop now
+                    stop_at = now
+                else:
+                    stop_at, why = now + GRACE, _signal_exit(b)
+        again = _state.get("redeliver")
+        if again is not None and now >= again and _pending:
+            _state["redeliver"] = None
+            import _thread
+            ignore += 1
+            with contextlib.suppress(Exception):
+                _thread.interrupt_main(_pending[-1])
+        if stop_at is None:
+            expiry = deadline.command_expiry()
+            if expiry is not None and now >= expiry + GRACE:
+                d = deadline.expired_limit()
+                if d is not None:
+                    stop_at, why = now, (1, f"symfunnel: timeout: {d}")
+        if stop_at is not None and now >= stop_at and not _done.is_set():
+            _hard_stop(*why)
+
+
+def _unraisable(hook):
+    def unraisable(u):
+        # a signal's exception raised inside a finalizer or a weakref callback is swallowed there: deliver it again
+        if isinstance(u.exc_value, (Terminated, KeyboardInterrupt, deadline.WallLimitReached)):
+            if isinstance(u.exc_value, (Terminated, KeyboardInterrupt)) and _pending:
+                _state["redeliver"] = time.monotonic() + 0.02     # by the watchdog, once we are out of here
+            elif isinstance(u.exc_value, deadline.WallLimitReached):
+                deadline.rearm()
+            return
+        hook(u)
+    return unraisable
 
 
 def install() -> None:
-    """Route SIGTERM/SIGHUP to `Terminated` and warnings to one stderr line each (CLI only; undone by `uninstall`)."""
+    """The CLI's signal policy and one-line warnings (main thread only for signals; undone by `uninstall`)."""
     if _saved:
         return
     _saved["showwarning"] = warnings.showwarning
     warnings.showwarning = _one_line
-    for name in ("SIGTERM", "SIGHUP"):
-        sig = getattr(signal, name, None)
-        if sig is None:
-            continue
-        try:
-            _saved[sig] = signal.signal(sig, _raise)
-        except ValueError:          # not the main thread: leave signals alone
-            pass
+    _saved["unraisablehook"] = sys.unraisablehook
+    sys.unraisablehook = _unraisable(sys.unraisablehook)
+    _pending.clear()
+    _announced.clear()
+    _done.clear()
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in TERMINATING:
+        _saved[sig] = signal.signal(sig, _raise)
+    deadline.on_check(check)
+    rfd, wfd = os.pipe()
+    os.set_blocking(wfd, False)
+    _saved["wakeup"] = signal.set_wakeup_fd(wfd, warn_on_full_buffer=False)
+    _state["wakeup"] = (rfd, wfd)
+    t = threading.Thread(target=_watch, args=(rfd,), name="symfunnel-watchdog", daemon=True)
+    _state["thread"] = t
+    t.start()
 
 
 def uninstall() -> None:
-    """Restore what `install` changed."""
+    """Restore what `install` changed (the command has finished: the watchdog stands down)."""
     if not _saved:
         return
+    _done.set()
     warnings.showwarning = _saved.pop("showwarning")
+    sys.unraisablehook = _saved.pop("unraisablehook")
+    if "wakeup" in _saved:
+        signal.set_wakeup_fd(_saved.pop("wakeup"))
+        t = _state.pop("thread", None)
+        if t is not None:
+            t.join(timeout=1.0)
+        for fd in _state.pop("wakeup", None) or ():
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        deadline.on_check(None)
     for sig in [k for k in _saved if not isinstance(k, str)]:
         signal.signal(sig, _saved.pop(sig))
     _saved.clear()
+    _pending.clear()
+
+
+def _one_line(message, category, filename, lineno, file=None, line=None):
+    from .text import one_line
+    text = one_line(str(message))
+    print(f"symfunnel: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+
+
+# --- the killable worker ----------------------------------------------------------------------------------
+
+class WorkerDied(RuntimeError):
+    """The forked worker ended without an answer (killed by the system, e.g. out of memory)."""
+
+
+def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = None, **kwargs):
+    """`fn(*args, **kwargs)` in a forked child process the caller can kill: its result, or its exception raised.
+
+    The caller waits in Python, so a signal, the command's deadline or `wall_limit` (seconds, WallLimitReached
+    naming `what`) stops the wait at once and kills the child. The result comes back pickled (a casadi.Function
+    whole; bare SX comes back with symbols of its own, so return a Function or data); the arguments are not
+    pickled (the child is a fork). Without fork, or inside a worker, the call runs
+    in this process.
+    """
+    if not hasattr(os, "fork") or _state["worker"]:
+        return fn(*args, **kwargs)
+    started = time.monotonic()
+    limit = None if wall_limit is None else started + float(wall_limit)
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    rfd, wfd = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                            # the worker
+        code = 0
+        try:
+            os.close(rfd)
+            _worker_setup()
+            try:
+                result = ("ok", fn(*args, **kwargs))
+            except BaseException as exc:  # noqa: BLE001 - every outcome goes back to the parent
+                result = ("err", exc)
+            data = _dumps(result)
+            view = memoryview(data)
+            while view:
+                n = os.write(wfd, view)
+                view = view[n:]
+        except BaseException:  # noqa: BLE001 - the parent sees the missing answer
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(wfd)
+    register_child(pid)
+    chunks: list[bytes] = []
+    status = None
+    try:
+        with deadline.step(what) if what else contextlib.nullcontext():
+            while True:
+                check()
+                deadline.check()
+                wait = 0.2
+                if limit is not None:
+                    left = limit - time.monotonic()
+                    if left <= 0:
+                        raise deadline.WallLimitReached(float(wall_limit), what or deadline.current_step(),
+                                                        time.monotonic() - started)
+                    wait = min(wait, left)
+                ready, _, _ = select.select([rfd], [], [], max(wait, 0.0))
+                if ready:
+                    block = os.read(rfd, 1 << 20)
+                    if not block:
+                        break
+                    chunks.append(block)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+        raise
+    finally:
+        os.close(rfd)
+        with contextlib.suppress(ChildProcessError):
+            _, status = os.waitpid(pid, 0)
+        unregister_child(pid)
+    if not chunks:
+        raise WorkerDied(f"the worker process for {what or getattr(fn, '__name__', 'a call')} ended without an "
+                         f"answer (exit status {status}; out of memory?)")
+    kind, value = _loads(b"".join(chunks))
+    if kind == "err":
+        raise value
+    return value
+
+
+def _worker_setup() -> None:
+    _state["worker"] = True
+    die_with_parent()
+    with contextlib.suppress(ValueError, OSError):
+        signal.set_wakeup_fd(-1)
+    for sig in TERMINATING:                                  # the parent decides; it kills us when it stops
+        with contextlib.suppress(ValueError, OSError):
+            signal.signal(sig, signal.SIG_IGN if sig == signal.SIGINT else signal.SIG_DFL)
+    signal.setitimer(signal.ITIMER_REAL, 0)
+    _children.clear()
+    _temporaries.clear()
+
+
+def _dumps(result) -> bytes:
+    try:
+        import casadi
+        ctx = casadi.global_pickle_context()
+    except (ImportError, AttributeError):
+        ctx = contextlib.nullcontext()
+    try:
+        with ctx:
+            return pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as exc:  # noqa: BLE001 - an unpicklable result or exception: say what it was
+        kind, value = result
+        text = f"{type(value).__name__}: {value}" if kind == "err" else f"a {type(value).__name__}"
+        return pickle.dumps(("err", RuntimeError(f"the worker's answer ({text}) could not be returned: {exc}")))
+
+
+def _loads(data: bytes):
+    try:
+        import casadi
+        ctx = casadi.global_unpickle_context()
+    except (ImportError, AttributeError):
+        ctx = contextlib.nullcontext()
+    with ctx:
+        return pickle.loads(data)

@@ -5,6 +5,13 @@ import re
 #: a scenario identifier (coordinate, parameter, claim name)
 IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
+#: names no coordinate or parameter may take: Python's and C's keywords (the generated code names its variables
+#: after them) and the values of the expression language
+KEYWORDS = frozenset(__import__("keyword").kwlist) | frozenset(__import__("keyword").softkwlist) | frozenset("""
+auto break case char const continue default do double else enum extern float for goto if inline int long register
+restrict return short signed sizeof static struct switch typedef union unsigned void volatile while _Bool _Complex
+_Imaginary nan inf""".split())
+
 # name -> (description, funnel level needed: 0 none, 1 funnel e1, 2 funnels e1 and e2)
 SIGNALS: dict[str, tuple[str, int]] = {
     "qd": ("reference position q_d(t)", 0),

@@ -29,7 +29,7 @@ def check_keys(table: Any, allowed: Iterable[str], *, file: str, prefix: str,
     """Check that `table` is a table whose keys are all `allowed` and hold every `required` key."""
     allowed = list(allowed)
     if not isinstance(table, dict):
-        raise InputError(f"is a {type_name(table)}", file=file, key=prefix or "(top level)",
+        raise InputError(f"is {a_type(table)}", file=file, key=prefix or "(top level)",
                          expected="a table")
     for k in table:
         if k not in allowed:
@@ -40,6 +40,12 @@ def check_keys(table: Any, allowed: Iterable[str], *, file: str, prefix: str,
         if k not in table:
             raise InputError("is missing", file=file, key=join(prefix, k), expected="a value")
     return table
+
+
+def a_type(value: Any) -> str:
+    """`type_name` with its article: 'an array', 'a string', 'a table'."""
+    name = type_name(value)
+    return ("an " if name[:1] in "aeiou" else "a ") + name
 
 
 def type_name(value: Any) -> str:
@@ -64,7 +70,7 @@ def as_float(value: Any, *, file: str, key: str, minimum: float | None = None,
              maximum: float | None = None, strict_min: bool = False, strict_max: bool = False) -> float:
     """Check one value is a finite number within bounds."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"is a {type_name(value)}", file=file, key=key, expected="a number")
+        raise InputError(f"is {a_type(value)}", file=file, key=key, expected="a number")
     try:
         v = float(value)
     except OverflowError:
@@ -98,7 +104,7 @@ def get_int(table: dict, key: str, default: Any = _MISSING, *, file: str, prefix
         return default
     v = table[key]
     if isinstance(v, bool) or not isinstance(v, int):
-        raise InputError(f"is a {type_name(v)}", file=file, key=join(prefix, key), expected="an integer")
+        raise InputError(f"is {a_type(v)}", file=file, key=join(prefix, key), expected="an integer")
     if (minimum is not None and v < minimum) or (maximum is not None and v > maximum):
         raise InputError(f"is {v}", file=file, key=join(prefix, key),
                          expected="an integer " + _bounds_text(minimum, maximum, False, False))
@@ -114,7 +120,7 @@ def get_str(table: dict, key: str, default: Any = _MISSING, *, file: str, prefix
         return default
     v = table[key]
     if not isinstance(v, str):
-        raise InputError(f"is a {type_name(v)}", file=file, key=join(prefix, key), expected="a string")
+        raise InputError(f"is {a_type(v)}", file=file, key=join(prefix, key), expected="a string")
     if choices is not None:
         choices = list(choices)
         if v not in choices:
@@ -131,7 +137,7 @@ def get_bool(table: dict, key: str, default: Any = _MISSING, *, file: str, prefi
         return default
     v = table[key]
     if not isinstance(v, bool):
-        raise InputError(f"is a {type_name(v)}", file=file, key=join(prefix, key), expected="true or false")
+        raise InputError(f"is {a_type(v)}", file=file, key=join(prefix, key), expected="true or false")
     return v
 
 
@@ -179,7 +185,7 @@ def get_list(table: dict, key: str, default: Any = _MISSING, *, file: str, prefi
         return default
     v = table[key]
     if not isinstance(v, list):
-        raise InputError(f"is a {type_name(v)}", file=file, key=full, expected="an array")
+        raise InputError(f"is {a_type(v)}", file=file, key=full, expected="an array")
     if length is not None and len(v) != length:
         raise InputError(f"has {len(v)} entries", file=file, key=full, expected=f"an array of {length}")
     return v

@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
+from ..core.errors import InputError
+
 if TYPE_CHECKING:
     from collections.abc import Callable
 
@@ -204,8 +206,30 @@ def plant_substeps(scenario, h: float) -> int:
     M = np.array(ca.Function("M", [sc.model.q], [sc.model.numeric(sc.model.M)])(sc.q0)) * pl.mass_scale
     lam = slope / max(float(np.linalg.eigvalsh(0.5 * (M + M.T)).min()), 1e-12)
     h_max = min(1e-3, 1.5 / lam if lam > 0 else 1e-3)
-    need = max(1, int(math.ceil(h / h_max - 1e-9)))
+    need = h / h_max
+    if not need <= MAX_PLANT_SUBSTEPS:
+        raise InputError(f"is {1.0 / h:.6g} Hz: one period of {h:.6g} s needs {need:.3g} RK4 plant steps of at most "
+                         f"{h_max:.3g} s (at most {MAX_PLANT_SUBSTEPS}; the plant step's code grows with them)",
+                         file=sc.file, key="implementation.rate_hz",
+                         expected=f"a rate of at least {min_rate_hz(sc):.6g} Hz for this plant")
+    need = max(1, int(math.ceil(need - 1e-9)))
     return 1 << (need - 1).bit_length()
+
+
+#: the most RK4 steps of the plant per sample period (their code is unrolled into the compiled plant step)
+MAX_PLANT_SUBSTEPS = 1024
+
+
+def min_rate_hz(scenario) -> float:
+    """The lowest sample rate whose period the plant step integrates within MAX_PLANT_SUBSTEPS RK4 steps."""
+    sc = scenario
+    pl = sc.plant
+    w = sc.simulation.smoothing_width
+    slope = max(v + (c / w if w > 0 else 0.0) for v, c in zip(pl.viscous, pl.coulomb)) if sc.n else 0.0
+    M = np.array(ca.Function("M", [sc.model.q], [sc.model.numeric(sc.model.M)])(sc.q0)) * pl.mass_scale
+    lam = slope / max(float(np.linalg.eigvalsh(0.5 * (M + M.T)).min()), 1e-12)
+    h_max = min(1e-3, 1.5 / lam if lam > 0 else 1e-3)
+    return 1.0 / (MAX_PLANT_SUBSTEPS * h_max)
 
 
 def plant_step_function(scenario, substeps: int, name: str = "sfs_plant") -> ca.Function:
@@ -291,11 +315,11 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     h = 1.0 / impl.rate_hz
     T = float(t_final if t_final is not None else sc.simulation.t_final)
     K = int(math.floor(T * impl.rate_hz + 1e-9))
+    subs = plant_substeps(sc, h)              # first: a rate too low for the plant is refused before any work
     if controller is None:
         files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
         controller = step_library(design, files, on_build=say)
     controller.init()
-    subs = plant_substeps(sc, h)
     plant = _compiled(plant_step_function(sc, subs, name=f"sfs_plant_{subs}"), on_build=say)
     p_t, p_x, p_u = plant.inputs
     xf = plant.outputs[0]

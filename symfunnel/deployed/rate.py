@@ -60,7 +60,8 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
         hi = r
         while lo is None:
             r2 = hi / 4
-            if r2 < MIN_RATE_HZ:
+            from .loop import min_rate_hz
+            if r2 < max(MIN_RATE_HZ, min_rate_hz(scenario)):
                 return {"min_rate_hz": hi, "margin": margin, "tried": tried}
             if holds(r2):
                 hi = r2

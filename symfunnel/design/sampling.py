@@ -31,11 +31,12 @@ def joint_states(design: Design, k: int, rng: np.random.Generator) -> tuple[np.n
 
 def funnel_states(design: Design, k: int, rng: np.random.Generator, *, method: str = "random",
                   fill: float = 0.98, t_range: tuple[float, float] | None = None,
-                  w_scale: float = 1.0) -> dict[str, np.ndarray]:
+                  w_scale: float = 1.0, edge: bool = False) -> dict[str, np.ndarray]:
     """k points strictly inside both funnels, as design-input arrays with the sample index last.
 
     t is drawn over [0, t_final], e1 = u1 * fill * F1(t), q = qd(t) + e1, e2 = u2 * fill * F2(t),
-    dq = alpha2 + e2; each approximator state within its invariant box and w_hat within +-w_scale.
+    dq = alpha2 + e2; each approximator state within its invariant box and w_hat within +-w_scale. With `edge`
+    the errors crowd the funnels' boundaries instead (|e|/F = 1 - 10^(-6 v), v uniform).
     Matrix states come side by side (casadi's map layout: block j holds sample j); `vec_<name>` holds them
     column-major vectorised, one column per sample (the closed loop's state layout).
     """
@@ -51,6 +52,11 @@ def funnel_states(design: Design, k: int, rng: np.random.Generator, *, method: s
     qd, dqd, ddqd = (np.array(v) for v in ref(t))
     F = design.function("funnel_bounds", ["t"], ["F1", "F2"]).map(k)
     F1, F2 = (np.array(v) for v in F(t))
+    if edge:     # |e|/F = 1 - 10^(-6 v): half the points within 0.1 % of the funnel's boundary, none on it
+        for rows in (slice(1, 1 + n), slice(1 + n, 1 + 2 * n)):
+            v = u[rows]
+            side = np.where(v < 0.5, -1.0, 1.0)
+            u[rows] = 0.5 + 0.5 * side * (1.0 - 10.0 ** (-6.0 * np.abs(2 * v - 1))) / fill
     e1 = (2 * u[1:1 + n] - 1) * fill * F1
     q = qd + e1
     a2 = design.function("alpha2", ["t", "q", "qd", "dqd"]).map(k)

@@ -124,10 +124,47 @@ def c_names(files: dict[str, str]) -> tuple[str, str]:
     return api.get("source", BASENAME + ".c")[:-2], api.get("function_prefix", "")
 
 
-def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path]:
+def _ours(out: Path) -> dict[str, str]:
+    """{name: sha256} of the files an earlier `symfunnel codegen` wrote into `out` (its manifest.json), if any."""
+    import hashlib
+    try:
+        m = json.loads((out / "manifest.json").read_text(encoding="utf-8"))
+        if not str(m.get("generator", "")).startswith("symfunnel"):
+            return {}
+        listed = {str(f["name"]): str(f["sha256"]) for f in m.get("files", [])}
+        listed["manifest.json"] = hashlib.sha256((out / "manifest.json").read_bytes()).hexdigest()
+        return listed
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+def foreign_files(files: dict[str, str], out_dir: str | os.PathLike) -> list[str]:
+    """The files of `files` that exist in out_dir and were not written there by symfunnel (or changed since)."""
+    import hashlib
+    out = Path(out_dir)
+    if not out.is_dir():
+        return []
+    ours = _ours(out)
+    bad = []
+    for name, text in files.items():
+        p = out / name
+        if not p.exists():
+            continue
+        try:
+            digest = hashlib.sha256(p.read_bytes()).hexdigest()
+        except OSError:
+            bad.append(name)
+            continue
+        if digest != ours.get(name) and digest != hashlib.sha256(text.encode("utf-8")).hexdigest():
+            bad.append(name)
+    return bad
+
+
+def write_output(files: dict[str, str], out_dir: str | os.PathLike, *, force: bool = False) -> list[Path]:
     """Write the files into out_dir atomically: all go to a temporary directory first, then are renamed in.
 
-    Raises InputError when out_dir exists and is not a directory. Other files in out_dir are left alone.
+    Raises InputError when out_dir exists and is not a directory, and (without `force`) when it holds a file of the
+    same name that symfunnel did not write (the user's own Makefile or main.c). Other files are left alone.
     """
     from ..core.errors import InputError
     from ..core.io import umask_mode
@@ -135,6 +172,11 @@ def write_output(files: dict[str, str], out_dir: str | os.PathLike) -> list[Path
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a directory", file=str(out), key="--out",
                          expected="a directory (created when missing)")
+    foreign = [] if force else foreign_files(files, out)
+    if foreign:
+        raise InputError(f"holds {foreign[0]}" + (f" and {len(foreign) - 1} more file(s)" if len(foreign) > 1 else "")
+                         + " not written by symfunnel codegen (or changed since)", file=str(out / foreign[0]),
+                         key="--out", expected="--force to overwrite them, or another directory")
     # The temporary directory lives inside an existing out_dir (it may be a mount point: renames never cross
     # file systems), else beside it so that the whole directory can be renamed into place.
     parent = out.absolute() if out.is_dir() else out.absolute().parent

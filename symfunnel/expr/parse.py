@@ -304,7 +304,8 @@ def parse_expression(text: str, names: Iterable[str] | None = None, *, file: str
         return InputError(message, file=file, key=key, expected=expected)
 
     if not isinstance(text, str):
-        raise fail(f"is a {type(text).__name__}", "a string holding an expression")
+        from ..core.validate import a_type
+        raise fail(f"is {a_type(text)}", "a string holding an expression")
     allowed = None if names is None else frozenset(names)
     source = _prescan(text, fail)
     try:

@@ -84,7 +84,7 @@ class ExpressionFunnel:
         elif isinstance(value, list) and len(value) == n and all(isinstance(v, str) for v in value):
             exprs = [parse_expression(v, names, file=file, key=V.join(full, i)) for i, v in enumerate(value)]
         else:
-            raise InputError(f"is a {V.type_name(value)}" if not isinstance(value, list)
+            raise InputError(f"is {V.a_type(value)}" if not isinstance(value, list)
                              else f"is an array of {len(value)}", file=file, key=full,
                              expected=f"an expression string in t, or an array of {n} strings (one per joint)")
         for i, e in enumerate(exprs):
@@ -126,6 +126,10 @@ def extremes(shape: Any, t_final: float) -> tuple[np.ndarray, np.ndarray, np.nda
     return vals.min(axis=1), vals.max(axis=1), grid[np.argmin(vals, axis=1)]
 
 
+#: the largest funnel value accepted (F = 1e8 around an error of 1e-2 already spends 10 of the 16 digits)
+MAX_F = 1e8
+
+
 def check_positive(shape: Any, t_final: float, *, file: str, key: str) -> None:
     """InputError naming `key` (e.g. funnel.e2.F) and the first time F is not a finite positive number, on the
     dense grid of [0, t_final] (and its derivative is finite there: the design differentiates F)."""
@@ -134,6 +138,12 @@ def check_positive(shape: Any, t_final: float, *, file: str, key: str) -> None:
     F = shape.sx(t)
     dvals = np.asarray(ca.Function("dF", [t], [ca.jtimes(F, t, ca.SX(1))]).map(grid.size)(grid.reshape(1, -1)))
     bad = ~(np.isfinite(vals) & (vals > 0) & np.isfinite(dvals))
+    if (np.isfinite(vals) & (vals > MAX_F)).any() and not bad.any():
+        k = int(np.argmax((vals > MAX_F).any(axis=0)))
+        j = int(np.argmax(vals[:, k] > MAX_F))
+        raise InputError(f"is {vals[j, k]:.6g} at t = {grid[k]:.6g} s", file=file, key=key,
+                         expected=f"F(t) at most {MAX_F:g} (errors bounded by a larger funnel lose their precision "
+                                  "in double arithmetic)")
     if bad.any():
         k = int(np.argmax(bad.any(axis=0)))                 # the first bad time, then its first bad joint
         j = int(np.argmax(bad[:, k]))

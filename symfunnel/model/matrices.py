@@ -8,7 +8,7 @@ import numpy as np
 from ..core import validate as V
 from ..core.errors import InputError
 from ..expr import parse_expression
-from ..core.names import IDENT, RESERVED
+from ..core.names import IDENT, KEYWORDS, RESERVED
 from .base import RigidBodyModel, christoffel_C, symbols
 
 
@@ -21,7 +21,7 @@ def _names(table: dict, file: str) -> tuple[list[str], list[str], list[float]]:
         raise InputError(f"has {len(coords)} entries", file=file, key="model.coordinates",
                          expected="at most 20 coordinates for a matrices model")
     for i, c in enumerate(coords):
-        if not isinstance(c, str) or not IDENT.match(c) or c in RESERVED or ("d" + c) in RESERVED:
+        if not isinstance(c, str) or not IDENT.match(c) or c in RESERVED or ("d" + c) in RESERVED or c in KEYWORDS:
             raise InputError(f"is {c!r}", file=file, key=f"model.coordinates[{i}]",
                              expected="an identifier that is not a reserved name such as t, u, q, e1 "
                                       "(velocities are named 'd' + coordinate)")
@@ -29,11 +29,11 @@ def _names(table: dict, file: str) -> tuple[list[str], list[str], list[float]]:
         raise InputError("has duplicates", file=file, key="model.coordinates", expected="distinct names, none of them 'd' + another")
     params = table.get("parameters", {})
     if not isinstance(params, dict):
-        raise InputError(f"is a {V.type_name(params)}", file=file, key="model.parameters", expected="a table")
+        raise InputError(f"is {V.a_type(params)}", file=file, key="model.parameters", expected="a table")
     taken = set(coords) | {"d" + c for c in coords}
     p_names, p_values = [], []
     for k, v in params.items():
-        if not IDENT.match(k) or k in RESERVED or k in taken:
+        if not IDENT.match(k) or k in RESERVED or k in taken or k in KEYWORDS:
             raise InputError("is not a usable parameter name", file=file, key=f"model.parameters.{k}",
                              expected="an identifier other than t, u, the coordinates, velocities and signal names")
         p_names.append(k)
@@ -88,7 +88,7 @@ def _matrix(value, rows: int, cols: int, names: set[str], env: dict, file: str, 
             if isinstance(s, (int, float)) and not isinstance(s, bool):
                 s = repr(float(s))
             if not isinstance(s, str):
-                raise InputError(f"is a {V.type_name(s)}", file=file, key=k, expected="an expression string")
+                raise InputError(f"is {V.a_type(s)}", file=file, key=k, expected="an expression string")
             e = parse_expression(s, names, file=file, key=k).to_casadi(env)
             if e.shape != (1, 1):
                 raise InputError(f"has shape {e.shape}", file=file, key=k, expected="a scalar expression")

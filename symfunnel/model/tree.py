@@ -10,8 +10,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..core.errors import InputError
-from ..core.names import IDENT
-from ..core.validate import as_float, did_you_mean, get_list, join, type_name
+from ..core.names import IDENT, KEYWORDS
+from ..core.validate import as_float, did_you_mean, get_list, join, a_type, type_name
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 SNAP = 1e-14           # rotation-matrix entries this close to 0 are exactly 0 (rpy of pi/2 and the like)
@@ -147,9 +147,10 @@ def get_coordinates(table: dict, n: int, *, file: str, prefix: str) -> list[str]
         raise InputError(f"has {len(names)} names but the model has {n} movable joints", file=file,
                          key=key, expected=f"an array of {n} names")
     for i, c in enumerate(names):
-        if not isinstance(c, str) or not IDENT.match(c):
+        if not isinstance(c, str) or not IDENT.match(c) or c in KEYWORDS:
             raise InputError(f"is {c!r}", file=file, key=join(key, i),
-                             expected="a name of letters, digits and '_' not starting with a digit")
+                             expected="a name of letters, digits and '_' not starting with a digit, and not a "
+                                      "Python or C keyword")
     dup = sorted({c for c in names if names.count(c) > 1})
     if dup:
         raise InputError(f"names '{dup[0]}' twice", file=file, key=key, expected="distinct names")
@@ -165,7 +166,7 @@ def get_vector(table: dict, key: str, default: Sequence[float] | None, *, file: 
     v = table[key]
     want = " or ".join(str(k) for k in lengths)
     if not isinstance(v, list):
-        raise InputError(f"is a {type_name(v)}", file=file, key=full, expected=f"an array of {want} numbers")
+        raise InputError(f"is {a_type(v)}", file=file, key=full, expected=f"an array of {want} numbers")
     if len(v) not in lengths:
         raise InputError(f"has {len(v)} entries", file=file, key=full, expected=f"an array of {want} numbers")
     return np.array([as_float(x, file=file, key=join(full, i)) for i, x in enumerate(v)])

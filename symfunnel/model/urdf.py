@@ -212,7 +212,9 @@ def effort_limits(path: str | pathlib.Path) -> list[float | None]:
         value = None if lim is None else lim.get("effort")
         try:
             effort[el.get("name", "")] = None if value is None else float(value)
+            if value is not None and not (math.isfinite(effort[el.get("name", "")])):
+                raise ValueError(value)
         except ValueError:
             raise InputError(f"has effort '{value}'", file=str(path), key=f"joint[{el.get('name')}]/limit@effort",
-                             expected="a number") from None
+                             expected="a finite number") from None
     return [effort.get(name) for name in movable_joint_names(tree)]

@@ -31,15 +31,50 @@ def load_sweep(directory) -> tuple[dict, dict]:
         if not p.is_file():
             raise InputError("is missing", file=str(p), key="--sweep",
                              expected="a directory written by `symfunnel sweep` (summary.json, results.parquet)")
+    from ..core.inputs import loads_json, read_text
+    summary = loads_json(read_text(summary_path, expected="summary.json written by `symfunnel sweep`"),
+                         file=str(summary_path), expected="summary.json written by `symfunnel sweep`")
+    _check_summary(summary, str(summary_path))
     try:
-        summary = json.loads(summary_path.read_text(encoding="utf-8"))
         import pyarrow.parquet as pq
         table = pq.read_table(str(results)).to_pydict()
+        cols = {k: np.asarray(v, dtype=object if k == "status" else float) for k, v in table.items()}
     except Exception as exc:  # noqa: BLE001 - a damaged file is bad input, not a crash
-        raise InputError(f"cannot be read ({type(exc).__name__})", file=str(d), key="--sweep",
-                         expected="summary.json and results.parquet written by `symfunnel sweep`") from None
-    cols = {k: np.asarray(v, dtype=object if k == "status" else float) for k, v in table.items()}
+        raise InputError(f"cannot be read ({type(exc).__name__})", file=str(results), key="--sweep",
+                         expected="results.parquet written by `symfunnel sweep`") from None
+    missing = [k for k in FIXED if k not in cols]
+    if missing:
+        raise InputError(f"has no column '{missing[0]}'", file=str(results), key="--sweep",
+                         expected="results.parquet written by `symfunnel sweep`")
+    if len(cols["run"]) != summary["runs"]:
+        raise InputError(f"has {len(cols['run'])} rows, its summary.json says {summary['runs']} runs",
+                         file=str(results), key="--sweep", expected="the results and summary of one sweep")
     return summary, cols
+
+
+def _check_summary(s, file: str) -> None:
+    """The keys of summary.json the section reads, with their types (InputError naming the file and key)."""
+    def bad(key, expected):
+        raise InputError("is missing" if not isinstance(s, dict) or key not in s else f"is {s[key]!r}"[:80],
+                         file=file, key=key, expected=expected)
+
+    def number(x):
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
+
+    if not isinstance(s, dict):
+        raise InputError("is not a JSON object", file=file, key="--sweep", expected="summary.json of a sweep")
+    for key in ("runs", "breaches"):
+        if not (isinstance(s.get(key), int) and not isinstance(s.get(key), bool) and s[key] >= 0):
+            bad(key, "an integer >= 0")
+    p = s.get("breach_probability")
+    if p is not None and not (number(p) and 0 <= p <= 1):
+        bad("breach_probability", "a probability or null")
+    ci = s.get("ci95")
+    if not (isinstance(ci, list) and len(ci) == 2 and all(number(x) for x in ci)):
+        bad("ci95", "[low, high]")
+    w = s.get("worst_run")
+    if w is not None and not (isinstance(w, int) and not isinstance(w, bool)):
+        bad("worst_run", "a run number or null")
 
 
 def parameters(cols: dict) -> list[str]:

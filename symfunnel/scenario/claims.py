@@ -42,7 +42,7 @@ INEQUALITY_NAMES = {"V", "V_dot", "W_star"}
 
 def parse_claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
     if not isinstance(items, list):
-        raise InputError(f"is a {V.type_name(items)}", file=file, key="claims",
+        raise InputError(f"is {V.a_type(items)}", file=file, key="claims",
                          expected="an array of tables ([[claims]])")
     names = claim_names(n, model)
     seen = set()
@@ -110,7 +110,7 @@ def parse_claims(items: Any, n: int, file: str, model, funnels) -> list[Claim]:
 def parse_expectations(items: Any, n: int, claims: list[Claim], file: str) -> list[Expectation]:
     """`[[expect]]`: declared outcomes of non-claim checks, each naming a known check id and giving a reason."""
     if not isinstance(items, list):
-        raise InputError(f"is a {V.type_name(items)}", file=file, key="expect",
+        raise InputError(f"is {V.a_type(items)}", file=file, key="expect",
                          expected="an array of tables ([[expect]])")
     known = check_ids(n)
     out, seen = [], set()
@@ -129,7 +129,8 @@ def parse_expectations(items: Any, n: int, claims: list[Claim], file: str) -> li
         seen.add(cid)
         status = V.get_str(e, "status", file=file, prefix=p, choices=list(EXPECT_STATUSES))
         reason = V.get_str(e, "reason", file=file, prefix=p).strip()
-        if not reason:
+        from ..core.text import invisible
+        if not any(not invisible(c) and not c.isspace() for c in reason):
             raise InputError("is empty", file=file, key=p + ".reason", expected="why the outcome is expected")
         out.append(Expectation(cid, status, reason))
     return out
@@ -137,7 +138,7 @@ def parse_expectations(items: Any, n: int, claims: list[Claim], file: str) -> li
 
 def parse_deviations(items: Any, file: str) -> list[Deviation]:
     if not isinstance(items, list):
-        raise InputError(f"is a {V.type_name(items)}", file=file, key="deviations",
+        raise InputError(f"is {V.a_type(items)}", file=file, key="deviations",
                          expected="an array of tables ([[deviations]])")
     out = []
     for i, d in enumerate(items):

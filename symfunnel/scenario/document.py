@@ -165,6 +165,8 @@ class Scenario:
     implementation: ImplementationSpec | None = None  # None: the continuous-time controller
     rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
     tune: TuneSpec | None = None    # of [tune], or None
+    #: every file read to build it ({resolved path: sha256 of the content read}: the TOML, a URDF, ...)
+    inputs: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
         object.__setattr__(self, "_sealed", True)

@@ -14,6 +14,7 @@ from .claims import parse_claims, parse_deviations, parse_expectations
 from .document import Scenario
 from .sections import (
     build_model,
+    check_reference,
     check_settings_match,
     parse_audit,
     parse_design,
@@ -66,14 +67,27 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     path = resolve(name_or_path)
     file = str(path)
     from ..core.inputs import loads_toml, read_text
-    text = read_text(path, expected="a scenario TOML file")
-    raw = loads_toml(text, file=file)
-    default_name = path.stem if str(name_or_path) not in BUILTIN else str(name_or_path)
-    return from_dict(raw, file=file, base_dir=path.parent, default_name=default_name)
+    from ..core.inputs import recording
+    with recording() as seen:
+        text = read_text(path, expected="a scenario TOML file")
+        raw = loads_toml(text, file=file)
+        default_name = path.stem if str(name_or_path) not in BUILTIN else str(name_or_path)
+        sc = from_dict(raw, file=file, base_dir=path.parent, default_name=default_name)
+    sc.inputs.update(seen)
+    return sc
 
 
 def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scenario") -> Scenario:
-    """Validate a parsed TOML document into a Scenario."""
+    """Validate a parsed TOML document into a Scenario; `Scenario.inputs` names every other file it read, with
+    the sha256 of the content read (a campaign's fingerprint covers them)."""
+    from ..core.inputs import recording
+    with recording() as seen:
+        sc = _from_dict(raw, file=file, base_dir=base_dir, default_name=default_name)
+    sc.inputs.update(seen)
+    return sc
+
+
+def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Scenario:
     V.check_keys(raw, TOP_KEYS, file=file, prefix="", required=["model", "reference", "initial"])
     name = V.get_str(raw, "name", default_name, file=file, prefix="")
     if not re.match(r"^[A-Za-z0-9_.-]{1,64}$", name):
@@ -114,6 +128,7 @@ def from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str = "scen
     x_esn0 = parse_x_esn0(init, esn.size, file)
     plant = parse_plant(raw.get("plant", {}), n, file, model)
     sim = parse_simulation(raw.get("simulation", {}), file)
+    check_reference(reference, sim.t_final, file)
     for key, shape in funnels.items():
         check_positive(shape, sim.t_final, file=file, key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))
     audit = parse_audit(raw.get("audit", {}), n, file, model)

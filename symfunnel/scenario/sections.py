@@ -9,6 +9,7 @@ from typing import Any
 
 from ..core import validate as V
 from ..core.errors import InputError
+from ..core.deadline import MAX_SECONDS
 from ..expr import Expression, parse_expression
 from ..family.approximators import APPROXIMATORS, ESNApproximator
 from ..family.funnels import parse_funnel
@@ -38,6 +39,27 @@ def parse_reference(table: Any, n: int, file: str, model) -> list[Expression]:
     return expression_list(table, "q", n, file, "reference", {"t"})
 
 
+def check_reference(reference: list, t_final: float, file: str) -> None:
+    """qd, dqd and ddqd finite on a dense grid of [0, t_final] (the design differentiates the reference twice)."""
+    import casadi as ca
+    import numpy as np
+    t = ca.SX.sym("t")
+    grid = np.linspace(0.0, float(t_final), 401)
+    for i, e in enumerate(reference):
+        q = ca.SX(e.to_casadi({"t": t}))
+        dq = ca.jacobian(q, t)
+        f = ca.Function("ref", [t], [q, dq, ca.jacobian(dq, t)]).map(grid.size)
+        vals = [np.asarray(v, dtype=float).ravel() for v in f(grid.reshape(1, -1))]
+        for name, v in zip(("qd", "dqd/dt", "d2qd/dt2"), vals):
+            bad = ~np.isfinite(v)
+            if bad.any():
+                k = int(np.argmax(bad))
+                raise InputError(f"'{e.text}' gives {name} = {v[k]} at t = {grid[k]:.6g} s", file=file,
+                                 key=f"reference.q[{i}]" if len(reference) > 1 else "reference.q",
+                                 expected="a reference finite, with finite first and second derivatives, on "
+                                          f"[0, t_final = {float(t_final):g}]")
+
+
 def expression_list(table: dict, key: str, n: int, file: str, prefix: str, names: set[str],
                default: Any = None) -> list[Expression]:
     """One expression string for every joint, or an array of n strings."""
@@ -54,7 +76,7 @@ def expression_list(table: dict, key: str, n: int, file: str, prefix: str, names
         if isinstance(s, (int, float)) and not isinstance(s, bool):
             s = repr(float(s))
         if not isinstance(s, str):
-            raise InputError(f"is a {V.type_name(s)}", file=file, key=V.join(full, i),
+            raise InputError(f"is {V.a_type(s)}", file=file, key=V.join(full, i),
                              expected="an expression string")
         out.append(parse_expression(s, names, file=file, key=V.join(full, i)))
     return out
@@ -190,7 +212,7 @@ def parse_simulation(table: Any, file: str) -> SimulationSpec:
                                     minimum=0),
         convergence_widths=widths,
         wall_limit=V.get_float(table, "wall_limit", d.wall_limit, file=file, prefix=p, minimum=0,
-                               strict_min=True),
+                               strict_min=True, maximum=MAX_SECONDS),
         rk_substeps=V.get_int(table, "rk_substeps", d.rk_substeps, file=file, prefix=p, minimum=1,
                               maximum=10000),
         max_step=V.get_float(table, "max_step", d.max_step, file=file, prefix=p, minimum=0),
@@ -221,7 +243,8 @@ def parse_audit(table: Any, n: int, file: str, model) -> AuditSpec:
         velocity_range=V.per_joint(table, "velocity_range", n, 2.0, file=file, prefix=p, minimum=0,
                                    strict_min=True),
         tolerance=V.get_float(table, "tolerance", d.tolerance, file=file, prefix=p, minimum=0, strict_min=True),
-        sympy_timeout=V.get_float(table, "sympy_timeout", d.sympy_timeout, file=file, prefix=p, minimum=0),
+        sympy_timeout=V.get_float(table, "sympy_timeout", d.sympy_timeout, file=file, prefix=p, minimum=0,
+                                  maximum=MAX_SECONDS),
     )
 
 

@@ -52,7 +52,7 @@ class TuneSpec:
 
 def _check_key(key: Any, file: str, where: str) -> str:
     if not isinstance(key, str):
-        raise InputError(f"is a {V.type_name(key)}", file=file, key=where, expected="a dotted key string")
+        raise InputError(f"is {V.a_type(key)}", file=file, key=where, expected="a dotted key string")
     if any(key == s or key.startswith(s + ".") for s in SPECIFICATION):
         raise InputError(f"is '{key}', part of the specification (the reference and funnel e1 are what the user "
                          "prescribes)", file=file, key=where, expected="one of " + ", ".join(TUNABLE))
@@ -101,7 +101,7 @@ def parse_tune(table: Any, *, file: str, has_implementation: bool, funnels: dict
             raise InputError(f"bounds '{k}', which tune.parameters does not list", file=file, key=where,
                              expected="bounds only for tuned keys")
         if not (isinstance(v, list) and len(v) == 2):
-            raise InputError(f"is a {V.type_name(v)}", file=file, key=where, expected="a pair [low, high]")
+            raise InputError(f"is {V.a_type(v)}", file=file, key=where, expected="a pair [low, high]")
         lo = V.as_float(v[0], file=file, key=where + "[0]")
         hi = V.as_float(v[1], file=file, key=where + "[1]")
         if not (math.isfinite(lo) and math.isfinite(hi)):

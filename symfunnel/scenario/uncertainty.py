@@ -110,7 +110,7 @@ class Campaign:
 def check_runs(runs: Any, *, file: str | None, key: str) -> int:
     """A campaign size: an integer in 1 .. 10^7."""
     if isinstance(runs, bool) or not isinstance(runs, int):
-        raise InputError(f"is a {V.type_name(runs)}", file=file, key=key, expected=f"an integer in 1 .. {MAX_RUNS}")
+        raise InputError(f"is {V.a_type(runs)}", file=file, key=key, expected=f"an integer in 1 .. {MAX_RUNS}")
     if not 1 <= runs <= MAX_RUNS:
         raise InputError(f"is {runs}", file=file, key=key, expected=f"an integer in 1 .. {MAX_RUNS}")
     return runs
@@ -172,7 +172,7 @@ def parse_campaign(raw: dict, *, file: str, n: int, model, plant) -> Campaign | 
         return None
     items = raw.get("uncertainty", [])
     if not isinstance(items, list):
-        raise InputError(f"is a {V.type_name(items)}", file=file, key="uncertainty",
+        raise InputError(f"is {V.a_type(items)}", file=file, key="uncertainty",
                          expected="an array of tables ([[uncertainty]])")
     allowed = allowed_keys(n, model)
     seen: set[str] = set()

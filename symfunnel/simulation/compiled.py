@@ -23,6 +23,8 @@ from ..core.errors import InputError
 
 COMPILE_FLAGS = ["-O1", "-shared", "-fPIC"]
 APPROX_ESN_JACOBIAN = True
+#: a closed loop with more SX nodes than this builds its functions in a killable worker (core.lifecycle.run_killable)
+FORK_ABOVE_NODES = 100000
 _LOADED: dict = {}           # graph digest (see compile_closed_loop) -> (ode, outputs, library) loaded in this process
 
 
@@ -158,24 +160,41 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     """
     say = progress or (lambda s: None)
     perm = _permutation(cl)
-    dae = _dae_function(cl, perm)
-    outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x, cl.p], [cl.signals_p[k] for k in OUTPUT_NAMES],
-                          ["t", "x", "p"], list(OUTPUT_NAMES), {"cse": True})
+    jit = jit and not os.environ.get("SYMFUNNEL_NO_JIT")
+
+    def functions():
+        dae = _dae_function(cl, perm)
+        outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x, cl.p], [cl.signals_p[k] for k in OUTPUT_NAMES],
+                              ["t", "x", "p"], list(OUTPUT_NAMES), {"cse": True})
+        if not jit:
+            return dae, outputs, b""
+        # The library is keyed by the graphs it is generated from (and this module, which generates it), so a
+        # cached entry skips generating the Newton Jacobian and the C: for a large reservoir most of the cost.
+        identity = hashlib.sha256(b"\0".join([
+            dae.serialize().encode(), outputs.serialize().encode(), b"approx" if approx_jacobian else b"exact",
+            " ".join(COMPILE_FLAGS).encode(), ca.__version__.encode(), Path(__file__).read_bytes()])).digest()
+        return dae, outputs, identity
+
+    from ..core.lifecycle import run_killable
+    # building and hashing the functions of a large graph are long CasADi calls no signal interrupts: in a worker
+    # process the limit can kill, when the graph is large enough for it to matter
+    big = int(ca.n_nodes(cl.xdot_p)) > FORK_ABOVE_NODES
+    dae, outputs, identity = (run_killable(functions, what="building the closed loop's functions") if big
+                              else functions())
     vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm")
-    if not jit or os.environ.get("SYMFUNNEL_NO_JIT"):
+    if not jit:
         return vm
     t0 = time.perf_counter()
-    # The library is keyed by the graphs it is generated from (and this module, which generates it), so a cached
-    # entry skips generating the Newton Jacobian and the C: for a large reservoir that is most of the cost.
-    identity = hashlib.sha256(b"\0".join([
-        dae.serialize().encode(), outputs.serialize().encode(), b"approx" if approx_jacobian else b"exact",
-        " ".join(COMPILE_FLAGS).encode(), ca.__version__.encode(), Path(__file__).read_bytes()])).digest()
     digest = identity.hex()[:24]
     if digest in _LOADED:
         ext_dae, ext_out, lib = _LOADED[digest]
         return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, True, lib, digest)
 
     def sources() -> dict[str, bytes]:
+        # in a forked worker: the Jacobian and the C of a large graph are long CasADi calls no signal interrupts
+        return run_killable(generate, what="generating the closed loop's C")
+
+    def generate() -> dict[str, bytes]:
         with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
             cg = ca.CodeGenerator("symfunnel_cl.c", {"with_header": False})
             cg.add(dae)

@@ -34,7 +34,6 @@ the paper's `tau` take 60 ms per box against ~0.2 ms for this tape walk.
 from __future__ import annotations
 
 import contextlib
-
 import math
 import operator
 from collections.abc import Callable, Mapping, Sequence
@@ -45,6 +44,7 @@ import casadi
 import numpy as np
 
 from ..core.errors import SymfunnelError
+from . import rounding
 from .tape import OP_NAMES, Tape, as_sx_function, read_tape
 
 __all__ = ["IntervalError", "IntervalFunction", "Enclosure", "BACKENDS", "get_backend", "RULE_OPS"]
@@ -99,58 +99,15 @@ class Backend:
     bounds: Callable[[Any], tuple[float, float]]   # outward (lo, hi); (-inf, inf) for an error / unbounded value
     rules: dict[str, Callable]
     error: Callable[[], Any]                       # a fresh error value
-
-
-class _Rounding:
-    """The C floating-point rounding mode of this process (libm's fegetround/fesetround through ctypes).
-
-    codac sets the mode to upward when it is imported and in some of its operations, and leaves it there; its
-    interval arithmetic relies on it (with round-to-nearest its 1/3 is a point). Left upward, every later float
-    operation of the process rounds up (a simulation, sympy's numbers, the sampling of a sweep), so the codac
-    backend runs its operations with the mode upward and gives the caller's mode back afterwards."""
-
-    def __init__(self):
-        import ctypes
-        import ctypes.util
-        import platform
-        self.libm = None
-        try:
-            self.libm = ctypes.CDLL(ctypes.util.find_library("m") or "libm.so.6")
-        except OSError:
-            return
-        m = platform.machine().lower()
-        self.upward = {"x86_64": 0x800, "amd64": 0x800, "i686": 0x800, "i386": 0x800,
-                       "aarch64": 0x400000, "arm64": 0x400000}.get(m)
-        if self.upward is None:
-            self.libm = None
-
-    def get(self) -> int | None:
-        return self.libm.fegetround() if self.libm is not None else None
-
-    def set(self, mode: int | None) -> None:
-        if self.libm is not None and mode is not None:
-            self.libm.fesetround(mode)
-
-    @contextlib.contextmanager
-    def up(self):
-        """The block with the mode upward (codac's), the previous mode restored on leaving it."""
-        old = self.get()
-        self.set(self.upward)
-        try:
-            yield
-        finally:
-            self.set(old)
-
-
-ROUNDING = _Rounding()
+    #: the rounding mode every evaluation runs in (codac is outward only under upward rounding)
+    mode: Callable[[], Any] = contextlib.nullcontext
 
 
 def _codac_backend() -> Backend:
     """codac 2 Intervals through the `*Op.fwd` interval functions: in codac 2.1.2 `codac.acos` and `codac.sinh`
     called on an Interval build an expression node instead (the overloads resolve to the symbolic ones)."""
-    old = ROUNDING.get()
-    import codac
-    ROUNDING.set(old)          # importing codac sets the mode upward: the process keeps its own (see _Rounding)
+    with rounding.keeping_mode():            # importing codac sets the process's rounding upward
+        import codac
     I = codac.Interval  # noqa: E741
     empty = I.empty
     ZERO, ONE, UNDEC = I(0.0), I(1.0), I(0.0, 1.0)
@@ -351,7 +308,7 @@ def _codac_backend() -> Backend:
         "LT": lt, "LE": le, "EQ": eq, "NE": ne, "NOT": not_, "AND": and_, "OR": or_,
         "IF_ELSE_ZERO": if_else_zero,
     }
-    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty)
+    return Backend("codac", lambda lo, hi: I(lo, hi), lambda c: I(c), bounds, rules, empty, rounding.upward)
 
 
 def _arb_backend() -> Backend:
@@ -778,7 +735,7 @@ class IntervalFunction:
         """Enclosures of the output nonzeros (flat, output after output) over a box given by flat nonzero bounds."""
         be = self.backend
         ctx: list = []
-        with self._rounding():
+        with be.mode():
             vals = self._run(self._inputs(lo, hi), ctx)
             bounds = be.bounds
             L = np.empty(len(vals))
@@ -788,10 +745,6 @@ class IntervalFunction:
             if self._jac is not None and not ctx:
                 L, H = self._mean_value(lo, hi, L, H)
         return L, H
-
-    def _rounding(self):
-        """codac's operations need the rounding mode upward (and leave it so): set for the block, then restored."""
-        return ROUNDING.up() if self.backend.name == "codac" else contextlib.nullcontext()
 
     def _inputs(self, lo: np.ndarray, hi: np.ndarray) -> list:
         """Backend intervals of the flat box, rebuilding only the entries that differ from the previous call's box
@@ -813,7 +766,7 @@ class IntervalFunction:
     def eval_values(self, lo: np.ndarray, hi: np.ndarray) -> tuple[tuple, bool]:
         """The backend's raw values of the output nonzeros over a flat box, and whether no discontinuity switched."""
         ctx: list = []
-        with self._rounding():
+        with self.backend.mode():
             vals = self._run(self._inputs(lo, hi), ctx)
         return vals, not ctx
 

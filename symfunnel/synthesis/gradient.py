@@ -143,9 +143,8 @@ class GradientProblem:
         return ca.Function("tune_dg", [self._z], [ca.jacobian(self._g, self._z)])
 
     def solve(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int = MAX_ITER,
-              progress=None, on_best=None) -> dict:
-        """IPOPT from z0: {"z", "status", "success", "iterations", "f"}; limited-memory Hessian. `on_best(f, z, k)`
-        is told each new best grid-feasible iterate (so a caller that stops IPOPT from outside keeps it)."""
+              progress=None) -> dict:
+        """IPOPT from z0: {"z", "status", "success", "iterations", "f"}; limited-memory Hessian."""
         say = progress or (lambda s: None)
         d = self.d
         zM = self._z
@@ -167,7 +166,7 @@ class GradientProblem:
             x0 = np.asarray(z0, float)
             lbx, ubx = [0.0] * d, [1.0] * d
         t0 = time.perf_counter()
-        log = ProgressCallback(x.numel(), g.numel(), d, say, t0, on_best)
+        log = ProgressCallback(x.numel(), g.numel(), d, say, t0)
         opts = {"ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": int(max_iter),
                 "ipopt.max_wall_time": max(1.0, float(wall_s)), "ipopt.print_level": 0, "ipopt.sb": "yes",
                 "print_time": False, "ipopt.tol": 1e-6, "ipopt.acceptable_tol": 1e-4,
@@ -194,9 +193,8 @@ class GradientProblem:
 class ProgressCallback(ca.Callback):
     """IPOPT's iteration callback: one progress line per iteration (objective, constraint violation, time)."""
 
-    def __init__(self, nx: int, ng: int, d: int, say, t0: float, on_best=None):
+    def __init__(self, nx: int, ng: int, d: int, say, t0: float):
         ca.Callback.__init__(self)
-        self.on_best = on_best
         self.nx, self.ng, self.d, self.say, self.t0 = nx, ng, d, say, t0
         self.iterations = 0
         self.best = None          # (objective, z, iteration) of the best iterate that meets every grid constraint
@@ -230,8 +228,6 @@ class ProgressCallback(ca.Callback):
         f = float(arg[ca.nlpsol_out().index("f")])
         if viol <= 1e-6 and np.isfinite(f) and (self.best is None or f < self.best[0]):
             self.best = (f, np.asarray(arg[ca.nlpsol_out().index("x")]).ravel()[:self.d].copy(), self.iterations)
-            if self.on_best is not None:
-                self.on_best(self.best)
         self.say(f"ipopt iteration {self.iterations}: objective {f:.5g}, constraint violation {viol:.3g} "
                  f"({time.perf_counter() - self.t0:.1f} s)")
         self.iterations += 1

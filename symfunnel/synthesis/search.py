@@ -673,103 +673,31 @@ def _gradient_sound() -> tuple[bool, str]:
 
 def _gradient_fits(gp, z0, d: int, budget: float, say) -> tuple[bool, str]:
     """Whether MIN_IPOPT_ITERATIONS IPOPT iterations (about d + 2 forward solves each) fit `budget` seconds: one
-    forward solve is timed in a child process that is killed at its share of the budget."""
+    forward solve is timed in a forked worker (`core.lifecycle.run_killable`) that is killed at its share of the
+    budget."""
+    from ..core import deadline as DL
+    from ..core.lifecycle import reraise_interrupt, run_killable
     share = budget / (MIN_IPOPT_ITERATIONS * (d + 2))
     say(f"timing one forward solve of the sensitivity problem (at most {share:.1f} s, the share that "
         f"{MIN_IPOPT_ITERATIONS} IPOPT iterations may have)")
-    t = time.perf_counter()
-    kind, _ = _in_child(lambda send: np.asarray(gp.g(np.asarray(z0, float)), float).size, share, say)
-    took = time.perf_counter() - t
-    if kind == "done":
-        return True, ""
-    if kind == "timeout":
+    try:
+        run_killable(_forward_size, gp, np.asarray(z0, float), wall_limit=max(share, 0.05),
+                     what="timing one forward solve of the sensitivity problem")
+    except DL.WallLimitReached:
+        if DL.expired_limit() is not None:            # a limit around tune: it ends the command
+            raise
         return False, (f"one forward solve of the sensitivity problem takes more than {share:.1f} s, so "
                        f"{MIN_IPOPT_ITERATIONS} IPOPT iterations of about {d + 2} solves each would not fit the "
                        f"{budget:.0f} s the search has (measured; force it with --method gradient)")
-    return False, f"the sensitivity problem does not evaluate at the user's design ({_})"
+    except RuntimeError as exc:
+        reraise_interrupt(exc)
+        return False, f"the sensitivity problem does not evaluate at the user's design ({_last_line(exc)})"
+    return True, ""
 
 
-def _in_child(fn, timeout: float, say=None):
-    """Run fn(send) in a forked child process and wait at most `timeout` s: ("done", result), ("timeout", None)
-    or ("error", text). `send(("say", line))` prints a progress line in the parent, `send(("best", obj))` keeps
-    obj (the last one is returned as the result of a timeout: ("timeout", obj)). The child runs in its own process
-    group, which is killed at the timeout, on an interrupt and on any error of the parent (nothing is left behind).
-
-    A CasADi call (an IPOPT iteration, a CVODES solve) cannot be interrupted by a signal in the process that makes
-    it; a child process can be killed."""
-    import os
-    import pickle
-    import select
-    import signal
-    import struct
-    say = say or (lambda s: None)
-    r, w = os.pipe()
-    pid = os.fork()
-    if pid == 0:                                  # the child: compute, report, exit without cleanup handlers
-        code = 0
-        try:
-            os.close(r)
-            os.setpgid(0, 0)
-            signal.signal(signal.SIGINT, signal.SIG_DFL)
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-            def send(obj):
-                data = pickle.dumps(obj)
-                data = struct.pack("!I", len(data)) + data
-                while data:
-                    data = data[os.write(w, data):]
-            try:
-                send(("done", fn(send)))
-            except BaseException as exc:          # noqa: BLE001 - reported to the parent
-                send(("error", f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}"))
-        except BaseException:                     # noqa: BLE001
-            code = 1
-        finally:
-            os._exit(code)
-    os.close(w)
-    end = time.monotonic() + max(float(timeout), 0.0)
-    buf, best, result = b"", None, None
-    alive = True
-    try:
-        while True:
-            wait = end - time.monotonic()
-            if wait <= 0:
-                return "timeout", best
-            ready, _, _ = select.select([r], [], [], wait)
-            if not ready:
-                continue
-            chunk = os.read(r, 1 << 16)
-            if not chunk:
-                break
-            buf += chunk
-            while len(buf) >= 4:
-                k = struct.unpack("!I", buf[:4])[0]
-                if len(buf) < 4 + k:
-                    break
-                kind, obj = pickle.loads(buf[4:4 + k])
-                buf = buf[4 + k:]
-                if kind == "say":
-                    say(obj)
-                elif kind == "best":
-                    best = obj
-                else:
-                    result = (kind, obj)
-        os.waitpid(pid, 0)
-        alive = False
-        return result if result is not None else ("error", "the child process ended without a result")
-    finally:
-        os.close(r)
-        if alive:
-            for target in (lambda: os.killpg(pid, signal.SIGKILL), lambda: os.kill(pid, signal.SIGKILL)):
-                try:
-                    target()
-                    break
-                except (ProcessLookupError, PermissionError):
-                    continue
-            try:
-                os.waitpid(pid, 0)
-            except ChildProcessError:
-                pass
+def _forward_size(gp, z0) -> int:
+    """One forward solve of the sensitivity problem (its constraint values' count: the result is small to send)."""
+    return int(np.asarray(gp.g(z0), float).size)
 
 
 def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
@@ -789,23 +717,22 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
         if max_evaluations and ev.count >= max_evaluations:
             raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
         say(f"IPOPT start {i + 1} of {len(starts)} (at most {left:.0f} s)")
-
-        def solve(send, z0=z0, left=left):
-            def line(msg):
-                send(("say", msg))
-            out = gp.solve(np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
-                           progress=line, on_best=lambda fz: send(("best", fz)))
-            return out
-        kind, r = _in_child(solve, left, say)
-        if kind == "timeout":
-            if r is None:
-                say(f"IPOPT start {i + 1}: stopped at the wall-clock limit before a feasible iterate")
-                raise _OutOfTime("search stopped at the wall-clock limit during an IPOPT iteration")
-            say(f"IPOPT start {i + 1}: stopped at the wall-clock limit; its best feasible iterate is judged")
-            f(np.clip(np.asarray(r[1], float), 0.0, 1.0), final=True)
-            raise _OutOfTime("search stopped at the wall-clock limit during an IPOPT iteration")
-        if kind == "error":          # e.g. the start itself does not integrate: next start
-            say(f"IPOPT start {i + 1}: skipped ({r})")
+        # IPOPT gets the time left but what the full simulation of its result needs
+        try:
+            # in a forked worker: IPOPT inside one C call hears no signal and no limit, the waiting parent does
+            from ..core.lifecycle import run_killable
+            from ..core import deadline as _deadline
+            try:
+                r = run_killable(gp.solve, np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0),
+                                 wall_s=0.9 * left, progress=say, wall_limit=left + 2.0, what="solving with IPOPT")
+            except _deadline.WallLimitReached:
+                if _deadline.expired_limit() is not None:     # a limit around tune: it ends the command
+                    raise
+                raise _OutOfTime("search stopped at the wall-clock limit (IPOPT did not stop by itself)") from None
+        except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
+            from ..core.lifecycle import reraise_interrupt
+            reraise_interrupt(exc)
+            say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
             continue
         say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
         f(r["z"], final=True)
