@@ -224,7 +224,7 @@ def test_the_gradient_path_is_chosen_by_a_timed_forward_solve(paper_design, monk
     use, why = T._gradient_fits(Slow(), np.zeros(2), 2, 10.0, lambda s: None)
     assert not use and "takes more than 0.3 s" in why and "--method gradient" in why
     assert time.monotonic() - t0 < 15
-    assert T._gradient_fits(Fast(), np.zeros(2), 2, 10.0, lambda s: None) == (True, "")
+    assert T._gradient_fits(Fast(), np.zeros(2), 2, 3200.0, lambda s: None) == (True, "")   # a 100 s share
 
 
 @pytest.mark.slow
