@@ -262,13 +262,16 @@ def test_report_comparison_has_the_minimum_rate_and_breach_probability(tmp_path)
 
 def test_when_ipopt_finds_nothing_that_holds_the_derivative_free_search_takes_over(tmp_path, monkeypatch):
     from symfunnel.synthesis import gradient as tune_gradient, search as tuning
+    marker = tmp_path / "ipopt-called"                  # IPOPT runs in a killable child: a file, not a list
+
     def stuck(self, z0, **kw):                          # IPOPT "returns" its start: the user's infeasible design
+        marker.write_text("called")
         return {"z": np.asarray(z0, float), "status": "Infeasible_Problem_Detected", "success": False,
                 "iterations": 0, "f": float("nan")}
     monkeypatch.setattr(tune_gradient.GradientProblem, "solve", stuck)
     sc = load_scenario(write(tmp_path, paper_doc(0.5, {"tau_max": 200.0, "parameters": ["controller.k2"]})))
-    r = tuning.tune(sc, max_evaluations=4, gate=False, method="gradient")   # IPOPT runs in a child process
-    assert r.method == f"{tuning.GRADIENT_METHOD}; then {tuning.METHOD}"
+    r = tuning.tune(sc, max_evaluations=4, gate=False, method="gradient")
+    assert marker.exists() and r.method == f"{tuning.GRADIENT_METHOD}; then {tuning.METHOD}"
     assert "fallback" in r.why and "no IPOPT result held" in r.why
     assert r.evaluations == 4                            # the derivative-free search ran on after IPOPT
 

@@ -118,13 +118,15 @@ def exclusive_lock(directory: str | os.PathLike, *, what: str, key: str = "--out
     """Hold `directory/.lock` exclusively for the block (flock; released when the process dies, however it dies).
 
     A second holder is refused at once with InputError naming the directory and the pid that holds it. The lock
-    file is removed when the block ends.
+    file is removed when the block ends, and so is the directory when this call created it and nothing was written
+    into it (a command refused on its input leaves nothing behind).
     """
     import fcntl
 
     from . import lifecycle
     from .errors import InputError
     d = Path(directory)
+    created = not d.exists()
     try:
         d.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -164,3 +166,6 @@ def exclusive_lock(directory: str | os.PathLike, *, what: str, key: str = "--out
         with contextlib.suppress(OSError):
             os.unlink(path)
         os.close(fd)
+        if created:
+            with contextlib.suppress(OSError):      # only when empty: rmdir refuses a directory with files
+                d.rmdir()
