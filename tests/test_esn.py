@@ -107,11 +107,12 @@ def test_sx_matches_numpy():
     for _ in range(20):
         xv, uv = rng.uniform(-2, 2, 20), rng.uniform(-3, 3, 5)
         xd, phi = f(xv, uv)
-        np.testing.assert_allclose(np.asarray(xd).ravel(), e.xdot_numpy(xv, uv), rtol=1e-13, atol=1e-13)
-        np.testing.assert_allclose(np.asarray(phi).ravel(), e.regressor_numpy(xv), rtol=0, atol=0)
+        formula = (1 / 0.1) * (-1.3 * xv + np.tanh(e.W_in @ uv + e.W @ xv + e.b))          # eq. 8, by hand
+        np.testing.assert_allclose(np.asarray(xd).ravel(), formula, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(phi).ravel(), np.append(xv, 1.0), rtol=0, atol=0)
     expected = (1 / 0.1) * (-1.3 * xv + np.tanh(e.W_in @ uv + e.W @ xv + e.b))
     np.testing.assert_allclose(e.xdot_numpy(xv, uv), expected, rtol=1e-14)
-    # batched numpy twin agrees with column-by-column evaluation
+    # the array form (the SX evaluated) batched agrees with column-by-column evaluation
     X, U = rng.uniform(-1, 1, (20, 4)), rng.uniform(-1, 1, (5, 4))
     batch = e.xdot_numpy(X, U)
     for k in range(4):

@@ -38,7 +38,7 @@ def test_exact_dead_zone_is_eq2():
     for i in range(2):
         expected = np.array([eq2(u, i) for u in GRID])
         np.testing.assert_allclose(vals[i], expected, rtol=1e-14, atol=1e-14)
-    # and the numpy twin
+    # and its array form (the same SX)
     np.testing.assert_allclose(dead_zone_numpy(np.vstack([GRID, GRID]), B_L, B_R, LEFT, RIGHT, 0.0), vals,
                                rtol=1e-14, atol=1e-14)
 
@@ -89,7 +89,7 @@ def test_ramp_error_bound(w):
     xs = ca.SX.sym("x")
     f = ca.Function("f", [xs], [ramp(xs, w), ca.jacobian(ramp(xs, w), xs)])
     v, dv = (np.asarray(a).ravel() for a in f.map(x.size)(x.reshape(1, -1)))
-    np.testing.assert_allclose(v, ramp_numpy(x, w), rtol=1e-14, atol=1e-16)
+    np.testing.assert_allclose(v, 0.5 * (x + np.sqrt(x * x + w * w)), rtol=1e-14, atol=1e-16)   # the formula
     assert np.all(np.isfinite(dv)) and abs(float(f(0.0)[1]) - 0.5) < 1e-15
     # derivative continuous: Lipschitz with constant max|ramp_w''| = 1/(2w), checked on a grid of step w/100 at 0
     xf = np.linspace(-10 * w, 10 * w, 2001)
@@ -108,7 +108,7 @@ def test_sign_error_bound(w):
     xs = ca.SX.sym("x")
     f = ca.Function("f", [xs], [sign(xs, w), ca.jacobian(sign(xs, w), xs)])
     v, dv = (np.asarray(a).ravel() for a in f.map(x.size)(x.reshape(1, -1)))
-    np.testing.assert_allclose(v, sign_numpy(x, w), rtol=1e-14, atol=1e-16)
+    np.testing.assert_allclose(v, x / np.sqrt(x * x + w * w), rtol=1e-14, atol=1e-16)           # the formula
     assert np.all(np.isfinite(dv))
     assert abs(float(f(0.0)[1]) - 1 / w) < 1e-9 / w           # finite slope 1/w at 0
 

@@ -13,8 +13,11 @@ from pathlib import Path
 
 from ._result import result  # noqa: F401 - the areas' result form, also importable from here
 
-# Every module of this package is an area: adding a benchmark area is adding one module with `run(progress)`.
-AREAS = tuple(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if not m.name.startswith("_"))
+#: modules of this package that are tools an area uses, not areas (checker_mutants: `verify`'s checker mutation score)
+TOOLS = ("checker_mutants",)
+# Every other module of this package is an area: adding a benchmark area is adding one module with `run(progress)`.
+AREAS = tuple(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)])
+              if not m.name.startswith("_") and m.name not in TOOLS)
 
 
 def run(areas=None, progress=None) -> list[dict]:

@@ -7,8 +7,6 @@ sampled verdict stands and says how many points it rests on.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import casadi as ca
 import numpy as np
 
@@ -16,49 +14,7 @@ from ..design import Design
 from ..model.base import christoffel_C
 from ..sx.proof import sympy_is_zero, time_limit
 from ..design.sampling import eval_mapped, funnel_states, joint_states, point_of
-
-
-@dataclass
-class CheckResult:
-    """One check: id, pass/fail/warn/skip, a one-line detail, how it was decided, and the evidence.
-
-    `expected` is the outcome the scenario declares (pass unless a claim's `expect` or an `[[expect]]` entry says
-    fail, with `reason`); the check is *unexpected* -- it fails the gate -- when it fails while expected to pass or
-    passes while expected to fail. warn and skip never fail the gate.
-    """
-
-    id: str
-    status: str
-    detail: str
-    method: str = ""
-    margin: float | None = None
-    where: dict | None = None
-    evidence: dict = field(default_factory=dict)
-    expected: str = "pass"
-    reason: str = ""
-    #: a claim's verdict: "proven", "refuted" or "not proven" (a sampled agreement is never a proof)
-    verdict: str = ""
-
-    @property
-    def unexpected(self) -> bool:
-        """True when this outcome fails the gate."""
-        return self.status in ("pass", "fail") and self.status != self.expected
-
-    def to_json(self) -> dict:
-        """The JSON form of `audit --json` (id, status, expected, detail, plus method, margin, where, evidence)."""
-        out = {"id": self.id, "status": self.status, "expected": self.expected, "detail": self.detail,
-               "method": self.method}
-        if self.reason:
-            out["reason"] = self.reason
-        if self.verdict:
-            out["verdict"] = self.verdict
-        if self.margin is not None:
-            out["margin"] = self.margin
-        if self.where is not None:
-            out["where"] = self.where
-        if self.evidence:
-            out["evidence"] = self.evidence
-        return out
+from .result import CheckResult
 
 
 # --- sympy with a time limit --------------------------------------------------------------------
@@ -554,6 +510,10 @@ def audit(scenario, design: Design, *, progress=None) -> list[CheckResult]:
     ]
     for i, claim in enumerate(scenario.claims):
         steps.append((f"claim.{claim.name}", lambda r, c=claim: check_claim(design, c, r)))
+    from .consistency import check_funnel_consistency, check_reference_derivatives
+    horizon = float(scenario.simulation.t_final)
+    steps.append(("funnel.consistency", lambda r: check_funnel_consistency(design, horizon)))
+    steps.append(("reference.derivatives", lambda r: check_reference_derivatives(design, horizon)))
     for i, (cid, fn) in enumerate(steps):
         say(f"audit {i + 1}/{len(steps)}: {cid}")
         results.append(fn(np.random.default_rng([seed, i])))

@@ -69,7 +69,7 @@ EXPECT_STATUSES = ("pass", "fail")
 
 #: ids of the audit's and verify's checks (claims aside: claim.<name>); per-joint ids come from `check_ids`
 AUDIT_CHECKS = ("model.M_symmetric", "model.M_positive_definite", "model.skew_symmetry", "model.coriolis_consistent",
-                "funnel.parameters", "funnel.initial_condition")
+                "funnel.parameters", "funnel.initial_condition", "funnel.consistency", "reference.derivatives")
 VERIFY_CHECKS = ("simulation.completed", "design.identity.vdot", "lyapunov.rho_positive", "lyapunov.decay",
                  "lyapunov.bound", "lyapunov.falsification", "lyapunov.guarantee", "assumption.input_gain",
                  "bounded.tau", "bounded.w_hat", "bounded.x_esn", "implementation.containment",

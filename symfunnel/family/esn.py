@@ -214,21 +214,28 @@ class ESN:
         x, _ = self._check_sx(x)
         return ca.vertcat(x, 1) if self.config.bias else x
 
-    def xdot_numpy(self, x, u) -> np.ndarray:
-        """Numpy twin of `xdot` for x of shape (N,) or (N, m) and u of shape (K,) or (K, m)."""
+    def _functions(self) -> ca.Function:
+        """(x, u) -> (xdot, Phi) from the SX, built once."""
+        if "_f" not in self.__dict__:
+            x, u = ca.SX.sym("x", self.size), ca.SX.sym("u", self.n_inputs)
+            self.__dict__["_f"] = ca.Function("esn", [x, u], [self.xdot(x, u), self.regressor(x)])
+        return self.__dict__["_f"]
+
+    def _evaluate(self, k: int, x, u) -> np.ndarray:
         x = np.asarray(x, dtype=float)
-        u = np.asarray(u, dtype=float)
-        b = self.b if x.ndim == 1 else self.b[:, None]
-        c = self.config
-        return (1.0 / c.time_constant) * (-c.leak * x + np.tanh(self.W_in @ u + self.W @ x + b))
+        u = np.zeros((self.n_inputs,) + x.shape[1:]) if u is None else np.asarray(u, dtype=float)
+        m = 1 if x.ndim == 1 else x.shape[1]
+        X, U = x.reshape(self.size, m), np.broadcast_to(u.reshape(self.n_inputs, -1), (self.n_inputs, m))
+        out = np.asarray(self._functions().map(m)(X, U)[k])
+        return out.ravel() if x.ndim == 1 else out
+
+    def xdot_numpy(self, x, u) -> np.ndarray:
+        """`xdot` evaluated (from its SX) for x of shape (N,) or (N, m) and u of shape (K,) or (K, m)."""
+        return self._evaluate(0, x, u)
 
     def regressor_numpy(self, x) -> np.ndarray:
-        """Numpy twin of `regressor` for x of shape (N,) or (N, m)."""
-        x = np.asarray(x, dtype=float)
-        if not self.config.bias:
-            return x.copy()
-        one = np.ones((1,) + x.shape[1:])
-        return np.concatenate([x, one], axis=0)
+        """`regressor` evaluated (from its SX) for x of shape (N,) or (N, m)."""
+        return self._evaluate(1, x, None)
 
     def fingerprint(self) -> str:
         """sha256 of the weights' shapes and little-endian float64 bytes (W_in, W, b), to show determinism in reports."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,8 +48,15 @@ class FunnelSpec:
         return phi0 * ca.exp(-a * t) + phi_inf
 
     def value(self, t: float) -> list[float]:
-        """F at time t, per joint."""
-        return [p0 * math.exp(-a * t) + pi for p0, pi, a in zip(self.phi0, self.phi_inf, self.a)]
+        """F at time t, per joint, evaluated from `sx` (one source: no numeric re-implementation to drift)."""
+        return sx_value(self, t)
+
+    def declared(self, t):
+        """The declared F as a sympy expression in the sympy symbol t, from the numbers as written (the independent
+        evaluation `funnel.consistency` compares the SX with)."""
+        import sympy
+        return [sympy.Float(p0) * sympy.exp(-sympy.Float(a) * t) + sympy.Float(pi)
+                for p0, pi, a in zip(self.phi0, self.phi_inf, self.a)]
 
     def text(self, i: int) -> str:
         """Joint i's F as readable text."""
@@ -67,8 +73,6 @@ class ExpressionFunnel:
     def __init__(self, exprs: list[Expression], parameters: dict[str, float] | None = None):
         self.exprs = list(exprs)
         self.parameters = dict(parameters or {})
-        t = ca.SX.sym("t")
-        self._f = ca.Function("F", [t], [self.sx(t)])
 
     @classmethod
     def parse(cls, table: dict, n: int, file: str, prefix: str, defaults=None,
@@ -99,12 +103,28 @@ class ExpressionFunnel:
         return ca.vertcat(*[ca.SX(e.to_casadi({"t": t, **self.parameters})) for e in self.exprs])
 
     def value(self, t: float) -> list[float]:
-        """F at time t, per joint."""
-        return np.asarray(self._f(float(t))).ravel().tolist()
+        """F at time t, per joint, evaluated from `sx`."""
+        return sx_value(self, t)
+
+    def declared(self, t):
+        """The declared F as sympy expressions in the sympy symbol t (the expression language's sympy backend)."""
+        return [e.to_sympy({"t": t, **self.parameters}) for e in self.exprs]
 
     def text(self, i: int) -> str:
         """Joint i's F as written."""
         return self.exprs[i].text
+
+
+def sx_function(shape: Any) -> ca.Function:
+    """t -> (F, dF/dt) of a shape, from its SX (dF by AD): what the design, value() and the checks evaluate."""
+    t = ca.SX.sym("t")
+    F = shape.sx(t)
+    return ca.Function("F", [t], [F, ca.jtimes(F, t, ca.SX(1))], ["t"], ["F", "dF"])
+
+
+def sx_value(shape: Any, t: float) -> list[float]:
+    """F of a shape at one time, per joint, from its SX."""
+    return np.asarray(sx_function(shape)(float(t))[0]).ravel().tolist()
 
 
 def horizon_grid(t_final: float) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The plant's nonlinearities that the controller does not know (dead zone eq. 2, friction), with optional smoothing.
 
 Every function is elementwise over the joints and returns CasADi (SX for SX/numeric input, MX for MX input); the
-``*_numpy`` twins evaluate the same formulas on arrays. A smoothing width ``w`` selects the form: ``w = 0`` is the
+``*_numpy`` forms evaluate that SX on arrays (through a CasADi Function: one source, no second formula). A smoothing width ``w`` selects the form: ``w = 0`` is the
 exact, non-smooth nonlinearity (``fmax``/``sign``, which CasADi differentiates as a step and as 0), ``w > 0`` an
 algebraic smooth approximation whose error vanishes as w -> 0. Smoothing exists because CVODES stalls on the kinks
 of Coulomb friction and of the dead zone; the simulation should use a small w > 0 and report it as a deviation.
@@ -63,11 +63,20 @@ def ramp(x, w: float = 0.0):
     return 0.5 * (x + ca.sqrt(x * x + w * w))
 
 
-def ramp_numpy(x, w: float = 0.0) -> np.ndarray:
-    """Numpy twin of `ramp`."""
-    w = _width(w)
+def _elementwise(fn, x) -> np.ndarray:
+    """A scalar SX function of one variable, evaluated elementwise on an array of any shape."""
     x = np.asarray(x, dtype=float)
-    return np.maximum(x, 0.0) if w == 0.0 else 0.5 * (x + np.sqrt(x * x + w * w))
+    s = ca.SX.sym("x")
+    f = ca.Function("f", [s], [fn(s)])
+    if x.size == 0:
+        return x.copy()
+    return np.asarray(f.map(x.size)(x.reshape(1, -1))).reshape(x.shape)
+
+
+def ramp_numpy(x, w: float = 0.0) -> np.ndarray:
+    """`ramp` evaluated on an array (from its SX)."""
+    w = _width(w)
+    return _elementwise(lambda s: ramp(s, w), x)
 
 
 def sign(x, w: float = 0.0):
@@ -80,10 +89,9 @@ def sign(x, w: float = 0.0):
 
 
 def sign_numpy(x, w: float = 0.0) -> np.ndarray:
-    """Numpy twin of `sign`."""
+    """`sign` evaluated on an array (from its SX)."""
     w = _width(w)
-    x = np.asarray(x, dtype=float)
-    return np.sign(x) if w == 0.0 else x / np.sqrt(x * x + w * w)
+    return _elementwise(lambda s: sign(s, w), x)
 
 
 def _check_branches(left: Sequence, right: Sequence) -> int:
@@ -119,18 +127,23 @@ def dead_zone(u, b_l, b_r, left: Sequence[Branch], right: Sequence[Branch], w: f
     return ca.vertcat(*out)
 
 
+def _columns(expr_of, n: int, v) -> np.ndarray:
+    """An (n, 1) SX function of one (n, 1) variable evaluated at v of shape (n,) or (n, m)."""
+    v = np.asarray(v, dtype=float)
+    if v.shape[0] != n:
+        raise ValueError(f"input has {v.shape[0]} rows, expected {n}")
+    s = ca.SX.sym("v", n)
+    f = ca.Function("f", [s], [expr_of(s)])
+    cols = v.reshape(n, -1)
+    out = np.asarray(f.map(cols.shape[1])(cols))
+    return out.reshape(v.shape)
+
+
 def dead_zone_numpy(u, b_l, b_r, left: Sequence[Callable], right: Sequence[Callable], w: float = 0.0) -> np.ndarray:
-    """Numpy twin of `dead_zone` for u of shape (n,) or (n, m), with branches that accept arrays."""
+    """`dead_zone` evaluated (from its SX) for u of shape (n,) or (n, m); the branches must accept SX."""
     w = _width(w)
-    u = np.asarray(u, dtype=float)
     n = _check_branches(left, right)
-    if u.shape[0] != n:
-        raise ValueError(f"dead zone input has {u.shape[0]} rows, expected {n}")
-    b_l = _per_joint(b_l, n, "b_l")
-    b_r = _per_joint(b_r, n, "b_r")
-    return np.stack([np.asarray(right[i](b_r[i] + ramp_numpy(u[i] - b_r[i], w)), dtype=float)
-                     + np.asarray(left[i](b_l[i] - ramp_numpy(b_l[i] - u[i], w)), dtype=float)
-                     for i in range(n)])
+    return _columns(lambda s: dead_zone(s, b_l, b_r, left, right, w), n, u)
 
 
 def friction(dq, viscous, coulomb, w: float = 0.0):
@@ -143,14 +156,9 @@ def friction(dq, viscous, coulomb, w: float = 0.0):
 
 
 def friction_numpy(dq, viscous, coulomb, w: float = 0.0) -> np.ndarray:
-    """Numpy twin of `friction` for dq of shape (n,) or (n, m)."""
+    """`friction` evaluated (from its SX) for dq of shape (n,) or (n, m)."""
     dq = np.asarray(dq, dtype=float)
-    n = dq.shape[0]
-    fv = _per_joint(viscous, n, "viscous")
-    fc = _per_joint(coulomb, n, "coulomb")
-    if dq.ndim == 2:
-        fv, fc = fv[:, None], fc[:, None]
-    return fv * dq + fc * sign_numpy(dq, w)
+    return _columns(lambda s: friction(s, viscous, coulomb, w), dq.shape[0], dq)
 
 
 def _branch_function(f: Callable, label: str) -> ca.Function:
