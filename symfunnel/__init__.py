@@ -14,8 +14,8 @@ from .core.errors import CheckFailed, InputError, SymfunnelError
 from .core.version import __version__
 
 #: the commands, as plain functions of `symfunnel.api` (imported on first use: `import symfunnel` stays cheap)
-_API = ("load_scenario", "derive", "evaluate", "audit", "simulate", "verify", "codegen", "report", "sweep", "tune",
-        "run", "Run")
+_API = ("load_scenario", "derive", "evaluate", "audit", "simulate", "verify", "certify", "codegen", "report", "sweep",
+        "tune", "run", "Run")
 
 __all__ = ["InputError", "CheckFailed", "SymfunnelError", *_API]
 

@@ -26,8 +26,8 @@ if TYPE_CHECKING:
     from .simulation.result import SimResult
     from .synthesis.search import TuneResult
 
-__all__ = ["load_scenario", "derive", "evaluate", "run", "Run", "audit", "simulate", "verify", "codegen", "report",
-           "sweep", "tune"]
+__all__ = ["load_scenario", "derive", "evaluate", "run", "Run", "audit", "simulate", "verify", "certify", "codegen",
+           "report", "sweep", "tune"]
 
 
 def _scenario(scenario) -> Scenario:
@@ -140,6 +140,72 @@ def verify(scenario, *, strict: bool = False, mutants: bool = False, t_final: fl
     if strict and v.unexpected:
         raise CheckFailed("verify: unexpected outcomes: " + ", ".join(c.id for c in v.unexpected))
     return v
+
+
+@dataclass
+class CertifyResult:
+    """The certificates of one scenario (`symfunnel certify`): `certificates`, the gate's `status`, `to_json()`."""
+
+    scenario: Scenario
+    certification: object
+
+    @property
+    def certificates(self) -> list:
+        """The Certificate objects, in the contract's order."""
+        return self.certification.certificates
+
+    @property
+    def status(self) -> str:
+        """'pass' when every certificate's outcome is the one the scenario declares (pass unless [[expect]])."""
+        return self.certification.status(self.scenario)
+
+    @property
+    def unexpected(self) -> list[str]:
+        """Ids of the certificates whose outcome is not the declared one."""
+        return [c.id for c in self.certification.checks(self.scenario) if c.unexpected]
+
+    def to_json(self) -> dict:
+        """`certify --json`: {"scenario", "status", "certificates": [...]}."""
+        return self.certification.to_json(self.scenario)
+
+    def _repr_html_(self) -> str:
+        return _table([(c.id, c.status, f"{c.seconds:.1f} s", c.detail) for c in self.certificates],
+                      ("certificate", "status", "time", "detail"))
+
+
+def certify_ids(only) -> tuple[str, ...] | None:
+    """Certificate ids from `only` (full ids or their last part, e.g. 'input_gain'); InputError for others."""
+    from .core.errors import InputError
+    from .core.names import CERTIFY_CHECKS
+    if only is None:
+        return None
+    out = []
+    for k in ([only] if isinstance(only, str) else list(only)):
+        cid = k if str(k).startswith("certify.") else f"certify.{k}"
+        if cid not in CERTIFY_CHECKS:
+            raise InputError(f"is '{k}'", key="--only", expected="one of " + ", ".join(CERTIFY_CHECKS))
+        out.append(cid)
+    return tuple(out)
+
+
+def certify(scenario, *, only=None, wall_limit: float | None = None, t_final: float | None = None,
+            strict: bool = False, progress=None) -> CertifyResult:
+    """`symfunnel certify`: proofs over regions by interval branch and bound on the design's own graph
+    (certify.input_gain, certify.bounds, certify.invariance; `only` a subset); `wall_limit` seconds end the
+    searches with `undecided` (the fraction left), never with a wrong verdict; `strict=True` raises CheckFailed when
+    an outcome is not the declared one."""
+    import math
+    from .core.errors import InputError
+    if wall_limit is not None and not (isinstance(wall_limit, (int, float)) and math.isfinite(wall_limit)
+                                       and wall_limit > 0):
+        raise InputError(f"is {wall_limit!r}", key="--wall-limit", expected="a number of seconds > 0")
+    sc = _scenario(scenario)
+    r = Run(sc, RunOptions(t_final=t_final, certify_only=certify_ids(only), certify_wall_limit=wall_limit,
+                           wall_limit=wall_limit, certify_work=1.0), progress)
+    res = CertifyResult(sc, r.certification)
+    if strict and res.unexpected:
+        raise CheckFailed("certify: unexpected outcomes: " + ", ".join(res.unexpected))
+    return res
 
 
 @_bounded

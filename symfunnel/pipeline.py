@@ -45,6 +45,10 @@ class RunOptions:
     seed: int = 0
     mutant: str | None = None       # derive the design with this seeded error (verify --mutants)
     rate_hz: float | None = None    # verify the sampled-data controller at this rate (overrides [implementation])
+    certify: bool = True            # verify includes the certificates (mutation testing leaves them out)
+    certify_only: tuple[str, ...] | None = None   # which certificates (None: all)
+    certify_wall_limit: float | None = None       # seconds for the certificates' searches (None: no limit)
+    certify_work: float = 0.1       # share of the certificates' full work budget (verify: a tenth; certify: all)
 
 
 @dataclass
@@ -149,13 +153,54 @@ class Run:
 
     @cached_property
     def verification(self) -> Verification:
-        """Every verify check on the simulated closed loop."""
+        """Every verify check on the simulated closed loop, the certificates' included (unless options.certify is
+        off), with the scenario's expectations applied to all of them."""
+        from .checks.gate import apply_expectations
         from .checks.verify import verify
         o = self.options
-        return self._timed("verify", lambda: verify(
+        v = self._timed("verify", lambda: verify(
             self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, self.audit,
             t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress, rate_hz=o.rate_hz),
             "running verify's checks")
+        if o.certify:
+            v.certification = self.certification
+            v.checks.extend(v.certification.checks())
+            apply_expectations(self.scenario, v.checks)
+        return v
+
+    @cached_property
+    def certification(self):
+        """The certificates (`symfunnel certify`): interval proofs over the scenario's regions, with W* and the
+        W_hat range of the simulated run where the design has adaptive weights; cached in-process by the
+        scenario's content and the horizon (the same input gives the same certificates)."""
+        from .certificates import run_certificates
+        o = self.options
+        design = self.design
+        W = info = wr = None
+        only = o.certify_only
+        if design.n_regressor and (only is None or set(only) & {"certify.bounds", "certify.invariance"}):
+            res = self.simulation
+            L = self.lyapunov
+            if L is not None and res.status != "timeout":
+                W, info = L.W_star, L.w_star_info
+                wh = self.closed_loop.unpack(res.x).get("w_hat")
+                if wh is not None and len(wh):
+                    wr = (np.min(wh, axis=0), np.max(wh, axis=0))
+        key = _certification_key(self.scenario, self.t_final, only, o.mutant, o.certify_work)
+        if o.certify_wall_limit is None and key in _CERTIFICATIONS:
+            return _CERTIFICATIONS[key]
+        wall = o.certify_wall_limit
+        if wall is not None and "_expiry" in self.__dict__:        # what deriving and simulating left of it
+            wall = max(0.0, min(wall, self.__dict__["_expiry"][0] - time.monotonic()))
+        self._say("certificates: interval branch and bound on the design's graph")
+        cert = self._timed("certify", lambda: run_certificates(
+            self.scenario, design, t_final=self.t_final, W_star=W, w_star_info=info, w_hat_range=wr, only=only,
+            wall_limit=wall, work=scaled_work(o.certify_work), progress=self.progress), "proving the certificates")
+        if o.certify_wall_limit is None:
+            _CERTIFICATIONS[key] = cert
+            while len(_CERTIFICATIONS) > 8:
+                _CERTIFICATIONS.pop(next(iter(_CERTIFICATIONS)))
+        return cert
 
     @cached_property
     def mutation(self) -> dict:
@@ -199,6 +244,26 @@ class Run:
         return cache[key]
 
 
+#: certifications computed in this process, by scenario content, horizon and selection (deterministic results)
+_CERTIFICATIONS: dict = {}
+
+
+def scaled_work(share: float) -> dict:
+    """Each certificate's work budget times `share` (verify's gate runs them at a tenth of `certify`'s budget, so a
+    verify on a new scenario stays interactive; a search cut short says `undecided`, never a wrong verdict)."""
+    from .certificates import DEFAULT_WORK
+    return {k: float(v) * float(share) for k, v in DEFAULT_WORK.items()}
+
+
+def _certification_key(scenario, t_final: float, only, mutant=None, work: float = 1.0) -> str:
+    import hashlib
+    import json
+    text = json.dumps([str(scenario.path), scenario.raw, float(t_final), sorted(only) if only else None, mutant,
+                       float(work)],
+                      sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 # --- mutation testing of the verifier ---------------------------------------------------------------------
 # Each seeded error of the design (`Design.variant.mutants()`) goes through the same gate as the design itself; a
 # verifier that lets one through has a blind spot. Cheapest checks first: a mutant the design identity already
@@ -237,9 +302,10 @@ def run_mutants(scenario, *, t_final: float | None = None, samples: int = 2000, 
             continue
         if baseline is None:
             say("unmutated design at the same horizon (the reference outcomes)")
-            baseline = {c.id: c for c in Run(scenario, RunOptions(t_final=horizon, samples=samples,
-                                                                  seed=seed)).verification.checks}
-        v = Run(scenario, RunOptions(t_final=horizon, samples=samples, seed=seed, mutant=m.id)).verification
+            baseline = {c.id: c for c in Run(scenario, RunOptions(t_final=horizon, samples=samples, seed=seed,
+                                                                  certify=False)).verification.checks}
+        v = Run(scenario, RunOptions(t_final=horizon, samples=samples, seed=seed, mutant=m.id,
+                                     certify=False)).verification
         by = [c.id for c in v.checks if c.unexpected and not (c.id in baseline and baseline[c.id].unexpected)]
         row.update(killed=bool(by), by=by)
         rows.append(row)

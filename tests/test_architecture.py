@@ -21,7 +21,7 @@ DOC = PKG.parent / "docs" / "architecture.md"
 #: the layers, lowest first: each is a package of symfunnel (or one of the few top-level modules); a module may
 #: import modules of its own layer and of the layers below
 LAYERS = ("core", "sx", "expr", "family", "model", "plant", "scenario", "design", "simulation", "emit", "deployed",
-          "checks", "pipeline", "campaigns", "synthesis", "reporting", "api", "bench", "commands",
+          "checks", "certificates", "pipeline", "campaigns", "synthesis", "reporting", "api", "bench", "commands",
           "cli", "__main__", "__init__")
 
 #: the only modules allowed at the package's top level

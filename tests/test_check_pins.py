@@ -17,11 +17,12 @@ from symfunnel.checks import theory as T
 from symfunnel.checks import verify as VF
 from symfunnel.checks.implementation import implementation_checks
 from symfunnel.checks.lyapunov import LyapunovTrajectory
-from symfunnel.core.names import AUDIT_CHECKS, VERIFY_CHECKS
+from symfunnel.core.names import AUDIT_CHECKS, CERTIFY_CHECKS, VERIFY_CHECKS
 from symfunnel.deployed.loop import SampledResult
 from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
 
+from . import test_certify  # noqa: F401 - registers its pins (certify.*)
 from . import test_twins  # noqa: F401 - registers its pins (funnel.consistency, reference.derivatives)
 from .conftest import MINIMAL_2LINK
 from .pins import PINS, pins
@@ -84,7 +85,7 @@ def _rng():
 # --- the registry is complete --------------------------------------------------------------------------------
 
 def test_every_check_id_has_a_failing_and_a_near_boundary_passing_case():
-    ids = list(AUDIT_CHECKS) + list(VERIFY_CHECKS) + ["funnel.containment"]
+    ids = list(AUDIT_CHECKS) + list(VERIFY_CHECKS) + list(CERTIFY_CHECKS) + ["funnel.containment"]
     missing = [(cid, k) for cid in ids for k in ("fail", "pass") if not PINS.get(cid, {}).get(k)]
     assert not missing, f"check ids without a pinning case: {missing}"
     unknown = set(PINS) - set(ids)

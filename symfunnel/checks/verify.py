@@ -57,6 +57,7 @@ class Verification:
     falsification: dict | None
     checks: list[CheckResult]
     timings: dict = field(default_factory=dict)
+    certification: object = None        # the certificates (symfunnel.certificates.Certification) shown as checks
 
     @property
     def failed(self) -> list[CheckResult]:

@@ -76,10 +76,14 @@ VERIFY_CHECKS = ("simulation.completed", "design.identity.vdot", "lyapunov.rho_p
                  "implementation.saturation")
 
 
+#: ids of the certificates (`symfunnel certify`; verify shows them as checks)
+CERTIFY_CHECKS = ("certify.input_gain", "certify.bounds", "certify.invariance")
+
+
 def check_ids(n: int) -> list[str]:
     """Every non-claim check id for an n-joint scenario (what `[[expect]]` may name)."""
     joints = [f"funnel.containment.{e}.joint{j + 1}" for e in ("e1", "e2") for j in range(n)]
-    return list(AUDIT_CHECKS) + list(VERIFY_CHECKS) + joints
+    return list(AUDIT_CHECKS) + list(VERIFY_CHECKS) + list(CERTIFY_CHECKS) + joints
 
 
 def joint_units(joint_types, n: int) -> list[dict]:

@@ -23,6 +23,9 @@ class FunnelTransform:
 
     name = "funnel"
     extra_signals = {"zeta": "1/(F - |e|)"}
+    #: degree of each output in (e, F) jointly: build(c e, c F)[k] = c^deg build(e, F)[k] for c > 0 (a function of
+    #: s = e/F times a power of F); `symfunnel.certificates` rewrites the design over s with it once sympy proves it
+    HOMOGENEITY = {"z": 0, "mu": -1, "r": 1, "zeta": -1}
 
     def build(self, e: ca.SX, F: ca.SX) -> dict[str, ca.SX]:
         """z, mu = dz/de, r = e/z and the transformation's own named signals (zeta)."""
@@ -42,8 +45,13 @@ class LogTransform:
 
     name = "log"
     extra_signals: dict[str, str] = {}
+    #: see FunnelTransform.HOMOGENEITY
+    HOMOGENEITY = {"z": 0, "mu": -1, "r": 1}
     #: below this |s| the ratio s/atanh(s) is its Taylor polynomial (error < 1e-16 there)
     SERIES_BELOW = 1e-3
+    #: |s| where r's formula switches (series below): interval evaluation cannot take s/atanh(s) on a box around 0,
+    #: so `symfunnel.certificates` cuts the normalised errors there before branching
+    BREAKPOINTS = (SERIES_BELOW,)
 
     def build(self, e: ca.SX, F: ca.SX) -> dict[str, ca.SX]:
         """z, mu = dz/de and r = e/z (smooth through e = 0)."""

@@ -47,7 +47,11 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
     t0 = time.perf_counter()
     ctx["simulation"] = S.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
-    ctx["verification"] = S.verification_section(verification, shown=[c.id for c in audit_results])
+    from .certify import certify_section
+    ctx["certify"] = certify_section(run, say)
+    # each check once: the certificates have their own table
+    shown = [c.id for c in audit_results] + [r["id"] for r in ctx["certify"].get("rows", [])]
+    ctx["verification"] = S.verification_section(verification, shown=shown)
     t0 = time.perf_counter()
     ctx["tuning"] = S.tuning_section(run, say, figures_dir=figures_dir)
     if ctx["tuning"]["available"]:

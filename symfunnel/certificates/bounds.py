@@ -1,0 +1,153 @@
+"""`certify.bounds`: rigorous enclosures of mu2, the torque tau and eps = f_true - W*^T Phi over the funnel region,
+and the saturation verdict against `tau_max`.
+
+The region is R_m (|e_i| <= (1 - m) F_i, t in [0, T]) x the parameter box x the controller-state boxes: m and the
+W_hat box are the invariance certificate's when it is proven (then the enclosures hold along every trajectory of the
+closed loop), else m = BOUNDS_MARGIN and W_hat in the range it took along the simulated run, widened by that range's
+own width on each side (then the enclosures are proven for every state of that box, and the box is only as good as
+one simulated run). x_esn lies in its invariant box |x_i| <= 1/leak (a theorem for the tanh reservoir).
+
+Per signal and joint, `sx.branch.rigorous_range` (best-first on each bound, mean-value form in t, s, p) gives a
+rigorous [lo, hi] and the attained [lo_seen, hi_seen]; the torque's extremes are improved by a local search over
+every input (states included) and re-evaluated by the ordinary CasADi Function of the design. With `tau_max`:
+proven when the rigorous max|tau_j| < tau_max_j on every joint (saturation provably inactive on the region), refuted
+when an attained |tau_j| >= tau_max_j (the state is the counterexample), undecided in between.
+"""
+
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+
+from .problem import Budget, Context, RegionProblem, controller_state_boxes, improve, unknown_exprs
+from .search import extrema
+from .result import Certificate
+
+CID = "certify.bounds"
+#: the margin m of the region when no invariance certificate gives one: |e| <= 0.95 F
+BOUNDS_MARGIN = 0.05
+#: relative tolerance of each range search (the gap lo_seen - lo it stops at)
+RANGE_REL_TOL = 1e-2
+
+
+def w_hat_box(ctx: Context) -> tuple[tuple[np.ndarray, np.ndarray] | None, str]:
+    """The W_hat box of the bounds region and where it comes from."""
+    inv = ctx.results.get("certify.invariance")
+    if inv is not None and inv.status == "proven" and "w_hat_radius" in inv.extra:
+        r = float(inv.extra["w_hat_radius"])
+        W = np.asarray(ctx.W_star, float)
+        return (W - r, W + r), (f"the invariance certificate's ball ||W_hat - W*||_F <= {r:.4g} (proven for the "
+                                "closed loop)")
+    if ctx.w_hat_range is None:
+        return None, "no simulated run to take a W_hat box from"
+    lo, hi = ctx.w_hat_range
+    width = np.maximum(hi - lo, 1e-3 * (1 + np.maximum(np.abs(lo), np.abs(hi))))
+    return (lo - width, hi + width), ("the range W_hat took along the simulated run, widened by its own width on "
+                                      "each side (a box from one run: the enclosures hold for every W_hat in it)")
+
+
+def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
+    """certify.bounds on the scenario's region."""
+    t0 = time.monotonic()
+    d, sc = ctx.design, ctx.scenario
+    n = d.n
+    inv = ctx.results.get("certify.invariance")
+    if inv is not None and inv.status == "proven":
+        m, m_source = float(inv.extra["m"]), "the margin the invariance certificate proves"
+    else:
+        m, m_source = BOUNDS_MARGIN, f"BOUNDS_MARGIN (no invariance certificate gives one)"
+    states = {}
+    w_source = None
+    if d.n_regressor:
+        wb, w_source = w_hat_box(ctx)
+        if wb is None or ctx.W_star is None:
+            return Certificate(CID, "undecided", f"no W_hat box or W*: {w_source}", method="interval range search",
+                               seconds=time.monotonic() - t0, undecided_fraction=1.0)
+        states = controller_state_boxes(ctx, wb)
+    else:
+        states = controller_state_boxes(ctx, None)
+    p = ca.SX.sym("p", len(ctx.params.names))
+    exprs = {"mu2": d.signals["mu2"], "tau": d.signals["tau"]}
+    # eps is a function of the state (t, q, dq, p, W_hat) only without a reservoir: an ESN's eps also depends on
+    # x_esn, whose box makes its enclosure meaningless (certify.invariance bounds it over that box where it needs it)
+    with_eps = "x_esn" not in dict(d.states)
+    if with_eps:
+        exprs["eps"] = unknown_exprs(ctx, p, ctx.W_star)["eps"]
+    prob = RegionProblem(ctx, exprs, p, "bounds")
+    budget.set_tape(prob.work_per_box())
+    region = prob.region(m, states)
+    F = prob.F
+    lo, hi = prob.flat(region)
+    split = prob.split_indices(lo, hi)
+    first = prob.initial_boxes(lo, hi)
+    searches = [(k, j, sgn) for k in exprs for j in range(n) for sgn in (1.0, -1.0)]
+    objectives = []
+    for k, j, sgn in searches:
+        objectives.append((F.out_off[F.out_names.index(k)] + list(F.out_nz[F.out_names.index(k)]).index(j), sgn))
+    found = extrema(F, lo, hi, split, objectives, max_boxes=budget.boxes, seconds=budget.seconds(),
+                    rel_tol=RANGE_REL_TOL, initial=first)
+    boxes = found[0].boxes if found else 0
+    encl: dict = {}
+    witness = {}
+    for (k, j, sgn), (pos, _), ex in zip(searches, objectives, found):
+        x, best = ex.argbest, ex.best
+        if k == "tau":                          # the torque's extremes: improved over every input, states included
+            x2, b2 = improve(prob.function, x, lo, hi, pos, -sgn)
+            if np.isfinite(b2) and -b2 < best:
+                x, best = x2, -b2
+        e = encl.setdefault(k, [dict() for _ in range(n)])[j]
+        side = "lo" if sgn > 0 else "hi"
+        e[side] = sgn * ex.bound               # min of sgn*g >= bound: g >= bound (sgn 1), g <= -bound (sgn -1)
+        e[side + "_seen"] = sgn * best
+        e["converged"] = e.get("converged", True) and ex.converged
+        witness[(k, j, side)] = x
+    finite = all(np.isfinite(e["lo"]) and np.isfinite(e["hi"]) for v in encl.values() for e in v)
+    tau = encl["tau"]
+    abs_hi = [max(abs(e["lo"]), abs(e["hi"])) for e in tau]
+    abs_seen = [max(abs(e["lo_seen"]), abs(e["hi_seen"])) for e in tau]
+    tau_max = None
+    if sc.implementation is not None and sc.implementation.tau_max is not None:
+        tau_max = np.broadcast_to(np.asarray(sc.implementation.tau_max, float), (n,))
+    region_info = {"t": [0.0, float(ctx.t_final)], "margin": m, "margin_source": m_source,
+                   "e1": f"|e1| <= (1 - {m:g}) F1(t)", "e2": f"|e2| <= (1 - {m:g}) F2(t)",
+                   "parameters": ctx.params.describe()}
+    for name, (lo_, hi_) in states.items():
+        region_info[name] = {"lo": float(np.min(lo_)), "hi": float(np.max(hi_)), "shape": list(np.shape(lo_))}
+    if w_source:
+        region_info["w_hat"]["source"] = w_source
+    if "x_esn" in states:
+        region_info["x_esn"]["source"] = "the tanh reservoir's invariant box |x_i| <= 1/leak"
+    extra = {"enclosures": encl, "tau_max": None if tau_max is None else tau_max.tolist(),
+             "eps": "enclosed" if with_eps else "not enclosed: the ESN's eps depends on the reservoir state x_esn",
+             "max_abs_tau": {"lower": abs_seen, "upper": abs_hi}}
+    text = "; ".join(f"{k}: " + ", ".join(f"[{e['lo']:.4g}, {e['hi']:.4g}]" for e in v) for k, v in encl.items())
+    head = f"on R_{m:g} ({m_source}) x the parameter box x the state boxes: {text}"
+    common = dict(region=region_info, boxes=boxes, seconds=time.monotonic() - t0,
+                  method="interval range search (best-first, mean-value form in t, s, p; states as boxes)",
+                  extra=extra, lower=float(max(abs_seen)), upper=float(max(abs_hi)))
+    if tau_max is not None:
+        for j in range(n):
+            if abs_seen[j] >= tau_max[j]:
+                side = "hi" if abs(tau[j]["hi_seen"]) >= abs(tau[j]["lo_seen"]) else "lo"
+                point = prob.point(witness[("tau", j, side)])
+                vals = prob.ordinary_values(point)["tau"]
+                if abs(vals[j]) >= tau_max[j]:
+                    ce = prob.counterexample(point)
+                    ce["tau"] = vals.tolist()
+                    return Certificate(CID, "refuted", f"|tau_{j + 1}| = {abs(vals[j]):.6g} >= tau_max = "
+                                       f"{tau_max[j]:g} inside the funnels (saturation can be active); " + head,
+                                       counterexample=ce, undecided_fraction=0.0, **common)
+        if finite and all(abs_hi[j] < tau_max[j] for j in range(n)):
+            return Certificate(CID, "proven", f"max |tau_j| <= {', '.join(f'{v:.4g}' for v in abs_hi)} < tau_max: "
+                               "saturation is provably inactive on the region; " + head, **common)
+        return Certificate(CID, "undecided", f"tau_max lies between the attained and the rigorous max |tau| "
+                           f"({', '.join(f'[{a:.4g}, {b:.4g}]' for a, b in zip(abs_seen, abs_hi))}); " + head,
+                           undecided_fraction=1.0, **common)
+    if finite:
+        return Certificate(CID, "proven", "finite enclosures (no tau_max to compare with); " + head, **common)
+    bad = [f"{k}[{j + 1}]" for k, v in encl.items() for j, e in enumerate(v)
+           if not (np.isfinite(e["lo"]) and np.isfinite(e["hi"]))]
+    return Certificate(CID, "undecided", f"no finite enclosure of {', '.join(bad)} within the budget; " + head,
+                       undecided_fraction=1.0, **common)
