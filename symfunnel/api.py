@@ -99,12 +99,14 @@ def _bounded(fn):
 
 def run(scenario, *, t_final: float | None = None, integrator: str | None = None, width: float | None = None,
         wall_limit: float | None = None, jit: bool = True, samples: int = 10000, seed: int = 0,
-        mutant: str | None = None, rate_hz: float | None = None) -> Run:
+        mutant: str | None = None, rate_hz: float | None = None, plant: str | None = None) -> Run:
     """The pipeline of a scenario with its stages computed on first use (`run.design`, `run.simulation`, ...);
-    every option as in `RunOptions` (None: the scenario's own setting)."""
-    return Run(_scenario(scenario), RunOptions(t_final=t_final, integrator=integrator, width=width,
-                                               wall_limit=wall_limit, jit=jit, samples=samples, seed=seed,
-                                               mutant=mutant, rate_hz=rate_hz))
+    every option as in `RunOptions` (None: the scenario's own setting); `plant` as `--plant` (the engine)."""
+    from .plant.engines import resolve_engine
+    sc = _scenario(scenario)
+    engine = resolve_engine(sc, plant) if plant is not None else None
+    return Run(sc, RunOptions(t_final=t_final, integrator=integrator, width=width, wall_limit=wall_limit, jit=jit,
+                              samples=samples, seed=seed, mutant=mutant, rate_hz=rate_hz, engine=engine))
 
 
 @_bounded
@@ -129,14 +131,14 @@ def simulate(scenario, *, t_final: float | None = None, integrator: str | None =
 @_bounded
 def verify(scenario, *, strict: bool = False, mutants: bool = False, t_final: float | None = None,
            samples: int = 10000, seed: int = 0, rate_hz: float | None = None, integrator: str | None = None,
-           width: float | None = None, wall_limit: float | None = None, jit: bool = True):
+           width: float | None = None, wall_limit: float | None = None, jit: bool = True, plant: str | None = None):
     """`symfunnel verify`: the Verification (`status`, `checks`, `to_json()`); with `mutants=True` the mutation
     testing result instead; `strict=True` raises CheckFailed when the gate fails."""
     sc = _scenario(scenario)
     if mutants:
         return run_mutants(sc, t_final=t_final, samples=min(samples, 2000))
     v = run(sc, t_final=t_final, samples=samples, seed=seed, rate_hz=rate_hz, integrator=integrator, width=width,
-            wall_limit=wall_limit, jit=jit).verification
+            wall_limit=wall_limit, jit=jit, plant=plant).verification
     if strict and v.unexpected:
         raise CheckFailed("verify: unexpected outcomes: " + ", ".join(c.id for c in v.unexpected))
     return v
@@ -231,22 +233,24 @@ def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix:
 @_bounded
 def report(scenario, out=None, *, codegen: bool = True, mutants: bool = True, deployed: bool = True, figures=None,
            t_final: float | None = None, samples: int = 10000, seed: int = 0, rate_hz: float | None = None,
-           wall_limit: float | None = None) -> ReportResult:
+           wall_limit: float | None = None, plant: str | None = None) -> ReportResult:
     """`symfunnel report`: writes the HTML report (default reports/<name>.html) and returns its path; `figures`
     a directory for every figure as PNG and PDF; `codegen`, `mutants`, `deployed` include those sections."""
     from .reporting import build_report
-    r = run(scenario, t_final=t_final, samples=samples, seed=seed, rate_hz=rate_hz, wall_limit=wall_limit)
+    r = run(scenario, t_final=t_final, samples=samples, seed=seed, rate_hz=rate_hz, wall_limit=wall_limit, plant=plant)
     return ReportResult(build_report(r, out, codegen=codegen, mutants=mutants, deployed=deployed,
                                      figures_dir=Path(figures) if figures is not None else None))
 
 
 def sweep(scenario, *, runs: int | None = None, workers: int | None = None, scheduler: str | None = None, out=None,
-          resume: bool = False, progress=None, chunk_size: int | None = None) -> SweepResult:
+          resume: bool = False, progress=None, chunk_size: int | None = None, plant: str | None = None) -> SweepResult:
     """`symfunnel sweep`: a robustness campaign over the scenario's `[[uncertainty]]` (result with `to_json()`, as
-    summary.json); `scheduler` the address of a dask cluster, else `workers` local processes."""
+    summary.json); `scheduler` the address of a dask cluster, else `workers` local processes; `plant` as `--plant`."""
     from .campaigns.campaign import sweep as _sweep
-    return _sweep(_scenario(scenario), runs=runs, workers=workers, scheduler=scheduler, out=out, resume=resume,
-                  progress=progress, chunk_size=chunk_size)
+    from .plant.engines import resolve_engine
+    sc = _scenario(scenario)
+    return _sweep(sc, runs=runs, workers=workers, scheduler=scheduler, out=out, resume=resume,
+                  progress=progress, chunk_size=chunk_size, engine=resolve_engine(sc, plant))
 
 
 def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,

@@ -45,6 +45,7 @@ class RunOptions:
     seed: int = 0
     mutant: str | None = None       # derive the design with this seeded error (verify --mutants)
     rate_hz: float | None = None    # verify the sampled-data controller at this rate (overrides [implementation])
+    engine: str | None = None       # the plant of the sampled loop (overrides [plant] engine)
     certify: bool = True            # verify includes the certificates (mutation testing leaves them out)
     certify_only: tuple[str, ...] | None = None   # which certificates (None: all)
     certify_wall_limit: float | None = None       # seconds for the certificates' searches (None: no limit)
@@ -160,7 +161,8 @@ class Run:
         o = self.options
         v = self._timed("verify", lambda: verify(
             self.scenario, self.design, self.closed_loop, self.simulation, self.lyapunov, self.audit,
-            t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress, rate_hz=o.rate_hz),
+            t_final=self.t_final, samples=o.samples, seed=o.seed, progress=self.progress, rate_hz=o.rate_hz,
+            engine=o.engine),
             "running verify's checks")
         if o.certify:
             v.certification = self.certification
@@ -217,6 +219,22 @@ class Run:
         return self._timed("implementation", lambda: implementation_report(
             self.scenario, self.design, t_final=self.t_final, progress=self.progress),
             "checking the deployed controller")
+
+    @cached_property
+    def engine_comparison(self) -> dict | None:
+        """The deployed controller on symfunnel's plant and on the run's physics engine side by side (None on
+        symfunnel's plant only, or without a rate to compare at): at the deployed section's rate, reusing its run."""
+        engine = self.options.engine or self.scenario.plant.engine
+        if engine == "symfunnel":
+            return None
+        from .deployed.compare import engine_comparison
+        data = self.implementation
+        res = (data.get("run") or {}).get("result")
+        if res is None:
+            return None
+        return self._timed("engine_comparison", lambda: engine_comparison(
+            self.scenario, self.design, rate_hz=res.rate_hz, engine=engine, t_final=self.t_final, symfunnel_run=res,
+            symfunnel_min_rate=data["min_rate"], progress=self.progress), f"the deployed controller on {engine}")
 
     def trajectory_arrays(self) -> dict[str, np.ndarray]:
         """The simulated trajectory with V (from the one Lyapunov stage) and W*, for `simulate --out`."""

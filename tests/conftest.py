@@ -147,3 +147,21 @@ def _rounding_stays_to_nearest():
         mode = rounding.get_mode()
         rounding.set_mode(0)
         pytest.fail(f"the test left the process's floating-point rounding mode at {mode:#x}, not to nearest")
+
+
+@pytest.fixture(autouse=True)
+def _no_deadline_or_signal_policy_left_behind():
+    """Every test leaves no open wall-clock deadline, step, pause or installed signal policy: one left behind expires
+    every later check of the run, and the CLI's watchdog would stop the whole test process at the next `main()`."""
+    yield
+    from symfunnel.core import deadline, lifecycle
+    left = {"deadlines": list(deadline._stack), "steps": list(deadline._steps), "paused": list(deadline._paused),
+            "signal policy": list(lifecycle._saved), "pending signals": list(lifecycle._pending)}
+    left = {k: v for k, v in left.items() if v}
+    if left:
+        deadline._stack.clear()
+        deadline._steps.clear()
+        deadline._paused.clear()
+        lifecycle.uninstall()
+        lifecycle._pending.clear()
+        pytest.fail(f"the test left process-wide state behind: {left}")

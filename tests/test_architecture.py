@@ -331,7 +331,8 @@ def test_every_package_and_module_says_what_it_holds():
 @pytest.mark.parametrize("registry, key", [("symfunnel.family.transforms:TRANSFORMS", "design.transform"),
                                            ("symfunnel.family.approximators:APPROXIMATORS", "approximator.type"),
                                            ("symfunnel.family.funnels:FUNNEL_SHAPES", "funnel.eK"),
-                                           ("symfunnel.family.variants:VARIANTS", "design.variant")])
+                                           ("symfunnel.family.variants:VARIANTS", "design.variant"),
+                                           ("symfunnel.plant.engines:ENGINES", "plant.engine")])
 def test_each_registry_is_documented_in_the_scenario_docs(registry, key):
     import importlib
     mod, name = registry.split(":")

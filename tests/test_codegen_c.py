@@ -183,7 +183,7 @@ def test_makefile_builds_and_runs(c_dir, tmp_path):
 @needs_gcc
 def test_check_c_at_1000_points(design, c_files, cache, points):
     report = cg.check_output(design, "c", c_files, pts=points)
-    assert set(report.errors) == {"funnels", "errors", "alpha2", "alpha2_dot", "controller"}
+    assert set(report.errors) == {"funnels", "errors", "alpha2", "alpha2_dot", "controller", "step_core"}
     assert report.points == 1000
     assert report.worst <= 1e-12 and report.passed, report.to_json()
 
@@ -379,12 +379,17 @@ def test_codegen_summary_for_the_report(paper_run, cache):
 
 
 @needs_gcc
-def test_bench_area_reports_c_vm_and_python(cache):
+def test_bench_area_reports_c_vm_and_python(cache, monkeypatch):
     from symfunnel.bench import codegen as bench
+    monkeypatch.setenv("SYMFUNNEL_BENCH_LARGE_N", "60")          # the N = 500 compile's mechanics, at a test's size
     res = {r["id"]: r for r in bench.run(lambda s: None)}
+    big = res["codegen.c_compile_n500_s"]
+    assert big["unit"] == "CPU s" and big["value"] > 0 and big["baseline_finished"] and big["esn_units"] == 60
+    assert big["lines"] < big["baseline_lines"] and big["ratio"] == pytest.approx(big["baseline_value"] / big["value"])
     c = res["codegen.c_controller_ns"]
     assert c["unit"] == "ns" and c["baseline"].startswith("casadi VM") and c["value"] > 0
     assert c["ratio"] == pytest.approx(c["baseline_value"] / c["value"])
     assert c["operations"] == res["codegen.controller_ops"]["value"] > 1000
     assert c["value"] < c["baseline_value"]                    # compiled C beats the VM called from Python
+    assert c["unrolled_c_ns"] > 0 and "-O" in c["flags"]
     assert res["codegen.python_controller_ns"]["value"] > 0

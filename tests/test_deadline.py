@@ -158,3 +158,48 @@ def test_large_reservoirs_get_the_same_spectral_radius_from_arpack_as_from_lapac
     dense_rho = float(np.max(np.abs(np.linalg.eigvals(W))))
     assert _spectral_radius(W) == pytest.approx(dense_rho, rel=1e-11)
     assert _norm2(W) == pytest.approx(float(np.linalg.norm(W, 2)), rel=1e-11)
+
+
+def test_a_limit_raised_while_its_block_exits_leaves_no_deadline_behind(monkeypatch):
+    """An alarm delivered as the block ends runs its handler at the first call of the clean-up and raises from
+    there: the deadline must already be off the stack (else every later check of the process expires)."""
+    import signal as _signal
+    from symfunnel.core import deadline
+    real = _signal.setitimer
+    fired = []
+
+    def setitimer(which, seconds, *rest):
+        if seconds == 0 and not fired:
+            fired.append(True)
+            raise deadline.WallLimitReached(1.0, "the clean-up", 1.0)
+        return real(which, seconds, *rest)
+
+    monkeypatch.setattr(deadline.signal, "setitimer", setitimer)
+    with pytest.raises(deadline.WallLimitReached):
+        with deadline.limit(30.0):
+            with deadline.step("inner"):
+                pass
+    monkeypatch.setattr(deadline.signal, "setitimer", real)
+    assert fired and deadline._stack == [] and deadline._steps == []
+    assert deadline.remaining() == float("inf")
+    deadline.check()                                        # nothing expired is left to raise
+
+
+def test_a_signal_while_a_pause_starts_leaves_the_alarm_armed(monkeypatch):
+    """A signal raised as `paused()` arms its block leaves no pause behind (else no later alarm would fire)."""
+    from symfunnel.core import deadline
+    calls = []
+    real = deadline._arm
+
+    def arm():
+        calls.append(1)
+        if len(calls) == 2:                                 # the pause's own arming (the limit's is the first)
+            raise KeyboardInterrupt
+        return real()
+
+    monkeypatch.setattr(deadline, "_arm", arm)
+    with pytest.raises(KeyboardInterrupt):
+        with deadline.limit(30.0):
+            with deadline.paused():
+                pass
+    assert deadline._paused == [] and deadline._stack == []

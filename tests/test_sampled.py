@@ -314,7 +314,7 @@ def test_rate_command_json_has_the_contract_keys(monkeypatch, capsys):
     monkeypatch.setattr("symfunnel.design.derive", lambda sc, **_: object())     # the command's Run derives
     assert main(["rate", "paper", "--json", "--margin", "0.1"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"min_rate_hz", "margin", "tried"} and out["margin"] == 0.1
+    assert set(out) == {"min_rate_hz", "margin", "tried", "engine"} and out["margin"] == 0.1 and out["engine"] == "symfunnel"
     assert 2500.0 <= out["min_rate_hz"] <= 2500.0 * 1.05
     assert all({"rate_hz", "status", "min_margin"} <= set(d) for d in out["tried"])
     monkeypatch.setattr(S, "simulate_sampled", _threshold_sim(lambda sc: 5e6))   # nothing holds up to 1 MHz

@@ -30,13 +30,13 @@ def write(tmp_path, raw: dict, name: str = "s.toml"):
     return p
 
 
-def problem(tmp_path, t_final=0.5, grid=50, tune=None):
+def problem(tmp_path, t_final=0.5, grid=50, tune=None, tolerance=(1e-10, 1e-10), **kw):
     from symfunnel.synthesis.gradient import GradientProblem
     from symfunnel.synthesis.search import variables
     sc = load_scenario(write(tmp_path, paper_doc(t_final, tune or {"tau_max": 200.0})))
     vs = variables(sc, sc.tune)
     gp = GradientProblem(sc, sc.tune, vs, t_final=t_final, tau_max=sc.tune.tau_max, grid_points=grid,
-                         tolerance=(1e-10, 1e-10))
+                         tolerance=tolerance, **kw)
     return sc, vs, gp
 
 
@@ -46,14 +46,48 @@ def test_constraint_gradient_matches_central_differences(tmp_path):
     z0 = np.array([v.z_of(v.user_x()) for v in vs])
     J = np.asarray(gp.jacobian()(z0))
     assert J.shape == (gp.ng, 3) and np.all(np.isfinite(J))
+    # the differences are taken on the same problem integrated at 1e-12: at the sensitivities' 1e-10 the constraints
+    # carry ~4e-8 of CVODES' step-selection noise, which a central difference divides by h (about 1e-4 of the
+    # derivative at h = 1e-4, and it moves with the integrator's state order); at 1e-12 J agrees to ~2e-6
+    _, _, ref = problem(tmp_path, tune={"tau_max": 200.0,
+                                        "parameters": ["controller.k2", "funnel.e2.phi_inf", "adaptation.gamma"]},
+                        tolerance=(1e-12, 1e-12))
     h = 1e-4
     for i in range(3):
         e = np.zeros(3)
         e[i] = h
-        fd = (np.asarray(gp.g(z0 + e)).ravel() - np.asarray(gp.g(z0 - e)).ravel()) / (2 * h)
+        fd = (np.asarray(ref.g(z0 + e)).ravel() - np.asarray(ref.g(z0 - e)).ravel()) / (2 * h)
         scale = np.max(np.abs(fd))
         assert scale > 1e-3                                    # the parameter does move the constraints
         assert np.max(np.abs(J[:, i] - fd)) <= 1e-4 * scale, i
+
+
+def test_compiled_sensitivities_equal_the_vm_ones(tmp_path):
+    """The gradient path's DAE, Newton Jacobian and forward derivative run as generated C
+    (`simulation.compiled.compiled_dae`); constraints and Jacobian equal the same problem's on CasADi's VM (the SX
+    DAE, exact Newton Jacobian) to the integration tolerance."""
+    _, vs, gp = problem(tmp_path, coarse=None)
+    _, _, vm = problem(tmp_path, coarse=None, compiled=False)
+    assert gp.code == "compiled" and vm.code == "vm"
+    z0 = np.array([v.z_of(v.user_x()) for v in vs])
+    g1, g2 = np.asarray(gp.g(z0)), np.asarray(vm.g(z0))
+    assert np.max(np.abs(g1 - g2)) <= 1e-7
+    J1, J2 = np.asarray(gp.jacobian()(z0)), np.asarray(vm.jacobian()(z0))
+    assert np.max(np.abs(J1 - J2)) <= 1e-6 * np.max(np.abs(J2))
+
+
+def test_the_coarse_pass_runs_first_on_a_quarter_of_the_horizon(tmp_path):
+    """solve() runs IPOPT over the first quarter of the horizon (a quarter of the grid) first and continues from
+    its result over the whole horizon; both passes are reported."""
+    sc, vs, gp = problem(tmp_path, t_final=0.5, grid=40)
+    assert gp.coarse is not None and gp.coarse.coarse is None
+    assert gp.coarse.T == pytest.approx(0.125) and gp.coarse.K == 10
+    z0 = np.array([v.z_of(v.user_x()) for v in vs])
+    lines = []
+    r = gp.solve(z0, objective="peak_torque", ref=500.0, wall_s=120.0, max_iter=3, progress=lines.append)
+    assert r["coarse"] is not None and r["coarse"]["iterations"] >= 1
+    assert any("coarse pass" in s for s in lines) and np.all((0 <= r["z"]) & (r["z"] <= 1))
+    assert problem(tmp_path, t_final=0.5, grid=40, coarse=None)[2].coarse is None
 
 
 def test_symbolic_parameters_reproduce_an_independent_simulation(tmp_path):

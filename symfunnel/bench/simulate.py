@@ -2,19 +2,35 @@
 on a plain numpy right-hand side generated from the same graph (what a user would otherwise write), same run.
 
 Ids: `simulate.realtime_factor` (simulated s per wall s of `simulate`, after the one-time, cached compilation;
-baseline: solve_ivp's real-time factor) and `simulate.speedup_vs_scipy` (ratio = scipy wall time / symfunnel wall
-time, same horizon, same tolerances).
+baseline: solve_ivp's real-time factor; the CPU-time factor beside), `simulate.speedup_vs_scipy` (ratio = scipy
+wall time / symfunnel wall time, same horizon, same tolerances), `simulate.cpu_per_run` (CPU seconds of one 20 s
+paper run through the direct CVODES backend, `simulation.sundials`; baseline: the same runs through
+casadi.integrator with CSparse, interleaved in the same process; the median over runs whose plant mass differs by
+<= 1e-10 relative, because the number of CVODES steps of this loop moves by +-30 % with rounding-level changes, so
+one run is one draw) and `simulate.cli_wall_s` (wall time of `symfunnel simulate paper` in a fresh process with a
+warm compile cache and bytecode cache, CPU time beside; baseline: a process that only imports numpy and casadi).
 """
 
 from __future__ import annotations
 
 import os
+import resource
+import subprocess
+import sys
+import tempfile
 import time
 import types
 
 import numpy as np
 
 from ._result import result
+
+#: Targets of issue 24.
+TARGET_CPU_PER_RUN = 0.07
+TARGET_REALTIME = 400.0
+TARGET_CLI_S = 1.0
+#: relative changes of the plant's mass the CPU-per-run median runs over (rounding level: the same run)
+PERTURBATIONS = (0.0, 1e-12, -1e-12, 2e-12, 1e-11, -1e-11, 3e-11, 1e-10, -1e-10)
 
 
 def scipy_rhs(cl):
@@ -49,6 +65,58 @@ def run_scipy(cl, t_final: float, method: str = "BDF"):
     return time.perf_counter() - t0, sol
 
 
+def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
+    """CPU and wall seconds of each perturbed run with one CVODES backend (`PERTURBATIONS`), and their steps."""
+    from ..simulation import simulate
+    old = os.environ.get("SYMFUNNEL_CVODES")
+    os.environ["SYMFUNNEL_CVODES"] = backend
+    try:
+        simulate(sc, d, t_final=min(t_final, 0.5), closed_loop=cl)          # the backend's one-time set-up
+        cpu, wall, steps = [], [], []
+        for eps in PERTURBATIONS:
+            c0, t0 = time.process_time(), time.perf_counter()
+            r = simulate(sc, d, t_final=t_final, closed_loop=cl,
+                         params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
+            cpu.append(time.process_time() - c0)
+            wall.append(time.perf_counter() - t0)
+            steps.append(int(r.stats.get("steps") or 0))
+            if r.stats.get("cvodes_backend") != backend:
+                raise RuntimeError(f"the {backend} CVODES backend did not run: {r.stats.get('cvodes_backend')}")
+    finally:
+        if old is None:
+            os.environ.pop("SYMFUNNEL_CVODES", None)
+        else:
+            os.environ["SYMFUNNEL_CVODES"] = old
+    return {"cpu": cpu, "wall": wall, "steps": steps}
+
+
+def _process_seconds(cmd: list[str], env: dict, repeats: int = 3) -> dict:
+    """Median wall and CPU (the child's rusage) seconds of running `cmd`, after one warm-up run."""
+    subprocess.run(cmd, env=env, capture_output=True, timeout=600)
+    wall, cpu = [], []
+    for _ in range(repeats):
+        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+        wall.append(time.perf_counter() - t0)
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu.append((r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime))
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed: {proc.stderr.strip()[-500:]}")
+    return {"wall_s": float(np.median(wall)), "cpu_s": float(np.median(cpu)), "walls": wall, "cpus": cpu}
+
+
+def cli_seconds() -> dict:
+    """`symfunnel simulate paper` and a numpy + casadi import in fresh processes, each with a warm bytecode cache
+    of its own (a temporary PYTHONPYCACHEPREFIX: also where $PYTHONDONTWRITEBYTECODE forbids writing one)."""
+    with tempfile.TemporaryDirectory(prefix="symfunnel-bench-pyc-") as tmp:
+        env = dict(os.environ, PYTHONPYCACHEPREFIX=tmp)
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        cli = _process_seconds([sys.executable, "-m", "symfunnel", "simulate", "paper", "-q"], env)
+        floor = _process_seconds([sys.executable, "-c", "import numpy, casadi"], env)
+    return {"cli": cli, "floor": floor}
+
+
 def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> list[dict]:
     """Measure both sides on the paper scenario (override the horizon with $SYMFUNNEL_BENCH_T_FINAL)."""
     from ..pipeline import Run
@@ -70,6 +138,11 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
         sims.append(r.stats["sim_wall_time"])
         integ.append(r.stats["integrate_time"])
     wall = float(np.median(walls))
+    say("simulate: CPU per run, direct CVODES backend and casadi.integrator, interleaved")
+    direct, casadi_ = cpu_per_run(sc, d, cl, tf, "direct"), cpu_per_run(sc, d, cl, tf, "casadi")
+    cpu_d, cpu_c = float(np.median(direct["cpu"])), float(np.median(casadi_["cpu"]))
+    say("simulate: `symfunnel simulate paper` in a fresh process (warm caches)")
+    cli = cli_seconds()
     say(f"simulate: symfunnel {wall:.3f} s for {tf:g} s; now scipy solve_ivp (BDF) on the numpy RHS")
     base_wall, sol = run_scipy(cl, tf)
     q_diff = None
@@ -80,9 +153,25 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
             "code": r.stats.get("code"), "integration_wall": float(np.median(sims)),
             "scipy_success": bool(sol.success), "scipy_nfev": int(sol.nfev), "scipy_njev": int(sol.njev),
             "max_abs_q_diff_vs_scipy": q_diff, "steps": r.stats.get("steps")}
+    cpu_info = {"t_final": tf, "runs": len(PERTURBATIONS), "mass_scale_perturbations": list(PERTURBATIONS),
+                "cpu_direct": direct["cpu"], "cpu_casadi": casadi_["cpu"], "wall_direct": direct["wall"],
+                "wall_casadi": casadi_["wall"], "steps_direct": direct["steps"], "steps_casadi": casadi_["steps"],
+                "median_steps_direct": float(np.median(direct["steps"])),
+                "median_steps_casadi": float(np.median(casadi_["steps"])), "clock": "process CPU time"}
     return [
         result("simulate.realtime_factor", tf / wall, "s/s", "scipy solve_ivp BDF, numpy RHS", tf / base_wall,
-               None, **info),
+               None, realtime_factor_cpu=tf / cpu_d, target=TARGET_REALTIME,
+               meets_target=bool(tf / wall >= TARGET_REALTIME), meets_target_cpu=bool(tf / cpu_d >= TARGET_REALTIME),
+               note="wall clock (a loaded machine stretches it); realtime_factor_cpu: simulated s per CPU s", **info),
+        result("simulate.cpu_per_run", cpu_d, "CPU s", "casadi.integrator (CSparse), same runs", cpu_c,
+               cpu_c / cpu_d, target=TARGET_CPU_PER_RUN, meets_target=bool(cpu_d <= TARGET_CPU_PER_RUN),
+               **cpu_info),
+        result("simulate.cli_wall_s", cli["cli"]["wall_s"], "s", "a process importing numpy and casadi only",
+               cli["floor"]["wall_s"], cli["floor"]["wall_s"] / cli["cli"]["wall_s"], cpu_s=cli["cli"]["cpu_s"],
+               baseline_cpu_s=cli["floor"]["cpu_s"], target=TARGET_CLI_S,
+               meets_target=bool(cli["cli"]["wall_s"] <= TARGET_CLI_S),
+               meets_target_cpu=bool(cli["cli"]["cpu_s"] <= TARGET_CLI_S), walls=cli["cli"]["walls"],
+               cpus=cli["cli"]["cpus"], command="symfunnel simulate paper -q"),
         result("simulate.speedup_vs_scipy", wall, "s", "scipy solve_ivp BDF, numpy RHS", base_wall,
                base_wall / wall, **info),
         result("simulate.overhead_ratio", wall / float(np.median(integ)), "x", "time inside the integrator calls",

@@ -4,9 +4,10 @@ Ids: `tune.wall_s` (wall time of the whole tune: search plus verify's gate on th
 limit; target <= 300 s). Baseline, measured in the same run: one `verify --rate 1000` of the paper's own design
 (the check a user runs by hand per guess). `tune.gradient_wall_s`: the same without `[implementation]`
 (`tune.tau_max = 200`: the gradient path forced, IPOPT with CVODES sensitivities), beside one continuous-time
-simulation of the printed design. `tune.paper_max_evals_10_wall_s`: the built-in paper as a user first tunes it
-(`symfunnel tune --max-evals 10`, method auto, default 240 s limit: `within_limit`, `lowers_peak_torque`), beside
-one continuous-time simulation of it. Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
+simulation of the printed design; target <= 60 s, with the CPU time of the process and its children beside.
+`tune.paper_max_evals_10_wall_s`: the built-in paper as a user first tunes it (`symfunnel tune --max-evals 10`,
+method auto, default 240 s limit: `within_limit`, `lowers_peak_torque`), beside one continuous-time simulation of it.
+Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import time
 from ._result import result
 
 TARGET_S = 300.0
+GRADIENT_TARGET_S = 60.0       # issue 24: the gradient path on the paper without [implementation]
 
 
 def scenario(t_final: float | None = None, sampled: bool = True):
@@ -64,9 +66,12 @@ def run(progress) -> list[dict]:
         _ = Run(sc).simulation
     one = time.perf_counter() - t0
     progress("tune: symfunnel tune without [implementation] (gradient path + verify's gate)")
+    c0 = _cpu_with_children()
     r = tune(sc, progress=progress, method="gradient")
+    cpu = _cpu_with_children() - c0
     out.append(result("tune.gradient_wall_s", r.wall_s, "s", "one continuous-time simulation of the printed design",
-                      one, one / r.wall_s, target_s=TARGET_S, meets_target=bool(r.wall_s <= TARGET_S),
+                      one, one / r.wall_s, target_s=GRADIENT_TARGET_S, meets_target=bool(r.wall_s <= GRADIENT_TARGET_S),
+                      cpu_s=cpu, meets_target_cpu=bool(cpu <= GRADIENT_TARGET_S),
                       status=r.status, method=r.method, evaluations=r.evaluations, objective=r.objective,
                       gate=r.gate["status"], scenario=sc.name, t_final=sc.simulation.t_final))
     # the built-in paper as a user first tunes it: `symfunnel tune --max-evals 10` within the default limit
@@ -86,3 +91,10 @@ def run(progress) -> list[dict]:
                       lowers_peak_torque=bool(r.objective["after"] is not None and r.objective["before"] is not None
                                               and r.objective["after"] < r.objective["before"])))
     return out
+
+
+def _cpu_with_children() -> float:
+    """CPU seconds of this process plus its waited-for children (IPOPT runs in a killable child)."""
+    import resource
+    me, ch = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + ch.ru_utime + ch.ru_stime

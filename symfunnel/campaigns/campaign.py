@@ -50,6 +50,7 @@ class Job:
     runs: int
     fingerprint: str
     files: tuple = ()        # (path, sha256) of every input file besides the TOML: a worker checks it reads the same
+    engine: str = "symfunnel"         # "symfunnel": the continuous-time closed loop; else the sampled loop on it
 
 
 #: what a user adds to a scenario to sweep it (printed when the table is missing)
@@ -62,8 +63,10 @@ high = 1.2"""
 _STATE: dict = {}        # (fingerprint, thread) -> (scenario, closed loop, compile time, cache hit)
 
 
-def make_job(scenario, *, runs: int | None = None) -> Job:
-    """The campaign of a scenario with its `[[uncertainty]]` (InputError without one)."""
+def make_job(scenario, *, runs: int | None = None, engine: str = "symfunnel", rate_hz: float | None = None) -> Job:
+    """The campaign of a scenario with its `[[uncertainty]]` (InputError without one); on a physics engine the
+    runs are the deployed controller's sampled loop at `rate_hz` (written into the job's scenario, and so into
+    worst.toml, with the engine)."""
     c = scenario.campaign
     if c is None or not c.uncertainties:
         from ..scenario import is_builtin
@@ -72,11 +75,20 @@ def make_job(scenario, *, runs: int | None = None) -> Job:
         raise InputError("has no [[uncertainty]] table", file=scenario.file, key="uncertainty",
                          expected=f"at least one [[uncertainty]] table for a sweep; for example, {where}:",
                          example=UNCERTAINTY_EXAMPLE)
+    if engine == "symfunnel":
+        for i, u in enumerate(c.uncertainties):
+            if u.key.startswith("plant.mujoco."):
+                raise InputError(f"is '{u.key}', which only the mujoco plant has, but the sweep runs on symfunnel's "
+                                 "plant", file=scenario.file, key=f"uncertainty[{i}].key",
+                                 expected="sweep --plant mujoco (or [plant] engine = \"mujoco\")")
     n_runs = c.sweep.runs if runs is None else runs
     tf = float(c.sweep.t_final if c.sweep.t_final is not None else scenario.simulation.t_final)
     raw = copy.deepcopy(scenario.raw)
     sim = raw.setdefault("simulation", {})
-    if scenario.simulation.integrator == "cvodes" and "max_step" not in sim:
+    if engine != "symfunnel":
+        raw.setdefault("plant", {})["engine"] = engine
+        raw.setdefault("implementation", {})["rate_hz"] = float(rate_hz)
+    elif scenario.simulation.integrator == "cvodes" and "max_step" not in sim:
         sim["max_step"] = MAX_STEP_OF_DT * float(scenario.simulation.dt)   # in worst.toml too: replays exactly
     files = input_files(scenario)
     from ..core.version import __version__
@@ -84,7 +96,7 @@ def make_job(scenario, *, runs: int | None = None) -> Job:
                       sort_keys=True, default=str)
     fp = hashlib.sha256(blob.encode()).hexdigest()[:20]
     return Job(raw, scenario.file, str(Path(scenario.file).resolve().parent), scenario.name, tf, n_runs, fp,
-               tuple(sorted(files.items())))
+               tuple(sorted(files.items())), engine)
 
 
 def input_files(scenario) -> dict[str, str]:
@@ -117,8 +129,40 @@ def _state(job: Job):
     return st
 
 
+def _engine_state(job: Job):
+    """(scenario, design, compiled step, engine setup, compile time, cache hit) of an engine campaign, once per
+    process and thread."""
+    key = (job.fingerprint, threading.get_ident())
+    st = _STATE.get(key)
+    if st is None:
+        from ..deployed.engine import engine_setup
+        from ..deployed.loop import step_library
+        from ..design import derive
+        from ..emit.files import generate
+        from ..scenario import from_dict
+        sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
+        changed = sorted(p for p, d in job.files if input_files(sc).get(p) != d)
+        if changed:
+            raise InputError("changed while the campaign ran (its rows would mix two robots)", file=changed[0],
+                             expected="the input files of a campaign unchanged until it ends")
+        built = []
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            design = derive(sc)
+            impl = sc.implementation
+            files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
+            step = step_library(design, files, on_build=built.append)
+            setup = engine_setup(sc, on_build=built.append)
+        st = _STATE[key] = (sc, design, step, setup, time.perf_counter() - t0, not built)
+    return st
+
+
 def prepare(job: Job) -> dict:
     """Build and compile the campaign's closed loop in this process; its one compile (or cache load) time."""
+    if job.engine != "symfunnel":
+        _, _, _, setup, compile_time, cached = _engine_state(job)
+        return {"compile_time": compile_time, "cache_hit": cached, "parameters": len(setup.p_names)}
     _, cl, compile_time, cached = _state(job)
     return {"compile_time": compile_time, "cache_hit": cached, "parameters": len(cl.p_names)}
 
@@ -151,8 +195,67 @@ def row_of(result, run: int, columns: list[str], values) -> dict:
     return row
 
 
+def engine_run_plant(scenario, setup, campaign, values):
+    """One run's plant on the engine (`deployed.engine.EngineRunPlant`) from its drawn values."""
+    import dataclasses
+
+    from ..deployed.engine import EngineRunPlant
+    from ..scenario.uncertainty import scenario_edits
+    n = scenario.n
+    idx = {k: i for i, k in enumerate(setup.p_names)}
+    p = setup.p0.copy()
+    q0, dq0 = np.asarray(scenario.q0, dtype=float).copy(), np.asarray(scenario.dq0, dtype=float).copy()
+    mj = scenario.plant.mujoco
+    for key, v in scenario_edits(campaign, n, values).items():
+        if key == "initial.q":
+            q0 = np.asarray(v, dtype=float)
+        elif key == "initial.dq":
+            dq0 = np.asarray(v, dtype=float)
+        elif key.startswith("plant.mujoco."):
+            mj = dataclasses.replace(mj, **{key.rsplit(".", 1)[1]: [float(x) for x in v]})
+        elif isinstance(v, list):
+            for j in range(n):
+                p[idx[f"{key}[{j + 1}]"]] = v[j]
+        else:
+            p[idx[key]] = v
+    return EngineRunPlant(p, mj, q0, dq0)
+
+
+def sampled_row_of(result, run: int, columns: list[str], values) -> dict:
+    """One results row of a sampled-data run (the margins are the true ones at the samples)."""
+    n = result.q.shape[1]
+    m = result.margins
+    ok = np.all(np.isfinite(m), axis=1) if m.size else np.zeros(0, dtype=bool)
+    m1 = float(np.min(m[ok, :n])) if ok.any() else math.nan
+    m2 = float(np.min(m[ok, n:])) if ok.any() else math.nan
+    tau = float(np.max(np.abs(result.tau))) if result.tau.size and np.isfinite(result.tau).all() else math.nan
+    row = {"run": int(run)}
+    row.update({c: float(v) for c, v in zip(columns, values)})
+    row.update({"status": ROW_STATUS[result.status], "t_end": float(result.t[-1]) if result.t.size else 0.0,
+                "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau})
+    return row
+
+
+def _engine_chunk(job: Job, ids: list[int]) -> list[dict]:
+    from ..deployed.loop import simulate_sampled
+    sc, design, step, setup, _, _ = _engine_state(job)
+    camp = sc.campaign
+    rows = []
+    for rid, v in zip(ids, camp.values(ids, job.runs)):
+        try:
+            plant = engine_run_plant(sc, setup, camp, v)
+            r = simulate_sampled(sc, design, t_final=job.t_final, controller=step, engine=job.engine, plant=plant)
+        except Exception as exc:  # noqa: BLE001 - one bad run must not stop a campaign: its row says failed
+            rows.append(_failed_row(rid, camp.columns, v, exc))
+            continue
+        rows.append(sampled_row_of(r, rid, camp.columns, v))
+    return rows
+
+
 def run_chunk(job: Job, run_ids) -> list[dict]:
     """Rows of the given runs (the unit of work of the pool and of dask)."""
+    if job.engine != "symfunnel":
+        return _engine_chunk(job, [int(i) for i in run_ids])
     from ..simulation import simulate
     from ..scenario.uncertainty import run_inputs
     sc, cl, _, _ = _state(job)
@@ -333,6 +436,15 @@ def _scheduler_address(address) -> tuple[str, int]:
     return u.hostname, port
 
 
+def _pool_worker_start() -> None:
+    """A pool worker dies with its parent and runs one BLAS thread (one process per core already: a second thread
+    would only spin against the other workers)."""
+    from ..core import lifecycle
+    from ..core.threads import pin_blas_threads
+    lifecycle.die_with_parent()
+    pin_blas_threads()
+
+
 def _chunks(ids: list[int], size: int) -> list[list[int]]:
     return [ids[i:i + size] for i in range(0, len(ids), size)]
 
@@ -380,7 +492,7 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
         import multiprocessing as mp
         from ..core import lifecycle
         pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                      initializer=lifecycle.die_with_parent)
+                                      initializer=_pool_worker_start)
         try:
             pending = deque(chunks)
             running = {pool.submit(run_chunk, job, pending.popleft())
@@ -516,15 +628,35 @@ class SweepResult:
 
 
 def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume=False, progress=None,
-          chunk_size=None) -> SweepResult:
-    """Run a scenario's campaign; write results.parquet, summary.json and worst.toml into `out`."""
+          chunk_size=None, engine: str | None = None) -> SweepResult:
+    """Run a scenario's campaign; write results.parquet, summary.json and worst.toml into `out`.
+
+    On symfunnel's plant every run is the continuous-time closed loop (as before); on a physics engine (`engine`,
+    default the scenario's `[plant] engine`) every run is the deployed controller's sampled loop on it, at the
+    scenario's `[implementation]` rate, else at twice the minimum rate of the nominal scenario on that engine."""
     from ..scenario.uncertainty import check_runs
     say = progress or (lambda s: None)
     if runs is not None:
         check_runs(runs, file=None, key="--runs")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise InputError(f"is {workers}", key="--workers", expected="an integer >= 1")
-    job = make_job(scenario, runs=runs)
+    engine = engine or getattr(scenario.plant, "engine", "symfunnel")
+    rate = None
+    if engine != "symfunnel":
+        make_job(scenario, runs=runs, engine=engine, rate_hz=1.0)       # bad input first, before a rate search
+        if scenario.implementation is not None:
+            rate = scenario.implementation.rate_hz
+        else:
+            from ..deployed.rate import min_rate
+            from ..design import derive
+            say(f"sweep on the {engine} plant without [implementation]: minimum rate of the nominal scenario")
+            found = min_rate(scenario, derive(scenario), progress=say, engine=engine)
+            if found["min_rate_hz"] is None:
+                raise InputError(f"keeps no funnel at any rate up to 1 MHz on the {engine} plant", file=scenario.file,
+                                 key="implementation.rate_hz", expected="a rate to sweep at ([implementation])")
+            rate = 2.0 * found["min_rate_hz"]
+            say(f"sweep at {rate:.6g} Hz, twice the minimum rate {found['min_rate_hz']:.6g} Hz")
+    job = make_job(scenario, runs=runs, engine=engine, rate_hz=rate)
     camp = scenario.campaign
     out = Path(out) if out is not None else Path("reports") / f"{scenario.name}-sweep"
     if out.exists() and not out.is_dir():
@@ -600,7 +732,9 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
                     "min_margin_after_transient": s["min_margin_after_transient"],
                     "min_margin_e1_after_transient": s["min_margin_e1_after_transient"],
                     "min_margin_e2_after_transient": s["min_margin_e2_after_transient"],
-                    "max_abs_tau": s["max_abs_tau"], "out": str(out)})
+                    "max_abs_tau": s["max_abs_tau"], "out": str(out), "engine": job.engine})
+    if job.engine != "symfunnel":
+        summary["rate_hz"] = float(job.raw["implementation"]["rate_hz"])
     if s["worst_run"] is not None:
         atomic_write(out / "worst.toml", worst_scenario(job, camp, s["worst_run"], scenario.n))
     atomic_write(out / "summary.json", json.dumps(json_safe(summary), indent=2, allow_nan=False))

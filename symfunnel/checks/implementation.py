@@ -8,7 +8,7 @@ import numpy as np
 from typing import TYPE_CHECKING
 
 from ..deployed.loop import SampledResult, simulate_sampled
-from .audit import CheckResult
+from .result import CheckResult
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -21,24 +21,43 @@ __all__ = ["implementation_checks"]
 
 def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz: float | None = None,
                           t_final: float | None = None, result: SampledResult | None = None,
-                          progress: Callable[[str], None] | None = None) -> list[CheckResult]:
+                          progress: Callable[[str], None] | None = None,
+                          engine: str | None = None) -> list[CheckResult]:
     """`implementation.containment` and (with tau_max) `implementation.saturation`; [] without an implementation.
 
     containment: the sampled loop around the compiled C step reaches t_final with every true margin > 0 at the
     samples. saturation: the torque never sits at tau_max (the design's guarantees assume the torque it asks
     for is applied); detail and evidence give the time fraction saturated per joint. `design` may be None when
-    `result` (the sampled run) is given.
+    `result` (the sampled run) is given. `engine` is the plant (default the scenario's `[plant] engine`); on a
+    physics engine without a rate (no rate_hz, no [implementation]) the run is at twice the minimum rate found
+    on that engine, as the report does.
     """
+    found = None
     if result is None:
+        engine = engine or getattr(scenario.plant, "engine", "symfunnel")
         if getattr(scenario, "implementation", None) is None and rate_hz is None:
-            return []
-        (progress or (lambda s: None))("sampled-data run of the generated C step function")
-        result = simulate_sampled(scenario, rate_hz=rate_hz, t_final=t_final, design=design, progress=progress)
+            if engine == "symfunnel":
+                return []
+            from ..deployed.rate import min_rate
+            found = min_rate(scenario, design, t_final=t_final, progress=progress, engine=engine)
+            if found["min_rate_hz"] is None:
+                return [CheckResult("implementation.containment", "fail", f"on the {engine} plant no sample rate up "
+                                    "to 1 MHz keeps both funnels with margin 0.05", method="sampled-data simulation",
+                                    evidence={"engine": engine, "tried": found["tried"]})]
+            rate_hz = 2.0 * found["min_rate_hz"]
+        (progress or (lambda s: None))("sampled-data run of the generated C step function"
+                                       + ("" if engine == "symfunnel" else f" on the {engine} plant"))
+        result = simulate_sampled(scenario, rate_hz=rate_hz, t_final=t_final, design=design, progress=progress,
+                                  engine=engine)
     r = result
-    how = (f"sampled at {r.rate_hz:g} Hz, zero-order hold, delay {r.stats.get('delay_samples', 0)} sample(s), "
-           f"controller = compiled generated C step")
+    how = (f"sampled at {r.rate_hz:g} Hz" + (f" (twice the minimum rate {found['min_rate_hz']:.5g} Hz on this plant)"
+                                             if found else "")
+           + f", zero-order hold, delay {r.stats.get('delay_samples', 0)} sample(s), "
+           f"controller = compiled generated C step" + _plant_text(r))
     ev = r.summary()
     ev.pop("breach", None)
+    if found:
+        ev["min_rate"] = {"min_rate_hz": found["min_rate_hz"], "margin": found["margin"], "runs": len(found["tried"])}
     if r.ok:
         c = CheckResult("implementation.containment", "pass" if r.min_margin > 0 else "fail",
                         f"{how}: reached t = {r.t[-1]:g} s; min margin {r.min_margin:.4g} at the samples",
@@ -65,3 +84,14 @@ def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz:
                                evidence={"saturated_fraction": frac, "tau_max": list(r.tau_max),
                                          "max_abs_tau": ev["max_abs_tau"]}))
     return out
+
+
+def _plant_text(r: SampledResult) -> str:
+    """Which plant the run had, for the detail: symfunnel's (nothing said, as before) or the engine's settings."""
+    st = r.stats
+    if st.get("engine", "symfunnel") == "symfunnel":
+        return ""
+    only = st.get("engine_only") or {}
+    extra = "; in the engine only: " + ", ".join(f"{k} {v}" for k, v in only.items()) if only else ""
+    return (f", plant = MuJoCo {st.get('engine_integrator', 'RK4')} with {st['plant_substeps']} step(s) of "
+            f"{st['engine_timestep']:.4g} s per period{extra}")

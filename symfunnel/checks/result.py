@@ -25,6 +25,7 @@ class CheckResult:
     reason: str = ""
     #: a claim's verdict: "proven", "refuted" or "not proven" (a sampled agreement is never a proof)
     verdict: str = ""
+    value: float | None = None           # the check's measured quantity where it has one (e.g. an agreement error)
 
     @property
     def unexpected(self) -> bool:
@@ -41,6 +42,8 @@ class CheckResult:
             out["verdict"] = self.verdict
         if self.margin is not None:
             out["margin"] = self.margin
+        if self.value is not None:
+            out["value"] = self.value
         if self.where is not None:
             out["where"] = self.where
         if self.evidence:

@@ -356,7 +356,7 @@ def check_decay_claim(L: LyapunovTrajectory | None, fz: dict | None, claim) -> C
 
 def verify(scenario, design, closed_loop, result, lyapunov: LyapunovTrajectory | None, audit_checks=(), *,
            t_final: float, samples: int = 10000, seed: int = 0, progress=None,
-           rate_hz: float | None = None) -> Verification:
+           rate_hz: float | None = None, engine: str | None = None) -> Verification:
     """Every check on the stages computed by the pipeline (`symfunnel.pipeline.Run`), the audit's included, with the
     scenario's expectations applied; never raises for a failed claim."""
     from . import theory
@@ -392,8 +392,12 @@ def verify(scenario, design, closed_loop, result, lyapunov: LyapunovTrajectory |
         checks = [c for c in checks if c.id != f"claim.{claim.name}"]
         checks.append(check_decay_claim(L, fz, claim))
     checks += check_bounded(result, design, L)
+    engine = engine or getattr(scenario.plant, "engine", "symfunnel")
+    if engine != "symfunnel":                                # the engine is the same robot before it is the plant
+        from .engine import check_engine_agreement
+        checks.append(check_engine_agreement(scenario, seed=seed, progress=say))
     from .implementation import implementation_checks       # [implementation] or --rate: the deployed controller
-    checks += implementation_checks(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=say)
+    checks += implementation_checks(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=say, engine=engine)
     apply_expectations(scenario, checks)
     return Verification(scenario=scenario, design=design, closed_loop=cl, result=result, lyapunov=L,
                         falsification=fz, checks=checks, timings=timings)

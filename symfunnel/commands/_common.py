@@ -26,3 +26,16 @@ def _dump(obj) -> str:
 def _load(args):
     from ..scenario import load_scenario
     return load_scenario(args.scenario)
+
+
+def add_plant_option(sp) -> None:
+    """`--plant ENGINE`: the plant of the deployed controller's sampled loop (overrides `[plant] engine`)."""
+    from ..plant.engines import ENGINES
+    sp.add_argument("--plant", metavar="ENGINE", help="plant of the sampled-data loop: " + ", ".join(ENGINES.names())
+                    + " (default: the scenario's [plant] engine, normally symfunnel)")
+
+
+def _engine(args, scenario) -> str:
+    """The engine of this command (--plant or the scenario's), validated before any work (exit 2 otherwise)."""
+    from ..plant.engines import resolve_engine
+    return resolve_engine(scenario, getattr(args, "plant", None))

@@ -24,12 +24,14 @@ def register(sub, common) -> None:
                     help="leave out the deployed controller (minimum sample rate, design help, sampled torque)")
     sp.add_argument("--sweep", metavar="DIR", help="the robustness-campaign section of a `symfunnel sweep` "
                                                    "directory alone (default --out: DIR/sweep.html)")
+    from ._common import add_plant_option
+    add_plant_option(sp)
     sp.set_defaults(func=run)
 
 
 def run(args) -> int:
     """Write the report and print its path. Failed checks are shown in the report; the exit code is still 0."""
-    from ._common import _load, _progress
+    from ._common import _engine, _load, _progress
     from ..core.outputs import check_count, check_output_file
     from ..pipeline import Run, RunOptions
     from ..reporting import build_report, default_path
@@ -41,7 +43,8 @@ def run(args) -> int:
     figures = figures_dir(args.figures) if args.figures is not None else None
     sc = _load(args)
     check_output_file(args.out if args.out is not None else default_path(sc))
-    run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples), _progress(args.quiet))
+    engine = _engine(args, sc)
+    run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples, engine=engine), _progress(args.quiet))
     from ..core.io import staged
     with staged():                      # the report and its --figures files all at the end, or none of them
         path = build_report(run, args.out, codegen=not args.no_codegen, mutants=not args.no_mutants,

@@ -24,6 +24,8 @@ def register(sub, common) -> None:
     sp.add_argument("--no-jit", action="store_true", help="do not compile to C; use the CasADi virtual machine")
     sp.add_argument("--rate", type=float, metavar="HZ", help="simulate the deployed controller sampled at HZ "
                     "(overrides [implementation].rate_hz; with [implementation] the sampled loop is the default)")
+    from ._common import add_plant_option
+    add_plant_option(sp)
     sp.set_defaults(func=run)
 
 
@@ -32,7 +34,7 @@ def run(args) -> int:
     import math
     import warnings
 
-    from ._common import _dump, _load, _progress
+    from ._common import _dump, _engine, _load, _progress
     from ..core.errors import InputError
     from ..pipeline import Run, RunOptions
     from ..simulation import convergence_study
@@ -53,8 +55,9 @@ def run(args) -> int:
         from ..scenario.implementation import check_rate
         check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
-    if args.rate is not None or sc.implementation is not None:
-        return _sampled(args, sc, say)
+    engine = _engine(args, sc)
+    if args.rate is not None or sc.implementation is not None or engine != "symfunnel":
+        return _sampled(args, sc, say, engine)
     run = Run(sc, RunOptions(t_final=args.t_final, integrator=args.integrator, width=args.width,
                              wall_limit=args.wall_limit, jit=not args.no_jit), say)
     with warnings.catch_warnings(record=True) as caught:
@@ -125,13 +128,26 @@ def _table(s: dict) -> None:
         print(f"  {k:<{width}}  {v}")
 
 
-def _sampled(args, sc, say) -> int:
-    """The sampled-data loop around the generated C step (symfunnel.deployed.loop); exit 1 unless it kept its funnels."""
+def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
+    """The sampled-data loop around the generated C step (symfunnel.deployed.loop); exit 1 unless it kept its funnels.
+
+    On a physics engine without a rate (no --rate, no [implementation]): at twice the minimum rate on that engine."""
     from ._common import _dump
     from ..core.io import atomic_write
     from ..deployed.loop import simulate_sampled
     from ..pipeline import Run
-    res = simulate_sampled(sc, Run(sc, progress=say).design, rate_hz=args.rate, t_final=args.t_final, progress=say)
+    design = Run(sc, progress=say).design
+    rate = args.rate
+    if rate is None and sc.implementation is None:
+        from ..deployed.rate import min_rate
+        found = min_rate(sc, design, t_final=args.t_final, progress=say, engine=engine)
+        if found["min_rate_hz"] is None:
+            print(f"symfunnel: breach: no sample rate up to 1 MHz keeps both funnels on the {engine} plant",
+                  file=sys.stderr)
+            return 1
+        rate = 2.0 * found["min_rate_hz"]
+        say(f"sampled at {rate:.6g} Hz: twice the minimum rate {found['min_rate_hz']:.6g} Hz on the {engine} plant")
+    res = simulate_sampled(sc, design, rate_hz=rate, t_final=args.t_final, progress=say, engine=engine)
     summary = res.summary()
     if args.out:
         import io
@@ -144,10 +160,14 @@ def _sampled(args, sc, say) -> int:
     if args.json:
         print(_dump(summary))
     else:
-        print(f"sampled-data simulation of scenario {sc.name} at {res.rate_hz:g} Hz: {res.status}")
+        print(f"sampled-data simulation of scenario {sc.name} at {res.rate_hz:g} Hz on the {engine} plant: "
+              f"{res.status}")
         print(f"  {res.message}")
-        for k in ("min_margin_e1", "min_margin_e2", "max_abs_tau", "tau_max", "saturated_fraction", "samples",
-                  "plant_substeps", "wall_time", "realtime_factor"):
+        keys = ["min_margin_e1", "min_margin_e2", "max_abs_tau", "tau_max", "saturated_fraction", "samples",
+                "plant_substeps", "wall_time", "realtime_factor"]
+        if engine != "symfunnel":
+            keys[7:7] = ["engine_timestep", "engine_mass_scale", "engine_only", "engine_warnings"]
+        for k in keys:
             print(f"  {k:<20} {_fmt(summary.get(k))}")
     if res.status != "ok":
         print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)

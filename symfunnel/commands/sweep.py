@@ -15,28 +15,32 @@ def register(sub, common) -> None:
     sp.add_argument("--out", metavar="DIR", help="output directory (default: reports/<name>-sweep/)")
     sp.add_argument("--resume", action="store_true", help="complete an interrupted sweep in DIR")
     sp.add_argument("--json", action="store_true", help="print summary.json")
+    from ._common import add_plant_option
+    add_plant_option(sp)
     sp.set_defaults(func=run)
 
 
 def run(args) -> int:
     """Run the campaign and print its summary; exit 0 (breaches are results, not errors)."""
-    from ._common import _dump, _load, _progress
+    from ._common import _dump, _engine, _load, _progress
     from ..campaigns.campaign import sweep
     from ..scenario.uncertainty import check_runs
     if args.runs is not None:
         check_runs(args.runs, file=None, key="--runs")
     say = _progress(args.quiet)
     sc = _load(args)
+    engine = _engine(args, sc)
     res = sweep(sc, runs=args.runs, workers=args.workers, scheduler=args.scheduler, out=args.out,
-                resume=args.resume, progress=say)
+                resume=args.resume, progress=say, engine=engine)
     s = res.to_json()
     if args.json:
         print(_dump(s))
         return 0
     lo, hi = s["ci95"]
     p = s["breach_probability"]
+    plant = (f", sampled at {s['rate_hz']:.6g} Hz on the {engine} plant" if engine != "symfunnel" else "")
     print(f"sweep of scenario {s['scenario']}: {s['runs']} runs ({s['design']}, seed {s['seed']}, "
-          f"{s['t_final']:g} s each), {s['workers']} workers")
+          f"{s['t_final']:g} s each{plant}), {s['workers']} workers")
     print(f"  breaches        {s['breaches']} (failed runs: {s['failed']})")
     print(f"  P(breach)       {'-' if p is None else format(p, '.4g')}  (95% Clopper-Pearson: [{lo:.4g}, {hi:.4g}])")
     if s.get("worst"):

@@ -19,6 +19,8 @@ def register(sub, common) -> None:
                     help="mutation testing: run the design's seeded errors through the same checks; print the score")
     sp.add_argument("--rate", type=float, metavar="HZ", help="verify the deployed controller sampled at HZ "
                     "(overrides [implementation].rate_hz; adds the implementation.* checks)")
+    from ._common import add_plant_option
+    add_plant_option(sp)
     sp.set_defaults(func=run)
 
 
@@ -32,6 +34,8 @@ def print_checks(checks, indent: str = "  ") -> None:
     """The checks as a table: mark, id, margin, detail (and the reason of an expected failure)."""
     for c in checks:
         m = "" if c.margin is None else f"  margin {c.margin:.4g}"
+        if getattr(c, "value", None) is not None:
+            m += f"  value {c.value:.3g}"
         print(f"{indent}{_mark(c)}  {c.id}{m}")
         print(f"{indent}      {c.detail}")
         if c.reason:
@@ -40,7 +44,7 @@ def print_checks(checks, indent: str = "  ") -> None:
 
 def run(args) -> int:
     """Run every check; print a table (or JSON); exit 1 exactly when an outcome is not the declared one."""
-    from ._common import _dump, _load, _progress
+    from ._common import _dump, _engine, _load, _progress
     from ..core.outputs import check_count
     from ..pipeline import Run, RunOptions
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
@@ -48,6 +52,7 @@ def run(args) -> int:
         from ..scenario.implementation import check_rate
         check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
+    engine = _engine(args, sc)
     say = _progress(args.quiet or args.json)
     if args.mutants:
         from ..pipeline import run_mutants
@@ -63,7 +68,8 @@ def run(args) -> int:
             print(f"mutation score {out['score']:.3f} ({out['killed']} killed of {out['total'] - out['equivalent']} "
                   f"non-equivalent mutants)")
         return 0
-    v = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples, rate_hz=args.rate), say).verification
+    v = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples, rate_hz=args.rate, engine=engine),
+            say).verification
     if args.json:
         print(_dump(v.to_json()))
     else:

@@ -162,17 +162,26 @@ def _push(d: _Deadline):
         yield
         return
     old = signal.getsignal(signal.SIGALRM) if not _stack else None
-    _stack.append(d)
-    _arm()
     try:
+        _stack.append(d)
+        _arm()
         yield
     finally:
+        # Off the stack first: an alarm already delivered runs its handler at the next call and raises out of this
+        # block; a deadline left behind would expire every later check and the watchdog's stop of the process.
+        _discard(_stack, d)
         signal.setitimer(signal.ITIMER_REAL, 0)
-        _stack.remove(d)
         if _stack:
             _arm()
         elif old is not None:
             signal.signal(signal.SIGALRM, old)
+
+
+def _discard(items: list, item) -> None:
+    for i in range(len(items) - 1, -1, -1):
+        if items[i] is item:
+            del items[i]
+            return
 
 
 def limit(seconds: float | None, *, on_expiry: Callable[[], BaseException] | None = None):
@@ -197,21 +206,23 @@ def paused():
     if not _main():
         yield
         return
-    _paused.append(True)
-    _arm()
+    mark = object()
     try:
+        _paused.append(mark)
+        _arm()
         yield
     finally:
-        _paused.pop()
+        _discard(_paused, mark)
         _arm()
 
 
 @contextlib.contextmanager
 def step(what: str):
     """Name what the block does, for the message of a limit reached inside it; checks the deadline on entry."""
-    _steps.append(what)
+    mark = what
     try:
+        _steps.append(mark)
         check()
         yield
     finally:
-        _steps.pop()
+        _discard(_steps, mark)

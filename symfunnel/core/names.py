@@ -73,7 +73,7 @@ AUDIT_CHECKS = ("model.M_symmetric", "model.M_positive_definite", "model.skew_sy
 VERIFY_CHECKS = ("simulation.completed", "design.identity.vdot", "lyapunov.rho_positive", "lyapunov.decay",
                  "lyapunov.bound", "lyapunov.falsification", "lyapunov.guarantee", "assumption.input_gain",
                  "bounded.tau", "bounded.w_hat", "bounded.x_esn", "implementation.containment",
-                 "implementation.saturation")
+                 "implementation.saturation", "plant.engine_agreement")
 
 
 #: ids of the certificates (`symfunnel certify`; verify shows them as checks)

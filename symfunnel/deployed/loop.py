@@ -29,6 +29,7 @@ import casadi as ca
 import numpy as np
 
 from ..core.errors import InputError
+from .cfun import _CFun, _compiled
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -253,41 +254,6 @@ def plant_step_function(scenario, substeps: int, name: str = "sfs_plant") -> ca.
     return ca.Function(name, [TH, X, U], [xf], ["th", "x", "tau"], ["xf"])
 
 
-class _CFun:
-    """A generated CasADi C function with fixed argument buffers: fill .inputs, call, read .outputs (no copies)."""
-
-    def __init__(self, path, name: str, f: ca.Function):
-        lib = ctypes.CDLL(str(path))
-        self._lib = lib
-        self._f = getattr(lib, name)
-        self._f.restype = ctypes.c_int
-        self.inputs = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
-        self.outputs = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-        self._arg = (_dp * max(1, f.sz_arg()))(*[a.ctypes.data_as(_dp) for a in self.inputs])
-        self._res = (_dp * max(1, f.sz_res()))(*[a.ctypes.data_as(_dp) for a in self.outputs])
-        self._iw = (ctypes.c_int * max(1, f.sz_iw()))()
-        self._w = (ctypes.c_double * max(1, f.sz_w()))()
-
-    def __call__(self) -> int:
-        return self._f(self._arg, self._res, self._iw, self._w, 0)
-
-
-def _compiled(f: ca.Function, on_build=None) -> _CFun:
-    """Generate C for one function, compile it (cached) and load it."""
-    import tempfile
-    from pathlib import Path
-
-    from ..core.ccompile import SHARED_FLAGS, compile_cached
-    with tempfile.TemporaryDirectory(prefix="symfunnel-plant-") as tmp:
-        cg = ca.CodeGenerator(f.name() + ".c", {"with_header": False, "casadi_int": "int"})
-        cg.add(f)
-        cg.generate(tmp + "/")
-        src = Path(tmp, f.name() + ".c").read_text()
-    built = compile_cached({f.name() + ".c": src}, [f.name() + ".c"], f"lib{f.name()}.so", SHARED_FLAGS,
-                           on_build=on_build)
-    return _CFun(built.path, f.name(), f)
-
-
 def _margin_function(design) -> ca.Function:
     """(t, q, dq) -> true margins [1 - |e1|/F1; 1 - |e2|/F2] with the scenario's reference."""
     s, S = design.sym, design.signals
@@ -300,11 +266,14 @@ def _margin_function(design) -> ca.Function:
 
 def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | None = None,
                      t_final: float | None = None, progress: Callable[[str], None] | None = None,
-                     stop_on_breach: bool = True, controller=None) -> SampledResult:
+                     stop_on_breach: bool = True, controller=None, engine: str | None = None,
+                     plant=None) -> SampledResult:
     """Run the sampled-data loop (see the module doc) to t_final; stops at the first sample outside a funnel.
 
     `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
-    `raw()` like StepLibrary's (the bench's CasADi-VM baseline).
+    `raw()` like StepLibrary's (the bench's CasADi-VM baseline; symfunnel's plant only). `engine` chooses the plant
+    ("symfunnel" or "mujoco", default the scenario's `[plant] engine`; `deployed.engine` for MuJoCo), `plant` (an
+    `engine.EngineRunPlant`) overrides an engine run's plant quantities and initial state (a sweep's run).
     """
     from ..emit.files import generate
     from ..scenario.implementation import implementation_of
@@ -315,11 +284,15 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     h = 1.0 / impl.rate_hz
     T = float(t_final if t_final is not None else sc.simulation.t_final)
     K = int(math.floor(T * impl.rate_hz + 1e-9))
-    subs = plant_substeps(sc, h)              # first: a rate too low for the plant is refused before any work
+    engine = engine or getattr(sc.plant, "engine", "symfunnel")
+    if engine == "symfunnel":
+        subs = plant_substeps(sc, h)          # first: a rate too low for the plant is refused before any work
     if controller is None:
         files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
         controller = step_library(design, files, on_build=say)
     controller.init()
+    if engine != "symfunnel":
+        return _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, say)
     plant = _compiled(plant_step_function(sc, subs, name=f"sfs_plant_{subs}"), on_build=say)
     p_t, p_x, p_u = plant.inputs
     xf = plant.outputs[0]
@@ -381,6 +354,15 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
             k_end = k + 1
             break
     wall = time.perf_counter() - start
+    return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall,
+                   {"engine": "symfunnel", "plant_substeps": subs, "delay_samples": impl.delay_samples,
+                    "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
+                    "encoder_resolution": impl.encoder_resolution}, controller)
+
+
+def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, controller=None) -> SampledResult:
+    """The SampledResult of a loop that ended at sample k_end: true margins at the samples, breach, status."""
+    n = sc.n
     tt = np.arange(k_end + 1) * h
     Q, DQ, TAU = X[:k_end + 1, :n], X[:k_end + 1, n:], TAU[:k_end]
     mf = _margin_function(design).map(k_end + 1)
@@ -418,10 +400,59 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
         message += f"; what to do: {breach['hint']}"
     from ..simulation.margins import settle_time
     ts, how = settle_time(design, T, sc.simulation.settle_time)
+    stats = {**stats, "settle_time": ts, "settle_source": how}
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
-                         {"plant_substeps": subs, "delay_samples": impl.delay_samples, "noise_q": impl.noise_q,
-                          "noise_dq": impl.noise_dq, "encoder_resolution": impl.encoder_resolution,
-                          "settle_time": ts, "settle_source": how})
+                         stats)
+
+
+#: what the engine loop's negative return codes mean
+_ENGINE_RC = {-100: "a plant force function failed", -101: "too many joints for the loop (at most 64)"}
+
+
+def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, say) -> SampledResult:
+    """simulate_sampled on a physics engine (deployed.engine): the same measurements, step and hold."""
+    from .engine import EngineRunPlant, engine_setup, run_engine_loop
+    if not isinstance(controller, StepLibrary):
+        raise TypeError("a physics-engine plant is driven by the compiled C step (StepLibrary) only")
+    n = sc.n
+    setup = engine_setup(sc, on_build=say)
+    run = plant or EngineRunPlant(setup.p0.copy(), sc.plant.mujoco, np.asarray(sc.q0, dtype=float),
+                                  np.asarray(sc.dq0, dtype=float))
+    rng = np.random.default_rng(impl.seed)
+    nq = rng.standard_normal((K, n)) * impl.noise_q if impl.noise_q > 0 else None
+    ndq = rng.standard_normal((K, n)) * impl.noise_dq if impl.noise_dq > 0 else None
+    X = np.full((K + 1, 2 * n), np.nan)
+    TAU = np.zeros((K, n))
+    # the stability rule's configurations: the reference over the scenario's horizon (a shorter run keeps its steps)
+    T = max(K * h, float(sc.simulation.t_final))
+    rf = design.reference
+    ref = [np.asarray(rf(t)[0], dtype=float).ravel() for t in np.linspace(0.0, T, 65)]
+    start = time.perf_counter()
+    out = run_engine_loop(setup, run, controller, n=n, K=K, h=h, nq=nq, ndq=ndq,
+                          resolution=impl.encoder_resolution, delay=impl.delay_samples, stop=stop_on_breach, X=X,
+                          TAU=TAU, width=float(sc.simulation.smoothing_width), reference=ref, file=sc.file)
+    wall = time.perf_counter() - start
+    rc, k_end = out["rc"], out["k_end"]
+    status, message = "ok", f"reached t = {K * h:g} s inside both funnels"
+    if rc < 0 and rc != -102 and out["outside"] is None:
+        status = "failed"
+        message = (f"the step function returned {rc} at t = {k_end * h:g} s" if rc > -100
+                   else f"{_ENGINE_RC.get(rc, f'error {rc}')} at t = {k_end * h:g} s")
+    eng = setup.engine
+    stats = {"engine": "mujoco", "plant_substeps": out["substeps"], "engine_timestep": h / out["substeps"],
+             "engine_substeps_rule": out["substeps_rule"], "engine_integrator": "RK4",
+             "engine_only": out["engine_only"], "engine_mass_scale": _engine_mass_scale(setup, run),
+             "engine_notes": eng.notes.lines(), "engine_warnings": out["warnings"],
+             "engine_last_warning": out["last_warning"] or None, "engine_force_callback": out["force_callback"],
+             "delay_samples": impl.delay_samples, "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
+             "encoder_resolution": impl.encoder_resolution}
+    return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, controller)
+
+
+def _engine_mass_scale(setup, run) -> list[float]:
+    s = float(run.p[setup.p_names.index("plant.mass_scale")])
+    ms = run.mujoco.mass_scale
+    return [s * (1.0 if ms is None else float(v)) for v in (ms or [1.0] * setup.engine.n)]
 
 
 def _c_loop(controller: StepLibrary, plant: _CFun, n, K, h, nq, ndq, res, delay, stop, X, TAU, say):

@@ -31,8 +31,9 @@ VARIATIONS = (("funnel.e2.phi_inf", 2.0), ("controller.k2", 0.5), ("funnel.e2.a"
 
 def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_final: float | None = None,
              rel_tol: float = 0.05, start: float | None = None,
-             progress: Callable[[str], None] | None = None) -> dict:
-    """{"min_rate_hz": float | None, "margin", "tried": [{"rate_hz", "status", "min_margin", "holds"}]}."""
+             progress: Callable[[str], None] | None = None, engine: str | None = None) -> dict:
+    """{"min_rate_hz": float | None, "margin", "tried": [{"rate_hz", "status", "min_margin", "holds"}], "engine"}
+    on the plant `engine` (default the scenario's `[plant] engine`)."""
     from .loop import simulate_sampled
     if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
         raise InputError(f"is {margin!r}", file=scenario.file, key="--margin", expected="a number in [0, 1)")
@@ -40,9 +41,14 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
     impl = getattr(scenario, "implementation", None)
     r = float(start or (impl.rate_hz if impl is not None else 1000.0))
     tried: list[dict] = []
+    engine = engine or getattr(getattr(scenario, "plant", None), "engine", "symfunnel")
+    on_engine = {} if engine == "symfunnel" else {"engine": engine}     # symfunnel's plant: today's call
+    if engine != "symfunnel" and scenario.plant.mujoco.timestep is not None:
+        raise InputError("fixes MuJoCo's step, but a rate search changes the sample period", file=scenario.file,
+                         key="plant.mujoco.timestep", expected="plant.mujoco.substeps (steps per period) for `rate`")
 
     def holds(rate: float) -> bool:
-        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final)
+        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, **on_engine)
         # holds: the run reaches the horizon inside both funnels with margin >= M after the transient (the margin
         # at t = 0 is the initial condition's, the same at every rate)
         mt = res.min_margin_after_transient
@@ -62,7 +68,7 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
             r2 = hi / 4
             from .loop import min_rate_hz
             if r2 < max(MIN_RATE_HZ, min_rate_hz(scenario)):
-                return {"min_rate_hz": hi, "margin": margin, "tried": tried}
+                return {"min_rate_hz": hi, "margin": margin, "tried": tried, "engine": engine}
             if holds(r2):
                 hi = r2
             else:
@@ -74,7 +80,7 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
             if holds(r2):
                 hi = r2
             elif r2 >= MAX_RATE_HZ:
-                return {"min_rate_hz": None, "margin": margin, "tried": tried}
+                return {"min_rate_hz": None, "margin": margin, "tried": tried, "engine": engine}
             else:
                 lo = r2
     while hi / lo > 1 + rel_tol:
@@ -83,7 +89,7 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
             hi = mid
         else:
             lo = mid
-    return {"min_rate_hz": hi, "margin": margin, "tried": tried}
+    return {"min_rate_hz": hi, "margin": margin, "tried": tried, "engine": engine}
 
 
 def _varied(scenario, key: str, factor: float):
@@ -105,7 +111,7 @@ def _varied(scenario, key: str, factor: float):
 
 def rate_sensitivity(scenario: Scenario, design: Design, *, margin: float = 0.05, t_final: float | None = None,
                      variations=VARIATIONS, baseline: dict | None = None,
-                     progress: Callable[[str], None] | None = None) -> dict:
+                     progress: Callable[[str], None] | None = None, engine: str | None = None) -> dict:
     """The minimum rate of the scenario and of each one-parameter variation, computed by `min_rate`.
 
     `design` is the scenario's (for the baseline); each variation is a new scenario, derived here.
@@ -115,7 +121,7 @@ def rate_sensitivity(scenario: Scenario, design: Design, *, margin: float = 0.05
     """
     from ..design import derive
     say = progress or (lambda s: None)
-    base = baseline or min_rate(scenario, design, margin=margin, t_final=t_final, progress=say)
+    base = baseline or min_rate(scenario, design, margin=margin, t_final=t_final, progress=say, engine=engine)
     start = base["min_rate_hz"]
     out = []
     shape = scenario.funnels["e2"]
@@ -127,7 +133,7 @@ def rate_sensitivity(scenario: Scenario, design: Design, *, margin: float = 0.05
             continue
         say(f"design help: {key} x {factor:g}")
         sc, before, after = _varied(scenario, key, factor)
-        r = min_rate(sc, derive(sc), margin=margin, t_final=t_final, start=start, progress=say)
+        r = min_rate(sc, derive(sc), margin=margin, t_final=t_final, start=start, progress=say, engine=engine)
         ratio = (r["min_rate_hz"] / start) if (r["min_rate_hz"] and start) else None
         out.append({"key": key, "factor": factor, "before": before, "after": after,
                     "min_rate_hz": r["min_rate_hz"], "ratio": ratio, "tried": r["tried"]})

@@ -20,22 +20,25 @@ __all__ = ["implementation_report", "torque_figure"]
 
 
 def implementation_report(scenario: Scenario, design: Design, *, margin: float = 0.05, sensitivity: bool = True,
-                          t_final: float | None = None, progress: Callable[[str], None] | None = None) -> dict:
+                          t_final: float | None = None, progress: Callable[[str], None] | None = None,
+                          engine: str = "symfunnel") -> dict:
     """{"min_rate": rate.min_rate(...), "sensitivity": rate.rate_sensitivity(...) | None, "run": the sampled run's
     summary at the scenario's rate (twice the minimum without [implementation]), "peak_tau", "tau_max",
-    "effort_limits" (a URDF model's <limit effort>, else None)}: the peak torque beside the actuator limits."""
+    "effort_limits" (a URDF model's <limit effort>, else None)}: the peak torque beside the actuator limits, on the
+    plant `engine` (symfunnel's by default; `deployed.compare` puts a physics engine beside it)."""
     from .rate import min_rate, rate_sensitivity
     from .loop import simulate_sampled
     say = progress or (lambda s: None)
-    r = min_rate(scenario, design, margin=margin, t_final=t_final, progress=say)
+    r = min_rate(scenario, design, margin=margin, t_final=t_final, progress=say, engine=engine)
     impl = getattr(scenario, "implementation", None)
     rate = impl.rate_hz if impl is not None else (2 * r["min_rate_hz"] if r["min_rate_hz"] else None)
     run = None
     if rate is not None:
-        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final)
+        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, engine=engine)
         run = res.summary()
         run["result"] = res
-    sens = (rate_sensitivity(scenario, design, margin=margin, t_final=t_final, baseline=r, progress=say)
+    sens = (rate_sensitivity(scenario, design, margin=margin, t_final=t_final, baseline=r, progress=say,
+                             engine=engine)
             if sensitivity else None)
     effort = None
     model = scenario.raw.get("model", {})

@@ -274,6 +274,7 @@ def check_output(design: Design, lang: str, files: dict[str, str], *, points: in
         base, fprefix = c_names(files)
         lib = c_library(files[base + ".c"], files[base + ".h"], base)
         report = check_c(functions, lib.path, pts, prefix=fprefix)
+        _check_step_core(design, files, lib.path, pts, fprefix, report)
         report.extra["main.c trajectory"] = _check_main(design, files)
         return report
     with tempfile.TemporaryDirectory(prefix="symfunnel-py-") as tmp:
@@ -282,6 +283,25 @@ def check_output(design: Design, lang: str, files: dict[str, str], *, points: in
         mod = load_python_module(path)
     return check_python(functions, mod, pts)
 
+
+
+def _check_step_core(design: Design, files: dict[str, str], lib_path, pts: dict[str, np.ndarray], fprefix: str,
+                     report: CheckReport) -> None:
+    """The generated Pstep_core (loops over the reservoir where emit.kernel applies) against the SX step core,
+    at the same points and the manifest's rate and saturation; its entry is the step core's name."""
+    from .step import etd_factors, step_core
+    api = json.loads(files["manifest.json"])["c_api"]["step"]
+    core = step_core(design, api["tau_max"], fprefix + "step_core")
+    k = next(iter(pts.values())).shape[2]
+    etd = np.broadcast_to(np.asarray(etd_factors(design.scenario, api["rate_hz"]), float)[:, None, None], (2, 1, k))
+    full = {"etd": np.ascontiguousarray(etd)}
+    for i in range(core.n_in()):
+        name = core.name_in(i)
+        if name != "etd":
+            full[name] = pts[name] if name in pts else np.zeros((core.size1_in(i), core.size2_in(i), k))
+    sub = check_c([core], lib_path, full)
+    report.errors.update(sub.errors)
+    report.where.update(sub.where)
 
 
 def main_program(files: dict[str, str], flags=None) -> Built:

@@ -52,14 +52,15 @@ def _manifest(design: Design, functions: list[casadi.Function], lang: str, files
 
 
 def generate(design: Design, lang: str, *, trajectory: dict[str, np.ndarray] | None = None, prefix: str | None = None,
-             rate_hz: float | None = None, tau_max=None) -> dict[str, str]:
+             rate_hz: float | None = None, tau_max=None, structured: bool = True) -> dict[str, str]:
     """Every output file of one language as {name: text}, manifest.json last; byte-identical for the same design.
 
     `trajectory` (controller inputs over time, see `trajectory_from_run`) is what `trajectory.txt` ships; without
     one (a library build, e.g. the sampled-data loop) it holds the initial state alone. C only: `prefix` starts
     every exported symbol (None: the historical names, see codegen.step), `rate_hz` is the period of the generated
     step (default: [implementation].rate_hz, else step.DEFAULT_RATE_HZ) and `tau_max` its saturation (default:
-    [implementation].tau_max).
+    [implementation].tau_max). `structured=False` writes the controller and step core as unrolled SX functions
+    even where `emit.kernel`'s loops apply (the bench's baseline).
     """
     from .c import support_files, trajectory_text
     from .python import emit_python
@@ -75,7 +76,8 @@ def generate(design: Design, lang: str, *, trajectory: dict[str, np.ndarray] | N
         from .step import emit_controller_c, step_settings
         rate_hz, tau_max = step_settings(design, rate_hz, tau_max)
         base = c_basename(prefix)
-        files = emit_controller_c(design, functions, prefix=prefix, basename=base, rate_hz=rate_hz, tau_max=tau_max)
+        files = emit_controller_c(design, functions, prefix=prefix, basename=base, rate_hz=rate_hz, tau_max=tau_max,
+                                  structured=structured)
         sp = prefix if prefix is not None else "symfunnel_"
         files.update(support_files(traj_txt, {"@BASENAME@": base, "@F@": prefix or "", "@P@": sp,
                                               "@UP@": sp.upper()}))

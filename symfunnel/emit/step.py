@@ -81,38 +81,54 @@ def step_initial(design) -> tuple[np.ndarray, np.ndarray]:
             np.asarray(init.get("w_hat", np.zeros(w.shape)), dtype=float))
 
 
+class Projection:
+    """The step's inputs (t, q, dq), its margin and reference outputs, and `project`: design signals with the
+    reference substituted and evaluated at the state projected onto CLIP times each funnel (see the module doc)."""
+
+    def __init__(self, design):
+        s, S = design.sym, design.signals
+        self.t, self.q, self.dq = t, q, dq = s["t"], s["q"], s["dq"]
+        self._ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
+        self._ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
+        F1, F2 = self.ref(S["F1"]), self.ref(S["F2"])
+        self.qd = qd = self._ref_t[0]
+        e1 = q - qd
+        self.q_c = qd + ca.fmin(ca.fmax(e1, -CLIP * F1), CLIP * F1)
+        alpha2_c = ca.substitute(self.ref(S["alpha2"]), q, self.q_c)
+        e2 = dq - alpha2_c
+        self.dq_c = alpha2_c + ca.fmin(ca.fmax(e2, -CLIP * F2), CLIP * F2)
+        self.margin = ca.vertcat(1 - ca.fabs(e1) / F1, 1 - ca.fabs(e2) / F2)
+
+    def ref(self, e: ca.SX) -> ca.SX:
+        """e with the reference symbols replaced by the scenario's reference in t."""
+        return ca.substitute([e], self._ref_syms, self._ref_t)[0]
+
+    def project(self, exprs: list) -> list:
+        """Each expression with the reference substituted, at the projected state."""
+        outs = [self.ref(e) for e in exprs]
+        return ca.substitute(outs, [ca.vertcat(self.q, self.dq)], [ca.vertcat(self.q_c, self.dq_c)])
+
+
+def projection(design) -> Projection:
+    """The step's projection of the state onto the funnels (`Projection`)."""
+    return Projection(design)
+
+
 def step_core(design, tau_max=None, name: str = "step_core") -> ca.Function:
     """(t, q, dq, x_esn, w_hat, etd) -> (tau, x_esn_next, w_hat_next, margin, qd): one period, the rate entering
     only through etd = etd_factors(scenario, rate_hz), so that the compiled core serves every rate."""
-    s, S = design.sym, design.signals
-    t, q, dq = s["t"], s["q"], s["dq"]
+    S = design.signals
+    P = projection(design)
     etd = ca.SX.sym("etd", 2)
-    ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
-    ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
-
-    def ref(e):
-        return ca.substitute([e], ref_syms, ref_t)[0]
-
-    F1, F2 = ref(S["F1"]), ref(S["F2"])
-    qd = ref_t[0]
-    e1 = q - qd
-    q_c = qd + ca.fmin(ca.fmax(e1, -CLIP * F1), CLIP * F1)
-    alpha2_c = ca.substitute(ref(S["alpha2"]), q, q_c)
-    e2 = dq - alpha2_c
-    dq_c = alpha2_c + ca.fmin(ca.fmax(e2, -CLIP * F2), CLIP * F2)
-    margin = ca.vertcat(1 - ca.fabs(e1) / F1, 1 - ca.fabs(e2) / F2)
-
     x_esn, w_hat = step_states(design)
     dots = [S.get(k + "_dot", ca.SX.zeros(*v.shape)) for k, v in (("x_esn", x_esn), ("w_hat", w_hat))]
-    outs = [ref(e) for e in [S["tau"], *dots]]
-    outs = ca.substitute(outs, [ca.vertcat(q, dq)], [ca.vertcat(q_c, dq_c)])
-    tau, xdot, wdot = outs
+    tau, xdot, wdot = P.project([S["tau"], *dots])
     if tau_max is not None:
         tm = ca.DM(np.broadcast_to(np.asarray(tau_max, dtype=float), (design.n,)).copy())
         tau = ca.fmin(ca.fmax(tau, -tm), tm)
     x_next = x_esn + etd[0] * xdot
     w_next = w_hat + etd[1] * wdot
-    return ca.Function(name, [t, q, dq, x_esn, w_hat, etd], [tau, x_next, w_next, margin, qd],
+    return ca.Function(name, [P.t, P.q, P.dq, x_esn, w_hat, etd], [tau, x_next, w_next, P.margin, P.qd],
                        ["t", "q", "dq", "x_esn", "w_hat", "etd"], ["tau", "x_esn_next", "w_hat_next", "margin", "qd"],
                        {"cse": True, "allow_duplicate_io_names": True})
 
@@ -187,27 +203,37 @@ def _doc(functions) -> str:
 
 
 def emit_controller_c(design, contract: list, *, prefix: str | None, basename: str, rate_hz: float,
-                      tau_max) -> dict[str, str]:
+                      tau_max, structured: bool = True) -> dict[str, str]:
     """{basename.c, basename.h}: the contract functions, reference and step core (CasADi) plus the Pstep API.
 
     prefix None keeps the historical names (functions unprefixed, helpers named after the basename) and names
-    the step API `symfunnel_*`; otherwise every exported symbol starts with prefix.
+    the step API `symfunnel_*`; otherwise every exported symbol starts with prefix. `structured` writes the
+    controller and the step core as an SX scalar part plus loops (`emit.kernel`) where the design has that form;
+    False keeps each one unrolled SX function (the baseline the bench compares with).
     """
     from .c import emit_c
+    from .kernel import controller_kernel, shared_source, step_kernel
     fprefix = prefix or ""
     sprefix = prefix if prefix is not None else "symfunnel_"
     funcs = [renamed(f, fprefix + f.name()) for f in contract]
     funcs.append(renamed(design.reference, fprefix + "reference"))
-    funcs.append(step_core(design, tau_max, fprefix + "step_core"))
-    files = emit_c(funcs, basename, prefix=prefix)
+    core = step_core(design, tau_max, fprefix + "step_core")
+    kernels = []
+    if structured:
+        kernels = [k for k in [controller_kernel(design, f, f.name(), fprefix) for f in funcs
+                               if f.name() == fprefix + "controller"] + [step_kernel(design, tau_max, fprefix, projection(design), core)] if k]
+    done = {k.name for k in kernels}
+    generated = [f for f in funcs + [core] if f.name() not in done] + [k.scalar for k in kernels]
+    files = emit_c(generated, basename, prefix=prefix)
     x0, w0 = step_initial(design)
     src, hdr = c_step_files(design, prefix=sprefix, fprefix=fprefix, basename=basename, rate_hz=rate_hz,
                             tau_max=tau_max, x0=x0, w0=w0)
     guard = basename.upper() + "_H"
-    h = files[basename + ".h"]
-    files[basename + ".h"] = (f"#ifndef {guard}\n#define {guard}\n" + _doc(funcs) + h + hdr
+    h = files[basename + ".h"] + "".join(k.header for k in kernels)
+    files[basename + ".h"] = (f"#ifndef {guard}\n#define {guard}\n" + _doc(funcs + [core]) + h + hdr
                               + f"\n#endif /* {guard} */\n")
-    files[basename + ".c"] = files[basename + ".c"] + src
+    loops = (shared_source(design, fprefix) + "\n".join(k.source for k in kernels)) if kernels else ""
+    files[basename + ".c"] = files[basename + ".c"] + loops + src
     return files
 
 

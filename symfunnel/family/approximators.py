@@ -56,10 +56,14 @@ class ESNApproximator:
         """Phi in the approximator's states."""
         return self.esn.regressor(sym["x_esn"])
 
+    def inputs(self, sym: dict[str, ca.SX], signals: dict[str, ca.SX]) -> ca.SX:
+        """u, the normalised input signals that drive the reservoir."""
+        return ca.vertcat(*[(signals[k] if k in signals else sym[k]) / self.spec.scales.get(k, 1.0)
+                            for k in self.spec.inputs])
+
     def dynamics(self, sym: dict[str, ca.SX], signals: dict[str, ca.SX]) -> dict[str, ca.SX]:
         """x_esn_dot, the reservoir driven by the normalised input signals."""
-        feeds = [(signals[k] if k in signals else sym[k]) / self.spec.scales.get(k, 1.0) for k in self.spec.inputs]
-        return {"x_esn": self.esn.xdot(sym["x_esn"], ca.vertcat(*feeds))}
+        return {"x_esn": self.esn.xdot(sym["x_esn"], self.inputs(sym, signals))}
 
     def initial(self, scenario) -> dict[str, np.ndarray]:
         """Initial reservoir state."""

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ..core.threads import one_blas_thread
+
 _SCALE_DIGITS = 13          # significant digits kept of the spectral-radius scale factor (see module docstring)
 _MAX_REDRAWS = 100
 _RHO_FLOOR = 1e-8           # a drawn W with a smaller spectral radius is treated as nilpotent and redrawn
@@ -118,7 +120,8 @@ def _spectral_radius(W: np.ndarray) -> float:
             return float(np.max(np.abs(ev)))
         except sl.ArpackError:
             pass
-    return float(np.max(np.abs(np.linalg.eigvals(W))))
+    with one_blas_thread():                        # a second BLAS thread only oversubscribes (core/threads.py)
+        return float(np.max(np.abs(np.linalg.eigvals(W))))
 
 
 def _norm2(W: np.ndarray) -> float:
@@ -132,7 +135,8 @@ def _norm2(W: np.ndarray) -> float:
                                  return_singular_vectors=False)[0])
         except sl.ArpackError:
             pass
-    return float(np.linalg.norm(W, 2))
+    with one_blas_thread():
+        return float(np.linalg.norm(W, 2))
 
 
 def _round_sig(x: float, digits: int) -> float:
@@ -236,6 +240,72 @@ class ESN:
     def regressor_numpy(self, x) -> np.ndarray:
         """`regressor` evaluated (from its SX) for x of shape (N,) or (N, m)."""
         return self._evaluate(1, x, None)
+
+    def xdot_c(self, name: str, tanh: str = "tanh") -> str:
+        """C twin of `xdot`: `static void name(const double *x, const double *u, double *xdot)` as loops over the
+        weights in static const arrays (sizes fixed here), which a compiler vectorises; `tanh` names the tanh used.
+
+        The sums run in the SX graph's order (W_in u and W x each over their columns ascending, then
+        (W_in u + W x) + b), so with libm's tanh the result is the graph's value bit for bit (up to the sign of
+        a zero sum)."""
+        c = self.config
+        N, K = self.size, self.n_inputs
+        W = np.asarray(self.W)
+        Win = np.asarray(self.W_in)
+        rp, cj, vals = [0], [], []
+        for i in range(N):                       # W by rows (CSR): row i's nonzero columns, ascending
+            nz = np.nonzero(W[i, :])[0]
+            cj.extend(int(j) for j in nz)
+            vals.extend(float(W[i, j]) for j in nz)
+            rp.append(len(cj))
+        ip, jp, ivals = [0], [], []
+        for j in range(K):                       # W_in likewise (the graph multiplies its nonzeros only)
+            nz = np.nonzero(Win[:, j])[0]
+            jp.extend(int(i) for i in nz)
+            ivals.extend(float(Win[i, j]) for i in nz)
+            ip.append(len(jp))
+
+        def num(a) -> str:
+            return ", ".join(repr(float(v)) for v in a) or "0.0"
+
+        def ints(a) -> str:
+            return ", ".join(str(int(v)) for v in a) or "0"
+        dense_in = len(jp) == N * K
+        lines = [f"/* {name}: the reservoir's x_esn_dot = (1/time_constant)(-leak x + tanh(W_in u + W x + b)), "
+                 f"N = {N}, K = {K} (family/esn.py) */"]
+        if dense_in:
+            lines.append(f"static const double {name}_Win[{K * N}] = {{{num(Win.T.ravel())}}};  "
+                         "/* W_in by columns */")
+        else:
+            lines += [f"static const int {name}_Winp[{K + 1}] = {{{ints(ip)}}};",
+                      f"static const int {name}_Wini[{max(len(jp), 1)}] = {{{ints(jp)}}};",
+                      f"static const double {name}_Winx[{max(len(jp), 1)}] = {{{num(ivals)}}};"]
+        lines += [f"static const double {name}_b[{N}] = {{{num(self.b)}}};",
+                  f"static const int {name}_Wp[{N + 1}] = {{{ints(rp)}}};",
+                  f"static const int {name}_Wj[{max(len(cj), 1)}] = {{{ints(cj)}}};",
+                  f"static const double {name}_Wx[{max(len(cj), 1)}] = {{{num(vals)}}};",
+                  f"static void {name}(const double *restrict x, const double *restrict u, double *restrict xdot) {{",
+                  f"  double zu[{N}];",
+                  "  int i, j, p;",
+                  f"  for (i = 0; i < {N}; ++i) zu[i] = 0.0;"]
+        if dense_in:
+            lines += [f"  for (j = 0; j < {K}; ++j) {{",
+                      "    const double uj = u[j];",
+                      f"    for (i = 0; i < {N}; ++i) zu[i] += {name}_Win[j * {N} + i] * uj;",
+                      "  }"]
+        else:
+            lines += [f"  for (j = 0; j < {K}; ++j)",
+                      f"    for (p = {name}_Winp[j]; p < {name}_Winp[j + 1]; ++p) "
+                      f"zu[{name}_Wini[p]] += {name}_Winx[p] * u[j];"]
+        lines += [f"  for (i = 0; i < {N}; ++i) {{               /* W x row by row (a gather, no scatter) */",
+                  "    double s = 0.0;",
+                  f"    for (p = {name}_Wp[i]; p < {name}_Wp[i + 1]; ++p) s += {name}_Wx[p] * x[{name}_Wj[p]];",
+                  f"    zu[i] = (zu[i] + s) + {name}_b[i];",
+                  "  }",
+                  f"  for (i = 0; i < {N}; ++i) zu[i] = {tanh}(zu[i]);",
+                  f"  for (i = 0; i < {N}; ++i) xdot[i] = {1.0 / c.time_constant!r} * ({-c.leak!r} * x[i] + zu[i]);",
+                  "}"]
+        return "\n".join(lines) + "\n"
 
     def fingerprint(self) -> str:
         """sha256 of the weights' shapes and little-endian float64 bytes (W_in, W, b), to show determinism in reports."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -31,6 +32,8 @@ class RigidBodyModel:
     joint_types: list[str] = field(default_factory=list)   # "revolute", "prismatic", "continuous"
     joint_lower: np.ndarray | None = None   # sampling range of q for audits (None: scenario default)
     joint_upper: np.ndarray | None = None
+    tree: Any = None                        # the rigid-body Tree of a planar, dh or urdf model (None: matrices)
+    gravity: np.ndarray | None = None       # gravity acceleration in the base frame (None: matrices)
 
     @property
     def n(self) -> int:

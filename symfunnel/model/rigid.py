@@ -73,7 +73,8 @@ def build_model(kind: str, tree: Tree, *, coordinates: list[str] | None, gravity
         lower = upper = None
     return RigidBodyModel(kind=kind, coordinates=coordinates, q=q, dq=dq, M=M, C=C, G=G,
                           C_source="christoffel", joint_types=[b.joint.type for b in bodies],
-                          joint_lower=lower, joint_upper=upper)
+                          joint_lower=lower, joint_upper=upper, tree=tree,
+                          gravity=np.asarray(gravity, dtype=float).copy())
 
 
 def _cse(M: ca.SX, C: ca.SX, G: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:

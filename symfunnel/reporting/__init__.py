@@ -68,6 +68,8 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
         ctx[key] = section(run, say)
         timings.append((label, time.perf_counter() - t0))
     from ..checks.gate import counts_line, outcome_hint, verdict
+    from .engine import engine_section
+    ctx["engine"] = engine_section(run, say) if deployed else {"available": False, "reason": "deployed=False"}
     checks = verification.checks
     guarantee = next((c for c in checks if c.id == "lyapunov.guarantee"), None)
     g_label, g_css = verdict(guarantee) if guarantee else ("SKIP", "skip")

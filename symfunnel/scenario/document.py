@@ -48,6 +48,18 @@ class Expectation:
 
 
 @dataclass
+class MujocoSpec:
+    """`[plant.mujoco]`: the MuJoCo engine's settings and its engine-only mismatch (the controller's model stays nominal)."""
+
+    mass_scale: list[float] | None = None     # per joint: the body each joint moves (fixed links included); None = 1
+    damping: list[float] | None = None        # per joint, added to the URDF's <dynamics damping>
+    armature: list[float] | None = None       # per joint (rotor inertia on the joint's diagonal of M)
+    urdf_dynamics: bool = True                # keep the URDF's <dynamics damping friction> in the engine
+    substeps: int | None = None               # MuJoCo steps per sample period (None: timestep or the stability rule)
+    timestep: float | None = None             # MuJoCo's step in s; must divide the sample period
+
+
+@dataclass
 class PlantSpec:
     """What the true plant has and the controller does not know."""
 
@@ -59,6 +71,8 @@ class PlantSpec:
     parameters: dict[str, float]
     coriolis: str = "christoffel"        # the plant's C: "christoffel" (physical, from M) or "model" (as given)
     disturbance_scale: list[float] | None = None   # per joint factor on the disturbance; None = 1
+    engine: str = "symfunnel"            # which physics plays the robot in the sampled loop (plant.engines.ENGINES)
+    mujoco: MujocoSpec = field(default_factory=MujocoSpec)
 
 
 @dataclass

@@ -19,7 +19,8 @@ from ..family.variants import VARIANTS
 from ..model import MODEL_TYPES
 from ..plant.nonlinearities import DeadZoneSpec
 from ..plant.nonlinearities import check_dead_zone_spec as _check_dead_zone
-from .document import AuditSpec, DesignSpec, ESNSpec, PlantSpec, SimulationSpec
+from ..plant.engines import ENGINES, check_engine_model
+from .document import AuditSpec, DesignSpec, ESNSpec, MujocoSpec, PlantSpec, SimulationSpec
 
 ESN_INPUTS = list(ESNApproximator.INPUTS)
 
@@ -158,7 +159,12 @@ def parse_esn(table: Any, file: str) -> ESNSpec:
 def parse_plant(table: Any, n: int, file: str, model) -> PlantSpec:
     p = "plant"
     V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters", "coriolis",
-                         "disturbance_scale"], file=file, prefix=p)
+                         "disturbance_scale", "engine", "mujoco"], file=file, prefix=p)
+    engine = V.get_str(table, "engine", "symfunnel", file=file, prefix=p)
+    ENGINES.get(engine, file=file, key="plant.engine")
+    if engine != "symfunnel":
+        check_engine_model(model, engine, file=file, key="plant.engine")
+    mujoco = parse_mujoco(table.get("mujoco", {}), n, file)
     coriolis = V.get_str(table, "coriolis", "christoffel", file=file, prefix=p, choices=["christoffel", "model"])
     viscous = V.per_joint(table, "viscous", n, 0.0, file=file, prefix=p, minimum=0)
     coulomb = V.per_joint(table, "coulomb", n, 0.0, file=file, prefix=p, minimum=0)
@@ -185,7 +191,30 @@ def parse_plant(table: Any, n: int, file: str, model) -> PlantSpec:
                   for k in ("left_scale", "right_scale")]
         dz = DeadZoneSpec(b_l, b_r, left, right, *scales)
         _check_dead_zone(dz, n, file)
-    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params, coriolis, d_scale)
+    return PlantSpec(viscous, coulomb, disturbance, dz, mass_scale, params, coriolis, d_scale, engine, mujoco)
+
+
+#: the keys of `[plant.mujoco]`
+MUJOCO_KEYS = ["mass_scale", "damping", "armature", "urdf_dynamics", "substeps", "timestep"]
+
+
+def parse_mujoco(table: Any, n: int, file: str) -> MujocoSpec:
+    """`[plant.mujoco]`: engine-only mass scale, damping and armature per joint, the URDF's joint dynamics, the step."""
+    p = "plant.mujoco"
+    V.check_keys(table, MUJOCO_KEYS, file=file, prefix=p)
+    if "substeps" in table and "timestep" in table:
+        raise InputError("is given together with plant.mujoco.timestep", file=file, key=p + ".substeps",
+                         expected="either substeps (MuJoCo steps per sample period) or timestep, not both")
+    opt = {}
+    for k, strict in (("mass_scale", True), ("damping", False), ("armature", False)):
+        if k in table:
+            opt[k] = V.per_joint(table, k, n, file=file, prefix=p, minimum=0, strict_min=strict)
+    return MujocoSpec(
+        **opt, urdf_dynamics=V.get_bool(table, "urdf_dynamics", True, file=file, prefix=p),
+        substeps=V.get_int(table, "substeps", None, file=file, prefix=p, minimum=1, maximum=100000)
+        if "substeps" in table else None,
+        timestep=V.get_float(table, "timestep", None, file=file, prefix=p, minimum=0, strict_min=True, maximum=1.0)
+        if "timestep" in table else None)
 
 
 def parse_simulation(table: Any, file: str) -> SimulationSpec:

@@ -1,6 +1,7 @@
 """`[[uncertainty]]` and `[sweep]` scenario sections: what a robustness campaign varies and how it samples it.
 
-Every uncertain key is a quantity of the plant side or of `[initial]` (the controller's model stays nominal). A
+Every uncertain key is a quantity of the plant side or of `[initial]` (the controller's model stays nominal;
+`plant.mujoco.*` keys exist only in a physics engine and need a sweep on it, `sweep --plant mujoco`). A
 campaign's run `i` draws a point u in [0, 1)^d of the design of experiments (Sobol, Latin hypercube or plain
 random, seeded) and maps each coordinate through its distribution; u, hence every value of run i, is a pure
 function of (seed, i) (and, for a Latin hypercube, of the campaign's size), so any run reproduces alone.
@@ -34,6 +35,9 @@ _PLANT_KEYS = {
     "plant.dead_zone.b_r": (True, 0.0, True),
     "plant.dead_zone.left_scale": (True, 0.0, True),
     "plant.dead_zone.right_scale": (True, 0.0, True),
+    "plant.mujoco.mass_scale": (True, 0.0, True),      # engine-only (a sweep on the mujoco plant)
+    "plant.mujoco.damping": (True, 0.0, False),
+    "plant.mujoco.armature": (True, 0.0, False),
     "initial.q": (True, None, None),
     "initial.dq": (True, None, None),
 }

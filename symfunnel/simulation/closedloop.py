@@ -176,18 +176,10 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
     `p` (SX, laid out as `plant_parameters`) makes the plant's uncertain quantities symbols; without it they are
     the scenario's numbers.
     """
-    from ..plant import nonlinearities as P
     from ..model.base import christoffel_C
     model = scenario.model
     pl = scenario.plant
-    n = model.n
-    names, values = plant_parameters(scenario)
-    entries = [p[i] for i in range(len(names))] if p is not None else [float(v) for v in values]
-    par = dict(zip(names, entries))
-
-    def joints(key):
-        return [par[f"{key}[{j + 1}]"] for j in range(n)]
-
+    par = _plant_values(scenario, p)
     M, G = model.M, model.G
     # The true plant is physical: its Coriolis matrix comes from M (Christoffel symbols), whatever C the
     # controller's model was given, unless the scenario asks for the model's C (plant.coriolis = "model").
@@ -200,6 +192,33 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
                for E in (M, C, G))
     s = par["plant.mass_scale"]
     M, C, G = s * M, s * C, s * G
+    parts = plant_forces(scenario, q, dq, t, tau, width, p)
+    rhs = parts["tau_applied"] - ca.mtimes(C, dq) - G - parts["friction"] - parts["disturbance"]
+    n = model.n
+    ddq = ca.solve(M, rhs) if n == 1 else ldl_solve(M, rhs)
+    return {"ddq": ddq, "M": M, "C": C, "G": G, **parts}
+
+
+def _plant_values(scenario, p=None) -> dict:
+    """Plant quantity name (layout `plant_parameters`) -> SX entry of p, or its number without p."""
+    names, values = plant_parameters(scenario)
+    entries = [p[i] for i in range(len(names))] if p is not None else [float(v) for v in values]
+    return dict(zip(names, entries))
+
+
+def plant_forces(scenario, q, dq, t, tau, width: float, p=None) -> dict:
+    """The plant's forces beyond its rigid body (SX): friction (viscous + Coulomb), disturbance and the torque the
+    actuators apply after the dead zone, so that M ddq + C dq + G = tau_applied - friction - disturbance. One
+    source for every plant: symfunnel's (`plant_acceleration`) and a physics engine's (`deployed.engine`)."""
+    from ..plant import nonlinearities as P
+    model = scenario.model
+    pl = scenario.plant
+    n = model.n
+    par = _plant_values(scenario, p)
+
+    def joints(key):
+        return [par[f"{key}[{j + 1}]"] for j in range(n)]
+
     fric = ca.vertcat(*joints("plant.viscous")) * dq + ca.vertcat(*joints("plant.coulomb")) * P.sign(dq, width)
     env = {"t": t}
     for i, c in enumerate(model.coordinates):
@@ -222,9 +241,7 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
             left = ca.SX(dz.left.to_casadi({"u": ul, "b_l": b_l[j], "b_r": b_r[j]}))
             out.append(rs[j] * right + ls[j] * left)
         tau_applied = ca.vertcat(*out)
-    rhs = tau_applied - ca.mtimes(C, dq) - G - fric - dist
-    ddq = ca.solve(M, rhs) if n == 1 else ldl_solve(M, rhs)
-    return {"ddq": ddq, "M": M, "C": C, "G": G, "friction": fric, "disturbance": dist, "tau_applied": tau_applied}
+    return {"friction": fric, "disturbance": dist, "tau_applied": tau_applied}
 
 
 def loop_sx(scenario, design, width: float) -> dict:

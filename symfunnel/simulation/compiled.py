@@ -101,12 +101,28 @@ class Compiled:
         return dataclasses.replace(self, pvals=np.asarray(pvals, dtype=float).reshape(-1))
 
 
+def state_permutation(n: int, states: list) -> tuple[np.ndarray, dict]:
+    """For the state [q; dq; controller states in the design's order] (`states`: (name, (rows, cols)) pairs): the
+    integrator's order, controller states last first and the joints last, which keeps the Newton matrix's LU
+    fill-in low (the rows of ddq are dense), and where each state lands in it (name -> slice)."""
+    sl, i = {"q": slice(0, n), "dq": slice(n, 2 * n)}, 2 * n
+    for name, (r, c) in states:
+        sl[name] = slice(i, i + r * c)
+        i += r * c
+    idx = np.arange(i)
+    order = [name for name, _ in reversed(states)] + ["q", "dq"]
+    perm = np.concatenate([idx[sl[k]] for k in order]) if i else idx
+    where, j = {}, 0
+    for k in order:
+        m = sl[k].stop - sl[k].start
+        where[k] = slice(j, j + m)
+        j += m
+    return perm, where
+
+
 def _permutation(cl: ClosedLoop) -> np.ndarray:
     """Controller states last first, joints last: keeps the Newton matrix's LU fill-in low."""
-    s = cl.slices
-    idx = np.arange(cl.nx)
-    states = [name for name, _ in reversed(cl.design.states)]
-    return np.concatenate([idx[s[k]] for k in states] + [idx[s["q"]], idx[s["dq"]]])
+    return state_permutation(cl.n, cl.design.states)[0]
 
 
 def _dae_function(cl: ClosedLoop, perm: np.ndarray) -> ca.Function:
@@ -231,6 +247,75 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     _LOADED[digest] = (ext_dae, ext_out, str(lib))
     return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, cached, str(lib), digest)
 
+
+
+def sundials_functions(dae: ca.Function, jac_x: ca.SX, ins: list, *, forward: bool) -> list[ca.Function]:
+    """The functions CasADi's SUNDIALS interface asks its DAE for by name (`OracleFunction::create_function`, which
+    takes a library's own function of that name and I/O names instead of an MX wrapper evaluated on CasADi's
+    virtual machine): daeF, jacF (d ode/dx only, its diagonal structurally present) and, for forward sensitivities,
+    fwd1_daeF (one direction: CasADi's integrators evaluate it once per parameter)."""
+    ode = dae.call(ins)[0]
+    nx = int(ode.numel())
+    io = ["t", "x", "z", "p", "u"]
+    daeF = ca.Function("daeF", ins, [ode, ca.SX(0, 1)], io, ["ode", "alg"], {"cse": True})
+    J = jac_x + ca.SX(ca.Sparsity.diag(nx), 0)
+    jacF = ca.Function("jacF", ins, [J, ca.SX(0, nx), ca.SX(nx, 0), ca.SX(0, 0)], io,
+                       ["jac_ode_x", "jac_alg_x", "jac_ode_z", "jac_alg_z"], {"cse": True})
+    out = [daeF, jacF]
+    if forward:
+        out.append(daeF.forward(1))
+    return out
+
+
+def compiled_dae(name: str, t: ca.SX, x: ca.SX, p: ca.SX, ode: ca.SX, *, forward: bool = True,
+                 drop: list[tuple[int, int]] | None = None, progress=None) -> ca.Function | None:
+    """The ODE x' = ode(t, x, p) as a DAE Function for casadi.integrator, compiled (cached) with the functions
+    `sundials_functions` names, so that CVODES (and its forward sensitivities) run generated C instead of CasADi's
+    virtual machine; None without a compiler or when building fails (the caller then uses the SX DAE).
+
+    `drop` lists (first, stop) index ranges of x whose coupling among themselves the Newton Jacobian leaves out
+    (a modified Newton iteration, as `_newton_jacobian` explains); the DAE itself is exact.
+    """
+    say = progress or (lambda s: None)
+    empty = ca.SX(0, 1)
+    ins = [t, x, ca.SX.sym("z", 0, 1), p, ca.SX.sym("u", 0, 1)]
+    dae = ca.Function(name, ins, [ode, empty, empty, empty], ca.dyn_in(), ca.dyn_out(), {"cse": True})
+    if os.environ.get("SYMFUNNEL_NO_JIT"):
+        return None
+    J = ca.jacobian(ode, x)
+    if drop:
+        rows, cols = J.sparsity().get_triplet()
+        keep = [(r, c) for r, c in zip(rows, cols)
+                if not any(a <= r < b and a <= c < b and r != c for a, b in drop)]
+        sp = ca.Sparsity.triplet(J.size1(), J.size2(), [r for r, _ in keep], [c for _, c in keep])
+        J = ca.SX(sp, ca.vertcat(*[J[r, c] for r, c in keep]) if keep else ca.SX(0, 1))
+    identity = hashlib.sha256(b"\0".join([
+        dae.serialize().encode(), ca.Function("j", [x], [ca.DM.ones(J.sparsity())]).serialize().encode(),
+        repr(drop).encode(), b"fwd" if forward else b"", " ".join(COMPILE_FLAGS).encode(), ca.__version__.encode(),
+        Path(__file__).read_bytes()])).digest()
+    lib_name = name + ".so"
+
+    def sources() -> dict[str, bytes]:
+        with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
+            cg = ca.CodeGenerator(name + ".c", {"with_header": False})
+            cg.add(dae)
+            cg.add(dae.forward(1))      # fwd1_<name>: what CasADi derives jtimesF (J times a vector) from
+            for f in sundials_functions(dae, J, ins, forward=forward):
+                cg.add(f)
+            cg.generate(tmp + os.sep)
+            src = Path(tmp, name + ".c").read_bytes()
+        deadline.check()
+        return {name + ".c": src}
+
+    from ..core.ccompile import compile_cached, find_compiler
+    try:
+        find_compiler()
+        built = compile_cached(sources, [name + ".c"], lib_name, COMPILE_FLAGS, on_build=say, identity=identity)
+        return ca.external(name, str(built.path))
+    except (InputError, OSError, RuntimeError, subprocess.SubprocessError) as exc:
+        warnings.warn(f"compiling {name} failed ({exc}); using CasADi's virtual machine", RuntimeWarning,
+                      stacklevel=2)
+        return None
 
 
 def evaluate_outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> dict:

@@ -78,6 +78,7 @@ class SimResult:
             "compile_time": self.stats.get("compile_time"),
             "code": self.stats.get("code"),
             "integrator": self.stats.get("integrator"),
+            "cvodes_backend": self.stats.get("cvodes_backend"),
             "smoothing_width": self.stats.get("smoothing_width"),
             "non_smooth_treatment": self.stats.get("non_smooth_treatment"),
             "steps": self.stats.get("steps"),

@@ -12,6 +12,7 @@ import numpy as np
 from .closedloop import ClosedLoop
 from ..family.integrators import INTEGRATORS
 from .compiled import Buffered, Compiled
+from . import sundials
 
 if TYPE_CHECKING:
     from ..scenario import SimulationSpec
@@ -42,16 +43,45 @@ class Runner:
         if key not in self._integrators:
             sim = self.sim
             grid = [h * (k + 1) for k in range(K)]
-            opts = INTEGRATORS.get(self.method)(sim, h, self.h, K)
-            opts["show_eval_warnings"] = False
+            opts = self._options(K, h)
             F = ca.integrator(f"sim_{K}", self.method, self.comp.dae, 0.0, grid, opts)
             self._integrators[key] = (F, Buffered(F, stats=True) if Buffered.supports(F) else None)
         return self._integrators[key]
 
+    def _options(self, K: int, h: float) -> dict:
+        opts = INTEGRATORS.get(self.method)(self.sim, h, self.h, K)
+        opts["show_eval_warnings"] = False
+        return opts
+
+    def direct(self) -> sundials.DirectCvodes | None:
+        """The CVODES driver on this compiled loop (`simulation.sundials`), when the run uses CVODES on compiled C
+        and the backend is "direct"; shared by every run on the loop. None: use casadi.integrator."""
+        if self.method != "cvodes" or self.comp.mode != "compiled" or not self.comp.library \
+                or sundials.backend() != "direct":
+            return None
+        opts = self._options(1, self.h)           # the options do not depend on the grid
+        key = ("direct", tuple(sorted((k, repr(v)) for k, v in opts.items())))
+        if key not in self._integrators:
+            try:
+                d = sundials.DirectCvodes(self.comp.library, self.cl.nx, 1 + len(self.comp.pvals), opts) \
+                    if sundials.available() else None
+            except RuntimeError as exc:
+                import warnings
+                warnings.warn(f"{exc}; integrating with casadi.integrator instead", RuntimeWarning, stacklevel=2)
+                d = None
+            self._integrators[key] = d
+        return self._integrators[key]
+
     def run(self, t0: float, x0: np.ndarray, K: int, h: float | None = None) -> np.ndarray:
         """States (K, n_x), public order, at t0 + h, ..., t0 + K h; RuntimeError when the integrator fails."""
-        F, B = self.integrator(K, h)
         p = np.concatenate([[t0], self.comp.pvals])
+        D = self.direct()
+        if D is not None:
+            self.stats["cvodes_backend"] = "direct"
+            return self._run_direct(D, p, x0, K, self.h if h is None else h)
+        if self.method == "cvodes":
+            self.stats["cvodes_backend"] = "casadi"
+        F, B = self.integrator(K, h)
         c0 = time.perf_counter()
         xf = None
         if B is not None:
@@ -83,3 +113,19 @@ class Runner:
             self.stats["steps"] += int(st.get("n_call_step", 0)) * 1
             self.stats["rhs_evaluations"] += int(st.get("n_call_daeF", 0))
         return xf.reshape(K, -1)[:, self.inv]
+
+    def _run_direct(self, D: sundials.DirectCvodes, p: np.ndarray, x0: np.ndarray, K: int, h: float) -> np.ndarray:
+        grid = np.array([h * (k + 1) for k in range(K)], dtype=float)   # the very doubles casadi.integrator's grid holds
+        c0 = time.perf_counter()
+        try:
+            X, st = D.run(p, x0[self.perm], grid)
+        except RuntimeError as exc:
+            self.last_error = str(exc)
+            raise
+        finally:
+            self.stats["integrate_time"] += time.perf_counter() - c0
+        self.stats["steps"] += st["nsteps"]
+        self.stats["rhs_evaluations"] += st["nfevals"]
+        self.stats["jacobian_evaluations"] += st["n_call_jacF"]
+        self.stats["error_test_failures"] += st["netfails"]
+        return X[:, self.inv]

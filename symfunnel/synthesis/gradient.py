@@ -29,6 +29,10 @@ TOLERANCE = (1e-9, 1e-8)
 MAX_STEPS = 2000
 #: IPOPT iterations per start
 MAX_ITER = 40
+#: the coarse first pass: IPOPT over this fraction of the horizon (and of the grid) first, then over the whole
+#: horizon from its result; the transient, where the paper's peak torque and narrowest margins are, is at the start,
+#: and a fifth of the horizon costs about a fifth of the sensitivities
+COARSE_FRACTION = 0.25
 
 
 def ipopt_available() -> bool:
@@ -76,8 +80,10 @@ class GradientProblem:
     """The NLP of one scenario's `[tune]`: constraint and objective functions of z with exact Jacobians."""
 
     def __init__(self, scenario, spec, vars_, *, t_final: float, tau_max=None, sample_values=(),
-                 grid_points: int = GRID_POINTS, tolerance=TOLERANCE):
+                 grid_points: int = GRID_POINTS, tolerance=TOLERANCE, compiled: bool = True, progress=None,
+                 coarse: float | None = COARSE_FRACTION):
         from ..simulation.closedloop import loop_sx
+        from ..simulation.compiled import compiled_dae, state_permutation
         from ..design import derive
         self.sc, self.spec, self.vars = scenario, spec, vars_
         self.d = d = len(vars_)
@@ -93,9 +99,20 @@ class GradientProblem:
         P = ca.vertcat(z, L["p"])
         self.grid = np.linspace(0.0, self.T, K + 1)
         opts = {"abstol": tolerance[0], "reltol": tolerance[1], "max_num_steps": MAX_STEPS, "linear_solver": "csparse",
-                "disable_internal_warnings": True, "show_eval_warnings": False}
-        integ = ca.integrator("tune_loop", "cvodes", {"t": L["t"], "x": L["x"], "p": P, "ode": L["xdot_p"]},
-                              0.0, list(self.grid[1:]), opts)
+                "disable_internal_warnings": True, "show_eval_warnings": False,
+                # no second-order correction of the sensitivities' Newton matrix: it needs the DAE's second
+                # derivatives and costs ~70 % more per Jacobian, for the same derivatives (tests/test_tune_gradient.py)
+                "second_order_correction": False}
+        perm, where = state_permutation(n, design.states)
+        inv = np.argsort(perm)
+        xi, ode = L["x"][list(perm)], L["xdot_p"][list(perm)]
+        drop = [(where["x_esn"].start, where["x_esn"].stop)] if "x_esn" in where else None
+        dae = compiled_dae("symfunnel_tune", L["t"], xi, P, ode, forward=True, drop=drop, progress=progress) \
+            if compiled else None
+        #: "compiled" (the DAE, its Newton Jacobian and forward derivative as generated C) or "vm"
+        self.code = "compiled" if dae is not None else "vm"
+        integ = ca.integrator("tune_loop", "cvodes", dae if dae is not None else
+                              {"t": L["t"], "x": xi, "p": P, "ode": ode}, 0.0, list(self.grid[1:]), opts)
         sig = L["signals_p"]
         out = ca.Function("tune_signals", [L["t"], L["x"], P], [sig["tau"], sig["m1"], sig["m2"], sig["e1"]])
         outm = out.map(K + 1)
@@ -118,7 +135,9 @@ class GradientProblem:
         cons, taus, ise = [], [], None
         for i, (pv, x0) in enumerate(plants):
             Pm = ca.vertcat(zM, ca.DM(np.asarray(pv, float)))
-            X = ca.horzcat(ca.DM(np.asarray(x0, float)), integ(x0=ca.DM(np.asarray(x0, float)), p=Pm)["xf"])
+            x0v = np.asarray(x0, float)
+            xf = integ(x0=ca.DM(x0v[perm]), p=Pm)["xf"]
+            X = ca.horzcat(ca.DM(x0v), xf[list(inv), :])
             tau, m1, m2, e1 = outm(tgrid, X, ca.repmat(Pm, 1, K + 1))
             cons += [ca.vec(m1) - spec.margin, ca.vec(m2) - spec.margin]
             if self.tau_max is not None:
@@ -137,6 +156,12 @@ class GradientProblem:
         #: the nominal run's torque on the grid (n x K+1) and ISE
         self.figures = ca.Function("tune_figures", [zM], [taus, ise])
         self._z, self._g, self._tau, self._ise = zM, g, taus, ise
+        #: the same problem over the first `coarse` of the horizon, solved first (`solve`), or None
+        self.coarse = None
+        if coarse is not None and 0 < coarse < 1 and K >= 20:
+            self.coarse = GradientProblem(scenario, spec, vars_, t_final=self.T * coarse, tau_max=tau_max,
+                                          sample_values=sample_values, grid_points=max(10, int(round(K * coarse))),
+                                          tolerance=tolerance, compiled=compiled, progress=progress, coarse=None)
 
     def jacobian(self) -> ca.Function:
         """dg/dz (CVODES forward sensitivities through CasADi)."""
@@ -144,8 +169,34 @@ class GradientProblem:
 
     def solve(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int = MAX_ITER,
               progress=None) -> dict:
-        """IPOPT from z0: {"z", "status", "success", "iterations", "f"}; limited-memory Hessian."""
+        """IPOPT from z0, first over the coarse horizon (`coarse`), then over the whole one from that result:
+        {"z", "status", "success", "iterations", "f", "coarse": the first pass's {"status", "iterations", "z"} or
+        None}; limited-memory Hessian."""
         say = progress or (lambda s: None)
+        t0 = time.perf_counter()
+        first = None
+        if self.coarse is not None:
+            say(f"coarse pass: IPOPT over the first {self.coarse.T:g} s of the horizon")
+            first = self.coarse.solve(z0, objective=objective, ref=ref, wall_s=0.5 * wall_s, max_iter=max_iter,
+                                      progress=progress)
+            say(f"coarse pass: {first['status']} after {first['iterations']} iteration(s); now the whole horizon")
+            if np.all(np.isfinite(first["z"])):
+                z0 = first["z"]
+        warm = False
+        if first is not None and first["success"] or first is not None and "best feasible" in first["status"]:
+            try:                  # the coarse result meets the whole horizon's constraints: only a polish is left
+                warm = bool(np.min(np.asarray(self.g(z0), float)) >= 0.0)
+            except RuntimeError:
+                warm = False
+        r = self._solve(z0, objective=objective, ref=ref, wall_s=max(1.0, wall_s - (time.perf_counter() - t0)),
+                        max_iter=max_iter, say=say, warm=warm)
+        r["coarse"] = None if first is None else {k: first[k] for k in ("status", "iterations", "z")}
+        return r
+
+    def _solve(self, z0, *, objective: str, ref: float, wall_s: float, max_iter: int, say, warm: bool = False) -> dict:
+        """One IPOPT run on this problem's horizon; `warm`: z0 is feasible and near a solution, so the barrier starts
+        small (IPOPT's default mu_init = 0.1 first pushes the epigraph variable and every slack away from their
+        bounds, which costs iterations to undo)."""
         d = self.d
         zM = self._z
         if objective == "peak_torque":
@@ -171,6 +222,8 @@ class GradientProblem:
                 "ipopt.max_wall_time": max(1.0, float(wall_s)), "ipopt.print_level": 0, "ipopt.sb": "yes",
                 "print_time": False, "ipopt.tol": 1e-6, "ipopt.acceptable_tol": 1e-4,
                 "ipopt.constr_viol_tol": 1e-6, "iteration_callback": log, "error_on_fail": False}
+        if warm:
+            opts.update({"ipopt.mu_init": 1e-5, "ipopt.bound_push": 1e-6, "ipopt.bound_frac": 1e-6})
         solver = ca.nlpsol("tune_nlp", "ipopt", {"x": x, "f": f, "g": g}, opts)
         try:
             r = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=0.0, ubg=ca.inf)

@@ -234,7 +234,7 @@ class Evaluator:
         if self.spec.objective == "min_rate" and cons["containment"] >= 0:
             from ..deployed.rate import min_rate
             r = min_rate(sc, margin=self.spec.margin, design=design, t_final=self.T, rel_tol=0.1,
-                         start=self.impl.rate_hz)
+                         start=self.impl.rate_hz, engine="symfunnel")
             figs["min_rate"] = r["min_rate_hz"] if r["min_rate_hz"] is not None else math.inf
         return cons, figs, worst
 
@@ -247,7 +247,7 @@ class Evaluator:
 
     def _sampled(self, sc, design, ctrl) -> tuple[dict, dict]:
         from ..deployed.loop import simulate_sampled
-        res = simulate_sampled(sc, t_final=self.T, design=design, controller=ctrl)
+        res = simulate_sampled(sc, t_final=self.T, design=design, controller=ctrl, engine="symfunnel")
         # ranked by the margin after the transient: the margin at t = 0 is the initial condition's, the same for
         # every candidate (a breach counts wherever it happened)
         g = {"containment": self._containment(res.ok, res.min_margin_after_transient, float(res.t[-1]))}

@@ -1,6 +1,7 @@
 
 /* ---- The deployed controller (see @BASENAME@.h): state, initial state and one period ------------------- */
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 #include "@BASENAME@.h"
 
@@ -10,6 +11,18 @@ static const double @P@x_esn0_[@NESN@] = {@X0@};
 static const double @P@w_hat0_[@NW@] = {@W0@};
 /* exponential-Euler weights (1 - exp(-l h)) / l of x_esn_dot and w_hat_dot at h = 1/@RATE@ s */
 static const double @P@etd_[2] = {@ETD@};
+
+/* 1 when every v[i] is finite: the exponent field is all ones exactly for inf and NaN; integer and, add, or
+ * over the bit patterns (no branch per value), which the compiler vectorises. */
+static int @P@all_finite_(const double *v, int n) {
+  uint64_t acc = 0, b;
+  int i;
+  for (i = 0; i < n; ++i) {
+    memcpy(&b, v + i, sizeof b);
+    acc |= (b & UINT64_C(0x7FF0000000000000)) + UINT64_C(0x0010000000000000);   /* bit 63 set iff the exponent is all ones */
+  }
+  return !(acc >> 63);
+}
 
 int @P@state_size(void) {
   return (int) sizeof(@P@state);
@@ -50,12 +63,7 @@ int @P@step(@P@state *s, double t, const double *q, const double *dq, double *ta
   res[3] = margin;
   res[4] = qd;
   if (@F@step_core(arg, res, iw, w, 0)) return -3;
-  for (i = 0; i < @N@; ++i)
-    if (!isfinite(tau_out[i])) return -3;
-  for (i = 0; i < @NESN@; ++i)
-    if (!isfinite(x_next[i])) return -3;
-  for (i = 0; i < @NW@; ++i)
-    if (!isfinite(w_next[i])) return -3;
+  if (!@P@all_finite_(tau_out, @N@) || !@P@all_finite_(x_next, @NESN@) || !@P@all_finite_(w_next, @NW@)) return -3;
   for (i = 0; i < 2 * @N@; ++i)
     if (!(margin[i] > 0.0)) rc = 1;
   memcpy(tau, tau_out, sizeof tau_out);

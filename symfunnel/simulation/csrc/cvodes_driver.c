@@ -1,0 +1,402 @@
+/* symfunnel's CVODES driver: the closed loop integrated by CVODES (the SUNDIALS build inside CasADi's wheel) called
+ * from C, with the Newton iteration's linear algebra on the Jacobian's fixed sparsity pattern.
+ *
+ * Why: through casadi.integrator every right-hand side and Jacobian is a CasADi function call (two process-clock
+ * reads each, and an MX wrapper on CasADi's virtual machine around the generated code), and every Newton
+ * refactorisation redoes CSparse's symbolic analysis (cs_lu's depth-first searches) and its allocations. Here the
+ * generated functions are called directly, and I - gamma J is factorised by a left-looking LU whose fill pattern is
+ * computed once, in the state order the closed loop already chose so that the LU fills in little (controller
+ * states first, joints last), with the diagonal as pivots.
+ *
+ * The algorithm is CasADi's (simulation/runner.py's casadi.integrator with linear_solver "csparse"): the same
+ * CVODES calls and options (BDF, Newton, scalar tolerances, max_num_steps, max_step_size, CV_NORMAL output at
+ * every grid point with the stop time at the last one, CVodeReInit per call), and the same linear solver contract
+ * (each setup evaluates J at the predicted state; a solve uses the last factorisation, without a gamma
+ * correction). Without pivoting, the LU is backward stable as long as the entries do not grow in the elimination;
+ * a zero or non-finite pivot, or a growth factor above SF_GROWTH_MAX (backward error ~ n eps growth: at most
+ * ~1e-6 relative, which the Newton iteration absorbs) makes the setup fail recoverably: CVODES then retries with a
+ * smaller step, where I - gamma J is closer to I. (The pivots themselves may be tiny against their column: the
+ * joint columns of the funnel loop have pivot 1 beside entries of 1e9 at t = 0, and the elimination is exact
+ * block elimination there, without growth.)
+ */
+#include <float.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include "cvodes_mem.h"
+
+#define SF_GROWTH_MAX 1e8       /* largest entry of the eliminated matrix / largest entry of A (Wilkinson growth) */
+
+typedef long long int casadi_int;     /* the closed loop's generated code uses CasADi's default casadi_int */
+typedef int (*sf_fun)(const double **arg, double **res, casadi_int *iw, double *w, int mem);
+
+/* The CVODES API symfunnel uses (cvodes.h, nvector_serial.h of SUNDIALS 2.6.1) */
+void *CVodeCreate(int lmm, int iter);
+int CVodeInit(void *mem, CVRhsFn f, realtype t0, N_Vector y0);
+int CVodeReInit(void *mem, realtype t0, N_Vector y0);
+int CVodeSStolerances(void *mem, realtype reltol, realtype abstol);
+int CVodeSetErrHandlerFn(void *mem, CVErrHandlerFn ehfun, void *eh_data);
+int CVodeSetUserData(void *mem, void *user_data);
+int CVodeSetMaxNumSteps(void *mem, long int mxsteps);
+int CVodeSetMaxStep(void *mem, realtype hmax);
+int CVodeSetMaxOrd(void *mem, int maxord);
+int CVodeSetStopTime(void *mem, realtype tstop);
+int CVode(void *mem, realtype tout, N_Vector yout, realtype *tret, int itask);
+int CVodeGetIntegratorStats(void *mem, long int *nsteps, long int *nfevals, long int *nlinsetups,
+                            long int *netfails, int *qlast, int *qcur, realtype *hinused, realtype *hlast,
+                            realtype *hcur, realtype *tcur);
+int CVodeGetNonlinSolvStats(void *mem, long int *nniters, long int *nncfails);
+char *CVodeGetReturnFlagName(long int flag);
+void CVodeFree(void **mem);
+N_Vector N_VMake_Serial(long int length, realtype *data);
+void N_VDestroy_Serial(N_Vector v);
+realtype *N_VGetArrayPointer(N_Vector v);
+
+#define SF_BDF 2
+#define SF_NEWTON 2
+#define SF_NORMAL 1
+
+/* ---- LU of A = I - gamma J on a fixed pattern, diagonal pivots ------------------------------------------- */
+
+typedef struct {
+  int n;
+  int *Ap, *Ai, *jmap, *dmap;    /* A's pattern (CSC, the diagonal included); J nonzero k -> A entry jmap[k] */
+  double *Ax;
+  int *Lp, *Li, *Up, *Ui;        /* L strictly below the diagonal; U with each column's diagonal last */
+  double *Lx, *Ux, *x;           /* x: dense work vector, zero between uses */
+  double max_growth;             /* largest growth factor of a factorisation so far (statistics) */
+} sf_lu;
+
+static void sf_lu_free(sf_lu *f) {
+  free(f->Ap); free(f->Ai); free(f->jmap); free(f->dmap); free(f->Ax);
+  free(f->Lp); free(f->Li); free(f->Up); free(f->Ui); free(f->Lx); free(f->Ux); free(f->x);
+  memset(f, 0, sizeof *f);
+}
+
+/* Symbolic analysis, once: A's pattern from J's (CSC colind Jp, rows Ji) plus the diagonal, then the fill of L and
+ * U column by column (no pivoting: column j's pattern is A's column closed under the L columns k < j it hits). */
+static int sf_lu_analyse(sf_lu *f, int n, const int *Jp, const int *Ji) {
+  int j, p, k, i, nnzA = 0, nl = 0, nu = 0, capl, capu;
+  char *mark;
+  int *list;
+  memset(f, 0, sizeof *f);
+  f->n = n;
+  f->max_growth = 0.0;
+  f->Ap = malloc((size_t) (n + 1) * sizeof(int));
+  f->Ai = malloc((size_t) (Jp[n] + n) * sizeof(int));
+  f->jmap = malloc((size_t) (Jp[n] > 0 ? Jp[n] : 1) * sizeof(int));
+  f->dmap = malloc((size_t) n * sizeof(int));
+  f->x = calloc((size_t) n, sizeof(double));
+  f->Lp = malloc((size_t) (n + 1) * sizeof(int));
+  f->Up = malloc((size_t) (n + 1) * sizeof(int));
+  mark = calloc((size_t) n, 1);
+  list = malloc((size_t) n * sizeof(int));
+  capl = capu = Jp[n] + n + 16;
+  f->Li = malloc((size_t) capl * sizeof(int));
+  f->Ui = malloc((size_t) capu * sizeof(int));
+  if (!f->Ap || !f->Ai || !f->jmap || !f->dmap || !f->x || !f->Lp || !f->Up || !mark || !list || !f->Li || !f->Ui)
+    goto fail;
+  for (j = 0; j < n; ++j) {                         /* A = J + diagonal, rows ascending within a column */
+    int diag_done = 0;
+    f->Ap[j] = nnzA;
+    for (p = Jp[j]; p < Jp[j + 1]; ++p) {
+      if (p > Jp[j] && Ji[p] <= Ji[p - 1]) goto fail;          /* rows must be sorted (CasADi's are) */
+      if (!diag_done && Ji[p] > j) { f->dmap[j] = nnzA; f->Ai[nnzA++] = j; diag_done = 1; }
+      if (Ji[p] == j) { f->dmap[j] = nnzA; diag_done = 1; }
+      f->jmap[p] = nnzA;
+      f->Ai[nnzA++] = Ji[p];
+    }
+    if (!diag_done) { f->dmap[j] = nnzA; f->Ai[nnzA++] = j; }
+  }
+  f->Ap[n] = nnzA;
+  f->Ax = malloc((size_t) nnzA * sizeof(double));
+  if (!f->Ax) goto fail;
+  for (j = 0; j < n; ++j) {                         /* fill: column j of L + U */
+    int m = 0;
+    for (p = f->Ap[j]; p < f->Ap[j + 1]; ++p) mark[f->Ai[p]] = 1;
+    for (k = 0; k < j; ++k) {                       /* ascending k: every update of x[k] comes from an m < k */
+      if (!mark[k]) continue;
+      for (p = f->Lp[k]; p < f->Lp[k + 1]; ++p) mark[f->Li[p]] = 1;
+    }
+    for (i = 0; i < n; ++i)
+      if (mark[i]) { list[m++] = i; mark[i] = 0; }
+    f->Up[j] = nu;
+    f->Lp[j] = nl;
+    for (k = 0; k < m; ++k) {
+      i = list[k];
+      if (i <= j) {
+        if (nu == capu) { capu *= 2; f->Ui = realloc(f->Ui, (size_t) capu * sizeof(int)); if (!f->Ui) goto fail; }
+        f->Ui[nu++] = i;                            /* ascending, so the diagonal (i = j) comes last */
+      } else {
+        if (nl == capl) { capl *= 2; f->Li = realloc(f->Li, (size_t) capl * sizeof(int)); if (!f->Li) goto fail; }
+        f->Li[nl++] = i;
+      }
+    }
+    f->Lp[j + 1] = nl;                              /* read by later columns' fill */
+    if (nu == f->Up[j] || f->Ui[nu - 1] != j) goto fail;
+  }
+  f->Up[n] = nu;
+  f->Lx = malloc((size_t) (nl > 0 ? nl : 1) * sizeof(double));
+  f->Ux = malloc((size_t) nu * sizeof(double));
+  free(mark);
+  free(list);
+  return (f->Lx && f->Ux) ? 0 : -1;
+fail:
+  free(mark);
+  free(list);
+  sf_lu_free(f);
+  return -1;
+}
+
+/* A = I - gamma J from J's nonzeros, then the numeric factorisation; 1 on a zero or non-finite pivot or too much
+ * growth. */
+static int sf_lu_factor(sf_lu *f, const double *Jx, int nnzJ, double gamma) {
+  int n = f->n, j, p, q, k;
+  double *x = f->x, amax = 0.0, gmax = 0.0;
+  memset(f->Ax, 0, (size_t) f->Ap[n] * sizeof(double));
+  for (k = 0; k < nnzJ; ++k) f->Ax[f->jmap[k]] = -gamma * Jx[k];
+  for (j = 0; j < n; ++j) f->Ax[f->dmap[j]] += 1.0;
+  for (p = 0; p < f->Ap[n]; ++p)
+    if (fabs(f->Ax[p]) > amax) amax = fabs(f->Ax[p]);
+  for (j = 0; j < n; ++j) {
+    double piv;
+    for (p = f->Ap[j]; p < f->Ap[j + 1]; ++p) x[f->Ai[p]] = f->Ax[p];
+    for (p = f->Up[j]; p < f->Up[j + 1] - 1; ++p) {  /* U entries above the diagonal, ascending row */
+      double xk;
+      k = f->Ui[p];
+      xk = x[k];
+      for (q = f->Lp[k]; q < f->Lp[k + 1]; ++q) x[f->Li[q]] -= f->Lx[q] * xk;
+    }
+    for (p = f->Up[j]; p < f->Up[j + 1]; ++p) {
+      f->Ux[p] = x[f->Ui[p]];
+      x[f->Ui[p]] = 0.0;
+      if (fabs(f->Ux[p]) > gmax) gmax = fabs(f->Ux[p]);
+    }
+    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p)
+      if (fabs(x[f->Li[p]]) > gmax) gmax = fabs(x[f->Li[p]]);
+    piv = f->Ux[f->Up[j + 1] - 1];
+    if (piv == 0.0 || !isfinite(piv) || !(gmax <= SF_GROWTH_MAX * amax)) {
+      for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) x[f->Li[p]] = 0.0;
+      return 1;
+    }
+    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) { f->Lx[p] = x[f->Li[p]] / piv; x[f->Li[p]] = 0.0; }
+  }
+  if (amax > 0.0 && gmax / amax > f->max_growth) f->max_growth = gmax / amax;
+  return 0;
+}
+
+/* b <- A^-1 b with the last factorisation. */
+static void sf_lu_solve(const sf_lu *f, double *b) {
+  int n = f->n, j, p;
+  for (j = 0; j < n; ++j) {                         /* column by column, as CSparse's cs_lsolve and cs_usolve */
+    double bj = b[j];
+    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) b[f->Li[p]] -= f->Lx[p] * bj;
+  }
+  for (j = n - 1; j >= 0; --j) {
+    double bj = b[j] / f->Ux[f->Up[j + 1] - 1];
+    b[j] = bj;
+    for (p = f->Up[j]; p < f->Up[j + 1] - 1; ++p) b[f->Ui[p]] -= f->Ux[p] * bj;
+  }
+}
+
+/* ---- the solver object --------------------------------------------------------------------------------- */
+
+typedef struct {
+  int nx, np, jac_n_in, jac_n_out, jac_out, nnzJ;
+  sf_fun ode, jac;
+  const double **arg;
+  double **res;
+  casadi_int *iw;
+  double *w, *p, *Jx;
+  sf_lu lu;
+  void *mem;
+  N_Vector y;
+  long njac, npivfail;
+  char msg[400];
+} sf_solver;
+
+static void sf_ehfun(int error_code, const char *module, const char *function, char *msg, void *data) {
+  sf_solver *s = (sf_solver *) data;
+  (void) error_code; (void) module; (void) function;
+  strncpy(s->msg, msg ? msg : "", sizeof s->msg - 1);
+  s->msg[sizeof s->msg - 1] = '\0';
+}
+
+static int sf_rhs(realtype t, N_Vector y, N_Vector ydot, void *data) {
+  sf_solver *s = (sf_solver *) data;
+  s->arg[0] = &t;
+  s->arg[1] = N_VGetArrayPointer(y);
+  s->arg[2] = 0;
+  s->arg[3] = s->p;
+  s->arg[4] = 0;
+  s->res[0] = N_VGetArrayPointer(ydot);
+  s->res[1] = s->res[2] = s->res[3] = 0;
+  return s->ode(s->arg, s->res, s->iw, s->w, 0) ? 1 : 0;
+}
+
+static int sf_lsetup(struct CVodeMemRec *cv_mem, int convfail, N_Vector ypred, N_Vector fpred,
+                     booleantype *jcurPtr, N_Vector t1, N_Vector t2, N_Vector t3) {
+  sf_solver *s = (sf_solver *) cv_mem->cv_lmem;
+  double t = cv_mem->cv_tn;
+  int i;
+  (void) convfail; (void) fpred; (void) t1; (void) t2; (void) t3;
+  for (i = 0; i < s->jac_n_in; ++i) s->arg[i] = 0;
+  for (i = 0; i < s->jac_n_out; ++i) s->res[i] = 0;
+  s->arg[0] = &t;
+  s->arg[1] = N_VGetArrayPointer(ypred);
+  s->arg[3] = s->p;
+  s->res[s->jac_out] = s->Jx;
+  s->njac++;
+  if (s->jac(s->arg, s->res, s->iw, s->w, 0)) return 1;
+  *jcurPtr = TRUE;
+  if (sf_lu_factor(&s->lu, s->Jx, s->nnzJ, cv_mem->cv_gamma)) {
+    s->npivfail++;
+    return 1;
+  }
+  return 0;
+}
+
+static int sf_lsolve(struct CVodeMemRec *cv_mem, N_Vector b, N_Vector weight, N_Vector ycur, N_Vector fcur) {
+  sf_solver *s = (sf_solver *) cv_mem->cv_lmem;
+  (void) weight; (void) ycur; (void) fcur;
+  sf_lu_solve(&s->lu, N_VGetArrayPointer(b));
+  return 0;
+}
+
+void sf_free(void *handle) {
+  sf_solver *s = (sf_solver *) handle;
+  if (!s) return;
+  if (s->mem) CVodeFree(&s->mem);
+  if (s->y) N_VDestroy_Serial(s->y);
+  sf_lu_free(&s->lu);
+  free(s->arg); free(s->res); free(s->iw); free(s->w); free(s->p); free(s->Jx);
+  free(s);
+}
+
+/* The memory block read through the vendored layout must show what the public setters just wrote, at fields
+ * spread over the whole block (before, in and after the linear-solver section). */
+static int sf_check_layout(const sf_solver *s, double rtol, double atol, long max_steps, double max_step,
+                           int max_order) {
+  const struct CVodeMemRec *m = (const struct CVodeMemRec *) s->mem;
+  return m->cv_uround == DBL_EPSILON && m->cv_f == sf_rhs && m->cv_user_data == s && m->cv_lmm == SF_BDF
+      && m->cv_iter == SF_NEWTON && m->cv_reltol == rtol && m->cv_Sabstol == atol && m->cv_quadr == FALSE
+      && m->cv_sensi == FALSE && m->cv_tstopset == TRUE && m->cv_tstop == 0.5 && m->cv_qmax == max_order
+      && m->cv_mxstep == max_steps && m->cv_maxcor == 3 && m->cv_maxnef == 7 && m->cv_maxncf == 10
+      && m->cv_mxhnil == 10 && m->cv_hmin == 0.0 && m->cv_hmax_inv == (max_step > 0 ? 1.0 / max_step : 0.0)
+      && m->cv_nlscoef == 0.1 && m->cv_linit == 0 && m->cv_lsetup == 0 && m->cv_lsolve == 0 && m->cv_lfree == 0
+      && m->cv_lmem == 0 && m->cv_setupNonNull == FALSE && m->cv_MallocDone == TRUE && m->cv_QuadMallocDone == FALSE
+      && m->cv_ehfun == sf_ehfun && m->cv_eh_data == (const void *) s && m->cv_sldeton == FALSE
+      && m->cv_nrtfn == 0 && m->cv_gfun == 0 && m->cv_mxgnull == 1 && m->cv_adj == FALSE && m->cv_adj_mem == 0
+      && m->cv_adjMallocDone == FALSE;
+}
+
+/* sizes: ode (sz_arg, sz_res, sz_iw, sz_w), jac (the same), then jac's n_in, n_out and the index of jac_ode_x.
+ * Jp, Ji: jac_ode_x's pattern (CSC, nx + 1 and Jp[nx] entries). Returns the solver, or NULL with err set. */
+void *sf_create(int nx, int np, void *ode, void *jac, const long long *sizes, const int *Jp, const int *Ji,
+                double rtol, double atol, long max_steps, double max_step, int max_order, char *err, int errlen) {
+  sf_solver *s = calloc(1, sizeof *s);
+  long long sz_arg, sz_res, sz_iw, sz_w;
+  int i;
+#define SF_FAIL(text) do { strncpy(err, text, (size_t) errlen - 1); err[errlen - 1] = '\0'; sf_free(s); return 0; } while (0)
+  if (!s) SF_FAIL("out of memory");
+  s->nx = nx;
+  s->np = np;
+  memcpy(&s->ode, &ode, sizeof s->ode);      /* object to function pointer, without ISO C's cast warning */
+  memcpy(&s->jac, &jac, sizeof s->jac);
+  sz_arg = sizes[0] > sizes[4] ? sizes[0] : sizes[4];
+  sz_res = sizes[1] > sizes[5] ? sizes[1] : sizes[5];
+  sz_iw = sizes[2] > sizes[6] ? sizes[2] : sizes[6];
+  sz_w = sizes[3] > sizes[7] ? sizes[3] : sizes[7];
+  s->jac_n_in = (int) sizes[8];
+  s->jac_n_out = (int) sizes[9];
+  s->jac_out = (int) sizes[10];
+  if (sz_arg < 5 || sz_res < 4 || s->jac_n_in > sz_arg || s->jac_n_out > sz_res || s->jac_out >= s->jac_n_out)
+    SF_FAIL("unexpected function signature");
+  s->nnzJ = Jp[nx];
+  s->arg = calloc((size_t) sz_arg, sizeof(double *));
+  s->res = calloc((size_t) sz_res, sizeof(double *));
+  s->iw = calloc((size_t) (sz_iw > 0 ? sz_iw : 1), sizeof(casadi_int));
+  s->w = calloc((size_t) (sz_w > 0 ? sz_w : 1), sizeof(double));
+  s->p = calloc((size_t) (np > 0 ? np : 1), sizeof(double));
+  s->Jx = calloc((size_t) (s->nnzJ > 0 ? s->nnzJ : 1), sizeof(double));
+  if (!s->arg || !s->res || !s->iw || !s->w || !s->p || !s->Jx) SF_FAIL("out of memory");
+  if (sf_lu_analyse(&s->lu, nx, Jp, Ji)) SF_FAIL("the Jacobian's pattern cannot be factorised in place");
+  s->y = N_VMake_Serial(nx, calloc((size_t) nx, sizeof(double)));
+  if (!s->y) SF_FAIL("out of memory");
+  s->mem = CVodeCreate(SF_BDF, SF_NEWTON);
+  if (!s->mem) SF_FAIL("CVodeCreate failed");
+  if (CVodeSetErrHandlerFn(s->mem, sf_ehfun, s) || CVodeSetUserData(s->mem, s)
+      || CVodeInit(s->mem, sf_rhs, 0.0, s->y) || CVodeSStolerances(s->mem, rtol, atol)
+      || CVodeSetMaxNumSteps(s->mem, max_steps) || (max_step > 0 && CVodeSetMaxStep(s->mem, max_step))
+      || (max_order > 0 && CVodeSetMaxOrd(s->mem, max_order)) || CVodeSetStopTime(s->mem, 0.5))
+    SF_FAIL(s->msg[0] ? s->msg : "setting up CVODES failed");
+  if (!sf_check_layout(s, rtol, atol, max_steps, max_step, max_order > 0 ? max_order : 5))
+    SF_FAIL("CVODES' memory layout is not the one this driver was written for");
+  {
+    struct CVodeMemRec *m = (struct CVodeMemRec *) s->mem;
+    m->cv_lmem = s;
+    m->cv_lsetup = sf_lsetup;
+    m->cv_lsolve = sf_lsolve;
+    m->cv_setupNonNull = TRUE;
+  }
+  for (i = 0; i < nx; ++i) N_VGetArrayPointer(s->y)[i] = 0.0;
+  return s;
+#undef SF_FAIL
+}
+
+/* Integrate from x0 at relative time 0 over grid[0..K-1] (relative times, ascending) with parameters p (np values:
+ * the chunk's start time, then the plant's); X (K x nx, row k = the state at grid[k]). stats: steps, rhs
+ * evaluations, linear setups, error-test failures, Newton iterations, Newton convergence failures, Jacobian
+ * evaluations, pivot failures. Returns 0, or CVODES' flag (< 0) with msg = 'CVode returned "NAME"'. */
+int sf_run(void *handle, const double *p, const double *x0, int K, const double *grid, double *X, long *stats,
+           char *msg, int msglen) {
+  sf_solver *s = (sf_solver *) handle;
+  double *y = N_VGetArrayPointer(s->y), t = 0.0, tret = 0.0, hinused, hlast, hcur, tcur;
+  long nsteps = 0, nfevals = 0, nlinsetups = 0, netfails = 0, nniters = 0, nncfails = 0;
+  int k, flag = 0, qlast, qcur;
+  memcpy(s->p, p, (size_t) s->np * sizeof(double));
+  memcpy(y, x0, (size_t) s->nx * sizeof(double));
+  s->njac = s->npivfail = 0;
+  s->msg[0] = '\0';
+  msg[0] = '\0';
+  flag = CVodeReInit(s->mem, 0.0, s->y);
+  for (k = 0; flag >= 0 && k < K; ++k) {
+    flag = CVodeSetStopTime(s->mem, grid[K - 1]);
+    if (flag >= 0 && fabs(t - grid[k]) >= 1e-9) flag = CVode(s->mem, grid[k], s->y, &tret, SF_NORMAL);
+    if (flag < 0) break;
+    t = grid[k];
+    memcpy(X + (size_t) k * (size_t) s->nx, y, (size_t) s->nx * sizeof(double));
+  }
+  CVodeGetIntegratorStats(s->mem, &nsteps, &nfevals, &nlinsetups, &netfails, &qlast, &qcur, &hinused, &hlast,
+                          &hcur, &tcur);
+  CVodeGetNonlinSolvStats(s->mem, &nniters, &nncfails);
+  stats[0] = nsteps; stats[1] = nfevals; stats[2] = nlinsetups; stats[3] = netfails;
+  stats[4] = nniters; stats[5] = nncfails; stats[6] = s->njac; stats[7] = s->npivfail;
+  if (flag < 0) {
+    char *name = CVodeGetReturnFlagName(flag);
+    int len = 0;
+    strncpy(msg, "CVode returned \"", (size_t) msglen - 1);
+    msg[msglen - 1] = '\0';
+    len = (int) strlen(msg);
+    strncpy(msg + len, name ? name : "?", (size_t) (msglen - len - 1));
+    msg[msglen - 1] = '\0';
+    len = (int) strlen(msg);
+    if (len < msglen - 1) { msg[len] = '"'; msg[len + 1] = '\0'; }
+    free(name);
+    return flag;
+  }
+  return 0;
+}
+
+/* The largest growth factor of the factorisations so far (0 before the first), for the tests. */
+double sf_max_growth(void *handle) {
+  return ((sf_solver *) handle)->lu.max_growth;
+}
+
+/* Factorise I - gamma J for given J values and solve for b in place (0, or 1 on a pivot failure): for tests. */
+int sf_factor_solve(void *handle, const double *Jx, double gamma, double *b) {
+  sf_solver *s = (sf_solver *) handle;
+  if (sf_lu_factor(&s->lu, Jx, s->nnzJ, gamma)) return 1;
+  sf_lu_solve(&s->lu, b);
+  return 0;
+}

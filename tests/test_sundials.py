@@ -1,0 +1,273 @@
+"""The direct CVODES backend (simulation/sundials.py, csrc/cvodes_driver.c) against casadi.integrator: the same
+algorithm (bit for bit while the LUs' rounding agrees), trajectories inside the integrator's own tolerance band, its
+fixed-pattern LU against numpy, and the checks that keep it from running on a CVODES it was not written for."""
+
+from __future__ import annotations
+
+import copy
+import ctypes
+from importlib import resources
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from symfunnel.simulation import sundials
+
+
+def _variant(sc, **sim):
+    """The scenario with [simulation] keys overridden."""
+    from symfunnel.scenario import from_dict
+    raw = copy.deepcopy(sc.raw)
+    raw.setdefault("simulation", {}).update(sim)
+    return from_dict(raw, file=sc.file, base_dir=Path(sc.file).parent, default_name=sc.name)
+
+
+def _runner(run, K, backend_name, monkeypatch):
+    from symfunnel.simulation.compiled import compile_closed_loop
+    from symfunnel.simulation.runner import Runner
+    monkeypatch.setenv("SYMFUNNEL_CVODES", backend_name)
+    cl = run.closed_loop
+    comp = compile_closed_loop(cl).bind(cl.p0)
+    r = Runner(cl, comp, "cvodes", run.scenario.simulation.dt, run.scenario.simulation)
+    X = r.run(0.0, cl.x0, K)
+    return X, r.stats
+
+
+def test_direct_backend_is_casadis_cvodes_bit_for_bit_on_the_first_chunk(paper_run, monkeypatch):
+    """25 output points of the paper loop (320 CVODES steps): the same states to the last bit and the same step,
+    right-hand-side, Jacobian and error-test counts as casadi.integrator with CSparse: the same algorithm, options
+    and linear-solver contract, not merely a close one."""
+    assert sundials.available(), sundials.unavailable_reason()
+    Xc, sc_ = _runner(paper_run, 25, "casadi", monkeypatch)
+    Xd, sd = _runner(paper_run, 25, "direct", monkeypatch)
+    assert sc_["cvodes_backend"] == "casadi" and sd["cvodes_backend"] == "direct"
+    assert np.array_equal(Xc, Xd)
+    for k in ("steps", "rhs_evaluations", "jacobian_evaluations", "error_test_failures"):
+        assert sc_[k] == sd[k] > 0, k
+
+
+def test_a_changed_option_is_seen(paper_run, monkeypatch):
+    """The bit-for-bit agreement is not vacuous: the direct run with another tolerance differs."""
+    import dataclasses
+
+    from symfunnel.simulation.compiled import compile_closed_loop
+    from symfunnel.simulation.runner import Runner
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
+    cl = paper_run.closed_loop
+    comp = compile_closed_loop(cl).bind(cl.p0)
+    sim = paper_run.scenario.simulation
+    X1 = Runner(cl, comp, "cvodes", sim.dt, sim).run(0.0, cl.x0, 5)
+    X2 = Runner(cl, comp, "cvodes", sim.dt, dataclasses.replace(sim, rtol=sim.rtol * 2)).run(0.0, cl.x0, 5)
+    assert not np.array_equal(X1, X2)
+
+
+def _tolerance_band(sc, tf, backend_name, monkeypatch, tight):
+    from symfunnel.simulation import simulate
+    monkeypatch.setenv("SYMFUNNEL_CVODES", backend_name)
+    design = _design(sc)
+    errs = []
+    for eps in (0.0, 1e-12, -1e-11):          # rounding-level perturbations: the run's own spread
+        r = simulate(sc, design, t_final=tf, params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
+        assert r.status == "ok", r.message
+        assert r.stats["cvodes_backend"] == backend_name
+        errs.append(float(np.max(np.abs(r.x[:, :2 * sc.n] - tight.x[:, :2 * sc.n]))))
+    return errs
+
+
+_DESIGNS: dict = {}
+
+
+def _design(sc):
+    from symfunnel.design import derive
+    key = (sc.name, str(sc.file))
+    if key not in _DESIGNS:
+        _DESIGNS[key] = derive(sc)
+    return _DESIGNS[key]
+
+
+def _urdf_scenario(tmp_path_factory):
+    from symfunnel.cli import main
+    from symfunnel.scenario import load_scenario
+    d = tmp_path_factory.mktemp("urdf")
+    src = Path(__file__).parent / "data" / "branched.urdf"
+    (d / "branched.urdf").write_bytes(src.read_bytes())
+    assert main(["init", "--urdf", str(d / "branched.urdf"), "--out", str(d / "s.toml"), "-q"]) == 0
+    return load_scenario(str(d / "s.toml"))
+
+
+@pytest.mark.parametrize("name,tf", [("paper", 4.0), ("arm7", 1.0), ("urdf", 2.0)])
+def test_trajectories_stay_in_the_integrators_tolerance_band(name, tf, monkeypatch, tmp_path_factory):
+    """Against a tight reference (rtol 1e-10, atol 1e-12, casadi.integrator), the direct backend's error in q, dq
+    is within twice the largest error of casadi.integrator itself over rounding-level perturbations of the same
+    run: the trajectories are today's within the integrator's tolerance."""
+    from symfunnel.scenario import load_scenario
+    from symfunnel.simulation import simulate
+    sc = _urdf_scenario(tmp_path_factory) if name == "urdf" else load_scenario(name)
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "casadi")
+    tight = simulate(_variant(sc, rtol=1e-10, atol=1e-12), _design(sc), t_final=tf)
+    assert tight.status == "ok"
+    band = _tolerance_band(sc, tf, "casadi", monkeypatch, tight)
+    direct = _tolerance_band(sc, tf, "direct", monkeypatch, tight)
+    assert max(direct) <= 2 * max(band), (direct, band)
+    assert max(band) < 1e-3                   # the band itself is an integrator tolerance, not a different run
+
+
+def test_a_different_run_is_outside_the_band(paper, monkeypatch):
+    """The band test can fail: a 1e-3 change of the plant's mass is far outside it."""
+    from symfunnel.simulation import simulate
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "casadi")
+    tight = simulate(_variant(paper, rtol=1e-10, atol=1e-12), _design(paper), t_final=4.0)
+    band = _tolerance_band(paper, 4.0, "casadi", monkeypatch, tight)
+    other = simulate(paper, _design(paper), t_final=4.0, params={"plant.mass_scale": 1.001})
+    assert float(np.max(np.abs(other.x[:, :4] - tight.x[:, :4]))) > 2 * max(band)
+
+
+def _solver(run):
+    from symfunnel.family.integrators import INTEGRATORS
+    from symfunnel.simulation.compiled import compile_closed_loop
+    cl = run.closed_loop
+    comp = compile_closed_loop(cl)
+    opts = INTEGRATORS.get("cvodes")(run.scenario.simulation, 0.01, 0.01, 1)
+    return cl, comp, sundials.DirectCvodes(comp.library, cl.nx, 1 + len(cl.p0), opts)
+
+
+def test_fixed_pattern_lu_solves_the_newton_system(paper_run):
+    """(I - gamma J) x = b with the driver's LU equals numpy's dense solve on the loop's real Jacobian, from
+    gamma = 1e-6 to gamma = 1 (far beyond CVODES' steps here)."""
+    cl, comp, D = _solver(paper_run)
+    jac = ca.external("jac_symfunnel_ode", comp.library)
+    ix = jac.index_out("jac_ode_x")
+    rng = np.random.default_rng(3)
+    for x in (cl.x0, cl.x0 + rng.normal(0, 0.05, cl.nx)):
+        J = jac(0.37, x[comp.perm], ca.DM(0, 1), np.concatenate([[0.0], cl.p0]), ca.DM(0, 1), 0, 0, 0, 0)[ix]
+        Jd = np.array(ca.densify(J))
+        for gamma in (1e-6, 1e-3, 0.05, 1.0):
+            b = rng.normal(size=cl.nx)
+            got = D.factor_solve(np.array(J.nonzeros()), gamma, b)
+            want = np.linalg.solve(np.eye(cl.nx) - gamma * Jd, b)
+            assert got is not None
+            assert np.max(np.abs(got - want)) <= 1e-12 * max(1.0, np.max(np.abs(want)))
+
+
+def test_a_vanishing_pivot_or_growth_is_refused_not_used(paper_run):
+    """gamma = 1/J_00 makes the first pivot 1 - gamma J_00 exactly 0, gamma = (1 - 1e-13)/J_00 a tiny one whose
+    multipliers blow the eliminated entries up: the factorisation reports both (CVODES then retries with a smaller
+    step) instead of solving with them; the next good factorisation works again."""
+    cl, comp, D = _solver(paper_run)
+    jac = ca.external("jac_symfunnel_ode", comp.library)
+    J = jac(0.0, cl.x0[comp.perm], ca.DM(0, 1), np.concatenate([[0.0], cl.p0]), ca.DM(0, 1), 0, 0, 0, 0)[
+        jac.index_out("jac_ode_x")]
+    Jx = np.array(J.nonzeros())
+    J00 = float(J[0, 0])
+    assert J00 != 0.0
+    assert D.factor_solve(Jx, 1.0 / J00, np.ones(cl.nx)) is None
+    assert D.factor_solve(Jx, 1e-3, np.ones(cl.nx)) is not None
+    assert D.factor_solve(Jx, (1 - 1e-13) / J00, np.ones(cl.nx)) is None
+    assert D.factor_solve(Jx, 1e-3, np.ones(cl.nx)) is not None
+
+
+def test_growth_stays_far_from_the_refusal_threshold_on_a_run(paper_run, monkeypatch):
+    """Over 2 s of the paper loop the factorisations' growth factor stays orders of magnitude below the threshold
+    (1e8), though the joints' pivots are 1e-9 of their columns' largest entries at the start."""
+    from symfunnel.simulation.compiled import compile_closed_loop
+    from symfunnel.simulation.runner import Runner
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
+    cl = paper_run.closed_loop
+    comp = compile_closed_loop(cl).bind(cl.p0)
+    sim = paper_run.scenario.simulation
+    r = Runner(cl, comp, "cvodes", sim.dt, sim)
+    r.run(0.0, cl.x0, 200)
+    assert 1.0 <= r.direct().max_growth() < 1e4
+
+
+def _compile_driver(tmp_path, header_text: str):
+    """The driver built from the package's source with a given memory-layout header, loaded."""
+    import casadi as _ca
+
+    from symfunnel.core.ccompile import compile_cached
+    d = Path(_ca.__file__).resolve().parent
+    src = {"cvodes_driver.c": resources.files("symfunnel.simulation").joinpath("csrc", "cvodes_driver.c")
+           .read_text(encoding="utf-8"), "cvodes_mem.h": header_text}
+    libs = (f"-L{d}", "-l:libcasadi_integrator_cvodes.so", "-l:libcasadi_sundials_common.so", f"-Wl,-rpath,{d}",
+            "-lm")
+    built = compile_cached(src, ["cvodes_driver.c"], "drv.so", sundials.DRIVER_FLAGS, libs=libs, cache=tmp_path)
+    lib = ctypes.CDLL(str(built.path))
+    lib.sf_create.restype = ctypes.c_void_p
+    lib.sf_create.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p,
+                              ctypes.POINTER(ctypes.c_longlong), ctypes.POINTER(ctypes.c_int),
+                              ctypes.POINTER(ctypes.c_int), ctypes.c_double, ctypes.c_double, ctypes.c_long,
+                              ctypes.c_double, ctypes.c_int, ctypes.c_char_p, ctypes.c_int]
+    lib.sf_free.argtypes = [ctypes.c_void_p]
+    return lib
+
+
+def _create(lib, paper_run):
+    cl, comp, _ = _solver(paper_run)
+    cll = ctypes.CDLL(comp.library)
+    ode = ca.external("symfunnel_ode", comp.library)
+    jac = ca.external("jac_symfunnel_ode", comp.library)
+    jx = jac.index_out("jac_ode_x")
+    sp = jac.sparsity_out(jx)
+    sizes = np.array([ode.sz_arg(), ode.sz_res(), ode.sz_iw(), ode.sz_w(), jac.sz_arg(), jac.sz_res(), jac.sz_iw(),
+                      jac.sz_w(), jac.n_in(), jac.n_out(), jx], dtype=np.longlong)
+    Jp, Ji = np.array(sp.colind(), dtype=np.intc), np.array(sp.row(), dtype=np.intc)
+    err = ctypes.create_string_buffer(400)
+    h = lib.sf_create(cl.nx, 1 + len(cl.p0), ctypes.cast(cll.symfunnel_ode, ctypes.c_void_p).value,
+                      ctypes.cast(cll.jac_symfunnel_ode, ctypes.c_void_p).value,
+                      sizes.ctypes.data_as(ctypes.POINTER(ctypes.c_longlong)),
+                      Jp.ctypes.data_as(ctypes.POINTER(ctypes.c_int)), Ji.ctypes.data_as(ctypes.POINTER(ctypes.c_int)),
+                      1e-6, 1e-8, 20000, 0.0, 0, err, len(err))
+    return h, err.value.decode()
+
+
+def test_the_memory_layout_check_refuses_a_wrong_layout(paper_run, tmp_path):
+    """The driver reads CVODES' memory block through a copied struct: with one field added at the top (a CVODES
+    whose block differs), sf_create refuses; with the shipped header it accepts."""
+    header = resources.files("symfunnel.simulation").joinpath("csrc", "cvodes_mem.h").read_text(encoding="utf-8")
+    good = _compile_driver(tmp_path / "good", header)
+    h, err = _create(good, paper_run)
+    assert h, err
+    good.sf_free(h)
+    shifted = header.replace("typedef struct CVodeMemRec {", "typedef struct CVodeMemRec {\n  int shifted_by_a_test;")
+    assert shifted != header
+    bad = _compile_driver(tmp_path / "bad", shifted)
+    h, err = _create(bad, paper_run)
+    assert not h and "memory layout" in err
+
+
+def test_unknown_options_fall_back_to_casadi(paper_run):
+    """An option the driver does not implement is refused (the runner then uses casadi.integrator)."""
+    from symfunnel.family.integrators import INTEGRATORS
+    from symfunnel.simulation.compiled import compile_closed_loop
+    cl = paper_run.closed_loop
+    comp = compile_closed_loop(cl)
+    opts = INTEGRATORS.get("cvodes")(paper_run.scenario.simulation, 0.01, 0.01, 1)
+    with pytest.raises(RuntimeError, match="does not implement"):
+        sundials.DirectCvodes(comp.library, cl.nx, 1 + len(cl.p0), dict(opts, nonlin_conv_coeff=0.3))
+    with pytest.raises(RuntimeError, match="does not implement"):
+        sundials.DirectCvodes(comp.library, cl.nx, 1 + len(cl.p0), dict(opts, linear_solver="qr"))
+
+
+def test_casadi_backend_on_request_and_on_the_vm(paper, paper_design, monkeypatch):
+    """$SYMFUNNEL_CVODES=casadi selects casadi.integrator; the VM (no compiled library) never uses the driver."""
+    from symfunnel.simulation import simulate
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "casadi")
+    assert simulate(paper, paper_design, t_final=0.1).stats["cvodes_backend"] == "casadi"
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
+    r = simulate(paper, paper_design, t_final=0.1, jit=False)
+    assert r.stats["code"] == "vm" and r.stats["cvodes_backend"] == "casadi"
+    assert simulate(paper, paper_design, t_final=0.1).stats["cvodes_backend"] == "direct"
+
+
+def test_cvodes_failure_reads_as_casadis(paper, paper_design, monkeypatch):
+    """A failing run gives CVODES' flag in CasADi's words ('CVode returned "CV_..."'), which the hints parse."""
+    from symfunnel.simulation import simulate
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
+    sc = _variant(paper, max_step=0.0)
+    import symfunnel.family.integrators as I
+    monkeypatch.setattr(I, "MAX_STEPS_PER_OUTPUT", 3)
+    r = simulate(sc, paper_design, t_final=0.2)
+    assert r.status == "failed" and r.stats["cvodes_backend"] == "direct"
+    assert 'CVode returned "CV_TOO_MUCH_WORK"' in r.message
