@@ -357,10 +357,11 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall,
                    {"engine": "symfunnel", "plant_substeps": subs, "delay_samples": impl.delay_samples,
                     "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
-                    "encoder_resolution": impl.encoder_resolution}, controller)
+                    "encoder_resolution": impl.encoder_resolution}, controller, T)
 
 
-def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, controller=None) -> SampledResult:
+def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, controller=None,
+            horizon: float | None = None) -> SampledResult:
     """The SampledResult of a loop that ended at sample k_end: true margins at the samples, breach, status."""
     n = sc.n
     tt = np.arange(k_end + 1) * h
@@ -399,7 +400,7 @@ def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, co
                                      scenario_arg=scenario_arg(sc), **st)
         message += f"; what to do: {breach['hint']}"
     from ..simulation.margins import settle_time
-    ts, how = settle_time(design, T, sc.simulation.settle_time)
+    ts, how = settle_time(design, float(horizon if horizon is not None else k_end * h), sc.simulation.settle_time)
     stats = {**stats, "settle_time": ts, "settle_source": how}
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
                          stats)
@@ -446,7 +447,7 @@ def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, s
              "engine_last_warning": out["last_warning"] or None, "engine_force_callback": out["force_callback"],
              "delay_samples": impl.delay_samples, "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
              "encoder_resolution": impl.encoder_resolution}
-    return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, controller)
+    return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, controller, K * h)
 
 
 def _engine_mass_scale(setup, run) -> list[float]:
