@@ -254,9 +254,11 @@ def sweep(scenario, *, runs: int | None = None, workers: int | None = None, sche
 
 
 def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,
-         max_evaluations: int | None = None, gate: bool = True) -> TuneResult:
+         max_evaluations: int | None = None, gate: bool = True, method: str = "auto") -> TuneResult:
     """`symfunnel tune`: search the scenario's `[tune]` parameters for a design that keeps the funnels within the
-    limits (never the reference or the e1 funnel); `gate=False` skips verify's gate on the result."""
+    limits (never the reference or the e1 funnel) in `wall_limit` seconds and at most `max_evaluations`
+    evaluations; `method` "auto" | "gradient" | "derivative-free"; `gate=False` skips verify's gate on the
+    result; `result.tuned_text` is the scenario's file with the tuned gains (4 significant digits)."""
     from .synthesis.search import tune as _tune
     return _tune(_scenario(scenario), wall_limit=wall_limit, t_final=t_final, progress=progress,
-                 max_evaluations=max_evaluations, gate=gate)
+                 max_evaluations=max_evaluations, gate=gate, method=method)

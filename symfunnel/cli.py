@@ -96,7 +96,10 @@ def _run(argv, deadline, lifecycle) -> int:
     except deadline.WallLimitReached as exc:
         return closing(*(lifecycle.exit_code(exc) or (1, f"symfunnel: timeout: {exc}")))
     except InputError as exc:
-        return closing(*(lifecycle.exit_code(exc) or (2, f"symfunnel: error: {_line(exc)}")))
+        code = closing(*(lifecycle.exit_code(exc) or (2, f"symfunnel: error: {_line(exc)}")))
+        if code == 2 and exc.example:      # what to write instead, below the one-line message
+            print("\n".join("    " + _line(line) for line in exc.example.splitlines()), file=sys.stderr)
+        return code
     except SymfunnelError as exc:
         return closing(*(lifecycle.exit_code(exc) or (exc.exit_code, f"symfunnel: {_line(exc)}")))
     except (KeyboardInterrupt, lifecycle.Terminated) as exc:

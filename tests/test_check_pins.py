@@ -679,12 +679,16 @@ def test_summary_leaves_failed_runs_out_of_the_breach_probability():
 
 def test_row_of_takes_the_located_breach_margin_of_its_funnel():
     from symfunnel.campaigns.campaign import row_of
-    sig = {"m1": np.array([[0.5, 0.4]]), "m2": np.array([[0.3, 0.2]]), "tau": np.array([[1.0, -3.0]])}
-    r = SimpleNamespace(signals=sig, breach={"funnel": "e2", "margin": -1e-3}, status="breach",
-                        t=np.array([0.0, 1.0]))
+    from symfunnel.simulation.margins import margin_summary
+    sig = {"m1": np.array([[0.4, 0.5]]), "m2": np.array([[0.3, 0.2]]), "tau": np.array([[1.0, -3.0]])}
+    t = np.array([0.0, 1.0])
+    # settled at t = 0.5: the post-transient minima are the second sample's (m1 0.5, m2 0.2, then the breach's)
+    r = SimpleNamespace(signals=sig, breach={"funnel": "e2", "margin": -1e-3}, status="breach", t=t,
+                        margins=lambda: margin_summary(t, sig["m1"].T, sig["m2"].T, 0.5, "declared"))
     row = row_of(r, 7, ["x"], [0.5])
     assert row["min_margin_e2"] == -1e-3 and row["min_margin_e1"] == 0.4 and row["max_abs_tau"] == 3.0
-    assert row["status"] == "breach" and row["run"] == 7
+    assert row["min_margin_e2_after_transient"] == -1e-3 and row["min_margin_e1_after_transient"] == 0.5
+    assert row["settle_time"] == 0.5 and row["status"] == "breach" and row["run"] == 7
 
 
 def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
@@ -694,7 +698,8 @@ def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
 
     def fake(scenario, design, *, rate_hz, t_final=None):
         m = 0.05 + 0.1 * math.log(rate_hz / 1234.0)
-        return SimpleNamespace(ok=m > -0.3, min_margin=m, status="ok" if m > -0.3 else "breach")
+        return SimpleNamespace(ok=m > -0.3, min_margin=m, min_margin_after_transient=m, stats={},
+                               status="ok" if m > -0.3 else "breach")
     monkeypatch.setattr(loop, "simulate_sampled", fake)
     monkeypatch.setattr(loop, "min_rate_hz", lambda scenario: 1.0)          # no plant-step floor in this fake
     sc = SimpleNamespace(file=None, implementation=None)
@@ -707,7 +712,8 @@ def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
     # a run that breaches never holds, whatever its margin before the breach
     monkeypatch.setattr(loop, "simulate_sampled",
                         lambda s, d, *, rate_hz, t_final=None: SimpleNamespace(ok=rate_hz > 500, min_margin=0.9,
-                                                                              status="ok"))
+                                                                              min_margin_after_transient=0.9,
+                                                                              stats={}, status="ok"))
     out = min_rate(sc, None, margin=0.05, rel_tol=0.05, start=1000.0)
     assert 500 < out["min_rate_hz"] <= 500 * 1.05
 

@@ -158,8 +158,11 @@ def test_compiler_timeout_kills_it_and_its_children(tmp_path, monkeypatch):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path, sig):
     cache = tmp_path / "cache"
+    # Ctrl-C as a terminal delivers it: a process started in the background (nohup, `cmd &` in a script, some CI
+    # runners) inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler at all
     prog = textwrap.dedent(f"""
-        import sys
+        import signal, sys
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         from symfunnel.core import lifecycle
         from symfunnel.core.ccompile import compile_cached, SHARED_FLAGS
         lifecycle.install()
@@ -172,12 +175,36 @@ def test_signal_kills_the_compiler_and_leaves_no_temporary_directory(tmp_path, s
         """)
     env = {**os.environ, "CC": str(_slow_cc(tmp_path))}
     p = subprocess.Popen([sys.executable, "-c", prog], env=env)
-    cc_pid = _wait_for(tmp_path / "cc.pid")
-    child = _wait_for(tmp_path / "child.pid")
-    p.send_signal(sig)
-    assert p.wait(timeout=30) == (143 if sig == signal.SIGTERM else 130)
-    assert _wait_dead(cc_pid) and _wait_dead(child)
-    assert list(cache.iterdir()) == []
+    cc_pid = child = None
+    try:
+        cc_pid = _wait_for(tmp_path / "cc.pid", 60.0)
+        child = _wait_for(tmp_path / "child.pid", 60.0)
+        p.send_signal(sig)
+        assert p.wait(timeout=60) == (143 if sig == signal.SIGTERM else 130)
+        assert _wait_dead(cc_pid) and _wait_dead(child)
+        assert not _group_alive(cc_pid)               # the compiler's whole process group is gone
+        assert list(cache.iterdir()) == []
+    finally:                                          # never leave the fake compiler behind, even on a failure
+        for pid in (cc_pid, child):
+            if pid is not None and _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        if p.poll() is None:
+            p.kill()
+            p.wait(timeout=30)
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether any process of the process group `pgid` is still alive (zombies excepted)."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            fields = (d / "stat").read_text().split(")")[-1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            return True
+    return False
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])

@@ -39,6 +39,23 @@ def test_license_matches_pyproject_and_citation_cites_the_paper():
     assert TITLE in (REPO / "README.md").read_text()
 
 
+def test_ci_runs_the_readme_test_command():
+    """CI runs README's test command character for character, and the test extra holds the plugin its options need."""
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    block = re.search(r"Tests \(install with the test extra.*?```sh\n(.*?)\n```", readme, re.S)
+    assert block, "README shows its test command"
+    ci = [ln for ln in (REPO / ".ci" / "run").read_text(encoding="utf-8").splitlines() if "pytest" in ln
+          and not ln.lstrip().startswith("#")]
+    assert ci == [block.group(1)]
+    try:
+        import tomllib
+    except ModuleNotFoundError:                 # Python 3.10
+        import tomli as tomllib
+    meta = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    if re.search(r"(^|\s)-n\s", meta["tool"]["pytest"]["ini_options"].get("addopts", "")):
+        assert any(d.startswith("pytest-xdist") for d in meta["project"]["optional-dependencies"]["test"])
+
+
 def _user_files():
     for pattern in ("README.md", "docs/*.md", "derivations/*.toml", "symfunnel/data/*.toml", "CITATION.cff"):
         yield from REPO.glob(pattern)
@@ -124,9 +141,7 @@ def test_rk_failure_gives_cause_and_a_hint_that_works(paper, paper_design):
     r = simulate(paper, paper_design, t_final=2.0, integrator="rk")
     assert r.status == "failed"
     assert "cause: " in r.message and "hint: " in r.message and "rk_substeps (now 10)" in r.message
-    sc = copy.copy(paper)
-    sc.simulation = copy.copy(paper.simulation)
-    sc.simulation.rk_substeps = 100                            # what the hint says
+    sc = paper.replace(simulation__rk_substeps=100)            # what the hint says
     from symfunnel.design import derive
     assert simulate(sc, derive(sc), t_final=2.0, integrator="rk").status == "ok"
 

@@ -56,7 +56,9 @@ def test_init_from_urdf(tmp_path, urdf):
     assert main(["init", "--urdf", str(src), "--out", str(out), "-q"]) == 0
     assert '"../robots/' in out.read_text()                  # the path is relative to the scenario file
     sc, vals = _runs_as_written(out, 2.0)
-    assert sc.n == len(movable_joint_names(parse_urdf(src)))
+    from symfunnel.model.urdf import mimic_joints
+    # every movable joint is a coordinate, but a mimic joint (branched.urdf has one) is held fixed
+    assert sc.n == len(movable_joint_names(parse_urdf(src))) - len(mimic_joints(src))
     # e2's initial funnel is twice the largest |e2(0)| plus 0.1, as documented in the command
     assert sc.funnels["e2"].phi0[0] == pytest.approx(2 * np.max(np.abs(vals["e2"])) + 0.1, rel=1e-5)
     assert np.all(np.abs(np.asarray(vals["e1"])) <= 0.02 + 1e-12)

@@ -26,14 +26,69 @@ SECTIONS = ["overview", "gate", "findings", "scenario", "model", "derivation", "
 
 
 @pytest.fixture(scope="module")
-def report_path(paper, tmp_path_factory):
-    """The paper scenario's report, written once per module."""
+def report_run(paper):
+    """The Run the module's report is written from (its verification is what `verify --json` prints)."""
     from symfunnel.pipeline import Run, RunOptions
+    return Run(paper, RunOptions(t_final=T_FINAL))
+
+
+@pytest.fixture(scope="module")
+def report_path(report_run, tmp_path_factory):
+    """The paper scenario's report, written once per module."""
     from symfunnel.reporting import build_report
     out = tmp_path_factory.mktemp("report") / "paper.html"
-    p = build_report(Run(paper, RunOptions(t_final=T_FINAL)), out)
+    p = build_report(report_run, out)
     assert p == out
     return out
+
+
+def test_overview_counts_and_tables_agree_with_verify_json(report_run, report_text, tree):
+    """Every check of `verify --json` appears exactly once in the report's tables, with the verdict label of its
+    status against its declaration; the overview's counts are verify's."""
+    from symfunnel.checks.gate import counts_line, verdict
+    v = report_run.verification
+    js = v.to_json()
+    k = js["counts"]
+    line = (f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {k['warn']} warnings, "
+            f"{k['skip']} skipped")
+    assert line == counts_line(v.checks)
+    gate = next(el for el in tree.iter() if el.get("id") == "gate")
+    assert line in "".join(gate.itertext())
+    assert js["status"].upper() in "".join(gate.itertext())
+    rows = [el for el in tree.iter() if _local(el.tag) == "tr"]
+    seen = {}
+    for r in rows:
+        codes = [el for el in r.iter() if _local(el.tag) == "code"]
+        if not codes:
+            continue
+        first = "".join(codes[0].itertext()).strip()
+        if any(first == c["id"] for c in js["checks"]):
+            seen.setdefault(first, []).append("".join(r.itertext()))
+    for c in js["checks"]:
+        assert len(seen.get(c["id"], [])) == 1, (c["id"], len(seen.get(c["id"], [])))
+        label = verdict(next(x for x in v.checks if x.id == c["id"]))[0]
+        assert label in seen[c["id"]][0], (c["id"], label)
+    assert "skipped</span>" not in report_text or k["skip"]
+
+
+@pytest.mark.slow
+def test_a_report_of_the_users_own_arm_says_nothing_about_a_paper(tmp_path):
+    """`init`'s arm (no source, no claims): no word 'paper', no NaN in a legend, no numpy warning."""
+    import warnings
+
+    from symfunnel.cli import main
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.reporting import build_report
+    from symfunnel.scenario import load_scenario
+    assert main(["init", "--out", str(tmp_path / "arm.toml")]) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        out = build_report(Run(load_scenario(tmp_path / "arm.toml"), RunOptions(t_final=2.0, samples=200)),
+                           tmp_path / "arm.html", codegen=False, mutants=False, deployed=False)
+    text = out.read_text(encoding="utf-8")
+    assert not re.search(r"paper", text, re.I), re.search(r".{60}paper.{60}", text, re.I | re.S).group(0)
+    assert not re.search(r"\bnan\b", text)
+    assert "Findings" not in text and "None declared" not in text and "None listed" not in text
 
 
 @pytest.fixture(scope="module")
@@ -103,9 +158,9 @@ def test_verification_table_shows_failures_plainly(tree, report_text):
     text = " ".join("".join(r.itertext()) for r in rows)
     assert "claim.theorem1" in text
     assert "None: every check this design must pass, passes." in report_text
-    assert "FAIL" in text
+    assert "FINDING (expected)" in text and "FAIL (unexpected)" not in text
     assert "not a proof" in report_text
-    assert "W*" in report_text and "never given by the paper" in report_text
+    assert "W*" in report_text and "not given by the source" in report_text
 
 
 def test_code_generation_section(tree):

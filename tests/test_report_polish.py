@@ -203,12 +203,14 @@ def test_figures_option_rejects_a_file_before_any_work(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("symfunnel: error:") and "--figures" in err[0]
 
 
-def test_captions_name_the_paper_figures():
+def test_captions_name_the_paper_figures_only_when_the_source_is_the_paper(paper):
     from symfunnel.reporting.sections import figure_caption
-    c = figure_caption("torque", "Torque", "paper")
-    assert "Reproduces Figure 8" in c and "Control signals" in c and "Unknown Dead Zone" in c
-    assert "Corresponds to Figure 6" in figure_caption("tracking", "Tracking", "arm7")
-    assert "Not in the paper" in figure_caption("weights", "W", "paper")
+    from symfunnel.scenario import load_scenario
+    c = figure_caption("torque", "Torque", paper)
+    assert "Reproduces Figure 8" in c and "Control signals" in c and "of the source" in c
+    arm7 = load_scenario("arm7")
+    assert figure_caption("tracking", "Tracking", arm7) == "Tracking."          # arm7 cites no paper
+    assert figure_caption("weights", "W", paper) == "W."
 
 
 def test_joint_one_formulas_for_seven_joints():
@@ -217,9 +219,11 @@ def test_joint_one_formulas_for_seven_joints():
     from symfunnel.reporting.sections import derivation_section
     from symfunnel.scenario import load_scenario
     d = derive(load_scenario("arm7"))
-    rows = {r["name"]: r for r in derivation_section(d, [], lambda s: None)["signals"]}
-    for k in ("F1", "z1", "alpha2"):
+    sec = derivation_section(d, [], lambda s: None)
+    rows = {r["name"]: r for r in sec["signals"]}
+    for k in ("F1", "z1"):
         assert rows[k]["mathml"] and "<math" in rows[k]["mathml"], k
+    assert "<math" in sec["alpha2"]["alpha2"]          # alpha2 (joint 1) once, in the section of the exact alpha2_dot
 
 
 def test_a_formula_says_when_round_off_was_left_out():

@@ -233,7 +233,9 @@ def test_no_implementation_no_checks():
 class _Run:
     def __init__(self, ok, m):
         self.ok, self.min_margin = ok, m
+        self.min_margin_after_transient = m          # what the rate search ranks by
         self.status = "ok" if ok else "breach"
+        self.stats = {"settle_time": 0.0}
 
 
 def _threshold_sim(threshold_of):

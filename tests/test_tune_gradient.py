@@ -116,7 +116,7 @@ def test_gradient_path_tunes_the_continuous_loop_into_the_torque_limit(tmp_path,
     src = write(tmp_path, paper_doc(1.0, {"tau_max": 200.0, "parameters": ["controller.k2", "funnel.e2.phi_inf",
                                                                         "funnel.e2.phi0"]}))
     out = tmp_path / "tuned.toml"
-    code = main(["tune", str(src), "--out", str(out), "--json", "--max-evals", "2", "-q"])
+    code = main(["tune", str(src), "--out", str(out), "--json", "--max-evals", "2", "-q", "--method", "gradient"])
     res = json.loads(capsys.readouterr().out)            # stdout is the JSON alone
     assert code == 0 and res["status"] == "ok", res
     assert res["method"].startswith("gradient: IPOPT") and "no [implementation]" in res["why"]
@@ -233,7 +233,9 @@ def test_arm7_is_tuned_within_its_urdf_effort_limits(tmp_path, capsys):
     raw["tune"] = {"tau_max": "urdf", "parameters": ["controller.k2", "funnel.e2.phi_inf"]}
     src = write(tmp_path, raw, "arm7.toml")
     out = tmp_path / "tuned.toml"
-    code = main(["tune", str(src), "--out", str(out), "--json", "--max-evals", "2", "--wall-limit", "60", "-q"])
+    # --wall-limit bounds the whole command (IPOPT's 80 % and verify's gate on the 7-joint result)
+    code = main(["tune", str(src), "--out", str(out), "--json", "--max-evals", "2", "--wall-limit", "240", "-q",
+                 "--method", "gradient"])
     res = json.loads(capsys.readouterr().out)
     assert code == 0 and res["status"] == "ok" and res["method"].startswith("gradient: IPOPT")
     effort = np.array(effort_limits(tmp_path / "arm7.urdf"), float)
@@ -302,7 +304,7 @@ def test_when_ipopt_finds_nothing_that_holds_the_derivative_free_search_takes_ov
                 "iterations": 0, "f": float("nan")}
     monkeypatch.setattr(tune_gradient.GradientProblem, "solve", stuck)
     sc = load_scenario(write(tmp_path, paper_doc(0.5, {"tau_max": 200.0, "parameters": ["controller.k2"]})))
-    r = tuning.tune(sc, max_evaluations=4, gate=False)
+    r = tuning.tune(sc, max_evaluations=4, gate=False, method="gradient")
     assert marker.exists() and r.method == f"{tuning.GRADIENT_METHOD}; then {tuning.METHOD}"
     assert "fallback" in r.why and "no IPOPT result held" in r.why
     assert r.evaluations == 4                            # the derivative-free search ran on after IPOPT

@@ -36,8 +36,13 @@ def _cli_error(paper, tmp_path, capsys, uncs, sweep=None, extra=()):
     code = main(["sweep", str(f), "--out", str(out), "-q", *extra])
     err = capsys.readouterr().err.strip()
     assert code == 2, err
-    assert len(err.splitlines()) == 1 and err.startswith("symfunnel: error: ")
-    assert not out.exists()
+    lines = err.splitlines()
+    assert lines[0].startswith("symfunnel: error: ") and not out.exists()
+    if len(lines) > 1:                       # one line, or one line and the example it announces
+        assert lines[0].endswith("append to the file:)") or lines[0].endswith("append to the copy:)")
+        import tomllib
+        doc = tomllib.loads("\n".join(x[4:] for x in lines[1:]))
+        assert all(x.startswith("    ") for x in lines[1:]) and doc["uncertainty"][0]["key"] == "plant.mass_scale"
     return err
 
 

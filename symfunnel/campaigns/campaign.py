@@ -29,7 +29,8 @@ from ..core.errors import InputError
 from ..core.io import atomic_path, atomic_write, exclusive_lock, json_safe
 
 ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "timeout": "failed", "failed": "failed"}
-RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau"]
+RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau",
+                  "min_margin_e1_after_transient", "min_margin_e2_after_transient", "settle_time"]
 PARTS = ".results.parts"
 FLUSH_SECONDS = 10.0
 #: a campaign caps CVODES' step at this fraction of the output step unless the scenario sets simulation.max_step:
@@ -52,6 +53,13 @@ class Job:
     engine: str = "symfunnel"         # "symfunnel": the continuous-time closed loop; else the sampled loop on it
 
 
+#: what a user adds to a scenario to sweep it (printed when the table is missing)
+UNCERTAINTY_EXAMPLE = """[[uncertainty]]
+key = "plant.mass_scale"    # any plant, [initial] or [implementation] key; docs/sweep.md lists them
+dist = "uniform"
+low = 0.8
+high = 1.2"""
+
 _STATE: dict = {}        # (fingerprint, thread) -> (scenario, closed loop, compile time, cache hit)
 
 
@@ -61,8 +69,12 @@ def make_job(scenario, *, runs: int | None = None, engine: str = "symfunnel", ra
     worst.toml, with the engine)."""
     c = scenario.campaign
     if c is None or not c.uncertainties:
+        from ..scenario import is_builtin
+        where = (f"copy it with `symfunnel init --from {scenario.name} --out my.toml` and append to the copy"
+                 if is_builtin(scenario.path) else "append to the file")
         raise InputError("has no [[uncertainty]] table", file=scenario.file, key="uncertainty",
-                         expected="at least one [[uncertainty]] table for a sweep")
+                         expected=f"at least one [[uncertainty]] table for a sweep; for example, {where}:",
+                         example=UNCERTAINTY_EXAMPLE)
     if engine == "symfunnel":
         for i, u in enumerate(c.uncertainties):
             if u.key.startswith("plant.mujoco."):
@@ -176,10 +188,19 @@ def row_of(result, run: int, columns: list[str], values) -> dict:
             m2 = min(m2, b["margin"]) if not math.isnan(m2) else b["margin"]
     taus = [v for v in extreme("tau") if v is not None]
     tau = float(max(taus)) if s["tau"].size and np.isfinite(s["tau"]).all() and taus else math.nan
+    mg = result.margins()
+    post = {}
+    for k in ("e1", "e2"):
+        vals = [v for v in mg[f"min_margin_{k}_after_transient"] if v is not None]
+        v = min(vals) if vals else math.nan
+        if b is not None and b["funnel"] == k:          # a breach counts wherever it happened
+            v = b["margin"] if math.isnan(v) else min(v, b["margin"])
+        post[f"min_margin_{k}_after_transient"] = float(v)
     row = {"run": int(run)}
     row.update({c: float(v) for c, v in zip(columns, values)})
     row.update({"status": ROW_STATUS[result.status], "t_end": float(result.t[-1]) if result.t.size else 0.0,
-                "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau})
+                "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau, **post,
+                "settle_time": float(mg["settle_time"])})
     return row
 
 
@@ -269,7 +290,8 @@ def _failed_row(rid, columns, values, exc) -> dict:
     row = {"run": int(rid)}
     row.update({c: float(v) for c, v in zip(columns, values)})
     row.update({"status": "failed", "t_end": 0.0, "min_margin_e1": math.nan, "min_margin_e2": math.nan,
-                "max_abs_tau": math.nan})
+                "max_abs_tau": math.nan, "min_margin_e1_after_transient": math.nan,
+                "min_margin_e2_after_transient": math.nan, "settle_time": math.nan})
     return row
 
 
@@ -547,18 +569,25 @@ def summarize(table, columns: list[str]) -> dict:
     """The campaign's figures from its results table (contract keys first)."""
     d = table.to_pydict()
     status = np.array(d["status"], dtype=object)
-    m = np.fmin(np.array(d["min_margin_e1"], float), np.array(d["min_margin_e2"], float))
+    whole = np.fmin(np.array(d["min_margin_e1"], float), np.array(d["min_margin_e2"], float))
+    p1 = np.array(d.get("min_margin_e1_after_transient", d["min_margin_e1"]), float)
+    p2 = np.array(d.get("min_margin_e2_after_transient", d["min_margin_e2"]), float)
+    m = np.fmin(p1, p2)            # runs are ranked by the margin after the transient (the whole run's: ties)
     runs = len(status)
     breaches = int(np.sum(status == "breach"))
     failed = int(np.sum(status == "failed"))
     decided = runs - failed
     worst = None
     if np.isfinite(m).any():
-        # lowest min margin; ties (e.g. both at the initial e2 margin) go to the lower sum of the two margins
-        total = np.array(d["min_margin_e1"], float) + np.array(d["min_margin_e2"], float)
-        order = np.lexsort((np.nan_to_num(total, nan=np.inf), np.nan_to_num(m, nan=np.inf)))
+        # lowest post-transient margin; ties go to the lower sum of the two, then the lower whole-run margin
+        total = p1 + p2
+        order = np.lexsort((np.nan_to_num(whole, nan=np.inf), np.nan_to_num(total, nan=np.inf),
+                            np.nan_to_num(m, nan=np.inf)))
         i = int(order[0])
-        worst = {"run": int(d["run"][i]), "status": str(status[i]), "min_margin": float(m[i]),
+        worst = {"run": int(d["run"][i]), "status": str(status[i]), "min_margin": float(whole[i]),
+                 "min_margin_after_transient": float(m[i]),
+                 "min_margin_e1_after_transient": float(p1[i]), "min_margin_e2_after_transient": float(p2[i]),
+                 "settle_time": float(d["settle_time"][i]) if "settle_time" in d else None,
                  "min_margin_e1": float(d["min_margin_e1"][i]), "min_margin_e2": float(d["min_margin_e2"][i]),
                  "max_abs_tau": float(d["max_abs_tau"][i]), "values": {c: float(d[c][i]) for c in columns}}
     return {"runs": runs, "breaches": breaches,
@@ -566,7 +595,9 @@ def summarize(table, columns: list[str]) -> dict:
             "ci95": clopper_pearson(breaches, decided),
             "worst_run": worst["run"] if worst else None,
             "failed": failed, "worst": worst,
-            "min_margin": _quantiles(m), "max_abs_tau": _quantiles(np.array(d["max_abs_tau"], float))}
+            "min_margin": _quantiles(whole), "min_margin_after_transient": _quantiles(m),
+            "min_margin_e1_after_transient": _quantiles(p1), "min_margin_e2_after_transient": _quantiles(p2),
+            "max_abs_tau": _quantiles(np.array(d["max_abs_tau"], float))}
 
 
 def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
@@ -707,6 +738,9 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
                     "t_final": job.t_final, "failed": s["failed"], "compile_time": info["compile_time"],
                     "compile_cache_hit": info["cache_hit"], "wall_time": time.perf_counter() - t0,
                     "columns": camp.columns, "worst": s["worst"], "min_margin": s["min_margin"],
+                    "min_margin_after_transient": s["min_margin_after_transient"],
+                    "min_margin_e1_after_transient": s["min_margin_e1_after_transient"],
+                    "min_margin_e2_after_transient": s["min_margin_e2_after_transient"],
                     "max_abs_tau": s["max_abs_tau"], "out": str(out), "engine": job.engine})
     if job.engine != "symfunnel":
         summary["rate_hz"] = float(job.raw["implementation"]["rate_hz"])

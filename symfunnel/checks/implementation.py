@@ -3,6 +3,8 @@ the sampled-data loop around the compiled generated C step (`symfunnel.deployed.
 
 from __future__ import annotations
 
+import numpy as np
+
 from typing import TYPE_CHECKING
 
 from ..deployed.loop import SampledResult, simulate_sampled
@@ -70,6 +72,13 @@ def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz:
         detail = ("time fraction at tau_max per joint: " + ", ".join(f"{f:.3g}" for f in frac)
                   + f" (tau_max = {', '.join(f'{v:g}' for v in r.tau_max)}; over the {r.tau.shape[0]} samples to "
                   f"t = {r.t[-1]:g} s" + ("" if r.ok else ", where the run stopped") + ")")
+        if worst > 0 and design is not None:
+            tm = np.asarray(r.tau_max, float)
+            k, j = (int(a[0]) for a in np.nonzero(np.abs(r.tau) >= tm * (1 - 1e-12)))
+            from ..simulation.hints import breach_hint
+            from ..simulation.result import scenario_arg
+            detail += "; what to do: " + breach_hint(design, t=float(r.t[k]), q=r.q[k], dq=r.dq[k], funnel="saturation",
+                                                     joint=j + 1, tau_max=r.tau_max, scenario_arg=scenario_arg(scenario))
         out.append(CheckResult("implementation.saturation", "pass" if worst == 0.0 else "fail", detail,
                                method="sampled-data simulation", margin=-worst,
                                evidence={"saturated_fraction": frac, "tau_max": list(r.tau_max),

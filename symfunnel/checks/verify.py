@@ -29,6 +29,7 @@ import numpy as np
 
 from ..core.io import json_safe
 from .audit import CheckResult
+from .gate import counts
 from .lyapunov import REL_TOL, LyapunovTrajectory, decay_margin, falsify
 
 if TYPE_CHECKING:
@@ -73,6 +74,17 @@ class Verification:
         """The gate's verdict: 'pass' when every outcome is as the scenario declares."""
         return "fail" if self.unexpected else "pass"
 
+    def verdicts(self) -> dict:
+        """The continuous-time run's verdict and, when verify ran the deployed loop, the sampled run's: {"continuous":
+        {"status", "message"}, "sampled": {"status", "message"} | None} (a breach in either is said apart)."""
+        out = {"continuous": {"status": self.result.status if self.result is not None else "skip",
+                              "message": self.result.message if self.result is not None else ""},
+               "sampled": None}
+        c = next((c for c in self.checks if c.id == "implementation.containment"), None)
+        if c is not None:
+            out["sampled"] = {"status": "ok" if c.status == "pass" else "breach", "message": c.detail}
+        return out
+
     def _repr_html_(self) -> str:
         """A notebook table: the gate's verdict and every check."""
         import html
@@ -85,6 +97,7 @@ class Verification:
         """{"scenario", "status", "checks": [...], "simulation": summary, "lyapunov": {...}, "timings"}."""
         out = {"scenario": self.scenario.name, "status": self.status,
                "unexpected": [c.id for c in self.unexpected],
+               "counts": counts(self.checks), "verdicts": self.verdicts(),
                "checks": [json_safe(c.to_json()) for c in self.checks], "timings": self.timings}
         if self.result is not None:
             out["simulation"] = {k: self.result.summary().get(k) for k in ("status", "message", "t_end", "t_final",

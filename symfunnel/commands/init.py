@@ -24,6 +24,12 @@ def register(sub, common) -> None:
                         description="Write a scenario TOML file, with every section commented, that derives, "
                                     "audits and simulates as written; edit it from there (docs/scenario.md).")
     sp.add_argument("--urdf", metavar="FILE", help="build the scenario around this URDF's movable joints")
+    sp.add_argument("--from", dest="source", metavar="SCENARIO",
+                    help="copy a built-in scenario (paper, arm7) or a scenario file to edit, with a header saying "
+                         "where it came from (files it refers to, such as a URDF, are copied beside it)")
+    sp.add_argument("--joints", metavar="NAMES",
+                    help="with --urdf: the comma-separated joints to control; every other movable joint is held "
+                         "fixed at 0 (mimic joints are held fixed without asking)")
     sp.add_argument("--out", metavar="FILE", default="scenario.toml",
                     help="the scenario file to write (default scenario.toml; never overwritten without --force)")
     sp.add_argument("--force", action="store_true", help="overwrite --out if it exists")
@@ -42,11 +48,57 @@ def run(args) -> int:
     check_output_file(out)
     if out.exists() and not args.force:
         raise InputError("exists", file=str(out), key="--out", expected="a new file (or --force to overwrite it)")
+    if args.source and args.urdf:
+        raise InputError("is given with --urdf", key="--from", expected="either --from or --urdf")
+    if args.joints and not args.urdf:
+        raise InputError("is given without --urdf", key="--joints", expected="--urdf FILE --joints NAMES")
+    if args.source:
+        text, extra = copied_scenario(args.source, out)
+        for path, data in extra:
+            if not path.exists():
+                atomic_write(path, data)
+        atomic_write(out, text)
+        print(out)
+        return 0
     name = _name(out.stem)
-    text = scenario_from_urdf(args.urdf, out, name) if args.urdf else scenario_two_link(name, out)
+    joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else None
+    text = (scenario_from_urdf(args.urdf, out, name, joints=joints, say=_say(args)) if args.urdf
+            else scenario_two_link(name, out))
     atomic_write(out, text)
     print(out)
     return 0
+
+
+def _say(args):
+    import sys
+    return (lambda s: None) if args.quiet else (lambda s: print(f"symfunnel: {s}", file=sys.stderr))
+
+
+def copied_scenario(source: str, out: Path) -> tuple[str, list[tuple[Path, str]]]:
+    """The text of a built-in scenario or a file, with a header naming where it came from, and the files it refers
+    to by a relative path (a URDF) to write beside `out`: (text, [(path, contents)])."""
+    import datetime
+    import tomllib
+
+    from ..core.errors import InputError
+    from ..core.inputs import read_text
+    from ..scenario import BUILTIN, DATA_DIR, load_scenario
+    sc = load_scenario(source)              # validates it: a copy that does not load is never written
+    src = DATA_DIR / BUILTIN[source] if source in BUILTIN else Path(source)
+    text = read_text(src, expected="a scenario TOML file")
+    extra = []
+    path = (tomllib.loads(text).get("model") or {}).get("path")
+    if isinstance(path, str) and not Path(path).is_absolute():
+        ref = src.parent / path
+        if not ref.is_file():
+            raise InputError("is not a file", file=str(ref), key="model.path", expected="the URDF the scenario uses")
+        extra.append((out.parent / path, ref.read_text(encoding="utf-8")))
+    origin = f"the built-in scenario '{source}'" if source in BUILTIN else f"{_toml_text(str(src))}"
+    day = datetime.date.today().isoformat()
+    head = (f"# Copied by `symfunnel init --from {_toml_text(source)}` from {origin} ({sc.name}) on {day}.\n"
+            "# Edit it freely (docs/scenario.md lists every key). If you change the design it describes, a printed\n"
+            "# claim ([[claims]]) that no longer matches fails the gate: remove it or declare expect = \"fail\".\n")
+    return head + text, extra
 
 
 def _name(stem: str) -> str:
@@ -106,7 +158,7 @@ viscous = 0.5                     # N m s/rad
 coulomb = 0.2                     # N m
 mass_scale = 1.1                  # the true arm is 10 % heavier than the model
 
-[plant.dead_zone]                 # actuator dead zone (eq. 2 of the paper), N m
+[plant.dead_zone]                 # actuator dead zone: no torque between b_l and b_r, N m
 b_l = -0.3
 b_r = 0.3
 
@@ -120,11 +172,27 @@ def _fmt(x: float) -> str:
     return repr(round(float(x), 6))
 
 
-def scenario_from_urdf(urdf: str, out: Path, name: str) -> str:
-    """A scenario around a URDF's movable joints: gentle swings around mid-range, funnels containing e(0)."""
+def scenario_from_urdf(urdf: str, out: Path, name: str, joints: list[str] | None = None, say=None) -> str:
+    """A scenario around a URDF's movable joints: gentle swings around mid-range, funnels containing e(0). Mimic
+    joints (a gripper's second finger) are held fixed, and so is every joint not in `joints` when given."""
+    from ..core.errors import InputError
     from ..model.tree import bodies_from_tree
-    from ..model.urdf import parse_urdf
+    from ..model.urdf import mimic_joints, parse_urdf
+    say = say or (lambda s: None)
     tree = parse_urdf(urdf)
+    movable = [j.name for j in tree.joints if j.type in ("revolute", "continuous", "prismatic")]
+    fixed = list(mimic_joints(urdf))
+    if fixed:
+        say(f"holding the mimic joint(s) {', '.join(fixed)} fixed (a mimic joint follows another one and is not "
+            "controlled on its own)")
+    if joints is not None:
+        unknown = [j for j in joints if j not in movable]
+        if unknown:
+            raise InputError(f"names {', '.join(unknown)}, not a movable joint of the URDF", file=str(urdf),
+                             key="--joints", expected="names among " + ", ".join(movable))
+        fixed += [j for j in movable if j not in joints and j not in fixed]
+    if fixed:
+        tree = parse_urdf(urdf, fixed=fixed)
     bodies = bodies_from_tree(tree)
     n = len(bodies)
     rel = Path(os.path.relpath(Path(urdf).absolute(), out.absolute().parent)).as_posix()
@@ -146,7 +214,9 @@ def scenario_from_urdf(urdf: str, out: Path, name: str) -> str:
         joints.append(f"{_toml_text(j.name)} ({_toml_text(j.type)}, range [{lo:.4g}, {hi:.4g}])")
     ref = [(f"{_fmt(h)} + " if round(h, 6) != 0 else "") + f"{_fmt(a)}*sin({_fmt(0.5 + 0.1 * (i % 5))}*t)"
            for i, (h, a) in enumerate(zip(home, amp))]
-    phi0_e2 = _e2_funnel(Path(urdf).absolute().as_posix(), name, ref, q0, n)
+    phi0_e2 = _e2_funnel(Path(urdf).absolute().as_posix(), name, ref, q0, n, fixed)
+    fixed_line = (f"fixed_joints = {json.dumps(fixed)}   # held at 0: mimic joints and joints not controlled\n"
+                  if fixed else "")
     joint_lines = "\n".join(f"#   q{i + 1}: {s}" for i, s in enumerate(joints))
     ref_lines = ",\n     ".join(f'"{r}"' for r in ref)
     return f'''# A scenario written by `symfunnel init --urdf`: the funnel design on the movable joints of
@@ -163,7 +233,7 @@ title = "Funnel control of the {n}-joint robot {_toml_text(Path(urdf).name)} (sy
 type = "urdf"
 path = {json.dumps(rel)}   # relative to this file
 gravity = [0.0, 0.0, -9.81]       # m/s^2, in the base frame
-
+{fixed_line}
 [reference]
 # every joint swings gently around the middle of its range (rad or m; t in s)
 q = [{ref_lines}]
@@ -211,7 +281,7 @@ def _toml_text(s: str) -> str:
     return "".join(c if c.isprintable() and c not in '"\\' else "_" for c in s)
 
 
-def _e2_funnel(urdf: str, name: str, ref: list[str], q0: list[float], n: int) -> float:
+def _e2_funnel(urdf: str, name: str, ref: list[str], q0: list[float], n: int, fixed=()) -> float:
     """2 max|e2(0)| + 0.1 for this reference and initial state (e2(0) = dq(0) - alpha2(0), from the design)."""
     import tempfile
 
@@ -220,6 +290,7 @@ def _e2_funnel(urdf: str, name: str, ref: list[str], q0: list[float], n: int) ->
     from ..design import derive, evaluate
     from ..scenario import load_scenario
     probe = (f'name = "{name}"\n[model]\ntype = "urdf"\npath = {json.dumps(urdf)}\n'
+             + (f'fixed_joints = {json.dumps(list(fixed))}\n' if fixed else '') +
              f'[reference]\nq = [{", ".join(chr(34) + r + chr(34) for r in ref)}]\n'
              f'[initial]\nq = [{", ".join(_fmt(x) for x in q0)}]\n'
              '[funnel.e1]\nphi0 = 0.1\nphi_inf = 0.01\n[funnel.e2]\nphi0 = 1e6\n[esn]\nsize = 1\n')

@@ -45,8 +45,14 @@ def run(args) -> int:
     print(f"  P(breach)       {'-' if p is None else format(p, '.4g')}  (95% Clopper-Pearson: [{lo:.4g}, {hi:.4g}])")
     if s.get("worst"):
         w = s["worst"]
-        print(f"  worst run       {w['run']}: {w['status']}, min margin {w['min_margin']:.4g}; "
-              f"replay: symfunnel simulate {res.out / 'worst.toml'}")
+        pt = w.get("min_margin_after_transient")
+        print(f"  worst run       {w['run']}: {w['status']}, min margin after the transient "
+              f"{'-' if pt is None else format(pt, '.4g')} (t >= {w.get('settle_time') or 0:.3g} s; whole run "
+              f"{w['min_margin']:.4g}); replay: symfunnel simulate {res.out / 'worst.toml'}")
+    for key, label in (("min_margin_after_transient", "after transient"), ("min_margin", "whole run")):
+        q = s.get(key) or {}
+        if q:
+            print(f"  margin {label:<16} p01 {q['p01']:.5g}, median {q['median']:.5g}, p99 {q['p99']:.5g}")
     rps = s.get("runs_per_second")
     print(f"  throughput      {'-' if rps is None else format(rps, '.3g')} runs/s "
           f"(compile once: {s['compile_time']:.2f} s)")

@@ -19,10 +19,14 @@ def register(sub, common) -> None:
                                                        "change)")
     sp.add_argument("--json", action="store_true", help="machine-readable output")
     sp.add_argument("--wall-limit", type=float, default=240.0, metavar="S",
-                    help="stop the search after S seconds of wall time (default 240)")
+                    help="the whole command's wall time: the search stops at 80 %% of it, the rest is kept for the "
+                         "re-check of the rounded gains and verify's gate (default 240)")
     sp.add_argument("--t-final", type=float, metavar="T", help="horizon of each candidate's runs (default: the "
                                                              "scenario's)")
     sp.add_argument("--max-evals", type=int, metavar="K", help="stop the search after K candidate evaluations")
+    sp.add_argument("--method", choices=("auto", "gradient", "derivative-free"), default="auto",
+                    help="auto (default): IPOPT without [implementation] when a timed forward solve says it fits "
+                         "the wall-clock limit, else derivative-free")
     sp.set_defaults(func=run)
 
 
@@ -67,10 +71,11 @@ def run(args) -> int:
     sc = _load(args)
     say = _progress(args.quiet or args.json)
     with _stdout_to_stderr():
-        r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals)
+        r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals,
+                 method=args.method)
     if args.out is not None:
         from ..core.lifecycle import committing
-        text = dumps(r.tuned_raw)
+        text = r.tuned_text or dumps(r.tuned_raw)
         with committing(0 if r.status == "ok" else 1):      # the command's one file: from here on it has succeeded
             atomic_write(args.out, text)
     if args.json:
@@ -83,7 +88,7 @@ def run(args) -> int:
         print(f"  why: {r.why}")
         print(f"  objective {o['name']}: {fmt(o['before'])} -> {fmt(o['after'])}")
         for c in r.changes:
-            print(f"  {c['key']}: {c['before']:.6g} -> {c['after']:.6g}")
+            print(f"  {c['key']}: {c['before']:.6g} -> {c['after']:.4g}")
         cmp_ = r.comparison
         if cmp_:
             print(f"  {'':<22}{'original':>14}{'tuned':>14}")
@@ -109,5 +114,5 @@ def run(args) -> int:
         for n in r.notes:
             print(f"  note: {n}")
         if args.out is not None:
-            print(f"  wrote {args.out}")
+            print(f"  wrote {args.out} (the scenario's own file, comments kept, gains to 4 significant digits)")
     return 0 if r.status == "ok" else 1

@@ -25,13 +25,9 @@ def register(sub, common) -> None:
 
 
 def _mark(c) -> str:
-    """PASS/FAIL/WARN/SKIP, with the declaration when the outcome was expected to fail."""
-    mark = c.status.upper()
-    if c.expected == "fail":
-        mark += " (expected)" if c.status == "fail" else " (UNEXPECTED: declared to fail)"
-    elif c.status == "fail":
-        mark += " (UNEXPECTED)"
-    return mark
+    """The outcome against its declaration, labelled as in the report: FINDING (expected), FAIL (unexpected), ..."""
+    from ..checks.gate import verdict
+    return verdict(c)[0]
 
 
 def print_checks(checks, indent: str = "  ") -> None:
@@ -77,17 +73,24 @@ def run(args) -> int:
     if args.json:
         print(_dump(v.to_json()))
     else:
+        from ..checks.gate import counts_line, outcome_hint
         print(f"verification of scenario {sc.name} ({sc.file})")
-        print(f"  simulation: {v.result.status}: {v.result.message}")
+        vd = v.verdicts()
+        print(f"  continuous-time run: {vd['continuous']['status']}: {vd['continuous']['message']}")
+        if vd["sampled"] is not None:
+            print(f"  sampled run (deployed C step): {vd['sampled']['status']}: {vd['sampled']['message']}")
         if v.lyapunov is not None and sc.design.approximator != "none":
             info = v.lyapunov.w_star_info
-            print(f"  W* (never given by the paper): estimated along the trajectory, ||W*||_F = "
+            whence = "not given by the source" if sc.source else "the ideal weight"
+            print(f"  W* ({whence}): estimated along the trajectory, ||W*||_F = "
                   f"{info.get('norm', float('nan')):.4g}, rms residual eps = {info.get('rms_residual', float('nan')):.4g}")
         print_checks(v.checks)
-        count = {s: sum(c.status == s for c in v.checks) for s in ("pass", "fail", "warn", "skip")}
-        expected = sum(c.status == "fail" and c.expected == "fail" for c in v.checks)
-        print(f"{count['pass']} passed, {count['fail']} failed ({expected} expected), {count['warn']} warnings, "
-              f"{count['skip']} skipped")
+        print(counts_line(v.checks))
         print(f"gate: {v.status.upper()}" + (f" (unexpected: {', '.join(c.id for c in v.unexpected)})"
                                               if v.unexpected else " (every outcome as the scenario declares)"))
+        for c in v.unexpected:
+            h = outcome_hint(sc, c)
+            if h:
+                print(f"  hint: {h}")
     return 1 if v.unexpected else 0
+

@@ -15,10 +15,12 @@ class InputError(SymfunnelError):
     exit_code = 2
 
     def __init__(self, message: str, *, file: str | None = None, key: str | None = None,
-                 expected: str | None = None):
+                 expected: str | None = None, example: str | None = None):
         self.file = file
         self.key = key
         self.expected = expected
+        #: what to write instead (a few lines of TOML), printed by the CLI below the one-line message
+        self.example = example
         self.reason = message
         parts = []
         if file:
@@ -36,7 +38,7 @@ class InputError(SymfunnelError):
     def at(self, file: str | None = None, key: str | None = None) -> "InputError":
         """Return a copy located at `file` / `key` where this error did not know them yet."""
         return InputError(self.reason, file=self.file or file, key=self.key or key,
-                          expected=self.expected)
+                          expected=self.expected, example=self.example)
 
 
 class CheckFailed(SymfunnelError):

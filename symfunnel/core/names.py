@@ -84,3 +84,23 @@ def check_ids(n: int) -> list[str]:
     """Every non-claim check id for an n-joint scenario (what `[[expect]]` may name)."""
     joints = [f"funnel.containment.{e}.joint{j + 1}" for e in ("e1", "e2") for j in range(n)]
     return list(AUDIT_CHECKS) + list(VERIFY_CHECKS) + list(CERTIFY_CHECKS) + joints
+
+
+def joint_units(joint_types, n: int) -> list[dict]:
+    """Per joint, the units of its position error, velocity error and torque: rad, rad/s, N m for a revolute (or
+    unknown) joint; m, m/s, N for a prismatic one."""
+    types = list(joint_types or [])
+    out = []
+    for i in range(n):
+        pr = i < len(types) and types[i] == "prismatic"
+        out.append({"e1": "m" if pr else "rad", "e2": "m/s" if pr else "rad/s", "tau": "N" if pr else "N m"})
+    return out
+
+
+def unit_label(units: list[dict], key: str) -> str:
+    """One unit for a quantity over all joints ('N m'), or both when they differ ('N m | N')."""
+    seen = []
+    for u in units:
+        if u[key] not in seen:
+            seen.append(u[key])
+    return " | ".join(seen)

@@ -85,6 +85,20 @@ class SampledResult:
         return np.concatenate([self.margins, self.between_margins])
 
     @property
+    def min_margin_after_transient(self) -> float:
+        """The smallest true margin over the samples at t >= the settle time (`simulation.margins`), joints and both
+        funnels; at a breach the breach's margin wherever it happened; -inf when the run failed or ended before."""
+        if self.status == "failed":
+            return -math.inf
+        from ..simulation.margins import after_transient
+        mins, _ = after_transient(self.t, self.margins, float(self.stats.get("settle_time", 0.0)))
+        vals = [v for v in mins if v is not None]
+        m = min(vals) if vals else -math.inf
+        if self.breach is not None:
+            m = min(m, float(self.breach["margin"]))
+        return float(m)
+
+    @property
     def saturated_fraction(self) -> list[float] | None:
         """Per joint, the fraction of the run's time its torque sat at tau_max (None without a limit)."""
         if self.tau_max is None or self.tau.shape[0] == 0:
@@ -100,12 +114,22 @@ class SampledResult:
                 "t_end": float(self.t[-1]), "samples": int(self.tau.shape[0]),
                 "min_margin_e1": np.nanmin(m[:, :n], axis=0).tolist() if m.size else None,
                 "min_margin_e2": np.nanmin(m[:, n:], axis=0).tolist() if m.size else None,
+                **({} if not m.size else self._post_transient(n)),
                 "max_abs_tau": np.max(np.abs(self.tau), axis=0).tolist() if self.tau.size else None,
                 "tau_max": None if self.tau_max is None else list(self.tau_max),
                 "saturated_fraction": self.saturated_fraction, "breach": self.breach,
                 "wall_time": self.wall_time,
                 "realtime_factor": float(self.t[-1] / self.wall_time) if self.wall_time > 0 else None,
                 **self.stats}
+
+
+    def _post_transient(self, n: int) -> dict:
+        from ..simulation.margins import after_transient
+        ts = float(self.stats.get("settle_time", 0.0))
+        m1, t1 = after_transient(self.t, self.margins[:, :n], ts)
+        m2, t2 = after_transient(self.t, self.margins[:, n:], ts)
+        return {"min_margin_e1_after_transient": m1, "min_margin_e2_after_transient": m2,
+                "t_min_margin_e1_after_transient": t1, "t_min_margin_e2_after_transient": t2}
 
 
 class StepLibrary:
@@ -359,13 +383,13 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
                     "noise_q": impl.noise_q, "noise_dq": impl.noise_dq,
                     "encoder_resolution": impl.encoder_resolution,
                     "between_checked": "the true margins at every RK4 step of the plant between samples"},
-                   MB=MB, subs=subs, stop_on_breach=stop_on_breach)
+                   MB=MB, subs=subs, stop_on_breach=stop_on_breach, controller=controller, horizon=T)
 
 
 def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, MB=None, subs=None,
-            stop_on_breach: bool = True) -> SampledResult:
+            stop_on_breach: bool = True, controller=None, horizon: float | None = None) -> SampledResult:
     """The SampledResult of a loop that ended at sample k_end: true margins at the samples (and at the plant's steps
-    between them, MB, where the loop has them), breach, status."""
+    between them, MB, where the loop has them), breach with its hint, status, the settle time of the horizon."""
     n = sc.n
     if MB is None:
         MB = np.full((k_end, 2 * n), np.nan)
@@ -403,6 +427,26 @@ def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, MB
                   "margin": float(M[i, j])}
         status = "breach"
         message = f"left funnel {breach['funnel']} (joint {breach['joint']}) at t = {tt[i]:g} s"
+        from ..simulation.hints import breach_hint
+        from ..simulation.result import scenario_arg
+        st = {}
+        if isinstance(controller, StepLibrary):
+            st = {"x_esn": np.array(controller.x_esn), "w_hat": np.array(controller.w_hat)}
+        k = max(i - 1, 0)              # the last sample inside: the design's torque is not defined outside
+        what = breach["funnel"]
+        if impl.tau_max is not None and TAU.shape[0]:
+            sat = np.nonzero(np.any(np.abs(TAU[:i]) >= np.asarray(impl.tau_max) * (1 - 1e-12), axis=1))[0]
+            if sat.size:               # the torque saturated first: what it asked for there is the cause
+                k = int(sat[0])
+                what = f"{what} (after the torque saturated from t = {tt[k]:g} s)"
+                st = {}
+        breach["hint"] = breach_hint(design, t=float(tt[k]), q=Q[k], dq=DQ[k], funnel=what,
+                                     joint=breach["joint"], tau_max=impl.tau_max, sampled_rate=impl.rate_hz,
+                                     scenario_arg=scenario_arg(sc), **st)
+        message += f"; what to do: {breach['hint']}"
+    from ..simulation.margins import settle_time
+    ts, how = settle_time(design, float(horizon if horizon is not None else k_end * h), sc.simulation.settle_time)
+    stats = {**stats, "settle_time": ts, "settle_source": how}
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
                          stats, between_margins=MB)
 
@@ -450,7 +494,7 @@ def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, s
              "encoder_resolution": impl.encoder_resolution,
              "between_checked": "none: the engine's margins are checked at the samples only"}
     return _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats,
-                   stop_on_breach=stop_on_breach)
+                   stop_on_breach=stop_on_breach, controller=controller, horizon=K * h)
 
 
 def _engine_mass_scale(setup, run) -> list[float]:

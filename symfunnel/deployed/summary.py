@@ -51,7 +51,7 @@ def implementation_report(scenario: Scenario, design: Design, *, margin: float =
             "effort_limits": effort}
 
 
-def torque_figure(sampled, continuous=None, t_max: float | None = None):
+def torque_figure(sampled, continuous=None, t_max: float | None = None, units=None):
     """A matplotlib Figure per joint: the sampled run's held torque as stairs, the continuous run's torque over it."""
     import matplotlib
     matplotlib.use("Agg")
@@ -68,7 +68,7 @@ def torque_figure(sampled, continuous=None, t_max: float | None = None):
         if sampled.tau_max is not None:
             for s in (1, -1):
                 ax.axhline(s * sampled.tau_max[j], color="k", ls=":", lw=0.8)
-        ax.set_ylabel(f"tau{j + 1}")
+        ax.set_ylabel(f"tau{j + 1} [{units[j]['tau'] if units else 'N m'}]")
     axes[0, 0].legend(fontsize=7)
     axes[-1, 0].set_xlabel("t [s]")
     fig.tight_layout()

@@ -85,10 +85,23 @@ def generate(design: Design, lang: str, *, trajectory: dict[str, np.ndarray] | N
         doc = (f"Funnel controller of scenario '{sc.name}' ({sc.title}).\n\n"
                "See manifest.json for the functions, their inputs and outputs.")
         from .c import template
-        files = {BASENAME + ".py": emit_python(functions, module_doc=doc),
+        from .step import python_step_source, renamed, step_core, step_settings
+        rate_hz, tau_max = step_settings(design, rate_hz, tau_max)
+        extra = [renamed(design.reference, "reference"), step_core(design, tau_max, "step_core")]
+        doc += ("\n\nThe deployed controller: reference(t) -> (qd, dqd, ddqd), step_core (one period) and the class "
+                "Step (Step().step(t, q, dq) -> (rc, tau), the C step's semantics).")
+        files = {BASENAME + ".py": emit_python(functions + extra, module_doc=doc)
+                 + python_step_source(design, rate_hz, tau_max),
                  "run_trajectory.py": template("run_trajectory.py"),
                  "trajectory.txt": traj_txt}
     files["manifest.json"] = _manifest(design, functions, lang, files)
+    if lang == "python":
+        m = json.loads(files["manifest.json"])
+        m["python_api"] = {"step": {"class": "Step", "rate_hz": rate_hz,
+                                    "tau_max": None if tau_max is None else np.broadcast_to(
+                                        np.asarray(tau_max, float), (design.n,)).tolist()},
+                           "functions": ["reference", "step_core"]}
+        files["manifest.json"] = json.dumps(m, indent=2) + "\n"
     if lang == "c":
         m = json.loads(files["manifest.json"])
         m["c_api"].update({"source": base + ".c", "header": base + ".h", "function_prefix": prefix or "",

@@ -245,3 +245,82 @@ def step_settings(design, rate_hz=None, tau_max=None) -> tuple[float, object]:
     if tau_max is None and impl is not None:
         tau_max = impl.tau_max
     return float(rate_hz), tau_max
+
+
+def python_step_source(design, rate_hz: float, tau_max) -> str:
+    """Source of the numpy module's `Step` class (appended after the generated `reference` and `step_core`): the C
+    `Pstep` API's semantics in Python (same initial state, the same exponential-Euler weights of one period
+    1/rate_hz, saturation inside step_core, return code 0 inside both funnels, 1 outside, -2 non-finite input, -3
+    non-finite output), so the deployed loop can be prototyped without a compiler."""
+    sc = design.scenario
+    x0, w0 = step_initial(design)
+    x_esn, w_hat = step_states(design)
+    lam_x = sc.esn.leak / sc.esn.time_constant
+    lam_w = float(sc.gamma) * float(sc.sigma)
+    tm = ("None" if tau_max is None else
+          "[" + ", ".join(repr(float(v)) for v in np.broadcast_to(np.asarray(tau_max, float), (design.n,))) + "]")
+    return f'''
+
+#: the step's defaults: the rate its period is baked at in the C step, the torque limit (None: no saturation)
+RATE_HZ = {float(rate_hz)!r}
+TAU_MAX = {tm}
+N_JOINTS = {design.n}
+X_ESN0 = np.array([{_c_array(x0)}]).reshape({tuple(int(d) for d in x_esn.shape)!r})
+W_HAT0 = np.array([{_c_array(np.asarray(w0).reshape(-1, order="F"))}]).reshape({tuple(int(d) for d in w_hat.shape)!r}, order="F")
+_LAMBDA = ({lam_x!r}, {lam_w!r})       # linear decay rates of x_esn (leak/time constant) and W_hat (gamma sigma)
+
+
+def _etd(rate, h):
+    """(1 - exp(-rate h)) / rate, the exponential-Euler weight of a linear decay over h (h at rate 0)."""
+    return h if rate == 0.0 else -np.expm1(-rate * h) / rate
+
+
+class Step:
+    """The deployed controller's one period, as the generated C step (`Pinit`, `Pstep`): call `step(t, q, dq)`
+    once per period 1/rate_hz; it returns (rc, tau) with rc 0 inside both funnels, 1 outside (tau still finite),
+    -2 for a non-finite input, -3 for a non-finite result (the state is then left unchanged). The state is
+    x_esn, w_hat, margin (1 - |e|/F: e1 rows then e2 rows), qd, t and steps, as the C struct's. The rate only sets
+    the exponential-Euler weights (the C step bakes RATE_HZ); the torque limit is step_core's (TAU_MAX)."""
+
+    def __init__(self, rate_hz=RATE_HZ):
+        rate_hz = float(rate_hz)
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"rate_hz must be a number > 0, got {{rate_hz!r}}")
+        self.rate_hz = rate_hz
+        self.etd = np.array([_etd(_LAMBDA[0], 1.0 / rate_hz), _etd(_LAMBDA[1], 1.0 / rate_hz)])
+        self.init()
+
+    def init(self):
+        """The scenario's initial controller state (Pinit); returns 0."""
+        self.x_esn = X_ESN0.copy()
+        self.w_hat = W_HAT0.copy()
+        self.margin = np.ones(2 * N_JOINTS)
+        self.qd = np.zeros(N_JOINTS)
+        self.t = 0.0
+        self.steps = 0
+        return 0
+
+    def step(self, t, q, dq):
+        """One period at time t [s] from the measured q, dq: (rc, tau) as Pstep."""
+        q = np.asarray(q, dtype=float).reshape(N_JOINTS)
+        dq = np.asarray(dq, dtype=float).reshape(N_JOINTS)
+        if not (np.isfinite(t) and np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
+            return -2, np.full(N_JOINTS, np.nan)
+        tau, x_next, w_next, margin, qd = step_core(t, q, dq, self.x_esn, self.w_hat, self.etd)
+        tau, x_next, w_next = (np.asarray(a, dtype=float) for a in (tau, x_next, w_next))
+        if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(x_next)) and np.all(np.isfinite(w_next))):
+            return -3, np.full(N_JOINTS, np.nan)
+        margin = np.asarray(margin, dtype=float).reshape(-1)
+        rc = 0 if np.all(margin > 0.0) else 1
+        self.x_esn = x_next.reshape(self.x_esn.shape)
+        self.w_hat = w_next.reshape(self.w_hat.shape)
+        self.margin = margin
+        self.qd = np.asarray(qd, dtype=float).reshape(-1)
+        self.t = float(t)
+        self.steps += 1
+        return rc, tau.reshape(-1)
+
+
+#: the name the C API uses for it
+step = Step
+'''

@@ -15,7 +15,7 @@ from .rigid import build_model
 from .tree import (MOVABLE, Joint, Link, Tree, bodies_from_tree, check_inertia, check_mass, get_coordinates,
                    get_joint_range, get_vector, rpy_matrix)
 
-KEYS = ("type", "path", "coordinates", "gravity", "joint_range")
+KEYS = ("type", "path", "coordinates", "gravity", "joint_range", "fixed_joints")
 JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed")
 
 
@@ -28,7 +28,18 @@ def build_urdf(table: dict, *, file: str, base_dir: pathlib.Path, prefix: str = 
         raise InputError(f"URDF file '{path}' does not exist", file=file, key=join(prefix, "path"),
                          expected="a path to a URDF file, relative to the scenario file's directory")
     gravity = get_vector(table, "gravity", (0.0, 0.0, -9.81), file=file, prefix=prefix)
+    fixed = table.get("fixed_joints", [])
+    if not (isinstance(fixed, list) and all(isinstance(x, str) for x in fixed)):
+        raise InputError("is not a list of joint names", file=file, key=join(prefix, "fixed_joints"),
+                         expected='joint names of the URDF, e.g. ["finger_joint2"]')
     tree = parse_urdf(path)
+    movable = [j.name for j in tree.joints if j.type in MOVABLE]
+    for i, x in enumerate(fixed):
+        if x not in movable:
+            raise InputError(f"is '{x}', not a movable joint of the URDF{did_you_mean(x, movable)}", file=file,
+                             key=join(prefix, f"fixed_joints[{i}]"), expected="one of " + ", ".join(movable))
+    if fixed:
+        tree = parse_urdf(path, fixed=fixed)
     n = len(movable_joint_names(tree))
     coordinates = get_coordinates(table, n, file=file, prefix=prefix)
     joint_range = get_joint_range(table, n, file=file, prefix=prefix)
@@ -40,8 +51,19 @@ def movable_joint_names(tree: Tree) -> list[str]:
     return [b.joint.name for b in bodies_from_tree(tree)]
 
 
-def parse_urdf(path: str | pathlib.Path) -> Tree:
-    """Read a URDF file into a Tree, checking every element the dynamics use; visuals and meshes are ignored."""
+def mimic_joints(path: str | pathlib.Path) -> list[str]:
+    """The names of a URDF's joints that carry a <mimic> element (they follow another joint)."""
+    from ..core.inputs import read_input
+    try:
+        root = ET.fromstring(read_input(pathlib.Path(path), expected="a URDF file"))
+    except ET.ParseError:
+        return []
+    return [el.get("name", "") for el in root.findall("joint") if el.find("mimic") is not None]
+
+
+def parse_urdf(path: str | pathlib.Path, fixed=()) -> Tree:
+    """Read a URDF file into a Tree, checking every element the dynamics use; visuals and meshes are ignored.
+    The joints named in `fixed` are held at their zero position (made fixed joints)."""
     path = pathlib.Path(path)
     file = str(path)
     from ..core.inputs import read_input
@@ -70,6 +92,9 @@ def parse_urdf(path: str | pathlib.Path) -> Tree:
             raise InputError(f"joint '{j.name}' is defined twice", file=file, key=j.where,
                              expected="distinct joint names")
         names.add(j.name)
+        if j.name in fixed:
+            import dataclasses
+            j = dataclasses.replace(j, type="fixed")
         joints.append(j)
     if not links:
         raise InputError("has no <link>", file=file, key="robot", expected="a URDF with links and joints")

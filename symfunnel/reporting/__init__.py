@@ -47,9 +47,11 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
     t0 = time.perf_counter()
     ctx["simulation"] = S.simulation_section(verification, say, figures_dir=figures_dir)
     timings.append(("report: figures (matplotlib -> SVG)", time.perf_counter() - t0))
-    ctx["verification"] = S.verification_section(verification)
     from .certify import certify_section
     ctx["certify"] = certify_section(run, say)
+    # each check once: the certificates have their own table
+    shown = [c.id for c in audit_results] + [r["id"] for r in ctx["certify"].get("rows", [])]
+    ctx["verification"] = S.verification_section(verification, shown=shown)
     t0 = time.perf_counter()
     ctx["tuning"] = S.tuning_section(run, say, figures_dir=figures_dir)
     if ctx["tuning"]["available"]:
@@ -65,18 +67,28 @@ def render_report(run, *, codegen: bool = True, mutants: bool = True, deployed: 
         t0 = time.perf_counter()
         ctx[key] = section(run, say)
         timings.append((label, time.perf_counter() - t0))
+    from ..checks.gate import counts_line, outcome_hint, verdict
     from .engine import engine_section
     ctx["engine"] = engine_section(run, say) if deployed else {"available": False, "reason": "deployed=False"}
     checks = verification.checks
     guarantee = next((c for c in checks if c.id == "lyapunov.guarantee"), None)
+    g_label, g_css = verdict(guarantee) if guarantee else ("SKIP", "skip")
+    vd = verification.verdicts()
+    unexpected = []
+    for c in verification.unexpected:
+        row = S.check_row(c)
+        row["hint"] = outcome_hint(scenario, c)
+        unexpected.append(row)
     ctx["overview"] = {
-        "gate": verification.status, "unexpected": verification.unexpected,
+        "gate": verification.status, "unexpected": unexpected, "counts_line": counts_line(checks),
         "findings": [c for c in checks if c.expected == "fail" and c.status == "fail"],
-        "guarantee": {"status": guarantee.status if guarantee else "skip",
+        "guarantee": {"status": guarantee.status if guarantee else "skip", "label": g_label, "css": g_css,
                       "detail": guarantee.detail if guarantee else "not evaluated"},
         "mutation": None,
-        "sim_status": verification.result.status, "sim_message": verification.result.message,
+        "sim_status": vd["continuous"]["status"], "sim_message": vd["continuous"]["message"],
+        "sampled": vd["sampled"], "hints": S.run_hints(run),
     }
+    ctx["omitted"] = [f"{k}: {ctx[k]['reason']}" for k in ("deployed", "codegen") if not ctx[k]["available"]]
     if mutants:
         t0 = time.perf_counter()
         say("mutation testing: the design's seeded errors through the same gate")

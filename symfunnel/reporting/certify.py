@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..checks.gate import verdict
 from .text import fmt
 
 _SUMMARY = {"certify.input_gain": "input gain sym(M_p^-1 D M) > 0", "certify.bounds": "bounds of mu2, tau (and eps)",
@@ -43,7 +44,9 @@ def certify_section(run, progress=None) -> dict:
                      "seconds": f"{c.seconds:.1f}", "fraction": f"{c.undecided_fraction:.3g}",
                      "detail": c.detail, "method": c.method, "region": _short(c.region),
                      "counterexample": _short(c.counterexample) if c.counterexample else "",
-                     "expected": ck.expected if ck else "pass", "reason": ck.reason if ck else ""})
+                     "expected": ck.expected if ck else "pass", "reason": ck.reason if ck else "",
+                     # the gate's verdict label, as every other table of the report shows it
+                     **dict(zip(("label", "css"), verdict(ck) if ck else (c.status.upper(), "skip")))})
         lines[c.status].append(f"{_SUMMARY.get(c.id, c.id)} ({c.id})")
     overview = {k: "; ".join(v) if v else "nothing" for k, v in lines.items()}
     return {"available": True, "rows": rows, "overview": overview, "seconds": f"{cert.seconds:.1f}"}

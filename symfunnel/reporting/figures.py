@@ -121,14 +121,14 @@ def _with_rc(fn):
 
 
 @_with_rc
-def tracking(res, n: int) -> str:
+def tracking(res, n: int, units=None) -> str:
     """Joint positions against the reference."""
     fig, axes = _joint_axes(n, "Joint tracking: q_i(t) against the reference q_d,i(t)")
     for j, ax in enumerate(axes):
         t, q, qd = _decimate(res.t, res.signals["q"][:, j], res.signals["qd"][:, j])
         ax.plot(t, qd, "k--", lw=1, label="reference q_d")
         ax.plot(t, q, color="C0", label="q")
-        ax.set_ylabel(f"joint {j + 1} [rad]")
+        ax.set_ylabel(f"joint {j + 1} [{units[j]['e1'] if units else 'rad'}]")
         _mark_end(ax, res)
     _legend_outside(axes[0], fontsize=8)
     axes[-1].set_xlabel("t [s]")
@@ -136,7 +136,7 @@ def tracking(res, n: int) -> str:
 
 
 @_with_rc
-def funnel(res, n: int, key: str) -> str:
+def funnel(res, n: int, key: str, units=None) -> str:
     """e_i inside +-F_i."""
     Fk = "F" + key[1]
     fig, axes = _joint_axes(n, f"Funnel {key}: {key}(t) inside \u00b1{Fk}(t)")
@@ -146,7 +146,7 @@ def funnel(res, n: int, key: str) -> str:
         ax.plot(t, F, color="C2", lw=0.8)
         ax.plot(t, -F, color="C2", lw=0.8)
         ax.plot(t, e, color="C0", label=key)
-        ax.set_ylabel(f"joint {j + 1}")
+        ax.set_ylabel(f"joint {j + 1} [{units[j][key] if units else ('rad' if key == 'e1' else 'rad/s')}]")
         _mark_end(ax, res)
         b = res.breach or {}
         if b.get("funnel") == key and b.get("joint") == j + 1:
@@ -175,7 +175,7 @@ def z_signals(res, n: int) -> str:
 
 
 @_with_rc
-def torque(res, n: int, dead_zone=None) -> str:
+def torque(res, n: int, dead_zone=None, units=None) -> str:
     """Commanded torque against the torque the dead zone lets through."""
     fig, axes = _joint_axes(n, "Torque: commanded \u03c4 against applied D(\u03c4) through the unknown dead zone")
     for j, ax in enumerate(axes):
@@ -184,7 +184,7 @@ def torque(res, n: int, dead_zone=None) -> str:
         ax.plot(t, ta, color="C3", lw=1, alpha=0.8, label="applied D(\u03c4)")
         if dead_zone is not None:
             ax.axhspan(dead_zone.b_l[j], dead_zone.b_r[j], color="0.5", alpha=0.15, lw=0, label="dead band")
-        ax.set_ylabel(f"joint {j + 1} [N m]")
+        ax.set_ylabel(f"joint {j + 1} [{units[j]['tau'] if units else 'N m'}]")
         both = np.concatenate([np.ravel(tau), np.ravel(ta)])
         both = both[np.isfinite(both)]
         if both.size:
@@ -243,16 +243,17 @@ def weights(res, W_star=None) -> str:
 
 
 @_with_rc
-def lyapunov_bound(L, res) -> str:
-    """V(t) with the integrated bounds (corrected and paper)."""
+def lyapunov_bound(L, res, claim: str | None = None) -> str:
+    """V(t) with the integrated bound (and a printed decay claim's, when the scenario has one)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(8.0, 3.2))
     t, V, B, Bp = _decimate(L.t, L.V, L.bound, L.bound_paper)
     ax.semilogy(t, V, color="C0", lw=1.5, label="V(t) (exact, with fitted W*)")
     ax.semilogy(t, B, color="C2", ls="--",
                 label=f"corrected bound, \u03c1 = {L.rho_const:.3g}, \u03b4 = {L.delta_max:.3g}")
-    ax.semilogy(t, Bp, color="C3", ls=":",
-                label=f"paper's bound, \u03c1 = {L.rho_paper_const:.3g}, \u03b4 = {L.delta_paper_const:.3g}")
+    if claim and np.isfinite(L.rho_paper_const) and np.isfinite(L.delta_paper_const) and np.isfinite(Bp).any():
+        ax.semilogy(t, Bp, color="C3", ls=":", label=f"bound of the printed claim {claim}, \u03c1 = "
+                    f"{L.rho_paper_const:.3g}, \u03b4 = {L.delta_paper_const:.3g}")
     ax.set_title("Lyapunov function V(t) and V(0)e^(-\u03c1t) + (\u03b4/\u03c1)(1 - e^(-\u03c1t))", fontsize=10)
     ax.set_xlabel("t [s]")
     _legend_outside(ax, fontsize=8)
@@ -261,18 +262,20 @@ def lyapunov_bound(L, res) -> str:
 
 
 @_with_rc
-def lyapunov_decay(L, res) -> str:
-    """V_dot (exact, by AD) against -rho V + delta, both versions; violations of the paper's marked."""
+def lyapunov_decay(L, res, claim: str | None = None) -> str:
+    """V_dot (exact, by AD) against -rho V + delta (and a printed decay claim's, with its violations marked)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(8.0, 3.4))
     rc, rp = L.rhs("corrected"), L.rhs("paper")
     t, Vd, RC, RP = _decimate(L.t, L.V_dot, rc, rp)
     ax.plot(t, RC, color="C2", lw=1, label="-\u03c1V + \u03b4 (corrected, eq. 8)")
-    ax.plot(t, RP, color="C3", lw=1, ls=":", label="-\u03c1V + \u03b4 (Theorem 1 as printed)")
+    printed = bool(claim) and np.isfinite(rp).any()
+    if printed:
+        ax.plot(t, RP, color="C3", lw=1, ls=":", label=f"-\u03c1V + \u03b4 (printed claim {claim})")
     ax.plot(t, Vd, color="C0", lw=1, label="dV/dt (exact, AD along the flow)")
-    bad = np.isfinite(L.V_dot) & (L.V_dot > rp)
-    if bad.any():
-        ax.plot(L.t[bad], L.V_dot[bad], "x", color="crimson", ms=6, label="paper's claim violated")
+    bad = np.isfinite(L.V_dot) & np.isfinite(rp) & (L.V_dot > np.where(np.isfinite(rp), rp, np.inf))
+    if printed and bad.any():
+        ax.plot(L.t[bad], L.V_dot[bad], "x", color="crimson", ms=6, label=f"{claim} violated")
     bad_c = np.isfinite(L.V_dot) & (L.V_dot > rc)
     if bad_c.any():
         ax.plot(L.t[bad_c], L.V_dot[bad_c], "o", mfc="none", color="crimson", ms=7,
@@ -286,7 +289,7 @@ def lyapunov_decay(L, res) -> str:
 
 
 @_with_rc
-def falsification(fz, bins: int = 40) -> str:
+def falsification(fz, bins: int = 40, claim: str | None = None) -> str:
     """Sampled states binned by t: fraction violating the decay inequality, and the worst relative margin per bin."""
     plt = _plt()
     a = fz["arrays"]
@@ -296,7 +299,10 @@ def falsification(fz, bins: int = 40) -> str:
     idx = np.clip(np.digitize(t, edges) - 1, 0, bins - 1)
     mids = 0.5 * (edges[1:] + edges[:-1])
     fig, axes = plt.subplots(2, 1, figsize=(8.0, 4.4), sharex=True)
-    for key, label, color in (("rhs_paper", "Theorem 1 as printed", "C3"), ("rhs", "corrected (eq. 8)", "C2")):
+    versions = [("rhs", "corrected (eq. 8)", "C2")]
+    if claim and np.isfinite(np.asarray(a["rhs_paper"], float)).any():
+        versions.insert(0, ("rhs_paper", f"printed claim {claim}", "C3"))
+    for key, label, color in versions:
         m = np.asarray(a[key], float) - np.asarray(a["V_dot"], float)
         with np.errstate(invalid="ignore"):
             rel = m / np.maximum(np.abs(a[key]) + np.abs(a["V_dot"]), 1e-300)

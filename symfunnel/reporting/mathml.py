@@ -79,7 +79,9 @@ def symbol_mathml(name: str) -> str:
 # widths (em) formulas are laid out to: the page, a table's formula row, one side of the alpha2_dot panel. The
 # estimate of formula.width is an upper bound (rendered/estimated <= 0.87 in Chromium on paper, arm7 and a URDF
 # robot), so these fit a 1024-px window (tests/test_report_layout.py measures it).
-WIDTH_PAGE, WIDTH_TABLE, WIDTH_PANEL = 50.0, 50.0, 24.0
+WIDTH_PAGE, WIDTH_TABLE = 50.0, 50.0
+#: the formula column of the signals table (about 60 % of the page) and of the claims table (about 40 %)
+WIDTH_SIGNAL, WIDTH_CLAIM = 30.0, 20.0
 
 
 MAX_LINES = 12                 # a formula needing more lines than this (parts included) is shown by its size only

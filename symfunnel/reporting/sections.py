@@ -10,14 +10,16 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ..core.names import compress_names
+from ..core.names import compress_names, joint_units, unit_label
 from . import figures as FIG
 from . import formula as FM
 from .mathml import (
     DOT,
     FORMULA_MAX_CHARS,
     FORMULA_MAX_OPS,
-    WIDTH_PANEL,
+    WIDTH_CLAIM,
+    WIDTH_PAGE,
+    WIDTH_SIGNAL,
     WIDTH_TABLE,
     claim_sympy,
     formula_html,
@@ -54,7 +56,7 @@ def funnel_text(shape, n: int) -> str:
 
 
 def scenario_section(sc) -> dict:
-    """The scenario and its deviations from the paper."""
+    """The scenario and (when it lists them) its deviations from its source."""
     f1, f2 = sc.funnels["e1"], sc.funnels["e2"]
     pl = sc.plant
     params = [
@@ -81,7 +83,8 @@ def scenario_section(sc) -> dict:
                        f"smoothing width {sc.simulation.smoothing_width:g}"),
     ]
     return {"name": sc.name, "title": sc.title, "source": sc.source, "description": sc.description,
-            "file": sc.file, "file_shown": file_shown(sc), "params": params, "deviations": sc.deviations}
+            "file": sc.file, "file_shown": file_shown(sc), "params": params, "deviations": sc.deviations,
+            "origin": "the source" if sc.source else "the scenario"}
 
 
 def file_shown(sc) -> str:
@@ -118,8 +121,18 @@ def model_section(sc, audit_results) -> dict:
         except Exception:  # noqa: BLE001 - a large model is shown by its size
             from ..design import count_ops
             eqs.append({"name": name, "mathml": None, "ops": count_ops(ca.Function("f", ins, [X]))})
-    checks = [c for c in audit_results if not c.id.startswith("claim.")]
+    checks = [check_row(c) for c in audit_results if not c.id.startswith("claim.")]
     return {"equations": eqs, "checks": checks}
+
+
+def check_row(c) -> dict:
+    """A check as every table of the report shows it: the verdict against the declaration (label and style, as
+    in the overview and in `symfunnel verify`), margin, where, detail, method and the declared reason."""
+    from ..checks.gate import verdict
+    label, css = verdict(c)
+    return {"id": c.id, "status": c.status, "expected": c.expected, "label": label, "css": css, "detail": c.detail,
+            "method": c.method, "margin": fmt(c.margin), "where": where_text(c.where), "reason": c.reason,
+            "row": {"finding": "finding-row", "fail": "fail-row"}.get(css, "")}
 
 
 SIGNAL_ORDER = ("F1", "dF1", "e1", "de1", "zeta1", "z1", "mu1", "alpha2", "alpha2_dot", "z1_dot", "e2", "zeta2", "z2",
@@ -145,11 +158,13 @@ def derivation_section(design, audit_results, progress) -> dict:
                "shape": f"{e.shape[0]}\u00d7{e.shape[1]}", "ops_raw": raw, "ops_cse": cse,
                "free": compress_names(design.free_symbols(k)), "mathml": None, "note": ""}
         # one entry (joint 1) is shown whatever n is: its size, not the vector's, decides
-        if k not in ("Phi",) and count_ops(ca.Function("e1", syms, [e[0]])) <= 4 * FORMULA_MAX_OPS:
+        if k in ("alpha2", "alpha2_dot"):
+            row["note"] = "entry of joint 1 below (The exact \u03b1\u0307\u2082)"
+        elif k not in ("Phi",) and count_ops(ca.Function("e1", syms, [e[0]])) <= 4 * FORMULA_MAX_OPS:
             try:
                 s = signal_sympy(design, k, 0)
                 if sympy.count_ops(s) <= FORMULA_MAX_OPS:
-                    mm = formula_html(symbol_mathml(k), s, WIDTH_TABLE)
+                    mm = formula_html(symbol_mathml(k), s, WIDTH_SIGNAL)
                     if mm is not None and len(mm) <= FORMULA_MAX_CHARS:
                         row["mathml"] = mm
                         row["note"] = "entry of joint 1 (the other joints alike)" if e.numel() > 1 else ""
@@ -158,10 +173,9 @@ def derivation_section(design, audit_results, progress) -> dict:
         if row["mathml"] is None and not row["note"]:
             row["note"] = "too large to read as a formula: size only"
         rows.append(row)
-    progress("derivation: exact alpha2_dot beside the printed equations")
-    # alpha2_dot panel: the exact derivative (cse form) beside the paper's printed alpha2 (eq. 26) and z1_dot (eq. 21)
-    panel = {"alpha2": None, "alpha2_dot": None, "alpha2_dot_cse": [], "ops": design.ops("alpha2_dot"),
-             "claims": []}
+    progress("derivation: the exact alpha2_dot")
+    # the exact derivative (cse form), laid out to the page; the printed claims are the claims table, once
+    panel = {"alpha2": None, "alpha2_dot": None, "alpha2_dot_cse": [], "ops": design.ops("alpha2_dot")}
     try:
         a2 = signal_sympy(design, "alpha2", 0)
         panel["alpha2"] = panel_formula("<msub><mi>&#945;</mi><mn>2,1</mn></msub>", a2)
@@ -176,13 +190,12 @@ def derivation_section(design, audit_results, progress) -> dict:
     except Exception as exc:  # noqa: BLE001
         panel["error"] = f"{type(exc).__name__}: {exc}"
     claims = claims_rows(design, audit_results)
-    panel["claims"] = [c for c in claims if c["signal"] in ("alpha2", "z1_dot")]
     return {"signals": rows, "alpha2": panel, "claims": claims}
 
 
 def panel_formula(lhs: str, expr) -> str:
-    """A formula of the alpha2_dot panel laid out to the panel's width (never dropped: it is the key result)."""
-    h = formula_html(lhs, expr, WIDTH_PANEL, max_lines=10 ** 6)
+    """A formula of the exact alpha2_dot laid out to the page (never dropped: it is the key result)."""
+    h = formula_html(lhs, expr, WIDTH_PAGE, max_lines=10 ** 6)
     if h is None:
         raise ValueError("too large to lay out")
     return h
@@ -195,7 +208,7 @@ def claims_rows(design, audit_results) -> list[dict]:
     for cl in design.scenario.claims:
         r = by_id.get(f"claim.{cl.name}")
         row = {"name": cl.name, "source": cl.source, "description": cl.description, "signal": cl.signal,
-               "kind": cl.kind, "mathml": None, "text": "", "check": r}
+               "kind": cl.kind, "mathml": None, "text": "", "check": check_row(r) if r is not None else None}
         if cl.kind == "funnel":
             row["text"] = f"F(t) = {funnel_text(cl.spec, design.n)} for {cl.funnel}"
             row["signal"] = f"funnel {cl.funnel}"
@@ -209,7 +222,7 @@ def claims_rows(design, audit_results) -> list[dict]:
             row["text"] = cl.expression.text
             try:
                 s = claim_sympy(cl)
-                row["mathml"] = formula_html(symbol_mathml(cl.signal), s, WIDTH_PANEL)
+                row["mathml"] = formula_html(symbol_mathml(cl.signal), s, WIDTH_CLAIM)
             except Exception:  # noqa: BLE001 - shown as text
                 row["mathml"] = None
         out.append(row)
@@ -224,13 +237,18 @@ PAPER_FIGURES = {"tracking": (6, "Output tracking"), "esn": (7, "Friction compen
                  "torque": (8, "Control signals")}
 
 
-def figure_caption(fid: str, caption: str, scenario_name: str) -> str:
-    """A figure's caption with the paper figure it reproduces (the paper scenario) or corresponds to (any other)."""
-    if fid in PAPER_FIGURES:
+def cites_paper(sc) -> bool:
+    """Whether a scenario's `source` is the paper whose Section 4 figures the report's figures correspond to."""
+    return bool(sc.source) and PAPER_TITLE.lower() in sc.source.lower()
+
+
+def figure_caption(fid: str, caption: str, sc) -> str:
+    """A figure's caption, with the figure of the paper it reproduces when the scenario's source is that paper."""
+    if fid in PAPER_FIGURES and cites_paper(sc):
         num, title = PAPER_FIGURES[fid]
-        verb = "Reproduces" if scenario_name == "paper" else "Corresponds to"
-        return f"{caption}. {verb} Figure {num} (\u201c{title}\u201d) of the paper \u201c{PAPER_TITLE}\u201d."
-    return f"{caption}. Not in the paper (symfunnel's own evidence)."
+        verb = "Reproduces" if sc.name == "paper" else "Corresponds to"
+        return f"{caption}. {verb} Figure {num} (\u201c{title}\u201d) of the source."
+    return f"{caption}."
 
 
 def simulation_section(v, progress, figures_dir=None) -> dict:
@@ -240,22 +258,24 @@ def simulation_section(v, progress, figures_dir=None) -> dict:
     n = v.design.n
     L = v.lyapunov
     figs = []
+    units = joint_units(sc.model.joint_types, n)
+    claim = decay_claim(sc)
 
     def add(fid, caption, fn, *args):
         stem = f"fig{len(figs) + 1:02d}-{fid}"
         svg = fn(*args, export_to=(figures_dir, stem) if figures_dir is not None else None)
-        figs.append((fid, figure_caption(fid, caption, sc.name), svg))
+        figs.append((fid, figure_caption(fid, caption, sc), svg))
 
     if res.t.size >= 2:
         progress("figures: tracking, funnels, z, torque")
-        add("tracking", "Joint tracking against the reference", FIG.tracking, res, n)
-        add("funnel-e1", "e1 inside \u00b1F1", FIG.funnel, res, n, "e1")
+        add("tracking", "Joint tracking against the reference", FIG.tracking, res, n, units)
+        add("funnel-e1", "e1 inside \u00b1F1", FIG.funnel, res, n, "e1", units)
         add("funnel-margin", "|e|/F on a log scale: containment in both funnels at every scale",
             FIG.funnel_margin, res, n)
-        add("funnel-e2", "e2 inside \u00b1F2", FIG.funnel, res, n, "e2")
+        add("funnel-e2", "e2 inside \u00b1F2", FIG.funnel, res, n, "e2", units)
         add("z", "Transformed errors z1, z2", FIG.z_signals, res, n)
-        add("torque", "Commanded against applied torque through the dead zone", FIG.torque, res, n,
-            sc.plant.dead_zone)
+        add("torque", "Commanded against applied torque" + (" through the dead zone" if sc.plant.dead_zone else ""),
+            FIG.torque, res, n, sc.plant.dead_zone, units)
         progress("figures: ESN, weights, Lyapunov")
         fit = None
         if L is not None and v.design.n_regressor:
@@ -267,10 +287,10 @@ def simulation_section(v, progress, figures_dir=None) -> dict:
         if "x_esn" in res.signals:
             add("reservoir", "Reservoir state", FIG.reservoir, res, sc.esn.leak)
         if L is not None and np.isfinite(L.V).sum() >= 2:
-            add("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound, L, res)
-            add("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay, L, res)
+            add("lyapunov-bound", "V(t) with its bound", FIG.lyapunov_bound, L, res, claim)
+            add("lyapunov-decay", "dV/dt against -\u03c1V + \u03b4", FIG.lyapunov_decay, L, res, claim)
     if v.falsification is not None:
-        add("falsification", "Falsification over sampled states", FIG.falsification, v.falsification)
+        add("falsification", "Falsification over sampled states", FIG.falsification, v.falsification, 40, claim)
     summ = res.summary()
     stats = [("status", res.status), ("message", res.message),
              ("simulated", f"{summ.get('t_end', 0):g} of {summ.get('t_final') or 0:g} s, {summ.get('points')} output points"),
@@ -278,23 +298,38 @@ def simulation_section(v, progress, figures_dir=None) -> dict:
                             f"rhs evaluations {summ.get('rhs_evaluations')}"),
              ("non-smooth terms", summ.get("non_smooth_treatment")),
              ("wall time", f"{fmt(summ.get('wall_time'))} s (real-time factor {fmt(summ.get('realtime_factor'))})"),
-             ("min margin e1 / e2 per joint", f"{fmt(summ.get('min_margin_e1'))} / {fmt(summ.get('min_margin_e2'))}"),
-             ("max |tau| / |D(tau)| per joint", f"{fmt(summ.get('max_abs_tau'))} / {fmt(summ.get('max_abs_tau_applied'))}"),
+             ("min margin 1 - |e|/F of e1 / e2 per joint, whole run",
+              f"{fmt(summ.get('min_margin_e1'))} / {fmt(summ.get('min_margin_e2'))}"),
+             (f"min margin of e1 / e2 per joint after the transient (t \u2265 {fmt(summ.get('settle_time'))} s, "
+              f"{summ.get('settle_source', '')})",
+              f"{fmt(summ.get('min_margin_e1_after_transient'))} / {fmt(summ.get('min_margin_e2_after_transient'))} "
+              f"(at t = {fmt(summ.get('t_min_margin_e1_after_transient'))} / "
+              f"{fmt(summ.get('t_min_margin_e2_after_transient'))} s)"),
+             (f"max |tau| / |D(tau)| per joint [{unit_label(units, 'tau')}]",
+              f"{fmt(summ.get('max_abs_tau'))} / {fmt(summ.get('max_abs_tau_applied'))}"),
              ("rms ESN error / rms f_true", f"{fmt(summ.get('rms_esn_error'))} / {fmt(summ.get('rms_f_true'))}")]
     return {"figures": figs, "stats": stats, "status": res.status, "breach": res.breach}
 
 
-def verification_section(v) -> dict:
-    """The checks table, W* and rho/delta, falsification summary."""
-    rows = []
-    for c in v.checks:
-        rows.append({"id": c.id, "status": c.status, "detail": c.detail, "method": c.method,
-                     "margin": fmt(c.margin), "where": where_text(c.where), "expected": c.expected})
+def decay_claim(sc) -> str | None:
+    """The id of the scenario's printed decay claim (whose rho, delta the Lyapunov stage evaluates), if any."""
+    c = next((c for c in sc.claims if c.kind == "decay"), None)
+    return f"claim.{c.name}" if c is not None else None
+
+
+def verification_section(v, shown=()) -> dict:
+    """verify's own checks (those not already in the audit's and the claims' tables: `shown`), W* and rho/delta,
+    falsification summary; the counts are over every check, as `symfunnel verify` prints them."""
+    from ..checks.gate import counts, counts_line
+    shown = set(shown)
+    rows = [check_row(c) for c in v.checks if c.id not in shown]
     L = v.lyapunov
     info = None
+    claim = decay_claim(v.scenario)
     if L is not None:
         wi = L.w_star_info
-        info = [("W* (never given by the paper)", wi.get("method", "")),
+        info = [("W* (estimated; not given by the source)" if v.scenario.source else "W* (estimated)",
+                 wi.get("method", "")),
                 ("||W*||_F", fmt(wi.get("norm"))),
                 ("rms eps = f_true - W*^T Phi (rms f_true)", f"{fmt(wi.get('rms_residual'))} ({fmt(wi.get('rms_f_true'))})"),
                 ("plain least squares, for comparison", f"||W||_F = {fmt(wi.get('plain_ls_norm'))}, rms residual "
@@ -303,8 +338,9 @@ def verification_section(v) -> dict:
                  f"{fmt(L.rho_const)} / {fmt(L.rho_const_lower)}"),
                 ("corrected: delta_max (max over trajectory), ultimate bound delta/rho",
                  f"{fmt(L.delta_max)}, {fmt(L.delta_max / L.rho_const if L.rho_const else None)}"),
-                ("printed decay claim: rho (min over trajectory), delta (max over trajectory)",
-                 f"{fmt(L.rho_paper_const)}, {fmt(L.delta_paper_const)}")]
+                *([(f"printed decay claim {claim}: rho (min over trajectory), delta (max over trajectory)",
+                    f"{fmt(L.rho_paper_const)}, {fmt(L.delta_paper_const)}")]
+                  if claim and np.isfinite(L.rho_paper_const) else [])]
     fz = None
     if v.falsification is not None:
         f = v.falsification
@@ -312,11 +348,11 @@ def verification_section(v) -> dict:
               "rows": [{"which": w, "violations": f[w]["violations"], "evaluated": f[w]["evaluated"],
                         "fraction": f"{f[w]['fraction']:.2%}", "worst": fmt(f[w]["worst_margin"]),
                         "where": where_text(f[w]["where"])} for w in ("paper", "corrected")
-                       if f[w]["evaluated"]]}
-    n_fail = sum(c.status == "fail" for c in v.checks)
-    n_pass = sum(c.status == "pass" for c in v.checks)
-    return {"rows": rows, "info": info, "falsification": fz, "n_fail": n_fail, "n_pass": n_pass,
-            "n_skip": len(v.checks) - n_fail - n_pass}
+                       if f[w]["evaluated"] and (w == "corrected" or claim)]}
+        for r in fz["rows"]:
+            r["which"] = f"printed claim {claim}" if r["which"] == "paper" else "corrected (docs/derivation.md)"
+    return {"rows": rows, "info": info, "falsification": fz, "counts": counts(v.checks),
+            "counts_line": counts_line(v.checks), "claim": claim, "shown": len(shown & {c.id for c in v.checks})}
 
 
 def implementation_section(run, progress) -> dict:
@@ -335,12 +371,16 @@ def implementation_section(run, progress) -> dict:
     res = (data.get("run") or {}).get("result")
     if res is not None:
         figs.append(("torque-sampled", f"Sampled torque (held, {res.rate_hz:g} Hz) over the continuous-time "
-                     "controller's, first 0.5 s", FIG.to_svg(torque_figure(res, run.simulation, t_max=0.5))))
+                     "controller's, first 0.5 s", FIG.to_svg(torque_figure(res, run.simulation, t_max=0.5,
+                                                       units=joint_units(run.scenario.model.joint_types,
+                                                                         run.scenario.n)))))
     sens = data.get("sensitivity") or {}
     rows = [{"key": v["key"], "factor": fmt(v["factor"]), "before": fmt(v["before"]), "after": fmt(v["after"]),
              "rate": fmt(v["min_rate_hz"]), "ratio": fmt(v["ratio"])} for v in sens.get("variations", [])]
     return {"available": True, "min_rate": fmt(r["min_rate_hz"]), "margin": fmt(r["margin"]),
-            "tried": [(fmt(d["rate_hz"]), d["status"], fmt(d["min_margin"])) for d in r["tried"]],
+            "tried": [(fmt(d["rate_hz"]), d["status"], fmt(d.get("min_margin_after_transient", d["min_margin"])))
+                      for d in r["tried"]],
+            "tau_unit": unit_label(joint_units(run.scenario.model.joint_types, run.scenario.n), "tau"),
             "variations": rows, "gain": fmt(sens.get("inner_loop_gain")),
             "rate": fmt(res.rate_hz) if res is not None else None,
             "status": (data.get("run") or {}).get("status"), "peak_tau": fmt(data.get("peak_tau")),
@@ -381,7 +421,7 @@ def tuning_section(run, progress, figures_dir=None) -> dict:
     return {"available": True, "rows": rows, "changes": changes,
             "figures": [("tune-comparison", figure_caption("tune-comparison", "Original (dashed) against tuned "
                                                            "(solid): largest |tau| and smallest funnel margins",
-                                                           sc.name), svg)]}
+                                                           sc), svg)]}
 
 
 def codegen_section(run, progress) -> dict:
@@ -406,3 +446,10 @@ def codegen_section(run, progress) -> dict:
                       [(k, fmt(v)) for k, v in (chk.get("extra") or {}).items()],
         })
     return out
+
+
+def run_hints(run) -> list[str]:
+    """What to do after the continuous-time run left a funnel (the sampled run's hint is in its verdict line)."""
+    res = run.simulation
+    b = res.breach or {}
+    return [b["hint"]] if b.get("hint") and res.status != "ok" else []

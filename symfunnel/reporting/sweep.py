@@ -19,7 +19,8 @@ from ..core.errors import InputError
 from .figures import _plt, _with_rc
 
 STATUS_COLORS = {"ok": "C0", "breach": "crimson", "failed": "0.5"}
-FIXED = ("run", "status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau")
+FIXED = ("run", "status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau", "min_margin_e1_after_transient",
+         "min_margin_e2_after_transient", "settle_time")
 
 
 def load_sweep(directory) -> tuple[dict, dict]:
@@ -81,9 +82,14 @@ def parameters(cols: dict) -> list[str]:
     return [k for k in cols if k not in FIXED]
 
 
+def _post(cols: dict, key: str) -> np.ndarray:
+    """A funnel's post-transient margin column (a results table of an older version: the whole run's)."""
+    return cols.get(f"min_margin_{key}_after_transient", cols[f"min_margin_{key}"])
+
+
 def min_margin(cols: dict) -> np.ndarray:
-    """Per run, the smaller of the two funnels' minimum margins (<= 0: breach)."""
-    return np.fmin(cols["min_margin_e1"], cols["min_margin_e2"])
+    """Per run, the smaller of the two funnels' minimum margins after the transient (<= 0: breach)."""
+    return np.fmin(_post(cols, "e1"), _post(cols, "e2"))
 
 
 @_with_rc
@@ -91,9 +97,11 @@ def margin_histograms(cols: dict) -> str:
     """Histograms of the minimum margins of e1 and e2 over the runs, with the breach line at 0."""
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(9.0, 2.6), constrained_layout=True)
-    for ax, key, title in ((axes[0], "min_margin_e1", "min margin e1"), (axes[1], "min_margin_e2", "min margin e2"),
-                           (axes[2], "max_abs_tau", "peak |tau|")):
-        a = cols[key][np.isfinite(cols[key])]
+    post = {"e1": _post(cols, "e1"), "e2": _post(cols, "e2"), "max_abs_tau": cols["max_abs_tau"]}
+    for ax, key, title in ((axes[0], "e1", "min margin e1 after the transient"),
+                           (axes[1], "e2", "min margin e2 after the transient"),
+                           (axes[2], "max_abs_tau", "peak |tau| [N m]")):
+        a = post[key][np.isfinite(post[key])]
         if key != "max_abs_tau":
             a = np.maximum(a, -1.0)       # deep breaches (down to -1e3) pile up at -1: the figure is about [0, 1]
         if a.size:
@@ -130,9 +138,9 @@ def margin_vs_parameters(cols: dict) -> str:
         ax.set_xlabel(p, fontsize=8)
     for j in range(len(ps), nrow * ncol):
         axes[j // ncol][j % ncol].set_visible(False)
-    axes[0][0].set_ylabel("min margin")
+    axes[0][0].set_ylabel("min margin after the transient")
     axes[0][0].legend(fontsize=7, loc="best")
-    fig.suptitle("Minimum funnel margin against each uncertain quantity", fontsize=10)
+    fig.suptitle("Minimum funnel margin after the transient against each uncertain quantity", fontsize=10)
     return fig
 
 
@@ -172,7 +180,7 @@ def breach_region(cols: dict) -> str:
     if len(pair) == 1:
         x, y = cols[pair[0]], min_margin(cols)
         ax.set_xlabel(pair[0])
-        ax.set_ylabel("min margin")
+        ax.set_ylabel("min margin after the transient")
     else:
         x, y = cols[pair[0]], cols[pair[1]]
         ax.set_xlabel(pair[0])
@@ -212,8 +220,15 @@ def render_section(sec: dict) -> str:
     w = s.get("worst") or {}
     if w:
         rows.append(("worst run's values", ", ".join(f"{k} = {v:.6g}" for k, v in w.get("values", {}).items())))
-        rows.append(("worst run's min margin", f"{w.get('min_margin'):.4g} ({w.get('status')}); replay: "
-                                               f"symfunnel simulate worst.toml"))
+        pt = w.get("min_margin_after_transient")
+        rows.append(("worst run's min margin after the transient / whole run",
+                     f"{'-' if pt is None else format(pt, '.4g')} / {w.get('min_margin'):.4g} ({w.get('status')}); "
+                     "replay: symfunnel simulate worst.toml"))
+    for key, label in (("min_margin_after_transient", "min margin after the transient"),
+                       ("min_margin", "min margin over the whole run")):
+        q = s.get(key) or {}
+        if q:
+            rows.append((f"{label}: p01 / median / p99", f"{q['p01']:.5g} / {q['median']:.5g} / {q['p99']:.5g}"))
     table = "".join(f"<tr><th>{e(str(k))}</th><td>{e(str(v))}</td></tr>" for k, v in rows)
     f = sec["figures"]
     return (f"<section id='sweep'><h2>Robustness campaign</h2><table>{table}</table>"

@@ -119,6 +119,7 @@ class SimulationSpec:
     wall_limit: float = 300.0
     rk_substeps: int = 10
     max_step: float = 0.0            # CVODES' largest step in seconds, 0 = unlimited
+    settle_time: float | None = None  # start of the post-transient margins [s]; None: where the funnels settle
 
 
 @dataclass
@@ -180,6 +181,17 @@ class Scenario:
     tune: TuneSpec | None = None    # of [tune], or None
     #: every file read to build it ({resolved path: sha256 of the content read}: the TOML, a URDF, ...)
     inputs: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "_sealed", True)
+
+    def __setattr__(self, name, value):
+        if self.__dict__.get("_sealed") and not name.startswith("_"):
+            raise AttributeError(f"a Scenario is validated as a whole when it is loaded, so {name} cannot be set on "
+                                 f"it; use scenario.replace(**{{'<table>.<key>': value}}) (e.g. "
+                                 f"scenario.replace(**{{'controller.k2': [1, 1]}}) or controller__k2=[1, 1]), which "
+                                 "validates the changed document like the loader")
+        object.__setattr__(self, name, value)
 
     @property
     def n(self) -> int:

@@ -163,3 +163,30 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
                     design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl,
                     rbf=rbf, tune=tune)
+
+
+def replace(self: Scenario, changes: dict | None = None, /, **kw) -> Scenario:
+    """A new Scenario with the scenario-file keys changed (dotted keys, `__` for the dot in keyword form:
+    `replace(controller__k2=[1, 1])`, `replace({"funnel.e2.phi0": 0.5})`; None removes a key), validated like the
+    loader (InputError naming the key otherwise); this one is unchanged."""
+    import copy
+    raw = copy.deepcopy(self.raw)
+    items = dict(changes or {})
+    items.update({k.replace("__", "."): v for k, v in kw.items()})
+    for key, value in items.items():
+        *path, leaf = key.split(".")
+        t = raw
+        for p in path:
+            nxt = t.setdefault(p, {})
+            if not isinstance(nxt, dict):
+                raise InputError(f"is not a table, so '{key}' cannot be set", file=self.file, key=p,
+                                 expected="a dotted key of the scenario file")
+            t = nxt
+        if value is None:
+            t.pop(leaf, None)
+        else:
+            t[leaf] = value
+    return from_dict(raw, file=self.file, base_dir=self.path.parent, default_name=self.name)
+
+
+Scenario.replace = replace      # the method lives here: the loader's validation is what it needs

@@ -30,7 +30,7 @@ ESN_INPUTS = list(ESNApproximator.INPUTS)
 def build_model(table: Any, *, file: str, base_dir: Path):
     """Dispatch `[model]` on its `type` to the model builder that owns that type."""
     V.check_keys(table, ["type", "coordinates", "parameters", "matrices", "path", "gravity", "links",
-                         "convention", "joint_range"], file=file, prefix="model", required=["type"])
+                         "convention", "joint_range", "fixed_joints"], file=file, prefix="model", required=["type"])
     kind = V.get_str(table, "type", file=file, prefix="model", choices=MODEL_TYPES.names())
     return MODEL_TYPES.get(kind)(table, file=file, base_dir=base_dir)
 
@@ -220,7 +220,8 @@ def parse_mujoco(table: Any, n: int, file: str) -> MujocoSpec:
 def parse_simulation(table: Any, file: str) -> SimulationSpec:
     p = "simulation"
     V.check_keys(table, ["t_final", "dt", "integrator", "rtol", "atol", "smoothing_width",
-                         "convergence_widths", "wall_limit", "rk_substeps", "max_step"], file=file, prefix=p)
+                         "convergence_widths", "wall_limit", "rk_substeps", "max_step", "settle_time"], file=file,
+                 prefix=p)
     d = SimulationSpec()
     t_final = V.get_float(table, "t_final", d.t_final, file=file, prefix=p, minimum=0, strict_min=True,
                           maximum=1e6)
@@ -245,6 +246,8 @@ def parse_simulation(table: Any, file: str) -> SimulationSpec:
         rk_substeps=V.get_int(table, "rk_substeps", d.rk_substeps, file=file, prefix=p, minimum=1,
                               maximum=10000),
         max_step=V.get_float(table, "max_step", d.max_step, file=file, prefix=p, minimum=0),
+        settle_time=(None if "settle_time" not in table else
+                     V.get_float(table, "settle_time", 0.0, file=file, prefix=p, minimum=0, maximum=t_final)),
     )
 
 

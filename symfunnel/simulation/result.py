@@ -88,6 +88,7 @@ class SimResult:
             "t_end": float(self.t[-1]) if T else 0.0,
             "t_final": self.stats.get("t_final"),
             "points": int(T),
+            **self.margins(),
             "min_margin_e1": self.extreme("m1"),
             "min_margin_e2": self.extreme("m2"),
             "max_abs_e1": per_joint(lambda a: np.max(np.abs(a), axis=0), "e1"),
@@ -117,6 +118,17 @@ class SimResult:
         if self.convergence is not None:
             out["convergence"] = self.convergence
         return json_safe(out)
+
+    def margins(self) -> dict:
+        """Whole-run and post-transient margin minima per joint, with their times and the settle time used
+        (`simulation.margins`)."""
+        from .margins import margin_summary
+        s = self.signals
+        n = max(self.n, 1)
+        m1 = s.get("m1", np.zeros((0, n)))
+        m2 = s.get("m2", np.zeros((0, n)))
+        return margin_summary(self.t, m1, m2, float(self.stats.get("settle_time", 0.0)),
+                              self.stats.get("settle_source", ""))
 
     def to_json(self) -> dict:
         """The JSON summary (as `simulate --json`)."""
@@ -200,9 +212,24 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
     stats["event_counts"] = ev
     stats["events"] = int(sum(ev.values())) + (1 if status == "breach" else 0)
     stats["wall_time"] = wall
+    if "settle_time" not in stats:
+        from .margins import settle_time
+        stats["settle_time"], stats["settle_source"] = settle_time(
+            cl.design, stats.get("t_final") or sc.simulation.t_final, sc.simulation.settle_time)
     sw = stats.get("sim_wall_time")
     t_end = float(t[-1]) if t.size else 0.0
     stats["realtime_factor"] = t_end / sw if sw else None
+    if status in ("breach", "initial_outside") and breach is not None and t.size:
+        from .hints import breach_hint
+        p = parts
+        k = -2 if t.size >= 2 else -1      # the last point inside: the design's torque is not defined outside
+        hint = breach_hint(cl.design, t=float(t[k]), q=p["q"][k], dq=p["dq"][k],
+                           x_esn=p["x_esn"][k] if "x_esn" in p else None,
+                           w_hat=p["w_hat"][k] if "w_hat" in p else None, funnel=breach["funnel"],
+                           joint=int(breach["joint"]), tau_max=sc.tune.tau_max if sc.tune is not None else None,
+                           scenario_arg=scenario_arg(sc))
+        breach = {**breach, "hint": hint}
+        message += f"; what to do: {hint}"
     res = SimResult(scenario=sc.name, t=t, x=X, signals=signals, status=status, message=message, breach=breach,
                     stats=stats, n=cl.n, gamma=gamma)
     if status == "ok":
@@ -216,3 +243,8 @@ def ok_message(res: SimResult) -> str:
     m2 = min(v for v in res.extreme("m2") if v is not None)
     return (f"reached t = {float(res.t[-1]):g} s inside both funnels (min margin e1 {m1:.3g}, e2 {m2:.3g})")
 
+
+def scenario_arg(sc) -> str:
+    """How a command line names the scenario: its built-in name or its file."""
+    from ..scenario import is_builtin
+    return sc.name if is_builtin(sc.path) else str(sc.file)

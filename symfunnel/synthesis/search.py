@@ -18,6 +18,7 @@ finds nothing that holds. The best feasible designs then go through verify's gat
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import time
@@ -48,6 +49,17 @@ GRADIENT_SOBOL_STARTS = 2
 INFEASIBLE = 1e3
 #: feasible designs (best first) that go through verify's gate before tune reports infeasible
 GATE_TRIES = 3
+#: share of --wall-limit the search may use; the rest is kept for the re-check after rounding and verify's gate
+#: (the gate of the paper takes 11 s of a 240 s limit here, a new design's first compile adds about 7 s)
+SEARCH_SHARE = 0.8
+#: the gradient path is chosen (method "auto") only when this many IPOPT iterations fit the search's time, each
+#: costing about d + 2 forward solves of the sensitivity problem (one timed forward solve decides, measured in a
+#: child process killed at its share of the time: on the paper one forward solve takes 17 s, so 8 iterations of 7
+#: solves would need about 950 s, and the derivative-free search is chosen)
+MIN_IPOPT_ITERATIONS = 8
+#: significant digits of the gains tune writes (re-checked after rounding; more digits when rounding breaks them)
+DIGITS = 4
+METHODS = ("auto", "gradient", "derivative-free")
 
 
 class _OutOfTime(Exception):
@@ -159,6 +171,7 @@ class Evaluator:
         self.sample_values = []
         self.samples = self._samples()
         self.count = 0
+        self.rechecks = 0               # evaluations of rounded gains (not counted against --max-evals)
 
     def _samples(self) -> list[dict]:
         """Scenario edits of the N uncertainty samples (none without [[uncertainty]])."""
@@ -235,7 +248,9 @@ class Evaluator:
     def _sampled(self, sc, design, ctrl) -> tuple[dict, dict]:
         from ..deployed.loop import simulate_sampled
         res = simulate_sampled(sc, t_final=self.T, design=design, controller=ctrl, engine="symfunnel")
-        g = {"containment": self._containment(res.ok, res.min_margin, float(res.t[-1]))}
+        # ranked by the margin after the transient: the margin at t = 0 is the initial condition's, the same for
+        # every candidate (a breach counts wherever it happened)
+        g = {"containment": self._containment(res.ok, res.min_margin_after_transient, float(res.t[-1]))}
         peak = float(np.max(np.abs(res.tau))) if res.tau.size else 0.0
         if res.tau_max is not None:
             frac = max(res.saturated_fraction or [0.0])
@@ -256,7 +271,8 @@ class Evaluator:
             warnings.simplefilter("ignore")
             res = simulate(sc, design, t_final=self.T)
         s = res.signals
-        mm = [float(np.min(s[k])) for k in ("m1", "m2") if s[k].size]
+        mg = res.margins()          # ranked by the margin after the transient (see _sampled)
+        mm = [v for k in ("e1", "e2") for v in mg[f"min_margin_{k}_after_transient"] if v is not None]
         if res.breach is not None:
             mm.append(float(res.breach["margin"]))
         t_end = float(res.t[-1]) if res.t.size else 0.0
@@ -315,6 +331,8 @@ class TuneResult:
     gate: dict
     tuned_raw: dict
     notes: list[str]
+    tuned_text: str = ""
+    rechecks: int = 0
     comparison: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -322,14 +340,23 @@ class TuneResult:
         from ..core.io import json_safe
         return json_safe({"status": self.status, "method": self.method, "why": self.why,
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
-                          "wall_s": self.wall_s, "evaluations": self.evaluations, "constraints": self.constraints,
+                          "wall_s": self.wall_s, "evaluations": self.evaluations, "rechecks": self.rechecks,
+                          "constraints": self.constraints,
                           "uncertainty_samples": self.samples, "confidence_eps_0.05": self.confidence,
                           "gate": self.gate, "notes": self.notes, "comparison": self.comparison})
 
 
 def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,
-         max_evaluations: int | None = None, gate: bool = True) -> TuneResult:
-    """Search the `[tune]` parameters of a scenario (see the module doc); never changes the specification."""
+         max_evaluations: int | None = None, gate: bool = True, method: str = "auto") -> TuneResult:
+    """Search the `[tune]` parameters of a scenario (see the module doc); never changes the specification.
+
+    The whole call keeps `wall_limit` seconds (the search stops at SEARCH_SHARE of it, an evaluation in progress
+    is interrupted at the limit, IPOPT runs in a child process that is killed at the limit) and at most
+    `max_evaluations` full-simulation evaluations of candidates. `method`: "auto" (the gradient path without
+    `[implementation]` when a timed forward solve says MIN_IPOPT_ITERATIONS iterations fit the time, else
+    derivative-free), "gradient" or "derivative-free". Gains are rounded to DIGITS significant digits and the
+    rounded design is re-checked.
+    """
     from scipy.optimize import minimize
     from scipy.stats import qmc
     say = progress or (lambda s: None)
@@ -337,7 +364,12 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     if spec.objective == "min_rate" and scenario.implementation is None:
         raise InputError("is 'min_rate' but the scenario has no [implementation]", file=scenario.file,
                          key="tune.objective", expected="an [implementation] section or peak_torque / ise")
+    if method not in METHODS:
+        raise InputError(f"is {method!r}", key="--method", expected="one of " + ", ".join(METHODS))
+    requested = method
     t0 = time.perf_counter()
+    m0 = time.monotonic()
+    search_end = t0 + SEARCH_SHARE * wall_limit
     ev = Evaluator(scenario, spec, t_final=t_final, progress=say)
     vars_ = variables(scenario, spec)
     d = len(vars_)
@@ -347,7 +379,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         f"{spec.objective}, margin {spec.margin:g}, {len(ev.samples)} uncertainty sample(s) + nominal, horizon "
         f"{ev.T:g} s, {loop}")
     user = [v.user_x() for v in vars_]
-    before = ev.evaluate(vars_, user)
+    from ..core import deadline as DL
+    with _whole(m0, wall_limit, "evaluating the user's design"):
+        before = ev.evaluate(vars_, user)
     say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
         + ", ".join(f"{k} {g:+.3g}" for k, g in before.constraints.items()))
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
@@ -366,20 +400,36 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         key = tuple(round(x, 10) for x in xs)
         if key in seen:
             return _score(seen[key], spec.objective, ref)
-        if final:
-            pass
-        elif time.perf_counter() - t0 > wall_limit:
-            raise _OutOfTime(f"search stopped at the wall-clock limit ({wall_limit:g} s)")
-        if max_evaluations and ev.count >= max_evaluations:
+        now = time.perf_counter()
+        if not final and now >= search_end:
+            raise _OutOfTime(f"search stopped at the wall-clock limit ({SEARCH_SHARE:.0%} of --wall-limit "
+                             f"{wall_limit:g} s; the rest is kept for the checks of the result)")
+        if not final and max_evaluations and ev.count >= max_evaluations:
             raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
-        c = ev.evaluate(vars_, xs)
+        # an evaluation in progress is interrupted at the limit (a simulation stops there, a compile is killed)
+        end = m0 + (search_end - t0) if not final else m0 + wall_limit
+        try:
+            with DL.until(end, wall_limit, m0):
+                c = ev.evaluate(vars_, xs)
+        except (DL.WallLimitReached, SystemError, RuntimeError) as exc:
+            if not (isinstance(exc, DL.WallLimitReached) or _expired(end, exc)):
+                raise
+            raise _OutOfTime(f"search stopped at the wall-clock limit ({SEARCH_SHARE:.0%} of --wall-limit "
+                             f"{wall_limit:g} s) during an evaluation") from None
         seen[key] = c
         s = record(c)
         b = best[0]
-        say(f"eval {ev.count}: {'feasible' if c.feasible else 'infeasible'} "
+        elapsed = time.perf_counter() - t0
+        per = elapsed / max(ev.count, 1)
+        left = search_end - time.perf_counter()
+        if max_evaluations:
+            left = min(left, per * max(max_evaluations - ev.count, 0))
+        say(f"eval {ev.count}{f' of at most {max_evaluations}' if max_evaluations else ''}: "
+            f"{'feasible' if c.feasible else 'infeasible'} "
             + ", ".join(f"{k} {g:+.3g}" for k, g in c.constraints.items())
             + (f", {spec.objective} {c.figures.get(spec.objective, math.nan):.4g}" if c.figures else f" ({c.note})")
-            + f" | best {'feasible' if b.feasible else 'infeasible'} {_score(b, spec.objective, ref):.4g}")
+            + f" | best {'feasible' if b.feasible else 'infeasible'} {_score(b, spec.objective, ref):.4g}"
+            + f" | {elapsed:.0f} s, ETA {max(left, 0.0):.0f} s")
         return s
 
     if all(v.lo <= x <= v.hi for v, x in zip(vars_, user)):
@@ -390,14 +440,27 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
     method, why = METHOD, WHY
     stopped = None
-    if scenario.implementation is None:
+    if scenario.implementation is None and requested != "derivative-free":
         use, reason = _gradient_sound()
+        gp, timed = None, False
+        if use:
+            from .gradient import GradientProblem
+            try:
+                gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max,
+                                     sample_values=ev.sample_values)
+            except RuntimeError as exc:            # CasADi could not build the sensitivity problem
+                from ..core.lifecycle import reraise_interrupt
+                reraise_interrupt(exc)
+                use, reason = False, f"the sensitivity problem could not be built ({_last_line(exc)})"
+        if use and requested == "auto":
+            use, reason = _gradient_fits(gp, z_user, len(vars_), search_end - time.perf_counter(), say)
+            timed = not use
         if use:
             method, why = GRADIENT_METHOD, GRADIENT_WHY
             say(f"method: {method} ({why})")
             failed = None
             try:
-                _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, deadline=t0 + wall_limit,
+                _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, deadline=search_end,
                                  max_evaluations=max_evaluations)
             except _OutOfTime as exc:
                 stopped = str(exc)
@@ -415,8 +478,12 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 say("falling back to the derivative-free search: " + why)
             elif failed:
                 why = f"{GRADIENT_WHY}; IPOPT stopped with an error ({failed}) after a design that holds"
+        elif timed:
+            why = f"no [implementation], but the gradient path was not chosen: {reason}"
         else:
             why = f"{WHY_NO_GRADIENT} ({reason})"
+    elif scenario.implementation is None:
+        why = "derivative-free search requested (method derivative-free)"
     if method.endswith(METHOD) and stopped is None:
         if method == METHOD:
             say(f"method: {method} ({why})")
@@ -450,8 +517,22 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                                                                          zip(vars_, c.xs))),
                         key=lambda c: _score(c, spec.objective, ref))
         for i, c in enumerate(ranked[:GATE_TRIES]):
-            say(f"verify's gate on the tuned scenario (design {i + 1} of the ranking)")
-            gate_info = verify_gate(ev.scenario(apply(scenario.raw, vars_, c.xs)), progress=say)
+            try:
+                with DL.until(m0 + wall_limit, wall_limit, m0):
+                    c = _rounded(c, vars_, ev, say)
+                    say(f"verify's gate on the tuned scenario (design {i + 1} of the ranking)")
+                    gate_info = verify_gate(ev.scenario(apply(scenario.raw, vars_, c.xs)), progress=say)
+            except (DL.WallLimitReached, SystemError, RuntimeError) as exc:
+                if not (isinstance(exc, DL.WallLimitReached) or _expired(m0 + wall_limit, exc)):
+                    raise
+                gate_info = {"status": "not completed", "unexpected": []}
+                notes.append(f"verify's gate on design {i + 1} did not finish within --wall-limit {wall_limit:g} s")
+                status = "infeasible"
+                binding = binding + ["verify.gate (not completed within --wall-limit)"]
+                break
+            if c is None:
+                notes.append(f"design {i + 1} of the ranking does not hold once its values are rounded")
+                continue
             if gate_info["status"] == "pass":
                 b = c
                 break
@@ -459,6 +540,12 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         else:
             status = "infeasible"
             binding = binding + [f"verify.{c}" for c in gate_info.get("unexpected", [])]
+    if b.feasible and not gate and best[0] is not None:
+        with _whole(m0, wall_limit, "re-checking the rounded gains"):
+            b = _rounded(b, vars_, ev, say) or b
+    elif not b.feasible:               # the closest design, written readably (it does not hold either way)
+        b = Candidate([min(v.hi, max(v.lo, round_sig(x, DIGITS))) for v, x in zip(vars_, b.xs)], b.constraints,
+                      b.figures, b.note, b.worst_run)
     tuned = apply(scenario.raw, vars_, b.xs)
     changes = []
     for v, x in zip(vars_, b.xs):
@@ -476,7 +563,98 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                      "worst_run": b.worst_run, "before_feasible": before.feasible},
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
         gate=gate_info, tuned_raw=tuned, notes=notes,
+        tuned_text=tuned_toml(scenario, tuned, sorted({v.key for v in vars_})), rechecks=ev.rechecks,
         comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
+
+
+def tuned_toml(scenario, tuned: dict, keys: list[str]) -> str:
+    """The tuned scenario as TOML: the user's own file edited (tomlkit: comments, order and layout kept), the tuned
+    keys set (each keeping its line's comment) and the new `[[deviations]]` entries appended; a scenario without a
+    readable file is written whole."""
+    import tomlkit
+    from ..core.toml_write import dumps
+    try:
+        doc = tomlkit.parse(scenario.path.read_text(encoding="utf-8"))
+    except (OSError, TypeError, AttributeError, tomlkit.exceptions.TOMLKitError):
+        return dumps(tuned)
+    orig = scenario.raw
+    for key in keys:
+        *path, leaf = key.split(".")
+        new, old = tuned, orig
+        for p in path + [leaf]:
+            new = new.get(p) if isinstance(new, dict) else None
+            old = old.get(p) if isinstance(old, dict) else None
+        if new is None or new == old:
+            continue
+        t = doc
+        for p in path:
+            if p not in t:
+                t[p] = tomlkit.table()
+            t = t[p]
+        item = tomlkit.item(new)
+        prev = t.get(leaf) if hasattr(t, "get") else None
+        if prev is not None and hasattr(prev, "trivia") and prev.trivia.comment:
+            item.trivia.comment_ws = prev.trivia.comment_ws or "  "
+            item.trivia.comment = prev.trivia.comment
+        t[leaf] = item
+    added = (tuned.get("deviations") or [])[len(orig.get("deviations") or []):]
+    if added:
+        if "deviations" not in doc:
+            doc["deviations"] = tomlkit.aot()
+        for d in added:
+            doc["deviations"].append(dict(d))
+    return tomlkit.dumps(doc)
+
+
+@contextlib.contextmanager
+def _whole(m0: float, wall_limit: float, step: str):
+    """The block under the command's whole limit; the alarm seen through a CasADi call is the limit, said so."""
+    from ..core import deadline as DL
+    try:
+        with DL.until(m0 + wall_limit, wall_limit, m0):
+            yield
+    except (SystemError, RuntimeError) as exc:
+        if not _expired(m0 + wall_limit, exc):
+            raise
+        raise DL.WallLimitReached(wall_limit, step, time.monotonic() - m0) from None
+
+
+def _expired(end: float, exc: BaseException) -> bool:
+    """Whether an error is the wall-clock alarm seen through a C extension: raised inside a CasADi call, the
+    deadline's exception comes back as that call's SystemError or RuntimeError once the limit has passed."""
+    from ..core.lifecycle import reraise_interrupt
+    reraise_interrupt(exc) if isinstance(exc, RuntimeError) else None
+    chain = exc
+    while chain is not None:
+        from ..core import deadline as DL
+        if isinstance(chain, DL.WallLimitReached):
+            return True
+        chain = chain.__cause__ or chain.__context__
+    return time.monotonic() >= end
+
+
+def round_sig(x: float, digits: int) -> float:
+    """x rounded to `digits` significant digits."""
+    return float(f"{float(x):.{int(digits)}g}")
+
+
+def _rounded(c: Candidate, vars_, ev: Evaluator, say) -> Candidate | None:
+    """The candidate with its values rounded to DIGITS significant digits (more, up to 8, when rounding breaks a
+    constraint), re-checked by a full evaluation; None when no rounding holds (the exact values are never
+    written: a file with 17 digits is not what a user can read or type)."""
+    for digits in range(DIGITS, 9):
+        xs = [min(v.hi, max(v.lo, round_sig(x, digits))) for v, x in zip(vars_, c.xs)]
+        if xs == list(c.xs):
+            return c
+        n = ev.count
+        r = ev.evaluate(vars_, xs)
+        ev.count = n                    # a re-check, not one of the search's --max-evals evaluations
+        ev.rechecks += 1
+        say(f"rounded to {digits} significant digits: {'holds' if r.feasible else 'does not hold'} ("
+            + ", ".join(f"{k} {g:+.3g}" for k, g in r.constraints.items()) + ")")
+        if r.feasible:
+            return r
+    return None
 
 
 def _last_line(exc: Exception) -> str:
@@ -493,14 +671,41 @@ def _gradient_sound() -> tuple[bool, str]:
     return True, ""
 
 
-def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline: float,
+def _gradient_fits(gp, z0, d: int, budget: float, say) -> tuple[bool, str]:
+    """Whether MIN_IPOPT_ITERATIONS IPOPT iterations (about d + 2 forward solves each) fit `budget` seconds: one
+    forward solve is timed in a forked worker (`core.lifecycle.run_killable`) that is killed at its share of the
+    budget."""
+    from ..core import deadline as DL
+    from ..core.lifecycle import reraise_interrupt, run_killable
+    share = budget / (MIN_IPOPT_ITERATIONS * (d + 2))
+    say(f"timing one forward solve of the sensitivity problem (at most {share:.1f} s, the share that "
+        f"{MIN_IPOPT_ITERATIONS} IPOPT iterations may have)")
+    try:
+        run_killable(_forward_size, gp, np.asarray(z0, float), wall_limit=max(share, 0.05),
+                     what="timing one forward solve of the sensitivity problem")
+    except DL.WallLimitReached:
+        if DL.expired_limit() is not None:            # a limit around tune: it ends the command
+            raise
+        return False, (f"one forward solve of the sensitivity problem takes more than {share:.1f} s, so "
+                       f"{MIN_IPOPT_ITERATIONS} IPOPT iterations of about {d + 2} solves each would not fit the "
+                       f"{budget:.0f} s the search has (measured; force it with --method gradient)")
+    except RuntimeError as exc:
+        reraise_interrupt(exc)
+        return False, f"the sensitivity problem does not evaluate at the user's design ({_last_line(exc)})"
+    return True, ""
+
+
+def _forward_size(gp, z0) -> int:
+    """One forward solve of the sensitivity problem (its constraint values' count: the result is small to send)."""
+    return int(np.asarray(gp.g(z0), float).size)
+
+
+def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
                      max_evaluations: int | None) -> None:
     """IPOPT from the user's values, then from Sobol points, while time remains; every result is judged by `f`
-    (the full simulation of the Evaluator), which records the best candidate."""
+    (the full simulation of the Evaluator), which records the best candidate. Each IPOPT run is a child process
+    killed at the deadline (its best grid-feasible iterate so far is then the result)."""
     from scipy.stats import qmc
-
-    from .gradient import GradientProblem
-    gp = GradientProblem(scenario, spec, vars_, t_final=ev.T, tau_max=ev.tau_max, sample_values=ev.sample_values)
     say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
         "points)")
     starts = [z_user, *qmc.Sobol(len(vars_), scramble=True, seed=0).random(GRADIENT_SOBOL_STARTS)]
@@ -511,7 +716,7 @@ def _gradient_search(scenario, spec, vars_, ev, z_user, f, ref, say, *, deadline
             raise _OutOfTime("search stopped at the wall-clock limit")
         if max_evaluations and ev.count >= max_evaluations:
             raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
-        say(f"IPOPT start {i + 1} of {len(starts)}")
+        say(f"IPOPT start {i + 1} of {len(starts)} (at most {left:.0f} s)")
         # IPOPT gets the time left but what the full simulation of its result needs
         try:
             # in a forked worker: IPOPT inside one C call hears no signal and no limit, the waiting parent does
