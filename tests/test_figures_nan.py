@@ -33,5 +33,5 @@ def test_nan_samples_are_left_out_of_the_counts_not_counted_as_holding():
         return r
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        svg = falsification(_fz(some_nan))
-    assert "Theorem 1 as printed: 300 of 300 violate" in svg
+        svg = falsification(_fz(some_nan), claim="Theorem 1")
+    assert "printed claim Theorem 1: 300 of 300 violate" in svg

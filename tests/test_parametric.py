@@ -22,10 +22,17 @@ def paper():
 
 
 def test_paper_run_unchanged_by_parameterisation(paper):
-    s = simulate(paper, derive(paper)).summary()
+    """The pins are over the output points; the summary's extremes also cover the samples between them, so they
+    can only be further out (a lower margin, a larger torque)."""
+    r = simulate(paper, derive(paper))
+    s = r.summary()
     assert s["status"] == "ok"
+    at_points = {"min_margin_e1": np.min(r.signals["m1"], axis=0), "min_margin_e2": np.min(r.signals["m2"], axis=0),
+                 "max_abs_tau": np.max(np.abs(r.signals["tau"]), axis=0)}
     for k, v in PINNED_PAPER.items():
-        assert s[k] == pytest.approx(v, rel=1e-6), k
+        assert list(at_points[k]) == pytest.approx(v, rel=1e-6), k
+        worse = np.asarray(s[k]) <= at_points[k] if k.startswith("min") else np.asarray(s[k]) >= at_points[k]
+        assert worse.all(), k
 
 
 def _variant(sc, edit, name="variant"):

@@ -149,8 +149,8 @@ MUTANTS: tuple[CheckerMutant, ...] = (
     # --- the deployed controller: its checks, the sampled loop, the generated step
     _m("saturation_one_sided", LO, "(np.abs(self.tau) >= tm * (1 - 1e-12))", "(self.tau >= tm * (1 - 1e-12))",
        "clamp", "saturation counted at +tau_max only"),
-    _m("sampled_min_margin_e1_only", LO, "m = self.margins[np.all(np.isfinite(self.margins), axis=1)]",
-       "m = self.margins[np.all(np.isfinite(self.margins), axis=1)][:, :self.q.shape[1]]", "index",
+    _m("sampled_min_margin_e1_only", LO, "        m = m[np.all(np.isfinite(m), axis=1)]\n",
+       "        m = m[np.all(np.isfinite(m), axis=1)][:, :self.q.shape[1]]\n", "index",
        "the sampled loop's min margin over e1 only"),
     _m("sampled_breach_e1_only", LO, "bad = np.where(~(M > 0).all(axis=1) & good)[0]",
        "bad = np.where(~(M[:, :n] > 0).all(axis=1) & good)[0]", "index", "a sampled-loop breach of e2 not detected"),
@@ -172,7 +172,7 @@ MUTANTS: tuple[CheckerMutant, ...] = (
     _m("step_margin_without_abs", ST, "margin = ca.vertcat(1 - ca.fabs(e1) / F1, 1 - ca.fabs(e2) / F2)",
        "margin = ca.vertcat(1 - e1 / F1, 1 - ca.fabs(e2) / F2)", "sign", "the step's e1 margin one-sided"),
     # --- the rate search and the campaign's statistics
-    _m("rate_holds_or", RA, "ok = res.ok and res.min_margin >= margin", "ok = res.ok or res.min_margin >= margin",
+    _m("rate_holds_or", RA, "ok = res.ok and mt >= margin", "ok = res.ok or mt >= margin",
        "comparison", "a rate whose run breached may count as holding"),
     _m("rate_tolerance_10x", RA, "while hi / lo > 1 + rel_tol:", "while hi / lo > 1 + 10 * rel_tol:", "tolerance",
        "the bisection stops at 10x its tolerance"),

@@ -136,6 +136,16 @@ def finished(late: int | None = None) -> None:
     _state["late"] = late
     for sig in TERMINATING:
         signal.signal(sig, too_late)
+    import atexit
+    atexit.register(_ignore_terminating)
+
+
+def _ignore_terminating() -> None:
+    # the interpreter's finalisation resets Python's handlers to the default action, which would kill a finished
+    # command; ignored from the last atexit call on, a signal there leaves the exit code as it is
+    for sig in TERMINATING:
+        with contextlib.suppress(OSError, ValueError):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 def late_signal() -> int | None:

@@ -427,28 +427,35 @@ def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, MB
                   "margin": float(M[i, j])}
         status = "breach"
         message = f"left funnel {breach['funnel']} (joint {breach['joint']}) at t = {tt[i]:g} s"
-        from ..simulation.hints import breach_hint
-        from ..simulation.result import scenario_arg
-        st = {}
-        if isinstance(controller, StepLibrary):
-            st = {"x_esn": np.array(controller.x_esn), "w_hat": np.array(controller.w_hat)}
-        k = max(i - 1, 0)              # the last sample inside: the design's torque is not defined outside
-        what = breach["funnel"]
-        if impl.tau_max is not None and TAU.shape[0]:
-            sat = np.nonzero(np.any(np.abs(TAU[:i]) >= np.asarray(impl.tau_max) * (1 - 1e-12), axis=1))[0]
-            if sat.size:               # the torque saturated first: what it asked for there is the cause
-                k = int(sat[0])
-                what = f"{what} (after the torque saturated from t = {tt[k]:g} s)"
-                st = {}
-        breach["hint"] = breach_hint(design, t=float(tt[k]), q=Q[k], dq=DQ[k], funnel=what,
-                                     joint=breach["joint"], tau_max=impl.tau_max, sampled_rate=impl.rate_hz,
-                                     scenario_arg=scenario_arg(sc), **st)
+    if breach is not None:
+        # the last sample inside: before a sample outside, or the period's start for a breach between samples
+        last = int(kb) if "between_samples" in breach else max(int(i) - 1, 0)
+        breach["hint"] = _breach_hint(sc, design, impl, controller, breach, tt, Q, DQ, TAU, last)
         message += f"; what to do: {breach['hint']}"
     from ..simulation.margins import settle_time
     ts, how = settle_time(design, float(horizon if horizon is not None else k_end * h), sc.simulation.settle_time)
     stats = {**stats, "settle_time": ts, "settle_source": how}
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
                          stats, between_margins=MB)
+
+
+def _breach_hint(sc, design, impl, controller, breach, tt, Q, DQ, TAU, k: int) -> str:
+    """What to do about a breach, from the last sample k inside the funnel (or from the first saturated sample when
+    the torque saturated before it: what it asked for there is the cause)."""
+    from ..simulation.hints import breach_hint
+    from ..simulation.result import scenario_arg
+    st = {}
+    if isinstance(controller, StepLibrary):
+        st = {"x_esn": np.array(controller.x_esn), "w_hat": np.array(controller.w_hat)}
+    what = breach["funnel"]
+    if impl.tau_max is not None and TAU.shape[0]:
+        sat = np.nonzero(np.any(np.abs(TAU[:k + 1]) >= np.asarray(impl.tau_max) * (1 - 1e-12), axis=1))[0]
+        if sat.size:
+            k = int(sat[0])
+            what = f"{what} (after the torque saturated from t = {tt[k]:g} s)"
+            st = {}
+    return breach_hint(design, t=float(tt[k]), q=Q[k], dq=DQ[k], funnel=what, joint=breach["joint"],
+                       tau_max=impl.tau_max, sampled_rate=impl.rate_hz, scenario_arg=scenario_arg(sc), **st)
 
 
 #: what the engine loop's negative return codes mean

@@ -68,9 +68,10 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
             r2 = hi / 4
             from ..core.validate import MIN_HORIZON_STEPS
             from .loop import min_rate_hz
-            T = float(t_final if t_final is not None else scenario.simulation.t_final)
+            T = t_final if t_final is not None else getattr(getattr(scenario, "simulation", None), "t_final", None)
+            floor = MIN_HORIZON_STEPS / float(T) if T else 0.0
             # no lower than the plant's own floor, nor than a period the horizon holds MIN_HORIZON_STEPS of
-            if r2 < max(MIN_RATE_HZ, min_rate_hz(scenario), MIN_HORIZON_STEPS / T):
+            if r2 < max(MIN_RATE_HZ, min_rate_hz(scenario), floor):
                 return {"min_rate_hz": hi, "margin": margin, "tried": tried, "engine": engine}
             if holds(r2):
                 hi = r2
