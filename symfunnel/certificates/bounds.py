@@ -11,7 +11,9 @@ Per signal and joint, `sx.branch.rigorous_range` (best-first on each bound, mean
 rigorous [lo, hi] and the attained [lo_seen, hi_seen]; the torque's extremes are improved by a local search over
 every input (states included) and re-evaluated by the ordinary CasADi Function of the design. With `tau_max`:
 proven when the rigorous max|tau_j| < tau_max_j on every joint (saturation provably inactive on the region), refuted
-when an attained |tau_j| >= tau_max_j (the state is the counterexample), undecided in between.
+when an attained |tau_j| >= tau_max_j on the invariance certificate's region (the state is the counterexample: the
+loop provably stays in that region), undecided in between -- and undecided when such a state lies in the stand-in
+region R_BOUNDS_MARGIN, which the loop is not shown to stay in (the state is kept as `witness`).
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     d, sc = ctx.design, ctx.scenario
     n = d.n
     inv = ctx.results.get("certify.invariance")
-    if inv is not None and inv.status == "proven":
+    invariant = inv is not None and inv.status == "proven"      # R_m holds every trajectory of the closed loop
+    if invariant:
         m, m_source = float(inv.extra["m"]), "the margin the invariance certificate proves"
     else:
         m, m_source = BOUNDS_MARGIN, f"BOUNDS_MARGIN (no invariance certificate gives one)"
@@ -136,6 +139,18 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
                 if abs(vals[j]) >= tau_max[j]:
                     ce = prob.counterexample(point)
                     ce["tau"] = vals.tolist()
+                    if not invariant:
+                        # R_m is then a stand-in (m = BOUNDS_MARGIN, W_hat from one run): the closed loop is not
+                        # shown to stay in it, so a saturating state there is no counterexample of the design --
+                        # on these designs |tau| near the funnel boundary is always enormous (docs/certify.md);
+                        # saturation is neither excluded nor shown reachable (the sampled loop's
+                        # implementation.saturation measures it along the run)
+                        extra["witness"] = ce
+                        return Certificate(CID, "undecided", f"saturation not excluded: |tau_{j + 1}| = "
+                                           f"{abs(vals[j]):.6g} >= tau_max = {tau_max[j]:g} at a state of R_{m:g}, "
+                                           "a region the closed loop is not proven to stay in (no invariance "
+                                           "certificate), so no counterexample of the loop; " + head,
+                                           undecided_fraction=1.0, **common)
                     return Certificate(CID, "refuted", f"|tau_{j + 1}| = {abs(vals[j]):.6g} >= tau_max = "
                                        f"{tau_max[j]:g} inside the funnels (saturation can be active); " + head,
                                        counterexample=ce, undecided_fraction=0.0, **common)
