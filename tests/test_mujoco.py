@@ -24,7 +24,7 @@ from symfunnel.core.errors import InputError  # noqa: E402
 from symfunnel.deployed.engine import EngineRunPlant, engine_setup  # noqa: E402
 from symfunnel.deployed.loop import plant_substeps, simulate_sampled  # noqa: E402
 from symfunnel.design import derive  # noqa: E402
-from symfunnel.plant.mujoco import agreement, load_engine  # noqa: E402
+from symfunnel.plant.mujoco import agreement, load_engine, prepare_urdf  # noqa: E402
 from symfunnel.scenario import DATA_DIR, load_scenario  # noqa: E402
 
 from .conftest import private_cache  # noqa: E402
@@ -90,12 +90,41 @@ def test_engine_agreement_passes_on_the_shipped_and_test_robots(tmp_path, robot)
         assert max(p["M"], p["bias"], p["M_vs_engine"], p["bias_vs_engine"]) < 1e-12
     else:
         assert "MJCF written by symfunnel" in c.detail and c.evidence["notes"]
-    if robot == "panda":              # its <dynamics damping> is the engine's, not the controller's; mimic noted
-        assert c.evidence["engine_only"]["damping"] == [0.003] * 7 + [0.3, 0.3]
+    if robot in ("panda", "branched"):  # init holds a mimic joint fixed: the engine holds it too, and says so
+        held = {"panda": "panda_finger_joint2", "branched": "b_elbow"}[robot]
+        assert any("held fixed" in s and held in s for s in c.evidence["notes"])
+        assert not any("<mimic> ignored" in s for s in c.evidence["notes"])
+        assert f"held fixed at 0 by both (model.fixed_joints): {held}" in c.detail
+    if robot == "panda":              # its <dynamics damping> is the engine's, not the controller's
+        assert c.evidence["engine_only"]["damping"] == [0.003] * 7 + [0.3]
         assert "in the engine, not in the controller's model: joint damping" in c.detail
-        assert any("<mimic> ignored" in s and "panda_finger_joint2" in s for s in c.evidence["notes"])
         assert c.evidence["engine_only"].get("frictionloss") is None
 
+
+
+def test_engine_keeps_a_mimic_joint_left_movable_as_its_own_coordinate():
+    """Without model.fixed_joints the mimic joint is a coordinate in both models: MuJoCo 4's parser would make its
+    <mimic> an equality constraint; the engine drops it (as symfunnel ignores it), says so, and agrees."""
+    import casadi as ca
+
+    from symfunnel.model.urdf import build_urdf
+    urdf = URDFS["panda"]
+    model = build_urdf({"type": "urdf", "path": urdf.name}, file="s.toml", base_dir=urdf.parent)
+    eng = load_engine(model, file="s.toml")
+    assert eng.n == eng.model.nv == 9 and eng.names[-1] == "panda_finger_joint2"
+    assert eng.notes.mimic == ["panda_finger_joint2"] and eng.notes.held == []
+    assert any("<mimic> ignored" in s and "panda_finger_joint2" in s for s in eng.notes.lines())
+    Mf = ca.Function("M", [model.q], [model.numeric(model.M)])
+    Cf = ca.Function("C", [model.q, model.dq], [model.numeric(model.C)])
+    Gf = ca.Function("G", [model.q], [model.numeric(model.G)])
+    r = agreement(eng, lambda q: np.array(Mf(q)),
+                  lambda q, dq: (np.array(Cf(q, dq)) @ np.asarray(dq).reshape(-1, 1)).ravel() + np.array(Gf(q)).ravel(),
+                  -1.0, 1.0, 1.0, samples=50)
+    assert r["value"] <= 1e-12, r
+    text, notes = prepare_urdf(urdf, gravity=[0.0, 0.0, -9.81])
+    assert "<mimic" not in text and notes.held == []
+    text, notes = prepare_urdf(urdf, gravity=[0.0, 0.0, -9.81], fixed=["panda_finger_joint2"])
+    assert notes.held == ["panda_finger_joint2"] and notes.mimic == [] and "<mimic" not in text
 
 def dh_table(convention: str, seed: int) -> dict:
     """A random 4-joint DH arm (one prismatic joint) with full inertia tensors."""
@@ -413,6 +442,11 @@ def test_sweep_on_the_engine_over_its_mass_scale(tmp_path, capsys):
     import pyarrow.parquet as pq
     t = pq.read_table(str(out / "results.parquet")).to_pydict()
     assert sorted(t["run"]) == [0, 1, 2, 3] and len(set(t["plant.mujoco.mass_scale"])) == 4
+    # the engine's rows carry the post-transient margins the runs are ranked by (no worst run without them)
+    assert all(x is not None and math.isfinite(x) for k in ("min_margin_e1_after_transient",
+               "min_margin_e2_after_transient", "settle_time") for x in t[k])
+    assert s["worst"]["min_margin_after_transient"] == min(min(t["min_margin_e1_after_transient"]),
+                                                            min(t["min_margin_e2_after_transient"]))
     # worst.toml replays the worst run on the engine
     assert main(["simulate", str(out / "worst.toml"), "--json", "-q"]) in (0, 1)
     rep = json.loads(capsys.readouterr().out)

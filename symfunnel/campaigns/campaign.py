@@ -238,10 +238,21 @@ def sampled_row_of(result, run: int, columns: list[str], values) -> dict:
     m1 = float(np.min(m[ok, :n])) if ok.any() else math.nan
     m2 = float(np.min(m[ok, n:])) if ok.any() else math.nan
     tau = float(np.max(np.abs(result.tau))) if result.tau.size and np.isfinite(result.tau).all() else math.nan
+    # the post-transient margins the campaign ranks its runs by (as row_of's): at the samples from the settle time on
+    mg = result._post_transient(n) if m.size else {}
+    b = result.breach
+    post = {}
+    for k in ("e1", "e2"):
+        vals = [v for v in mg.get(f"min_margin_{k}_after_transient", []) if v is not None]
+        v = min(vals) if vals else math.nan
+        if b is not None and b.get("funnel") == k:      # a breach counts wherever it happened
+            v = b["margin"] if math.isnan(v) else min(v, b["margin"])
+        post[f"min_margin_{k}_after_transient"] = float(v)
     row = {"run": int(run)}
     row.update({c: float(v) for c, v in zip(columns, values)})
     row.update({"status": ROW_STATUS[result.status], "t_end": float(result.t[-1]) if result.t.size else 0.0,
-                "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau})
+                "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau, **post,
+                "settle_time": float(result.stats.get("settle_time", math.nan))})
     return row
 
 

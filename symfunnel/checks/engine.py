@@ -27,8 +27,9 @@ TOLERANCE = 1e-8
 SAMPLES = 200
 
 
-def _pinocchio(urdf, names: list[str], gravity):
-    """(M_fn, bias_fn) of Pinocchio on the URDF in symfunnel's coordinate order, or None without Pinocchio."""
+def _pinocchio(urdf, names: list[str], gravity, held=()):
+    """(M_fn, bias_fn) of Pinocchio on the URDF in symfunnel's coordinate order, or None without Pinocchio; the
+    joints in `held` (model.fixed_joints) are locked at their zero position, as in symfunnel's model."""
     try:
         import pinocchio as pin
     except ImportError:
@@ -37,6 +38,10 @@ def _pinocchio(urdf, names: list[str], gravity):
         pm = pin.buildModelFromUrdf(str(urdf))
     except Exception:  # noqa: BLE001 - a third opinion only: a URDF Pinocchio refuses simply has none
         return None
+    if held:
+        if not all(pm.existJointName(nm) for nm in held):
+            return None
+        pm = pin.buildReducedModel(pm, [pm.getJointId(nm) for nm in held], pin.neutral(pm))
     pm.gravity.linear = np.asarray(gravity, dtype=float)
     pd = pm.createData()
     idq, nq, idv = [], [], []
@@ -99,7 +104,7 @@ def check_engine_agreement(scenario, *, samples: int = SAMPLES, seed: int = 0,
         return (np.array(Cf(q, dq)) @ np.asarray(dq).reshape(-1, 1)).ravel() + np.array(Gf(q)).ravel()
     others = {}
     if scenario.model.kind == "urdf":
-        pin = _pinocchio(eng.notes.file, eng.names, scenario.model.gravity)
+        pin = _pinocchio(eng.notes.file, eng.names, scenario.model.gravity, eng.notes.held)
         if pin is not None:
             others["pinocchio"] = pin
     a = scenario.audit
@@ -145,6 +150,8 @@ def check_engine_agreement(scenario, *, samples: int = SAMPLES, seed: int = 0,
     if ms is not None and any(v != 1.0 for v in ms):
         deliberate.append(f"engine mass scale {_fmt(ms)} (plant.mujoco.mass_scale)")
     tail = ""
+    if eng.notes.held:
+        tail += "; held fixed at 0 by both (model.fixed_joints): " + ", ".join(eng.notes.held)
     if eng.notes.mimic:
         tail += "; <mimic> ignored on " + ", ".join(eng.notes.mimic) + " (by both: each joint is a coordinate)"
     if eng.notes.floored:

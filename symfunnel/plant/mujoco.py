@@ -14,7 +14,12 @@ What is done to the robot description, and why (each is a MuJoCo convention that
   silent reset to the initial pose.
 * A principal moment of inertia of (near) zero, which MuJoCo refuses (every planar link has I_xx = 0, a thin rod
   too), is raised to 1e-12 times the largest moment plus 1e-14 along its own axis only (listed in `notes.floored`).
-* `<mimic>` is ignored by MuJoCo's URDF parser, as by symfunnel's (every movable joint is a coordinate): listed.
+* The joints of `model.fixed_joints` (which `init` fills with a URDF's mimic joints) are made `type="fixed"` in the
+  text, at their zero position, as symfunnel's parser does: MuJoCo sees the same movable joints (listed in
+  `notes.held`). Without this MuJoCo 4 would keep them as degrees of freedom that symfunnel's model does not have.
+* `<mimic>` is removed from the text (MuJoCo 4's URDF parser turns it into a joint equality constraint, which a
+  held joint would leave dangling); a mimic joint still movable is its own coordinate, as in symfunnel's model:
+  listed.
 * `<dynamics damping friction>` become MuJoCo's `dof_damping` and `dof_frictionloss`: dynamics of the engine that
   the controller's model does not have; kept unless `urdf_dynamics = false`, and always reported.
 * Joints are matched to symfunnel's coordinates by name (never by position).
@@ -60,7 +65,8 @@ class EngineNotes:
     source: str                                              # how the model reached MuJoCo
     file: str = ""
     removed_geometry: int = 0                                # <visual>/<collision> elements removed
-    mimic: list[str] = field(default_factory=list)           # joints whose <mimic> is ignored
+    mimic: list[str] = field(default_factory=list)           # movable joints whose <mimic> is ignored
+    held: list[str] = field(default_factory=list)            # movable joints of the URDF held fixed (fixed_joints)
     fused: list[str] = field(default_factory=list)           # links merged into their parent body (fixed joints)
     floored: dict[str, float] = field(default_factory=dict)  # link -> amount added to its smallest moments
     replaced_extension: bool = False                         # the URDF had a <mujoco> element of its own
@@ -73,6 +79,8 @@ class EngineNotes:
             out.append(f"{self.removed_geometry} <visual>/<collision> element(s) removed (dynamics only, no contacts)")
         if self.fused:
             out.append("fixed links merged into their parent body (fusestatic): " + ", ".join(self.fused))
+        if self.held:
+            out.append("joints held fixed at 0 (model.fixed_joints, as in symfunnel's model): " + ", ".join(self.held))
         if self.mimic:
             out.append("<mimic> ignored (each is its own coordinate, as in symfunnel's model): "
                        + ", ".join(self.mimic))
@@ -100,11 +108,21 @@ def _xml_floats(text: str | None, default: float = 0.0) -> float:
         return default
 
 
-def prepare_urdf(path, *, gravity, timestep: float = 1e-3, point_masses: bool = False) -> tuple[str, EngineNotes]:
-    """The URDF's text ready for MuJoCo's parser (see the module doc) and the notes of what was changed."""
+def prepare_urdf(path, *, gravity, timestep: float = 1e-3, point_masses: bool = False,
+                 fixed=()) -> tuple[str, EngineNotes]:
+    """The URDF's text ready for MuJoCo's parser (see the module doc) and the notes of what was changed; the joints
+    named in `fixed` (the scenario's model.fixed_joints) are made fixed joints at their zero position."""
     path = Path(path)
     root = ET.fromstring(path.read_bytes())
     notes = EngineNotes(source=f"the URDF {path.name}, read by MuJoCo's own URDF parser", file=str(path))
+    fixed = set(fixed)
+    for j in root.findall("joint"):
+        if j.get("name") in fixed and j.get("type") != "fixed":
+            j.set("type", "fixed")
+            for tag in ("axis", "limit", "dynamics", "calibration", "safety_controller"):
+                for el in j.findall(tag):
+                    j.remove(el)
+            notes.held.append(j.get("name"))
     fixed_children = {j.find("child").get("link") for j in root.findall("joint")
                       if j.get("type") == "fixed" and j.find("child") is not None}
     notes.fused = [lk.get("name") for lk in root.findall("link") if lk.get("name") in fixed_children]
@@ -130,8 +148,10 @@ def prepare_urdf(path, *, gravity, timestep: float = 1e-3, point_masses: bool = 
                 ie.set(k, repr(float(I2[a, b])))
             notes.floored[link.get("name")] = raised
     for j in root.findall("joint"):
-        if j.find("mimic") is not None:
-            notes.mimic.append(j.get("name"))
+        for el in j.findall("mimic"):
+            j.remove(el)
+            if j.get("name") not in fixed:
+                notes.mimic.append(j.get("name"))
         dyn = j.find("dynamics")
         if dyn is not None and j.get("type") in ("revolute", "continuous", "prismatic"):
             d = {k: _xml_floats(dyn.get(k)) for k in ("damping", "friction") if dyn.get(k) is not None}
@@ -329,15 +349,17 @@ def load_engine(model, *, file: str, timestep: float = 1e-3) -> Engine:
     tree = model.tree
     if model.kind == "urdf":
         urdf = tree.file
+        held = [j.name for j in tree.joints if j.type == "fixed"]     # fixed in the URDF or by model.fixed_joints
         try:
-            text, notes = prepare_urdf(urdf, gravity=gravity, timestep=timestep)
+            text, notes = prepare_urdf(urdf, gravity=gravity, timestep=timestep, fixed=held)
             try:
                 mj = _compile(mujoco, text, urdf)
             except _Refused as first:
                 # a point mass alone on a moving body: its composite inertia is singular for MuJoCo; floor it too
                 if "moving bodies" not in str(first):
                     raise
-                text, notes = prepare_urdf(urdf, gravity=gravity, timestep=timestep, point_masses=True)
+                text, notes = prepare_urdf(urdf, gravity=gravity, timestep=timestep, point_masses=True,
+                                           fixed=held)
                 mj = _compile(mujoco, text, urdf)
         except _Refused as exc:
             raise InputError(f"MuJoCo refuses this URDF: {exc}", file=urdf, key=ENGINE_KEY,
