@@ -677,6 +677,24 @@ def test_summary_leaves_failed_runs_out_of_the_breach_probability():
     assert s["worst_run"] == 4 and s["worst"]["min_margin"] == -0.2 and s["worst"]["values"] == {"x": 0.5}
 
 
+def test_summary_ranks_a_run_without_a_post_transient_margin_by_its_whole_run_margin():
+    """Runs that ended before their settle time (NaN after the transient) still have a worst run: by the whole run's
+    margin, beside the others' post-transient ones."""
+    import pyarrow as pa
+
+    from symfunnel.campaigns.campaign import summarize
+    nan = math.nan
+    rows = {"run": [0, 1, 2], "x": [0.1, 0.2, 0.3], "status": ["ok", "ok", "ok"], "t_end": [1.0, 1.0, 1.0],
+            "min_margin_e1": [0.5, 0.3, 0.6], "min_margin_e2": [0.4, 0.35, 0.2], "max_abs_tau": [1.0, 2.0, 3.0],
+            "min_margin_e1_after_transient": [nan, nan, nan], "min_margin_e2_after_transient": [nan, nan, nan]}
+    s = summarize(pa.table(rows), ["x"])
+    assert s["worst_run"] == 2 and s["worst"]["min_margin"] == 0.2
+    rows["min_margin_e1_after_transient"] = [0.55, nan, 0.7]
+    rows["min_margin_e2_after_transient"] = [0.45, nan, 0.65]
+    s = summarize(pa.table(rows), ["x"])
+    assert s["worst_run"] == 1 and s["worst"]["min_margin"] == 0.3          # its whole run: 0.3 < 0.45, 0.65
+
+
 def test_row_of_takes_the_located_breach_margin_of_its_funnel():
     from symfunnel.campaigns.campaign import row_of
     from symfunnel.simulation.margins import margin_summary

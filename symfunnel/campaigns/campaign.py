@@ -567,6 +567,10 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> list[float]:
     return [lo, hi]
 
 
+def _finite(v) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
 def _quantiles(a: np.ndarray) -> dict:
     a = a[np.isfinite(a)]
     if a.size == 0:
@@ -583,7 +587,8 @@ def summarize(table, columns: list[str]) -> dict:
     whole = np.fmin(np.array(d["min_margin_e1"], float), np.array(d["min_margin_e2"], float))
     p1 = np.array(d.get("min_margin_e1_after_transient", d["min_margin_e1"]), float)
     p2 = np.array(d.get("min_margin_e2_after_transient", d["min_margin_e2"]), float)
-    m = np.fmin(p1, p2)            # runs are ranked by the margin after the transient (the whole run's: ties)
+    post = np.fmin(p1, p2)         # runs are ranked by the margin after the transient (the whole run's: ties)
+    m = np.where(np.isfinite(post), post, whole)    # a run that ended before its settle time: by its whole run's
     runs = len(status)
     breaches = int(np.sum(status == "breach"))
     failed = int(np.sum(status == "failed"))
@@ -596,8 +601,8 @@ def summarize(table, columns: list[str]) -> dict:
                             np.nan_to_num(m, nan=np.inf)))
         i = int(order[0])
         worst = {"run": int(d["run"][i]), "status": str(status[i]), "min_margin": float(whole[i]),
-                 "min_margin_after_transient": float(m[i]),
-                 "min_margin_e1_after_transient": float(p1[i]), "min_margin_e2_after_transient": float(p2[i]),
+                 "min_margin_after_transient": _finite(post[i]),
+                 "min_margin_e1_after_transient": _finite(p1[i]), "min_margin_e2_after_transient": _finite(p2[i]),
                  "settle_time": float(d["settle_time"][i]) if "settle_time" in d else None,
                  "min_margin_e1": float(d["min_margin_e1"][i]), "min_margin_e2": float(d["min_margin_e2"][i]),
                  "max_abs_tau": float(d["max_abs_tau"][i]), "values": {c: float(d[c][i]) for c in columns}}
@@ -606,7 +611,7 @@ def summarize(table, columns: list[str]) -> dict:
             "ci95": clopper_pearson(breaches, decided),
             "worst_run": worst["run"] if worst else None,
             "failed": failed, "worst": worst,
-            "min_margin": _quantiles(whole), "min_margin_after_transient": _quantiles(m),
+            "min_margin": _quantiles(whole), "min_margin_after_transient": _quantiles(post),
             "min_margin_e1_after_transient": _quantiles(p1), "min_margin_e2_after_transient": _quantiles(p2),
             "max_abs_tau": _quantiles(np.array(d["max_abs_tau"], float))}
 
