@@ -35,7 +35,7 @@ class WallLimitReached(BaseException):
                          f"nothing was written (raise --wall-limit or [simulation] wall_limit)")
 
 
-@dataclass
+@dataclass(eq=False)
 class _Deadline:
     expiry: float                       # time.monotonic() at which it expires
     seconds: float
@@ -167,21 +167,18 @@ def _push(d: _Deadline):
         _arm()
         yield
     finally:
-        # Off the stack first: an alarm already delivered runs its handler at the next call and raises out of this
-        # block; a deadline left behind would expire every later check and the watchdog's stop of the process.
-        _discard(_stack, d)
+        # Off the stack first, in one C call (identity equality: no Python code runs, so no signal handler either):
+        # an alarm already delivered runs its handler at the next Python call and raises out of this block, and a
+        # deadline left behind would expire every later check and make the watchdog stop the process.
+        try:
+            _stack.remove(d)
+        except ValueError:
+            pass
         signal.setitimer(signal.ITIMER_REAL, 0)
         if _stack:
             _arm()
         elif old is not None:
             signal.signal(signal.SIGALRM, old)
-
-
-def _discard(items: list, item) -> None:
-    for i in range(len(items) - 1, -1, -1):
-        if items[i] is item:
-            del items[i]
-            return
 
 
 def limit(seconds: float | None, *, on_expiry: Callable[[], BaseException] | None = None):
@@ -212,7 +209,10 @@ def paused():
         _arm()
         yield
     finally:
-        _discard(_paused, mark)
+        try:
+            _paused.remove(mark)
+        except ValueError:
+            pass
         _arm()
 
 
@@ -225,4 +225,7 @@ def step(what: str):
         check()
         yield
     finally:
-        _discard(_steps, mark)
+        try:
+            _steps.remove(mark)
+        except ValueError:
+            pass
