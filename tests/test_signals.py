@@ -32,6 +32,17 @@ def _session_alive(sid: int) -> list[str]:
     return rows
 
 
+def _session_left(sid: int, wait: float = 1.0) -> list[str]:
+    """Processes of session `sid` still alive after `wait` s: a worker the kernel is killing with its parent
+    (PR_SET_PDEATHSIG) shows for a few milliseconds as '[python]' in state R; one left running stays."""
+    t0 = time.monotonic()
+    left = _session_alive(sid)
+    while left and time.monotonic() - t0 < wait:
+        time.sleep(0.02)
+        left = _session_alive(sid)
+    return left
+
+
 def _start(args, tmp_path, **kw):
     env = dict(os.environ, SYMFUNNEL_CACHE=str(kw.pop("cache", tmp_path / "cache")), **kw.pop("env", {}))
     return subprocess.Popen([sys.executable, "-m", "symfunnel", *args], stdout=subprocess.PIPE,
@@ -236,7 +247,7 @@ def test_a_signal_during_tunes_ipopt_phase_stops_it_at_once(tmp_path, sig, code)
     assert rc == code and took < 2.0, (rc, took, err)
     assert "psolve" not in err and "Traceback" not in err
     assert not (tmp_path / "tuned.toml").exists()
-    assert _session_alive(p.pid) == []
+    assert _session_left(p.pid) == []
 
 
 @pytest.mark.slow
@@ -249,7 +260,7 @@ def test_sigterm_during_the_derivation_of_a_fifty_joint_urdf(tmp_path):
     rc, took, err = _stop(p)
     assert rc == 143 and took < 2.0, (rc, took, err)
     assert err.strip().splitlines()[-1] == "symfunnel: terminated by signal 15"
-    assert _session_alive(p.pid) == []
+    assert _session_left(p.pid) == []
 
 
 @pytest.mark.slow
@@ -318,7 +329,7 @@ def test_sigkill_of_a_sweep_takes_its_pool_workers_with_it(tmp_path):
     t0 = time.monotonic()
     while _session_alive(p.pid) and time.monotonic() - t0 < 5.0:
         time.sleep(0.1)
-    assert _session_alive(p.pid) == []
+    assert _session_left(p.pid) == []
     assert not list((tmp_path / "cache").glob("**/*.so"))               # it compiled nothing
 
 
@@ -456,7 +467,7 @@ def test_sigterm_at_twenty_random_instants_exits_143_within_two_seconds_and_leav
             failures.append(f"{name}: finished before {at:.2f} s three times ({p.returncode})")
             continue
         rc, took, err = _stop(p)
-        left = _session_alive(p.pid)
+        left = _session_left(p.pid)
         partial = [str(f) for f in (tmp_path / "out").rglob("*") if f.name.endswith(".tmp")] \
             if (tmp_path / "out").exists() else []
         written = output is not None and output.exists()

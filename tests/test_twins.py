@@ -86,6 +86,7 @@ def test_the_correct_designs_pass_both_consistency_checks(robot, correct):
 
 @pytest.mark.parametrize("robot", ROBOTS)
 def test_a_controller_fed_a_zero_reference_acceleration_fails_verify(robot, urdf_scenario, correct, monkeypatch):
+    good = correct[robot]           # the reference outcome, computed before anything is patched
     real = Backstepping.derive
 
     def zero_ddqd(self, *a, **k):
@@ -95,7 +96,7 @@ def test_a_controller_fed_a_zero_reference_acceleration_fails_verify(robot, urdf
     monkeypatch.setattr(Backstepping, "derive", zero_ddqd)
     v = _verify(_name(robot, urdf_scenario))
     assert v.status == "fail"
-    assert _killed_by(v, correct[robot]) == {"reference.derivatives"}
+    assert _killed_by(v, good) == {"reference.derivatives"}
     c = next(x for x in v.checks if x.id == "reference.derivatives")
     failing = {r["comparison"] for r in c.evidence["comparisons"] if r["max_relative"] > r["tolerance"]}
     assert {"ddq_d = d/dt dq_d (AD)", "ddq_d = d2/dt2 declared", "generated ddq_d = FD of generated dq_d"} <= failing
@@ -106,6 +107,7 @@ def test_a_controller_fed_a_zero_reference_acceleration_fails_verify(robot, urdf
 def test_a_funnel_widened_in_its_sx_fails_verify(robot, urdf_scenario, correct, monkeypatch):
     """The issue's arm7 defect: the SX funnel of e2 decays at half the declared rate (a wider funnel), and every
     containment check passes against it; only the comparison with the declaration notices."""
+    good = correct[robot]           # the reference outcome, computed before anything is patched
     real = FunnelSpec.sx
     widened = {}
 
@@ -119,7 +121,7 @@ def test_a_funnel_widened_in_its_sx_fails_verify(robot, urdf_scenario, correct, 
     widened["e2"] = sc.funnels["e2"]
     v = Run(sc, RunOptions(t_final=0.5, samples=300)).verification
     assert v.status == "fail"
-    assert "funnel.consistency" in _killed_by(v, correct[robot])
+    assert "funnel.consistency" in _killed_by(v, good)
     assert all(c.status == "pass" for c in v.checks if c.id.startswith("funnel.containment."))
     c = next(x for x in v.checks if x.id == "funnel.consistency")
     assert "declared funnel e2" in c.detail
@@ -129,12 +131,13 @@ def test_a_funnel_widened_in_its_sx_fails_verify(robot, urdf_scenario, correct, 
 def test_a_numeric_value_twin_that_differs_from_its_sx_fails_verify(robot, urdf_scenario, correct, monkeypatch):
     """A numeric twin (value()) re-implemented with its own error: the initial-condition check reads it, the design
     does not; funnel.consistency compares the two."""
+    good = correct[robot]           # the reference outcome, computed before anything is patched
     def value(self, t):
         return [p0 * math.exp(-a * t / 2) + pi for p0, pi, a in zip(self.phi0, self.phi_inf, self.a)]
     monkeypatch.setattr(FunnelSpec, "value", value)
     v = _verify(_name(robot, urdf_scenario))
     assert v.status == "fail"
-    assert _killed_by(v, correct[robot]) == {"funnel.consistency"}
+    assert _killed_by(v, good) == {"funnel.consistency"}
     c = next(x for x in v.checks if x.id == "funnel.consistency")
     assert "value() against its SX" in c.detail
 
