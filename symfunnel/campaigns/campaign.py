@@ -105,6 +105,17 @@ def input_files(scenario) -> dict[str, str]:
     return {k: v for k, v in getattr(scenario, "inputs", {}).items() if k != own}
 
 
+def _job_scenario(job: Job):
+    """The job's scenario, loaded in this worker; InputError when one of its input files changed since the start."""
+    from ..scenario import from_dict
+    sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
+    changed = sorted(p for p, d in job.files if input_files(sc).get(p) != d)
+    if changed:
+        raise InputError("changed while the campaign ran (its rows would mix two robots)", file=changed[0],
+                         expected="the input files of a campaign unchanged until it ends")
+    return sc
+
+
 def _state(job: Job):
     # one closed loop per thread: CasADi function objects are not for concurrent calls (dask --nthreads > 1)
     key = (job.fingerprint, threading.get_ident())
@@ -112,13 +123,8 @@ def _state(job: Job):
     if st is None:
         from ..simulation.closedloop import build_closed_loop
         from ..design import derive
-        from ..scenario import from_dict
         from ..simulation import compile_closed_loop
-        sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
-        changed = sorted(p for p, d in job.files if input_files(sc).get(p) != d)
-        if changed:
-            raise InputError("changed while the campaign ran (its rows would mix two robots)", file=changed[0],
-                             expected="the input files of a campaign unchanged until it ends")
+        sc = _job_scenario(job)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cl = build_closed_loop(sc, derive(sc))
@@ -139,12 +145,7 @@ def _engine_state(job: Job):
         from ..deployed.loop import step_library
         from ..design import derive
         from ..emit.files import generate
-        from ..scenario import from_dict
-        sc = from_dict(job.raw, file=job.file, base_dir=Path(job.base_dir), default_name=job.name)
-        changed = sorted(p for p, d in job.files if input_files(sc).get(p) != d)
-        if changed:
-            raise InputError("changed while the campaign ran (its rows would mix two robots)", file=changed[0],
-                             expected="the input files of a campaign unchanged until it ends")
+        sc = _job_scenario(job)
         built = []
         t0 = time.perf_counter()
         with warnings.catch_warnings():

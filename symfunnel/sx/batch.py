@@ -25,8 +25,8 @@ import math
 import casadi
 import numpy as np
 
-from .interval import IntervalError, IntervalFunction
-from .tape import OP_NAMES, read_tape
+from .interval import IntervalError, IntervalFunction, read_layout
+from .tape import OP_NAMES
 
 __all__ = ["BatchIntervalFunction", "TRANSCENDENTAL_ULPS", "BATCH_OPS"]
 
@@ -453,22 +453,9 @@ class BatchIntervalFunction(IntervalFunction):
         # the layout of IntervalFunction (names, shapes, nonzeros, offsets) without its scalar backends
         from .tape import as_sx_function
         self.function = as_sx_function(f)
-        tape = read_tape(self.function)
-        if tape.free:
-            raise IntervalError(f"function {self.function.name()!r} has free SX variables "
-                                f"({', '.join(v.name() for v in tape.free)}); interval evaluation needs every symbol "
-                                "as an input")
+        tape = read_layout(self, self.function)
         self.backend = None
         self.form = "natural"
-        self.name = self.function.name()
-        self.in_names = tape.in_names
-        self.out_names = tape.out_names
-        self.in_sx_shapes = tape.in_shapes
-        self.out_sx_shapes = tape.out_shapes
-        self.in_nz = tape.in_nz
-        self.out_nz = tape.out_nz
-        self.in_off = [0, *np.cumsum([len(nz) for nz in tape.in_nz]).tolist()]
-        self.out_off = [0, *np.cumsum([len(nz) for nz in tape.out_nz]).tolist()]
         self._run, self._deps = _compile(tape, self.in_off, self.out_off)
         self._jac = None
         self._last = None

@@ -585,6 +585,23 @@ _UNARY = frozenset(
 Box = Any   # (lo, hi) pair of arrays of the input's shape, or one array of shape (..., 2)
 
 
+def read_layout(obj, function: casadi.Function):
+    """The tape of an SX Function, with its inputs' and outputs' names, shapes, nonzeros and offsets set on `obj`
+    (shared by the interval evaluators); IntervalError when it has free symbols."""
+    tape = read_tape(function)
+    if tape.free:
+        raise IntervalError(f"function {function.name()!r} has free SX variables "
+                            f"({', '.join(v.name() for v in tape.free)}); interval evaluation needs every symbol "
+                            "as an input")
+    obj.name = function.name()
+    obj.in_names, obj.out_names = tape.in_names, tape.out_names
+    obj.in_sx_shapes, obj.out_sx_shapes = tape.in_shapes, tape.out_shapes
+    obj.in_nz, obj.out_nz = tape.in_nz, tape.out_nz
+    obj.in_off = [0, *np.cumsum([len(nz) for nz in tape.in_nz]).tolist()]
+    obj.out_off = [0, *np.cumsum([len(nz) for nz in tape.out_nz]).tolist()]
+    return tape
+
+
 class IntervalFunction:
     """Interval extension of an SX casadi.Function, compiled once from its tape, on one backend.
 
@@ -608,20 +625,7 @@ class IntervalFunction:
         self.function = as_sx_function(f)
         self.backend = get_backend(backend)
         self.form = form
-        tape = read_tape(self.function)
-        if tape.free:
-            raise IntervalError(f"function {self.function.name()!r} has free SX variables "
-                                f"({', '.join(v.name() for v in tape.free)}); interval evaluation needs every symbol "
-                                "as an input")
-        self.name = self.function.name()
-        self.in_names = tape.in_names
-        self.out_names = tape.out_names
-        self.in_sx_shapes = tape.in_shapes
-        self.out_sx_shapes = tape.out_shapes
-        self.in_nz = tape.in_nz
-        self.out_nz = tape.out_nz
-        self.in_off = [0, *np.cumsum([len(nz) for nz in tape.in_nz]).tolist()]
-        self.out_off = [0, *np.cumsum([len(nz) for nz in tape.out_nz]).tolist()]
+        tape = read_layout(self, self.function)
         self._run = _compile(tape, self.backend, self.in_off, self.out_off)
         self._jac: tuple[IntervalFunction, list[tuple[int, int]]] | None = None
         self._last: tuple | None = None
