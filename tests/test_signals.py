@@ -451,15 +451,18 @@ def test_sigterm_at_twenty_random_instants_exits_143_within_two_seconds_and_leav
         # the first of each command with a cold cache (compiling), the others warm; any instant after the
         # interpreter has started (before it, the default action kills the process: nothing of ours has run)
         cache = tmp_path / ("cache-%d" % k if k < len(cmds) else "cache-warm")
-        hi = 6.0
+        lo, hi = 0.4, 6.0
         for attempt in range(3):
             p = _start([*argv, "-q"], tmp_path, cache=cache)
-            at = rng.uniform(0.4, hi)
-            time.sleep(at)
+            at = rng.uniform(lo, hi)
+            t0 = time.monotonic()
+            while p.poll() is None and time.monotonic() - t0 < at:
+                time.sleep(0.01)
             if p.poll() is None:
                 break
-            # finished before the signal (a quiet machine, a warm cache): aim inside the time it took instead
-            hi = max(0.45, 0.8 * at)
+            # finished before the signal (a quiet machine, a warm cache): aim inside the time it really took
+            took = time.monotonic() - t0
+            lo, hi = min(0.4, 0.5 * took), 0.85 * took
             if (tmp_path / "out").exists():
                 import shutil
                 shutil.rmtree(tmp_path / "out")
