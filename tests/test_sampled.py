@@ -235,6 +235,7 @@ class _Run:
         self.ok, self.min_margin = ok, m
         self.min_margin_after_transient = m          # what the rate search ranks by
         self.status = "ok" if ok else "breach"
+        self.breach = None if ok else {"time": 0.5, "funnel": "e2", "joint": 1, "margin": m}
         self.stats = {"settle_time": 0.0}
 
 
@@ -255,6 +256,22 @@ def test_min_rate_brackets_and_bisects_on_a_log_scale(monkeypatch):
         assert d["holds"] == (d["rate_hz"] >= 3000.0)
     # the bracket shrinks geometrically: successive midpoints are geometric means
     assert any(math.isclose(x, math.sqrt(1000.0 * 4000.0)) for x in rates)
+
+
+def test_a_run_that_starts_outside_its_funnel_ends_the_rate_search_at_once(tmp_path, capsys):
+    """The state at t = 0 is the same at every rate: one probe, then `reason` (and the CLI's line) says why; the
+    claim is re-checked at another rate, and a breach later in the run still lets the search go on (above)."""
+    p = paper_with(tmp_path, "rate_hz = 1000.0", t_final=1.0)
+    p.write_text(p.read_text().replace("phi0 = 0.4 ", "phi0 = 0.18 ", 1))
+    sc = load_scenario(p)
+    design = derive(sc)
+    r = R.min_rate(sc, design)
+    assert r["min_rate_hz"] is None and [d["rate_hz"] for d in r["tried"]] == [1000.0]
+    assert "outside funnel e2 of joint 1 at t = 0" in r["reason"]
+    other = S.simulate_sampled(sc, design, rate_hz=64000.0, t_final=0.01)
+    assert other.breach is not None and other.breach["time"] == 0.0 and other.margins[0].min() < 0
+    assert main(["rate", str(p)]) == 1
+    assert "none (the initial state is outside funnel e2" in capsys.readouterr().out
 
 
 def test_rate_sensitivity_changes_the_named_parameter(monkeypatch):

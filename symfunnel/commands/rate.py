@@ -39,7 +39,8 @@ def run(args) -> int:
     if args.json:
         print(_dump(r))
     else:
-        found = "none up to 1 MHz" if r["min_rate_hz"] is None else f"{r['min_rate_hz']:.6g} Hz"
+        found = (f"none ({r['reason']})" if r.get("reason") else "none up to 1 MHz") if r["min_rate_hz"] is None \
+            else f"{r['min_rate_hz']:.6g} Hz"
         print(f"minimum sample rate of scenario {sc.name} on the {engine} plant (margin >= {r['margin']:g} after the transient): {found}")
         for d in r["tried"]:
             m = "-" if d["min_margin"] is None else f"{d['min_margin']:.4g}"

@@ -3,7 +3,8 @@
 `min_rate(scenario, design)` searches the lowest rate at which the sampled-data loop (`symfunnel.deployed.loop`) keeps
 both funnels over the horizon with margin >= M after the transient (`simulation.margins`): it brackets from the scenario's rate by factors of 4, then bisects on a
 log scale until the bracket is within `rel_tol`. It assumes that holding is monotone in the rate (every tried rate
-is listed, so a non-monotone case shows). `rate_sensitivity` re-runs the search for a few one-parameter changes
+is listed, so a non-monotone case shows). A run that starts outside a funnel ends the search after its first rate:
+the state at t = 0 is the same at every rate, so the result says why instead (`reason`). `rate_sensitivity` re-runs the search for a few one-parameter changes
 of the inner loop (phi_inf and a of funnel e2, k2), to show which parameter sets the minimum rate.
 """
 
@@ -59,8 +60,27 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
                       "settle_time": res.stats.get("settle_time"), "holds": bool(ok)})
         say(f"rate {rate:.6g} Hz: {res.status}, min margin after the transient {mt:.3g} (whole run {m:.3g}) -> "
             f"{'holds' if ok else 'does not hold'}")
+        if res.breach is not None and res.breach["time"] == 0.0 and "between_samples" not in res.breach:
+            raise _OutsideAtStart(res.breach)
         return ok
 
+    def outside(b: dict) -> dict:
+        return {"min_rate_hz": None, "margin": margin, "tried": tried, "engine": engine,
+                "reason": (f"the initial state is outside funnel {b['funnel']} of joint {b['joint']} at t = 0 "
+                           f"(margin {b['margin']:.3g}): no sample rate changes it, so no other rate was tried")}
+
+    try:
+        return _search(holds, r, tried, scenario, t_final, rel_tol, margin, engine)
+    except _OutsideAtStart as exc:
+        return outside(exc.args[0])
+
+
+class _OutsideAtStart(Exception):
+    """The sampled run starts outside a funnel: the sample rate cannot matter (raised by the search's probe)."""
+
+
+def _search(holds, r: float, tried: list, scenario, t_final, rel_tol: float, margin: float, engine: str) -> dict:
+    """Bracket from r by factors of 4, then bisect on a log scale (see the module doc)."""
     lo = hi = None
     if holds(r):
         hi = r

@@ -378,6 +378,7 @@ def implementation_section(run, progress) -> dict:
     rows = [{"key": v["key"], "factor": fmt(v["factor"]), "before": fmt(v["before"]), "after": fmt(v["after"]),
              "rate": fmt(v["min_rate_hz"]), "ratio": fmt(v["ratio"])} for v in sens.get("variations", [])]
     return {"available": True, "min_rate": fmt(r["min_rate_hz"]), "margin": fmt(r["margin"]),
+            "rate_reason": r.get("reason"),
             "tried": [(fmt(d["rate_hz"]), d["status"], fmt(d.get("min_margin_after_transient", d["min_margin"])))
                       for d in r["tried"]],
             "tau_unit": unit_label(joint_units(run.scenario.model.joint_types, run.scenario.n), "tau"),
