@@ -141,16 +141,36 @@ def test_staged_writes_are_all_or_nothing(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g0.png", "g1.png", "g2.png"]
 
 
-@pytest.mark.slow
+#: `report`, its wall-clock limit made to expire (by the real deadline machinery) once the simulation figures are staged
+_REPORT_LIMIT_HOOK = """
+import sys, time
+from symfunnel import cli
+from symfunnel.core import deadline, io
+import symfunnel.reporting.sections as S
+real = S.tuning_section                 # the section after the simulation's figures
+def hooked(*a, **k):
+    sys.stderr.write("staged %d\\n" % sum(len(b) for b in io._staging))
+    for d in deadline._stack:
+        d.expiry = time.monotonic()
+    deadline.check("a hooked report section")
+    return real(*a, **k)
+S.tuning_section = hooked
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
 def test_report_figures_stopped_by_the_limit_leave_nothing(tmp_path):
+    """The limit reached after the figures were staged: exit 1 with the limit's line, no figure and no report."""
     figs = tmp_path / "figs"
-    r = subprocess.run([sys.executable, "-m", "symfunnel", "report", "--figures", str(figs), "--out",
-                        str(tmp_path / "r.html"), "--wall-limit", "25", "-q"], capture_output=True, text=True,
-                       timeout=600)
-    if r.returncode == 0:
-        pytest.skip("the report finished within 25 s on this machine")
-    assert r.returncode == 1 and "wall-clock limit" in r.stderr
+    r = subprocess.run([sys.executable, "-c", _REPORT_LIMIT_HOOK, "report", "--figures", str(figs), "--out",
+                        str(tmp_path / "r.html"), "--wall-limit", "600", "--t-final", "1", "--samples", "200",
+                        "--no-codegen", "--no-mutants", "--no-deployed", "-q"], capture_output=True, text=True,
+                       timeout=600, cwd=tmp_path)
+    staged = [int(line.split()[1]) for line in r.stderr.splitlines() if line.startswith("staged ")]
+    assert staged and staged[0] >= 4, r.stderr[-600:]          # PNG and PDF of at least two figures were held back
+    assert r.returncode == 1 and "wall-clock limit of 600 s reached while a hooked report section" in r.stderr
     assert list(figs.iterdir()) == [] and not (tmp_path / "r.html").exists()
+    assert not [f for f in tmp_path.rglob("*") if f.name.endswith(".tmp")]
 
 
 def test_init_escapes_joint_names_so_the_output_loads_as_written(tmp_path):
