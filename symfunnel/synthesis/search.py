@@ -395,8 +395,12 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         return s
 
     def f(z, final: bool = False) -> float:
-        # final: the result of an IPOPT run, always judged (the limits stop the next search, not this check)
+        # final: the result of an IPOPT run, always judged (the limits stop the next search, not this check), and
+        # judged as it would be written, rounded to DIGITS (each new value is a new closed loop to compile: the
+        # exact and then the rounded one cost two compiles for one answer)
         xs = [v.x_of(zi) for v, zi in zip(vars_, z)]
+        if final:
+            xs = [min(v.hi, max(v.lo, round_sig(x, DIGITS))) for v, x in zip(vars_, xs)]
         key = tuple(round(x, 10) for x in xs)
         if key in seen:
             return _score(seen[key], spec.objective, ref)
