@@ -221,6 +221,26 @@ def test_input_gain_refuted_on_the_paper_with_a_counterexample_that_reproduces()
     assert check_input_gain(r.design, np.random.default_rng(13)).status == "fail"
 
 
+@pytest.mark.parametrize("which", ["paper", "arm7"])
+def test_input_gain_branch_and_bound_refutes_without_the_sample_probe(which, monkeypatch):
+    """The probe finds the counterexample first on both built-ins; with it blinded, the branch and bound must find
+    one by itself (its own refutation path stays tested), and both reproduce with the ordinary Functions."""
+    import symfunnel.certificates.input_gain as IG
+    r = run_of(which)
+    probed = run_certificates(r.scenario, r.design, t_final=r.t_final, only=(IG.CID,)).certificates[0]
+    assert probed.status == "refuted" and probed.boxes == 0 and "seeded sample points" in probed.detail
+    monkeypatch.setattr(IG, "_probe", lambda Sx, lo, hi: (0.5 * lo + 0.5 * hi, np.inf))
+    c = run_certificates(r.scenario, r.design, t_final=r.t_final, only=(IG.CID,)).certificates[0]
+    assert c.status == "refuted" and c.boxes > 0 and "seeded sample points" not in c.detail
+    _, p0 = plant_parameters(r.scenario)
+    for cert in (probed, c):
+        ce = cert.counterexample
+        P = np.array([ce["parameters"].get(k, v) for k, v in zip(*plant_parameters(r.scenario))])
+        lam = _lambda_min(r.design, np.array(ce["q"])[:, None], (P if P.size else p0)[:, None],
+                          np.array(ce["slopes"])[:, None])
+        assert lam[0] < 0 and abs(lam[0] - ce["lambda_min"]) < 1e-9 * max(1.0, abs(lam[0]))
+
+
 @pins("certify.input_gain", "pass")
 @pytest.mark.parametrize("name", [SMALL, pytest.param("prismatic", marks=pytest.mark.slow)],
                          ids=["paper_small_dead_zone", "prismatic_urdf"])

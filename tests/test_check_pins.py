@@ -717,7 +717,7 @@ def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
     def fake(scenario, design, *, rate_hz, t_final=None):
         m = 0.05 + 0.1 * math.log(rate_hz / 1234.0)
         return SimpleNamespace(ok=m > -0.3, min_margin=m, min_margin_after_transient=m, stats={},
-                               status="ok" if m > -0.3 else "breach")
+                               status="ok" if m > -0.3 else "breach", breach=None)
     monkeypatch.setattr(loop, "simulate_sampled", fake)
     monkeypatch.setattr(loop, "min_rate_hz", lambda scenario: 1.0)          # no plant-step floor in this fake
     sc = SimpleNamespace(file=None, implementation=None)
@@ -731,7 +731,8 @@ def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
     monkeypatch.setattr(loop, "simulate_sampled",
                         lambda s, d, *, rate_hz, t_final=None: SimpleNamespace(ok=rate_hz > 500, min_margin=0.9,
                                                                               min_margin_after_transient=0.9,
-                                                                              stats={}, status="ok"))
+                                                                              stats={}, status="ok",
+                                                                              breach=None))
     out = min_rate(sc, None, margin=0.05, rel_tol=0.05, start=1000.0)
     assert 500 < out["min_rate_hz"] <= 500 * 1.05
 
