@@ -24,7 +24,7 @@ import casadi as ca
 import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes, improve, unknown_exprs
-from .search import extrema
+from ..sx.search import extrema
 from .result import Certificate
 
 CID = "certify.bounds"

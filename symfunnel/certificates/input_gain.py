@@ -22,7 +22,7 @@ import numpy as np
 from .problem import Budget, Context, check_rules
 from .region import input_gain_function, inertia_functions, joint_box, slope_box
 from .result import Certificate
-from .search import prove_positive_definite
+from ..sx.search import prove_positive_definite
 
 CID = "certify.input_gain"
 #: at most this many slope-box vertices are enumerated (else the slopes are bisected)

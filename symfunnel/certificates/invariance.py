@@ -35,7 +35,7 @@ import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes, improve, unknown_exprs
 from .result import Certificate
-from .search import extremum
+from ..sx.search import extremum
 
 CID = "certify.invariance"
 #: the margins tried: a fine linear grid of (0, 1) and a geometric one below 0.01

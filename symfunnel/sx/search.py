@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
+from .batch import BatchCenteredForm, BatchIntervalFunction
 
 _INF = math.inf
 _EPS = 2.0 ** -52
