@@ -67,6 +67,22 @@ def test_M_not_positive_definite_is_found_with_its_worst_point(write_scenario, m
     assert abs(abs(r.where["q"][1]) - 3.141592653589793) < 0.05
 
 
+def test_a_dip_between_the_samples_is_found_by_the_interval_search(write_scenario, monkeypatch):
+    """M11 < 0 only for |q2 - 0.3| < ~1e-5: none of the sampled states and no local refinement from them sees it;
+    the branch and bound over the joint box narrows onto it, and the point is re-evaluated before the check fails.
+    Without the dip the same model is proven (the bound is rigorous, below every eigenvalue)."""
+    _skip_load_check(monkeypatch)
+    dip = '"3 - 3.0001*exp(-((q2 - 0.3)/1e-5)^2)"'
+    text = MINIMAL_2LINK.format(C="").replace('"a + 2*c*cos(q2)", "b + c*cos(q2)"]', f'{dip}, "0"]') \
+        .replace('["b + c*cos(q2)", "b"]', '["0", "b"]')
+    assert dip in text
+    r = _audit(write_scenario(text))["model.M_positive_definite"]
+    assert r.status == "fail" and "interval branch and bound" in r.method, (r.status, r.method)
+    assert r.evidence["min_eigenvalue"] < 0 and abs(r.where["q"][1] - 0.3) < 1e-5
+    ok = _audit(write_scenario(text.replace("3.0001*exp", "2.9*exp"), "ok.toml"))["model.M_positive_definite"]
+    assert ok.status == "pass" and 0 < ok.evidence["lambda_min_lower_bound"] <= ok.evidence["min_eigenvalue"]
+
+
 def test_M_not_symmetric_fails(write_scenario, monkeypatch):
     _skip_load_check(monkeypatch)
     text = MINIMAL_2LINK.format(C="").replace('["b + c*cos(q2)", "b"]', '["b + 0.5*c*cos(q2)", "b"]')

@@ -130,7 +130,10 @@ def check_M_pd(design: Design, rng) -> CheckResult:
             if res.fun < best_val:
                 best_val, best_q = float(res.fun), np.clip(res.x, lo, hi)
     method = "exact (M is constant)" if constant else f"sampled ({k} states over the joint range) + local refinement"
-    proof = None if constant or best_val <= 0 else _pd_by_intervals(Mn, m.q, lo, hi, a.sympy_timeout)
+    proof, found = (None, None) if constant or best_val <= 0 else _pd_by_intervals(Mn, m.q, lo, hi, a.sympy_timeout)
+    if found is not None and fmin_eig(found) < best_val:       # the search saw a smaller eigenvalue: re-checked
+        best_val, best_q = float(fmin_eig(found)), np.clip(found, lo, hi)
+        method += " + interval branch and bound (its smallest midpoint, re-evaluated)"
     if proof:
         method = ("interval branch and bound over the joint range (outward-rounded enclosures of M's SX, "
                   "preconditioned Gershgorin discs)")
@@ -151,23 +154,25 @@ def check_M_pd(design: Design, rng) -> CheckResult:
                        method=method, margin=best_val, where=where, evidence=ev)
 
 
-def _pd_by_intervals(Mn: ca.SX, q: ca.SX, lo, hi, timeout: float, max_n: int = 4) -> float | None:
-    """A rigorous lower bound of lambda_min(M(q)) over the joint box, or None when not proven within the budget:
-    interval branch and bound on M's own SX (`sx.search`: outward-rounded enclosures, preconditioned Gershgorin
-    discs), so a URDF arm's M needs no symbolic determinant (sympy's took its whole 10 s timeout on 4 joints).
-    Above max_n joints the box is too large to prove in the audit's time (arm7: undecided after 3 s): not tried."""
+def _pd_by_intervals(Mn: ca.SX, q: ca.SX, lo, hi, timeout: float, max_n: int = 4):
+    """(a rigorous lower bound of lambda_min(M(q)) over the joint box or None when not proven within the budget,
+    the point where the search saw its smallest eigenvalue or None): interval branch and bound on M's own SX
+    (`sx.search`: outward-rounded enclosures, preconditioned Gershgorin discs), so a URDF arm's M needs no symbolic
+    determinant (sympy's took its whole 10 s timeout on 4 joints). Above max_n joints the box is too large to prove
+    in the audit's time (arm7: undecided after 3 s): not tried."""
     from ..sx.search import prove_positive_definite
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     n = q.numel()
     if n > max_n or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        return None
+        return None, None
     split = np.array([j for j in range(n) if hi[j] > lo[j] and ca.depends_on(Mn, q[j])], dtype=int)
     try:
         r = prove_positive_definite(ca.Function("M", [q], [0.5 * (Mn + Mn.T)]), lo, hi, split, max_boxes=4000,
                                     seconds=min(float(timeout), 3.0), rel_tol=0.05)
     except Exception:  # noqa: BLE001 - an operation without an interval rule just means "not proven"
-        return None
-    return float(r.lower) if r.status == "proven" and r.lower is not None and r.lower > 0 else None
+        return None, None
+    proven = r.status == "proven" and r.lower is not None and r.lower > 0
+    return (float(r.lower) if proven else None), (None if r.argmin is None else np.asarray(r.argmin, float))
 
 
 # --- funnels --------------------------------------------------------------------------------------
