@@ -46,6 +46,19 @@ def _repo(tmp_path):
     return root
 
 
+def test_a_kill_under_xdist_is_named_by_its_test(tmp_path):
+    """With -n in the repository's addopts, pytest -x ends a run with a failure as "interrupted" (exit 2): the
+    kill is still the failing test's (from the junit file), not "the mutant breaks collection"."""
+    root = _repo(tmp_path)
+    (root / "pyproject.toml").write_text('[tool.pytest.ini_options]\naddopts = "-n 2"\n')
+    mutants = (CheckerMutant("non_strict", "pkg/check.py", "abs(e) < SCALE * F", "abs(e) <= SCALE * F",
+                             "comparison", "|e| = F inside"),)
+    out = run(root=root, state=tmp_path / "state", mutants=mutants, package="pkg", marker=None, workers=1)
+    row = out["rows"][0]
+    assert row["status"] == "killed" and row["note"] == ""
+    assert row["by"] == "tests/test_check.py::test_inside_pins_the_boundary"
+
+
 def test_one_killed_one_survived_one_equivalent_and_resumed(tmp_path):
     root = _repo(tmp_path)
     mutants = (

@@ -425,12 +425,12 @@ def run_mutant(root: Path, m: CheckerMutant, tests: list[str], base: dict, *, ca
             status, note = "killed", f"timeout after {secs:.0f} s"
         elif rc == 0:
             status, note = "survived", f"{len(tests)} covering tests pass"
-        elif rc == 1:
-            status, note = "killed", ""
-            if junit.exists():
-                by = next(iter(_junit(junit)[1]), None)
         else:
-            status, note = "killed", f"pytest exit {rc} (the mutant breaks collection or the run)"
+            # under pytest-xdist (-n in addopts) -x ends a run with a failure as "interrupted", exit 2: the junit
+            # file says whether a test failed (killed by it) or nothing ran (the mutant breaks collection)
+            by = next(iter(_junit(junit)[1]), None) if junit.exists() else None
+            status = "killed"
+            note = "" if by is not None else f"pytest exit {rc} (the mutant breaks collection or the run)"
     row.update(status=status, by=by, seconds=round(secs, 2), note=note)
     return row
 
