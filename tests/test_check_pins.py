@@ -754,3 +754,7 @@ expression = "e1/(F1 - abs(e1))"
     bad, good = (A.check_claim(d, c, _rng()) for c in sc.claims)
     assert bad.status == "fail" and good.status == "pass"
     assert bad.evidence["exact_at_worst"][0] == pytest.approx(bad.evidence["printed_at_worst"][0], rel=1e-14)
+    # refuted by the samples themselves (joint 2 disagrees almost everywhere), not left to the sympy stage behind
+    # them: a claim judged by its best entry shows no disagreeing sample at all
+    assert bad.method.startswith("sampled") and bad.evidence["fraction_disagreeing"] > 0.5
+    assert bad.evidence["max_rel"] > 1e-3
