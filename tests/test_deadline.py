@@ -135,6 +135,25 @@ def test_bad_limit_is_bad_input(capsys, tmp_path):
         assert "--wall-limit" in err and "> 0" in err
 
 
+def test_an_error_a_c_call_makes_of_the_alarm_after_the_expiry_is_the_limit():
+    """The alarm's WallLimitReached raised inside a CasADi call comes out as SWIG's NotImplementedError ("Wrong
+    number or type of arguments", seen from `verify --wall-limit 0.5`): past the expiry the limit block reports the
+    limit (the error as its cause); before it, such an error is the block's own and passes through."""
+    msg = "Wrong number or type of arguments for function 'Function_call'"
+    with pytest.raises(deadline.WallLimitReached) as ei:
+        with deadline.limit(0.05):
+            try:
+                time.sleep(1.0)                 # the alarm fires here ...
+            except deadline.WallLimitReached:
+                pass                            # ... and is swallowed, as inside a C extension
+            raise NotImplementedError(msg)
+    assert isinstance(ei.value.__cause__, NotImplementedError) and ei.value.seconds == 0.05
+    with pytest.raises(NotImplementedError, match="Wrong number"):
+        with deadline.limit(60.0):
+            raise NotImplementedError(msg)
+    assert deadline.remaining() == float("inf")
+
+
 def test_verify_under_a_limit_too_short_for_the_integration_stops_with_one_line(capsys):
     from symfunnel.cli import main
     assert main(["verify", "-q", "--wall-limit", "0.5"]) == 1

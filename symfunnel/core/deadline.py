@@ -156,6 +156,10 @@ def check(what: str | None = None) -> None:
                 _steps.pop()
 
 
+#: what an exception raised by the alarm's handler inside a C extension's call can come out as
+SWALLOWED = (NotImplementedError, SystemError, RuntimeError)
+
+
 @contextlib.contextmanager
 def _push(d: _Deadline):
     if not _main():
@@ -165,7 +169,14 @@ def _push(d: _Deadline):
     try:
         _stack.append(d)
         _arm()
-        yield
+        try:
+            yield
+        except SWALLOWED as exc:
+            # the alarm's exception raised inside a CasADi call comes out as SWIG's or CasADi's own error (e.g.
+            # "Wrong number or type of arguments" while converting arguments): past the expiry, it is the limit
+            if time.monotonic() >= d.expiry:
+                raise _error(d) from exc
+            raise
     finally:
         # Off the stack first, in one C call (identity equality: no Python code runs, so no signal handler either):
         # an alarm already delivered runs its handler at the next Python call and raises out of this block, and a
