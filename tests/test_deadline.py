@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -152,6 +153,33 @@ def test_an_error_a_c_call_makes_of_the_alarm_after_the_expiry_is_the_limit():
         with deadline.limit(60.0):
             raise NotImplementedError(msg)
     assert deadline.remaining() == float("inf")
+
+
+def test_a_limit_never_interrupts_an_import_half_way(tmp_path):
+    """The alarm during an import waits for the import to finish, then raises: a module interrupted half-way stays
+    broken in sys.modules for the rest of the process (an API session, a test worker: after a limit that fired 0.2 s
+    into the lazy `import sympy`, "module 'sympy' has no attribute 'polys'")."""
+    (tmp_path / "slow_module.py").write_text("import time\ntime.sleep(0.3)\nDONE = True\n")
+    code = textwrap.dedent("""
+        import sys, time
+        from symfunnel.core import deadline
+        t0 = time.monotonic()
+        try:
+            with deadline.limit(0.05):
+                import slow_module
+                print("imported", round(time.monotonic() - t0, 2))
+                while True:
+                    time.sleep(0.01)
+        except deadline.WallLimitReached:
+            print("limit", round(time.monotonic() - t0, 2), "slow_module" in sys.modules)
+        """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                       env={**os.environ, "PYTHONPATH": str(tmp_path)})
+    assert r.returncode == 0, r.stderr[-2000:]
+    imported, limit = r.stdout.splitlines()
+    assert float(imported.split()[1]) >= 0.3                        # the import ran to its end ...
+    assert limit.split()[0] == "limit" and limit.split()[2] == "True"    # ... and the limit was raised after it
+    assert float(limit.split()[1]) < 0.3 + 0.5
 
 
 def test_verify_under_a_limit_too_short_for_the_integration_stops_with_one_line(capsys):

@@ -116,8 +116,22 @@ def _expired() -> _Deadline | None:
 def _handler(signum, frame):
     d = _expired()
     if d is not None:
+        if _importing(frame):
+            # a module interrupted half-way through its import stays broken in sys.modules for the rest of the
+            # process (the API's, a test worker's: "module 'sympy' has no attribute 'polys'"): raise after it
+            signal.setitimer(signal.ITIMER_REAL, 0.01)
+            return
         raise _error(d)
     _arm()                               # woke early (an outer deadline was re-armed): wait for the next one
+
+
+def _importing(frame) -> bool:
+    """Whether `frame` runs inside an import (importlib's frames are on its stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _arm() -> None:
