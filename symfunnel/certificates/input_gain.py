@@ -108,9 +108,8 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
         if lp <= 0 and conf(xp) <= 0:       # refuted by a sample, reproduced independently: no search needed
             r = _Refuted(xp)
         else:
-            r = None
-        r = r or prove_positive_definite(Sx, lo_, hi_, split, confirm=conf, max_boxes=max(200, budget.boxes // left),
-                                    seconds=budget.seconds(1.0 / left), rel_tol=REL_TOL)
+            r = prove_positive_definite(Sx, lo_, hi_, split, confirm=conf, max_boxes=max(200, budget.boxes // left),
+                                        seconds=budget.seconds(1.0 / left), rel_tol=REL_TOL)
         budget.boxes -= r.boxes
         boxes += r.boxes
         if r.status == "refuted":

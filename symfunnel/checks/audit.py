@@ -131,8 +131,9 @@ def check_M_pd(design: Design, rng) -> CheckResult:
                 best_val, best_q = float(res.fun), np.clip(res.x, lo, hi)
     method = "exact (M is constant)" if constant else f"sampled ({k} states over the joint range) + local refinement"
     proof, found = (None, None) if constant or best_val <= 0 else _pd_by_intervals(Mn, m.q, lo, hi, a.sympy_timeout)
-    if found is not None and fmin_eig(found) < best_val:       # the search saw a smaller eigenvalue: re-checked
-        best_val, best_q = float(fmin_eig(found)), np.clip(found, lo, hi)
+    seen = fmin_eig(found) if found is not None else np.inf
+    if seen < best_val:                     # the search saw a smaller eigenvalue there: re-evaluated, it counts
+        best_val, best_q = float(seen), np.clip(found, lo, hi)
         method += " + interval branch and bound (its smallest midpoint, re-evaluated)"
     if proof:
         method = ("interval branch and bound over the joint range (outward-rounded enclosures of M's SX, "

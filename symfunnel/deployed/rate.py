@@ -64,15 +64,13 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
             raise _OutsideAtStart(res.breach)
         return ok
 
-    def outside(b: dict) -> dict:
-        return {"min_rate_hz": None, "margin": margin, "tried": tried, "engine": engine,
-                "reason": (f"the initial state is outside funnel {b['funnel']} of joint {b['joint']} at t = 0 "
-                           f"(margin {b['margin']:.3g}): no sample rate changes it, so no other rate was tried")}
-
     try:
         return _search(holds, r, tried, scenario, t_final, rel_tol, margin, engine)
     except _OutsideAtStart as exc:
-        return outside(exc.args[0])
+        b = exc.args[0]
+        return {"min_rate_hz": None, "margin": margin, "tried": tried, "engine": engine,
+                "reason": (f"the initial state is outside funnel {b['funnel']} of joint {b['joint']} at t = 0 "
+                           f"(margin {b['margin']:.3g}): no sample rate changes it, so no other rate was tried")}
 
 
 class _OutsideAtStart(Exception):

@@ -400,7 +400,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         # exact and then the rounded one cost two compiles for one answer)
         xs = [v.x_of(zi) for v, zi in zip(vars_, z)]
         if final:
-            xs = [min(v.hi, max(v.lo, round_sig(x, DIGITS))) for v, x in zip(vars_, xs)]
+            xs = _rounded_values(vars_, xs, DIGITS)
         key = tuple(round(x, 10) for x in xs)
         if key in seen:
             return _score(seen[key], spec.objective, ref)
@@ -642,12 +642,17 @@ def round_sig(x: float, digits: int) -> float:
     return float(f"{float(x):.{int(digits)}g}")
 
 
+def _rounded_values(vars_, xs, digits: int) -> list[float]:
+    """xs rounded to `digits` significant digits, each kept inside its variable's bounds."""
+    return [min(v.hi, max(v.lo, round_sig(x, digits))) for v, x in zip(vars_, xs)]
+
+
 def _rounded(c: Candidate, vars_, ev: Evaluator, say) -> Candidate | None:
     """The candidate with its values rounded to DIGITS significant digits (more, up to 8, when rounding breaks a
     constraint), re-checked by a full evaluation; None when no rounding holds (the exact values are never
     written: a file with 17 digits is not what a user can read or type)."""
     for digits in range(DIGITS, 9):
-        xs = [min(v.hi, max(v.lo, round_sig(x, digits))) for v, x in zip(vars_, c.xs)]
+        xs = _rounded_values(vars_, c.xs, digits)
         if xs == list(c.xs):
             return c
         n = ev.count
