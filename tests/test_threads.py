@@ -45,3 +45,20 @@ def test_the_reservoir_is_the_same_whatever_the_threads(monkeypatch):
         r1 = esn._spectral_radius(W)
     assert r1 == r2
     assert all(t == [1] * len(t) for t in seen)
+
+
+def test_the_library_scan_is_reused_until_a_module_is_imported(monkeypatch):
+    """one_blas_thread scans the process's shared objects once, and again after an import (which may bring a BLAS
+    of its own), and the limit holds either way."""
+    import sys
+    import types
+
+    from symfunnel.core import threads
+    with threads.one_blas_thread():
+        first = threads._CONTROLLER[0][1]
+    with threads.one_blas_thread():
+        assert threads._CONTROLLER[0][1] is first
+    monkeypatch.setitem(sys.modules, "symfunnel_test_fake_module", types.ModuleType("symfunnel_test_fake_module"))
+    with threads.one_blas_thread():
+        assert threads._CONTROLLER[0][1] is not first
+        assert _blas_threads() == [1] * len(_blas_threads())
