@@ -238,3 +238,17 @@ def test_campaign_caps_the_cvodes_step_at_half_the_output_step(tmp_path):
         raw["simulation"]["max_step"] = given
         (tmp_path / "given.toml").write_text(dumps(raw), encoding="utf-8")
         assert make_job(load_scenario(tmp_path / "given.toml")).raw["simulation"]["max_step"] == given
+
+
+def test_values_sent_with_a_chunk_are_the_ones_its_worker_would_draw(tmp_path):
+    """`sweep` sends each chunk's drawn values with it (the workers need no scipy.stats): the rows are the same as
+    when the worker draws them itself, and values that do not fit the chunk are refused."""
+    f = _campaign_file(tmp_path, runs=8, t_final=0.2, q0=0.005)
+    sc = load_scenario(f)
+    job = make_job(sc)
+    ids = [5, 2, 7]
+    sent = run_chunk(job, ids, sc.campaign.values(ids, job.runs))
+    assert sent == run_chunk(job, ids)
+    assert [r["run"] for r in sent] == ids and len({r["plant.mass_scale"] for r in sent}) == 3
+    with pytest.raises(ValueError, match="2 rows of values for 3 runs"):
+        run_chunk(job, ids, sc.campaign.values(ids[:2], job.runs))

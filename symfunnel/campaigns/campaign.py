@@ -257,12 +257,12 @@ def sampled_row_of(result, run: int, columns: list[str], values) -> dict:
     return row
 
 
-def _engine_chunk(job: Job, ids: list[int]) -> list[dict]:
+def _engine_chunk(job: Job, ids: list[int], values) -> list[dict]:
     from ..deployed.loop import simulate_sampled
     sc, design, step, setup, _, _ = _engine_state(job)
     camp = sc.campaign
     rows = []
-    for rid, v in zip(ids, camp.values(ids, job.runs)):
+    for rid, v in zip(ids, camp.values(ids, job.runs) if values is None else values):
         try:
             plant = engine_run_plant(sc, setup, camp, v)
             r = simulate_sampled(sc, design, t_final=job.t_final, controller=step, engine=job.engine, plant=plant)
@@ -273,16 +273,22 @@ def _engine_chunk(job: Job, ids: list[int]) -> list[dict]:
     return rows
 
 
-def run_chunk(job: Job, run_ids) -> list[dict]:
-    """Rows of the given runs (the unit of work of the pool and of dask)."""
+def run_chunk(job: Job, run_ids, values=None) -> list[dict]:
+    """Rows of the given runs (the unit of work of the pool and of dask); `values` are their drawn values
+    (`Campaign.values`), when the submitting process has them: drawing them here would import scipy.stats into
+    every worker (a second of start-up each) for a few numbers."""
+    if values is not None:
+        values = np.asarray(values, dtype=float)
+        if values.shape[0] != len(run_ids):
+            raise ValueError(f"{values.shape[0]} rows of values for {len(run_ids)} runs")
     if job.engine != "symfunnel":
-        return _engine_chunk(job, [int(i) for i in run_ids])
+        return _engine_chunk(job, [int(i) for i in run_ids], values)
     from ..simulation import simulate
     from ..scenario.uncertainty import run_inputs
     sc, cl, _, _ = _state(job)
     camp = sc.campaign
     ids = [int(i) for i in run_ids]
-    vals = camp.values(ids, job.runs)
+    vals = camp.values(ids, job.runs) if values is None else values
     rows = []
     for rid, v in zip(ids, vals):
         params, x0 = run_inputs(camp, cl, v)
@@ -471,9 +477,13 @@ def _chunks(ids: list[int], size: int) -> list[list[int]]:
 
 
 def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None, chunk_size=None,
-            progress=None) -> dict:
-    """Run `todo` (run ids) on a local process pool or a dask client, calling on_rows(rows) as chunks finish."""
+            progress=None, campaign=None) -> dict:
+    """Run `todo` (run ids) on a local process pool or a dask client, calling on_rows(rows) as chunks finish;
+    with `campaign` (the job's), each chunk is sent with its drawn values."""
     say = progress or (lambda s: None)
+
+    def work(chunk):
+        return (job, chunk) if campaign is None else (job, chunk, campaign.values(chunk, job.runs))
     if client is not None:
         workers = max(1, len(client.scheduler_info().get("workers", {})))
     size = chunk_size or int(min(32, max(1, len(todo) // (8 * workers))))
@@ -499,7 +509,7 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
     if client is not None:
         from distributed import as_completed
         pending = deque(chunks)
-        futs = [client.submit(run_chunk, job, pending.popleft(), pure=False, retries=3)
+        futs = [client.submit(run_chunk, *work(pending.popleft()), pure=False, retries=3)
                 for _ in range(min(window, len(pending)))]
         ac = as_completed(futs, loop=client.loop)
         for fut in ac:
@@ -507,7 +517,7 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
             on_rows(rows)
             tick(len(rows))
             if pending:
-                ac.add(client.submit(run_chunk, job, pending.popleft(), pure=False, retries=3))
+                ac.add(client.submit(run_chunk, *work(pending.popleft()), pure=False, retries=3))
     elif chunks:
         import concurrent.futures as cf
         import multiprocessing as mp
@@ -516,7 +526,7 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
                                       initializer=_pool_worker_start)
         try:
             pending = deque(chunks)
-            running = {pool.submit(run_chunk, job, pending.popleft())
+            running = {pool.submit(run_chunk, *work(pending.popleft()))
                        for _ in range(min(window, len(pending)))}
             for pid in list(getattr(pool, "_processes", {}) or {}):
                 lifecycle.register_child(pid)
@@ -528,7 +538,7 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
                     on_rows(rows)
                     tick(len(rows))
                     if pending:
-                        running.add(pool.submit(run_chunk, job, pending.popleft()))
+                        running.add(pool.submit(run_chunk, *work(pending.popleft())))
         except BaseException:
             # a signal, a limit or a failed chunk: the workers stop now, not after their chunks
             procs = list((getattr(pool, "_processes", {}) or {}).values())
@@ -741,7 +751,8 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
         if resume:
             say(f"resume: {len(done)} runs on disk, {len(todo)} to go")
         w = workers or os.cpu_count() or 1
-        ex = execute(job, todo, store.add, workers=w, client=client, chunk_size=chunk_size, progress=say)
+        ex = execute(job, todo, store.add, workers=w, client=client, chunk_size=chunk_size, progress=say,
+                     campaign=camp)
     finally:
         if client is not None:
             client.close()
