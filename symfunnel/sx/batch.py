@@ -25,6 +25,7 @@ import math
 import casadi
 import numpy as np
 
+from ..core.pycode import compile_source
 from .interval import IntervalError, IntervalFunction, read_layout
 from .tape import OP_NAMES
 
@@ -424,7 +425,7 @@ def _compile(tape, in_off, out_off):
             lines.append(f"    Lo[:, {k}] = L{k}; Hi[:, {k}] = H{k}")
             lines.append(f"    if B{k} is not None: Bad[:, {k}] = B{k}")
     lines.append("    return Lo, Hi, Bad, sw, culprit")
-    code = compile("\n".join(lines), f"<batch interval tape of {name}>", "exec")
+    code = compile_source("\n".join(lines), f"<batch interval tape of {name}>")
     exec(code, ns)
     return ns["run"], deps
 

@@ -44,6 +44,7 @@ import casadi
 import numpy as np
 
 from ..core.errors import SymfunnelError
+from ..core.pycode import compile_source
 from . import rounding
 from .tape import OP_NAMES, Tape, as_sx_function, read_tape
 
@@ -573,7 +574,7 @@ def _compile(tape: Tape, be: Backend, in_off: list[int], out_off: list[int]) -> 
     zero = "ZERO__"
     ns[zero] = be.point(0.0)
     lines.append("    return (" + "".join(f"{o or zero}, " for o in outs) + ")")
-    code = compile("\n".join(lines), f"<interval tape of {name} ({be.name})>", "exec")
+    code = compile_source("\n".join(lines), f"<interval tape of {name} ({be.name})>")
     exec(code, ns)
     return ns["run"]
 

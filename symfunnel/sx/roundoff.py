@@ -20,6 +20,7 @@ import math
 import casadi
 import numpy as np
 
+from ..core.pycode import compile_source
 from .tape import OP_NAMES, read_tape
 
 #: the unit round-off of IEEE double precision
@@ -152,7 +153,7 @@ def _compile(tape):
                                           for o in outs) + "]")
     lines.append("    return vals, mags")
     ns = {"np": np, "_erf": np.vectorize(math.erf, otypes=[float])}
-    exec(compile("\n".join(lines), f"<round-off tape of {tape.function.name()}>", "exec"), ns)
+    exec(compile_source("\n".join(lines), f"<round-off tape of {tape.function.name()}>"), ns)
     return ns["run"]
 
 
