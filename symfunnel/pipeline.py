@@ -276,8 +276,9 @@ def scaled_work(share: float) -> dict:
 def _certification_key(scenario, t_final: float, only, mutant=None, work: float = 1.0) -> str:
     import hashlib
     import json
-    text = json.dumps([str(scenario.path), scenario.raw, float(t_final), sorted(only) if only else None, mutant,
-                       float(work)],
+    # the files the scenario reads (a URDF: {path: sha256}) are part of it: an edited robot is another scenario
+    text = json.dumps([str(scenario.path), scenario.raw, getattr(scenario, "inputs", {}), float(t_final),
+                       sorted(only) if only else None, mutant, float(work)],
                       sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 

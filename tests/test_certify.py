@@ -530,3 +530,25 @@ def test_report_overview_has_one_line_per_outcome(tmp_path):
     for word in ("PROVEN", "REFUTED", "UNDECIDED"):
         assert word in head
     assert "certify.input_gain" in head and 'id="certificates"' in html
+
+
+def test_the_certificates_of_an_edited_urdf_are_not_the_cached_ones(tmp_path):
+    """The in-process certificate cache is keyed by the scenario and the files it reads: the same TOML over an
+    edited URDF (a link twice as heavy) is a new entry, the unchanged one the same."""
+    import shutil
+
+    from symfunnel.pipeline import _certification_key
+    urdf = tmp_path / "arm.urdf"
+    shutil.copy(PRISMATIC, urdf)
+    assert main(["init", "--urdf", str(urdf), "--out", str(tmp_path / "p.toml"), "-q"]) == 0
+    before = sf.load_scenario(str(tmp_path / "p.toml"))
+    again = sf.load_scenario(str(tmp_path / "p.toml"))
+    text = urdf.read_text()
+    import re
+    m = re.search(r'<mass value="([0-9.eE+-]+)"', text)
+    urdf.write_text(text[:m.start(1)] + repr(2 * float(m.group(1))) + text[m.end(1):])
+    after = sf.load_scenario(str(tmp_path / "p.toml"))
+    assert before.raw == after.raw
+    key = _certification_key(before, 1.0, None)
+    assert key == _certification_key(again, 1.0, None)
+    assert key != _certification_key(after, 1.0, None)
