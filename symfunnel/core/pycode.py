@@ -12,6 +12,7 @@ import marshal
 import os
 import sys
 import tempfile
+import types
 from pathlib import Path
 
 __all__ = ["compile_source"]
@@ -58,7 +59,7 @@ def _read(path: Path):
         code = marshal.loads(data)
     except (OSError, ValueError, EOFError, TypeError):
         return None
-    return code if type(code).__name__ == "code" else None
+    return code if isinstance(code, types.CodeType) else None
 
 
 def _write(path: Path, code) -> None:

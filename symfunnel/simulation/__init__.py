@@ -9,7 +9,7 @@ How a run works (docs/simulation.md has the long version):
   compiled once with the system C compiler and cached in $SYMFUNNEL_CACHE (default ~/.cache/symfunnel) under the
   sha256 of the generated source, then loaded with `casadi.external`; without a compiler the CasADi VM is used.
   The integrators and the logged signals (one serial map per chunk) are evaluated on numpy buffers
-  (`compiled.Buffered`): no numpy -> DM -> numpy conversion per chunk.
+  (`sx.buffered.Buffered`): no numpy -> DM -> numpy conversion per chunk.
 * Time is integrated in chunks of the output grid (growing 1, 5, 25, 100, 500 points: reproducible), with
   a parameter for the chunk's start time, so one integrator object serves every chunk. After each chunk the funnel
   margins m_i = (F_i - |e_i|)/F_i and finiteness are checked on the grid; a breach (or an integrator failure) is

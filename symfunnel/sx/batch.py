@@ -26,6 +26,7 @@ import casadi
 import numpy as np
 
 from ..core.pycode import compile_source
+from .buffered import Buffered
 from .interval import IntervalError, IntervalFunction, read_layout
 from .tape import OP_NAMES
 
@@ -460,7 +461,7 @@ class BatchIntervalFunction(IntervalFunction):
         self._run, self._deps = _compile(tape, self.in_off, self.out_off)
         self._jac = None
         self._last = None
-        self._map: dict[int, tuple] = {}
+        self._map: dict[int, Buffered] = {}
 
     def eval_batch(self, LO: np.ndarray, HI: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(L, H, switched) over K boxes given as (K, n_in_nz) arrays of lower and upper bounds."""
@@ -501,27 +502,15 @@ class BatchIntervalFunction(IntervalFunction):
         if K > K0:
             X = np.concatenate([X, np.repeat(X[-1:], K - K0, axis=0)])
         if K not in self._map:
-            self._map[K] = self._mapped(K)
-        args, res, run = self._map[K]
+            self._map[K] = Buffered(self.function.map(K))
+        b = self._map[K]
         # the map's inputs and outputs are its K copies' nonzeros one copy after the other, which are the rows of
         # X and of the result: numpy buffers, no dense DM of every input and output
-        for a, (i0, i1) in zip(args, zip(self.in_off[:-1], self.in_off[1:])):
+        for a, (i0, i1) in zip(b.args, zip(self.in_off[:-1], self.in_off[1:])):
             a.reshape(K, i1 - i0)[:] = X[:, i0:i1]
-        run()
-        cols = [r.reshape(K, -1) for r in res]
+        b.evaluate()
+        cols = [r.reshape(K, -1) for r in b.res]
         return (np.concatenate(cols, axis=1) if cols else np.zeros((K, 0)))[:K0]
-
-    def _mapped(self, K: int):
-        """(input buffers, output buffers, evaluate) of the function mapped over K points, on CasADi's VM."""
-        f = self.function.map(K)
-        buf, run = f.buffer()
-        args = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
-        res = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-        for i, a in enumerate(args):
-            buf.set_arg(i, memoryview(a))
-        for i, r in enumerate(res):
-            buf.set_res(i, memoryview(r))
-        return args, res, lambda: (run(), buf)
 
     def __repr__(self) -> str:
         return f"BatchIntervalFunction({self.name!r}, inputs={list(self.in_names)}, outputs={list(self.out_names)})"
