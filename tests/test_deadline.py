@@ -155,6 +155,23 @@ def test_an_error_a_c_call_makes_of_the_alarm_after_the_expiry_is_the_limit():
     assert deadline.remaining() == float("inf")
 
 
+@pytest.mark.parametrize("exc", [NotImplementedError, TypeError])
+def test_each_form_the_swallowed_alarm_takes_after_the_expiry_is_the_limit(exc):
+    """The forms seen from `verify --wall-limit 0.5`: SWIG's NotImplementedError and CasADi's TypeError ("Implicit
+    conversion of symbolic CasADi type to numeric matrix not supported", a conversion the alarm interrupted)."""
+    with pytest.raises(deadline.WallLimitReached) as ei:
+        with deadline.limit(0.05):
+            try:
+                time.sleep(1.0)
+            except deadline.WallLimitReached:
+                pass
+            raise exc("Implicit conversion of symbolic CasADi type to numeric matrix not supported")
+    assert isinstance(ei.value.__cause__, exc)
+    with pytest.raises(exc):
+        with deadline.limit(60.0):
+            raise exc("a real error of the block")
+
+
 def test_a_limit_never_interrupts_an_import_half_way(tmp_path):
     """The alarm during an import waits for the import to finish, then raises: a module interrupted half-way stays
     broken in sys.modules for the rest of the process (an API session, a test worker: after a limit that fired 0.2 s

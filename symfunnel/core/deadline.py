@@ -170,8 +170,9 @@ def check(what: str | None = None) -> None:
                 _steps.pop()
 
 
-#: what an exception raised by the alarm's handler inside a C extension's call can come out as
-SWALLOWED = (NotImplementedError, SystemError, RuntimeError)
+#: what an exception raised by the alarm's handler inside a C extension's call can come out as (TypeError: CasADi's
+#: wrapper, when the interrupted conversion falls through to its "Implicit conversion of symbolic CasADi type")
+SWALLOWED = (NotImplementedError, SystemError, RuntimeError, TypeError)
 
 
 @contextlib.contextmanager
