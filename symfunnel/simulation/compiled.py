@@ -213,7 +213,6 @@ def _thread_maps(maps: dict) -> dict:
     return maps.setdefault(threading.get_ident(), {})
 
 
-
 def sundials_functions(dae: ca.Function, jac_x: ca.SX, ins: list, *, forward: bool) -> list[ca.Function]:
     """The functions CasADi's SUNDIALS interface asks its DAE for by name (`OracleFunction::create_function`, which
     takes a library's own function of that name and I/O names instead of an MX wrapper evaluated on CasADi's
