@@ -65,6 +65,7 @@ def test_paused_blocks_watch_the_limit_themselves_and_check_raises_after():
                 _spin(0.3)                                # no alarm in here: the block runs to its end
                 seen["left"] = deadline.remaining()
             deadline.check("after the pause")
+    assert "left" in seen, "the alarm fired inside the paused block"
     assert seen["left"] < 0
 
 
