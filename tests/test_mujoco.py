@@ -273,7 +273,8 @@ def test_engine_and_symfunnel_plant_agree_to_round_off_at_the_same_substeps(arm7
     h = 1.0 / RATE
     k = plant_substeps(sc, h)
     sym = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.3)
-    mj = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.3, engine="mujoco", plant=run_plant(sc, substeps=k))
+    mj = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.3, engine="mujoco",
+                          plant=run_plant(sc, substeps=k, integrator="RK4"))
     assert sym.ok and mj.ok and mj.stats["plant_substeps"] == k == sym.stats["plant_substeps"]
     assert mj.stats["engine"] == "mujoco" and mj.stats["engine_force_callback"]
     assert np.abs(mj.q - sym.q).max() < 1e-10 and np.abs(mj.dq - sym.dq).max() < 1e-8
@@ -291,7 +292,8 @@ def test_without_friction_or_disturbance_the_callback_is_left_out(tmp_path):
     d = derive(sc)
     k = plant_substeps(sc, 1 / 400.0)
     sym = simulate_sampled(sc, d, rate_hz=400.0, t_final=1.0)
-    mj = simulate_sampled(sc, d, rate_hz=400.0, t_final=1.0, engine="mujoco", plant=run_plant(sc, substeps=k))
+    mj = simulate_sampled(sc, d, rate_hz=400.0, t_final=1.0, engine="mujoco",
+                          plant=run_plant(sc, substeps=k, integrator="RK4"))
     assert not mj.stats["engine_force_callback"] and sym.ok and mj.ok
     assert np.abs(mj.q - sym.q).max() < 1e-10
 
@@ -300,17 +302,51 @@ def test_engine_substeps_converge_at_fourth_order(arm7):
     """Halving MuJoCo's step: the error against a 128-step reference falls about 16x per halving (RK4, with the
     time-varying disturbance evaluated at each stage's time), and the default step is already well converged."""
     sc, d = arm7
-    runs = {k: simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco", plant=run_plant(sc, substeps=k))
-            for k in (16, 32, 64, 128)}
-    default = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco")
+    runs = {k: simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco",
+                                plant=run_plant(sc, substeps=k, integrator="RK4")) for k in (16, 32, 64, 128)}
+    default = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco", plant=run_plant(sc, integrator="RK4"))
     ref = runs[128].q
     err = {k: np.abs(r.q - ref).max() for k, r in runs.items() if k != 128}
     assert 10 < err[16] / err[32] < 25 and 10 < err[32] / err[64] < 25, err
     k0 = default.stats["plant_substeps"]
     assert 2 <= k0 < 16 and default.stats["engine_substeps_rule"].startswith("RK4 stability")
-    half = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco", plant=run_plant(sc, substeps=2 * k0))
+    assert default.stats["engine_integrator"] == "RK4"
+    half = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco",
+                            plant=run_plant(sc, substeps=2 * k0, integrator="RK4"))
     e0, e1 = np.abs(default.q - ref).max(), np.abs(half.q - ref).max()
     assert e0 < 1e-7 and e1 < e0 / 2
+
+
+def test_implicitfast_converges_at_first_order_with_the_friction_slopes_implicit(arm7, monkeypatch):
+    """The default integrator: halving implicitfast's step halves its distance from a 128-step RK4 reference (first
+    order); the default step is the stated rule's and leaves the model's damping as it was. Over a 20 s run at one
+    step per period, the smallest margin stays within 3e-3 of the 4-step run's because the friction's slope
+    reaches MuJoCo's implicit step as damping: with the slopes switched off (the friction explicit), the same step
+    moves it by more than 1e-2."""
+    sc, d = arm7
+    assert sc.plant.mujoco.integrator == "implicitfast"
+    ref = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco",
+                           plant=run_plant(sc, substeps=128, integrator="RK4"))
+    runs = {k: simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco", plant=run_plant(sc, substeps=k))
+            for k in (1, 2, 4, 8)}
+    assert all(r.ok and r.stats["engine_integrator"] == "implicitfast" for r in runs.values())
+    err = {k: np.abs(r.q - ref.q).max() for k, r in runs.items()}
+    assert all(1.6 < err[k] / err[2 * k] < 2.5 for k in (1, 2, 4)), err
+    assert err[1] < 1e-3
+    default = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco")
+    assert default.stats["plant_substeps"] == math.ceil(1 / RATE / 2.5e-4)
+    assert default.stats["engine_substeps_rule"].startswith("implicitfast accuracy")
+    assert np.array_equal(default.q, runs[default.stats["plant_substeps"]].q)
+    eng = engine_setup(sc).engine
+    assert np.array_equal(eng.model.dof_damping, eng.nominal["dof_damping"])
+    assert mujoco.get_mjcb_passive() is None
+    long = {k: simulate_sampled(sc, d, rate_hz=RATE, t_final=20.0, engine="mujoco",
+                                plant=run_plant(sc, substeps=k)).min_margin for k in (1, 4)}
+    setup = engine_setup(sc)
+    real = setup.loop.sfs_mj_set_slopes
+    monkeypatch.setattr(setup.loop, "sfs_mj_set_slopes", lambda on, base, n: real(0, base, n))
+    off = simulate_sampled(sc, d, rate_hz=RATE, t_final=20.0, engine="mujoco", plant=run_plant(sc, substeps=1)).min_margin
+    assert abs(long[1] - long[4]) < 3e-3 and abs(off - long[4]) > 1e-2, (long, off)
 
 
 def test_engine_mass_scale_is_the_plants_mass_scale(arm7, tmp_path):
@@ -327,11 +363,12 @@ def test_engine_mass_scale_is_the_plants_mass_scale(arm7, tmp_path):
     sym = simulate_sampled(heavy, d, rate_hz=RATE, t_final=0.2)
     k = sym.stats["plant_substeps"]
     mj = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco",
-                          plant=run_plant(sc, substeps=k, mass_scale=[1.3] * 7, damping=[0.2] * 7))
+                          plant=run_plant(sc, substeps=k, mass_scale=[1.3] * 7, damping=[0.2] * 7, integrator="RK4"))
     assert np.abs(mj.q - sym.q).max() < 1e-10 and np.abs(mj.dq - sym.dq).max() < 1e-8
     assert mj.stats["engine_mass_scale"] == pytest.approx([1.43] * 7)
     assert mj.stats["engine_only"]["damping"] == pytest.approx([0.2] * 7)
-    nominal = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco", plant=run_plant(sc, substeps=k))
+    nominal = simulate_sampled(sc, d, rate_hz=RATE, t_final=0.2, engine="mujoco",
+                               plant=run_plant(sc, substeps=k, integrator="RK4"))
     assert np.abs(nominal.q - mj.q).max() > 1e-5          # the mismatch does change the run
 
 
@@ -357,7 +394,7 @@ def test_delay_noise_and_quantisation_are_the_same_loop(tmp_path, arm7):
                                            "noise_q = 1e-5\nnoise_dq = 1e-4\nencoder_resolution = 1e-5\nseed = 3\n"))
     k = plant_substeps(sc, 1 / RATE)
     sym = simulate_sampled(sc, d, t_final=0.2)
-    mj = simulate_sampled(sc, d, t_final=0.2, engine="mujoco", plant=run_plant(sc, substeps=k))
+    mj = simulate_sampled(sc, d, t_final=0.2, engine="mujoco", plant=run_plant(sc, substeps=k, integrator="RK4"))
     assert sym.rate_hz == mj.rate_hz == RATE and mj.stats["delay_samples"] == 1
     assert np.all(mj.tau[0] == 0) and np.abs(mj.q - sym.q).max() < 1e-10
 
@@ -413,7 +450,7 @@ def test_verify_arm7_on_the_engine(capsys):
     a = ids["plant.engine_agreement"]
     assert a["status"] == "pass" and a["value"] <= 1e-8 and "value" in a
     c = ids["implementation.containment"]
-    assert c["status"] == "pass" and c["evidence"]["engine"] == "mujoco" and "plant = MuJoCo RK4" in c["detail"]
+    assert c["status"] == "pass" and c["evidence"]["engine"] == "mujoco" and "plant = MuJoCo implicitfast with 2 step(s)" in c["detail"]
 
 
 def test_rate_on_the_engine_and_simulate_without_a_rate(tmp_path, capsys):
@@ -457,12 +494,14 @@ def test_sweep_on_the_engine_over_its_mass_scale(tmp_path, capsys):
 
 def test_engine_section_shows_both_plants_side_by_side(tmp_path):
     """The report's engine block: agreement, both plants' margins and torque, the trajectory difference, the minimum
-    rate on each (the deployed section's data computed here without its design help, to keep the test short)."""
+    rate on each (the deployed section's data computed here without its design help, to keep the test short). On
+    MuJoCo's RK4 the two plants integrate the same ODE with the same method, so they differ by round-off."""
     from symfunnel.deployed.summary import implementation_report
     from symfunnel.pipeline import Run, RunOptions
     from symfunnel.reporting.engine import engine_section
     from symfunnel.reporting.html import environment
-    sc = load_scenario(init_scenario(tmp_path, extra="[implementation]\nrate_hz = 400.0\n"))
+    sc = load_scenario(init_scenario(tmp_path, extra="[implementation]\nrate_hz = 400.0\n\n"
+                                                    "[plant.mujoco]\nintegrator = \"RK4\"\n"))
     run = Run(sc, RunOptions(t_final=0.5, samples=1000, engine="mujoco"))
     run.__dict__["implementation"] = implementation_report(sc, run.design, sensitivity=False, t_final=0.5)
     data = run.engine_comparison
@@ -512,6 +551,7 @@ def test_plant_option_bad_values(capsys, cmd):
     ('[plant.mujoco]\ndamping = [0.1, 0.2]', "plant.mujoco.damping"),
     ('[plant.mujoco]\narmature = -1.0', "plant.mujoco.armature"),
     ('[plant.mujoco]\nstep = 1e-4', "plant.mujoco.step"),
+    ('[plant.mujoco]\nintegrator = "rk4"', "plant.mujoco.integrator"),
 ])
 def test_bad_plant_tables(tmp_path, capsys, body, key):
     text = (DATA_DIR / "arm7.toml").read_text()
@@ -529,6 +569,8 @@ def test_bad_plant_tables(tmp_path, capsys, body, key):
     one_line_error(capsys, key, str(p))
     if key == "plant.engine":
         assert "did you mean 'mujoco'" in str(ei.value)
+    if key == "plant.mujoco.integrator":
+        assert "did you mean 'RK4'" in str(ei.value) and "'implicitfast'" in str(ei.value)
 
 
 def test_engine_on_a_matrices_model_in_the_file(tmp_path, capsys):

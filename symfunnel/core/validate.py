@@ -32,8 +32,10 @@ def join(prefix: str, key: str | int) -> str:
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
-    """A ' (did you mean ...?)' hint, or '' when nothing is close."""
-    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    """A ' (did you mean ...?)' hint, or '' when nothing is close (a choice spelt with other case comes first)."""
+    choices = list(choices)
+    same = [c for c in choices if c.lower() == word.lower()]
+    close = same or difflib.get_close_matches(word, choices, n=1, cutoff=0.6)
     return f"; did you mean '{close[0]}'?" if close else ""
 
 

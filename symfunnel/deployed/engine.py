@@ -2,18 +2,23 @@
 
 The loop is the one of `deployed.loop` (measurement noise, quantisation, the step at every sample, zero-order hold,
 optional one-sample delay, saturation inside the step), run in C (templates/mujoco_loop.c): between samples
-MuJoCo advances with its own RK4 (`mj_step`) `substeps` times at timestep h / substeps under the held torque. What
-MuJoCo does not model is applied exactly as in symfunnel's plant, from the same SX (`simulation.closedloop.
-plant_forces`): the dead zone on the held torque (held too, so exact once per period), the viscous and smoothed
-Coulomb friction and the disturbance d(t, q, dq) as a passive force evaluated at every RK4 stage (MuJoCo's
-`mjcb_passive`), so the engine integrates the same ODE with a 4th-order method. The plant's mass scale and the
-engine-only `[plant.mujoco]` mismatch change the engine's bodies and joints; the controller keeps its nominal model.
+MuJoCo advances `substeps` times (`mj_step`) at timestep h / substeps under the held torque. What MuJoCo does not
+model is applied exactly as in symfunnel's plant, from the same SX (`simulation.closedloop.plant_forces`): the dead
+zone on the held torque (held too, so exact once per period), the viscous and smoothed Coulomb friction and the
+disturbance d(t, q, dq) as a passive force evaluated at every step or stage (MuJoCo's `mjcb_passive`). The plant's
+mass scale and the engine-only `[plant.mujoco]` mismatch change the engine's bodies and joints; the controller
+keeps its nominal model.
 
-The substep: `[plant.mujoco] substeps`, or `timestep` (which must divide the period), or by default the smallest
-number of steps keeping h / substeps * rho <= 1.5 (and h / substeps <= 1 ms), rho the largest spectral radius of
-M_engine(q)^-1 D over the reference's configurations, D the slopes of the friction (viscous + Coulomb / smoothing
-width) plus the engine's joint damping: inside RK4's real stability interval (2.78), the rule of symfunnel's plant
-with the engine's own M and the trajectory's configurations instead of a bound.
+The integrator (`[plant.mujoco] integrator`):
+* `implicitfast` (the default, MuJoCo's own recommendation): at every step the callback puts the slope of the
+  friction and disturbance in each joint's velocity (>= 0, from the same SX by automatic differentiation) into the
+  engine's joint damping and cancels the damper force that damping makes, so the force is unchanged and MuJoCo's
+  implicit step uses the slope as its derivative: a linearly implicit Euler step, stable on the stiff smoothed
+  Coulomb friction at any step. First order; h/substeps <= 0.25 ms by default (accuracy, not stability, bounds it).
+* `RK4`: explicit, 4th order; by default the smallest number of steps keeping h / substeps * rho <= 1.5 (and
+  h / substeps <= 1 ms), rho the largest spectral radius of M_engine(q)^-1 (D + the engine's joint damping) over the
+  reference's configurations: inside RK4's real stability interval (2.78).
+`[plant.mujoco] substeps` or `timestep` (which must divide the period) overrides either rule.
 """
 
 from __future__ import annotations
@@ -40,6 +45,11 @@ _LOCK = threading.Lock()
 #: RK4's step times the stiffest rate kept below this (its real stability interval ends at 2.78)
 STABILITY = 1.5
 MAX_SUBSTEP = 1e-3
+#: implicitfast's default step: first order, so accuracy bounds it (on arm7 the minimum rate found at 0.5 ms and
+#: finer equals RK4's, at 1 ms it is 14 % higher; 0.25 ms keeps a factor 2)
+MAX_SUBSTEP_IMPLICIT = 2.5e-4
+#: `[plant.mujoco] integrator` -> MuJoCo's mjtIntegrator member
+INTEGRATORS = {"implicitfast": "mjINT_IMPLICITFAST", "RK4": "mjINT_RK4"}
 
 
 @dataclass
@@ -70,7 +80,7 @@ class EngineSetup:
     engine: Engine
     p_names: list[str]
     p0: np.ndarray
-    force: object                      # _CFun: (t, q, dq, p) -> -(friction + disturbance)
+    force: object                      # _CFun: (t, q, dq, p) -> (-(friction + disturbance), its slopes in dq)
     force_sx: ca.Function               # the same as a casadi.Function (to see whether a run's force is zero)
     applied: object | None             # _CFun: (tau, p) -> torque after the dead zone (None: no dead zone)
     loop: object                       # the compiled mujoco_loop.c
@@ -106,6 +116,7 @@ def _compile_loop(mujoco, on_build=None):
     f.restype = ctypes.c_int
     f.argtypes = [vp, vp, vp, vp, vp, vp, vp, ctypes.c_int, vp, vp, ctypes.c_int, vp, vp, ctypes.c_long,
                   ctypes.c_double, vp, vp, ctypes.c_double, ctypes.c_int, ctypes.c_int, vp, vp, vp, vp]
+    lib.sfs_mj_set_slopes.argtypes = [ctypes.c_int, vp, ctypes.c_int]
     lib.sfs_mj_last_warning.restype = ctypes.c_char_p
     lib.sfs_mj_warning_count.restype = ctypes.c_int
     return lib
@@ -127,7 +138,10 @@ def engine_setup(scenario, on_build=None) -> EngineSetup:
     q, dq, tau = ca.SX.sym("q", n), ca.SX.sym("dq", n), ca.SX.sym("tau", n)
     t, p = ca.SX.sym("t"), ca.SX.sym("p", len(names))
     parts = plant_forces(scenario, q, dq, t, tau, width, p)
-    fsx = ca.Function("sfs_mj_force", [t, q, dq, p], [-(parts["friction"] + parts["disturbance"])])
+    resist = parts["friction"] + parts["disturbance"]
+    # per joint, the resisting force's slope in dq (the diagonal implicitfast integrates implicitly; >= 0)
+    slope = ca.fmax(0, ca.diag(ca.jacobian(resist, dq)))
+    fsx = ca.Function("sfs_mj_force", [t, q, dq, p], [-resist, slope])
     force = _compiled(fsx, on_build=on_build)
     applied = None
     if scenario.plant.dead_zone is not None:
@@ -141,7 +155,7 @@ def _force_is_zero(setup: EngineSetup, p: np.ndarray) -> bool:
     """True when this run's friction and disturbance vanish identically (the callback can be left out)."""
     f = setup.force_sx
     t, q, dq = (ca.SX.sym(s, f.size1_in(i)) for i, s in enumerate(("t", "q", "dq")))
-    expr = f(t, q, dq, ca.DM(p))
+    expr = f(t, q, dq, ca.DM(p))[0]
     return bool(ca.SX(expr).is_zero())
 
 
@@ -167,23 +181,33 @@ def engine_substeps(setup: EngineSetup, run: EngineRunPlant, h: float, *, width:
                              f"({k:.6g} steps)", file=file, key="plant.mujoco.timestep",
                              expected="a MuJoCo step h/k for an integer k >= 1, or plant.mujoco.substeps")
         return int(round(k)), "plant.mujoco.timestep"
+    if mj.integrator != "RK4":
+        return max(1, int(math.ceil(h / MAX_SUBSTEP_IMPLICIT - 1e-9))), (
+            f"implicitfast accuracy: h/substeps <= {MAX_SUBSTEP_IMPLICIT * 1e3:g} ms (the friction's slopes implicit)")
     rho = stiffest_rate(setup, run, width=width, reference=reference)
     h_max = min(MAX_SUBSTEP, STABILITY / rho if rho > 0 else MAX_SUBSTEP)
     return max(1, int(math.ceil(h / h_max - 1e-9))), (
         f"RK4 stability: h/substeps <= min(1 ms, {STABILITY:g}/rho), rho = {rho:.4g} 1/s")
 
 
+def friction_slopes(setup: EngineSetup, run: EngineRunPlant, *, width: float) -> np.ndarray:
+    """Per joint, the friction's largest slope in dq: viscous + Coulomb / width (smoothed Coulomb's slope at 0;
+    without smoothing Coulomb is a jump, and only the viscous part is linear)."""
+    n = setup.engine.n
+    idx = {k: i for i, k in enumerate(setup.p_names)}
+    visc = np.array([run.p[idx[f"plant.viscous[{j + 1}]"]] for j in range(n)])
+    coul = np.array([run.p[idx[f"plant.coulomb[{j + 1}]"]] for j in range(n)])
+    return visc + (coul / width if width > 0 else 0.0)
+
+
 def stiffest_rate(setup: EngineSetup, run: EngineRunPlant, *, width: float, reference=None) -> float:
     """The largest spectral radius of M_engine(q)^-1 D at the initial and the reference's configurations, D the
-    diagonal of friction slopes (viscous + Coulomb / width; Coulomb is a jump without smoothing) and joint damping."""
+    diagonal of friction slopes (`friction_slopes`) and joint damping."""
     from ..plant.mujoco import require_mujoco
     mujoco = require_mujoco()
     eng = setup.engine
     n = eng.n
-    idx = {k: i for i, k in enumerate(setup.p_names)}
-    visc = np.array([run.p[idx[f"plant.viscous[{j + 1}]"]] for j in range(n)])
-    coul = np.array([run.p[idx[f"plant.coulomb[{j + 1}]"]] for j in range(n)])
-    D = visc + (coul / width if width > 0 else 0.0) + np.asarray(eng.model.dof_damping)[eng.dadr]
+    D = friction_slopes(setup, run, width=width) + np.asarray(eng.model.dof_damping)[eng.dadr]
     if not np.any(D > 0):
         return 0.0
     qs = [np.asarray(run.q0, dtype=float)] + list(reference if reference is not None else [])
@@ -206,15 +230,20 @@ def run_engine_loop(setup: EngineSetup, run: EngineRunPlant, controller, *, n: i
     model = eng.model
     with _LOCK:
         configure(setup, run)
+        engine_only = eng.engine_only()
         substeps, why = engine_substeps(setup, run, h, width=width, reference=reference, file=file)
+        integrator = run.mujoco.integrator
         model.opt.timestep = h / substeps
+        model.opt.integrator = int(getattr(mujoco.mjtIntegrator, INTEGRATORS[integrator]))
+        p = np.asarray(run.p, dtype=float)
+        use_force = not _force_is_zero(setup, p)
+        setup.force.inputs[3][:] = p
+        base = np.ascontiguousarray(np.asarray(model.dof_damping)[eng.dadr], dtype=float)
+        setup.loop.sfs_mj_set_slopes(int(use_force and integrator != "RK4"), base.ctypes.data, n)
         data = mujoco.MjData(model)
         data.qpos[eng.qadr] = run.q0
         data.qvel[eng.dadr] = run.dq0
         X[0, :n], X[0, n:] = run.q0, run.dq0
-        p = np.asarray(run.p, dtype=float)
-        use_force = not _force_is_zero(setup, p)
-        setup.force.inputs[3][:] = p
         force = _fun_struct(setup.force) if use_force else None
         applied = None
         if setup.applied is not None:
@@ -239,7 +268,6 @@ def run_engine_loop(setup: EngineSetup, run: EngineRunPlant, controller, *, n: i
                              ctypes.byref(k_end), ctypes.byref(outside))
         warnings = int(lib.sfs_mj_warning_count())
         last = lib.sfs_mj_last_warning().decode(errors="replace").strip()
-        engine_only = eng.engine_only()
     return {"rc": int(rc), "k_end": int(k_end.value), "outside": None if outside.value < 0 else int(outside.value),
             "warnings": warnings, "last_warning": last, "engine_only": engine_only, "force_callback": use_force,
-            "substeps": substeps, "substeps_rule": why}
+            "substeps": substeps, "substeps_rule": why, "integrator": integrator}

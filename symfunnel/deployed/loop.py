@@ -493,7 +493,7 @@ def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, s
                    else f"{_ENGINE_RC.get(rc, f'error {rc}')} at t = {k_end * h:g} s")
     eng = setup.engine
     stats = {"engine": "mujoco", "plant_substeps": out["substeps"], "engine_timestep": h / out["substeps"],
-             "engine_substeps_rule": out["substeps_rule"], "engine_integrator": "RK4",
+             "engine_substeps_rule": out["substeps_rule"], "engine_integrator": out["integrator"],
              "engine_only": out["engine_only"], "engine_mass_scale": _engine_mass_scale(setup, run),
              "engine_notes": eng.notes.lines(), "engine_warnings": out["warnings"],
              "engine_last_warning": out["last_warning"] or None, "engine_force_callback": out["force_callback"],

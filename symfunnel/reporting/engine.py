@@ -26,7 +26,8 @@ def engine_section(run, progress) -> dict:
     rows = []
     for name, r in data["plants"].items():
         mr = data["min_rate"].get(name, {})
-        rows.append({"plant": "symfunnel (CasADi RK4)" if name == "symfunnel" else f"{name} (its RK4)",
+        integ = data["engine_stats"].get("engine_integrator") or "RK4"
+        rows.append({"plant": "symfunnel (CasADi RK4)" if name == "symfunnel" else f"{name} (its {integ})",
                      "status": r["status"], "m1": fmt(r["min_margin_e1"]), "m2": fmt(r["min_margin_e2"]),
                      "tau": fmt(r["max_abs_tau"], 3), "sat": fmt(r["saturated_fraction"], 3),
                      "substeps": fmt(r["substeps"]), "min_rate": fmt(mr.get("min_rate_hz")),

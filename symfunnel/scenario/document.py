@@ -57,6 +57,7 @@ class MujocoSpec:
     urdf_dynamics: bool = True                # keep the URDF's <dynamics damping friction> in the engine
     substeps: int | None = None               # MuJoCo steps per sample period (None: timestep or the stability rule)
     timestep: float | None = None             # MuJoCo's step in s; must divide the sample period
+    integrator: str = "implicitfast"          # MuJoCo's integrator: "implicitfast" or "RK4" (deployed.engine)
 
 
 @dataclass

@@ -195,7 +195,9 @@ def parse_plant(table: Any, n: int, file: str, model) -> PlantSpec:
 
 
 #: the keys of `[plant.mujoco]`
-MUJOCO_KEYS = ["mass_scale", "damping", "armature", "urdf_dynamics", "substeps", "timestep"]
+MUJOCO_KEYS = ["mass_scale", "damping", "armature", "urdf_dynamics", "substeps", "timestep", "integrator"]
+#: MuJoCo's integrators the engine loop offers (deployed.engine says how each treats the friction)
+MUJOCO_INTEGRATORS = ["implicitfast", "RK4"]
 
 
 def parse_mujoco(table: Any, n: int, file: str) -> MujocoSpec:
@@ -214,7 +216,9 @@ def parse_mujoco(table: Any, n: int, file: str) -> MujocoSpec:
         substeps=V.get_int(table, "substeps", None, file=file, prefix=p, minimum=1, maximum=100000)
         if "substeps" in table else None,
         timestep=V.get_float(table, "timestep", None, file=file, prefix=p, minimum=0, strict_min=True, maximum=1.0)
-        if "timestep" in table else None)
+        if "timestep" in table else None,
+        integrator=V.get_str(table, "integrator", MujocoSpec.integrator, file=file, prefix=p,
+                             choices=MUJOCO_INTEGRATORS))
 
 
 def parse_simulation(table: Any, file: str) -> SimulationSpec:

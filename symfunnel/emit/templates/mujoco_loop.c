@@ -1,8 +1,10 @@
 /* The sampled-data loop of symfunnel.deployed.engine in C, with MuJoCo as the plant: measurements (noise,
  * quantisation), the generated step, zero-order hold with optional one-sample delay, the dead zone on the held
- * torque, and between samples `substeps` calls of MuJoCo's mj_step (its RK4). The plant's friction and
- * disturbance, which MuJoCo does not model, enter as a passive force evaluated at every RK4 stage (mjcb_passive),
- * so the engine integrates the same ODE as symfunnel's plant. MuJoCo's functions and callback slots are passed in
+ * torque, and between samples `substeps` calls of MuJoCo's mj_step. The plant's friction and disturbance, which
+ * MuJoCo does not model, enter as a passive force evaluated at every step or RK4 stage (mjcb_passive), so the
+ * engine integrates the same ODE as symfunnel's plant. With slopes on (implicitfast), the callback also puts the
+ * force's slope in dq into the joint's damping, which MuJoCo's implicit step then treats implicitly (the damper's
+ * force from it is cancelled: only the derivative is used), a linearly implicit Euler step for the stiff friction. MuJoCo's functions and callback slots are passed in
  * as pointers (no link against libmujoco); only the struct layouts come from its headers (version @MJVERSION@). */
 #include <math.h>
 #include <string.h>
@@ -26,14 +28,22 @@ typedef struct {
 
 /* mjcb_passive has no user pointer: the callback's context is this file's (one loop at a time per process; the
  * caller holds a lock). force: arg[0] = t, arg[1] = q (n), arg[2] = dq (n), arg[3] = plant parameters;
- * res[0] = generalized force (n) added to qfrc_passive. */
+ * res[0] = generalized force (n) added to qfrc_passive, res[1] = its slopes in dq (n, >= 0; used with slopes on). */
 static const sfs_fun *g_force = 0;
 static const int *g_qadr = 0, *g_dadr = 0;
-static int g_n = 0, g_force_failed = 0;
+static int g_n = 0, g_force_failed = 0, g_slopes = 0;
+static double g_base_damping[SFS_MAX_N];
 static char g_warning[512];
 static int g_warnings = 0;
 
 int sfs_mj_header_version(void) { return mjVERSION_HEADER; }
+
+/* Slopes on or off for the next loop; base: the engine's own damping per joint (restored when the loop ends). */
+void sfs_mj_set_slopes(int on, const double *base, int n) {
+  int i;
+  g_slopes = on;
+  for (i = 0; i < n && i < SFS_MAX_N; ++i) g_base_damping[i] = base[i];
+}
 
 const char *sfs_mj_last_warning(void) { return g_warning; }
 
@@ -60,7 +70,16 @@ static void sfs_passive(const mjModel *m, mjData *d) {
     g_force_failed = 1;
     return;
   }
-  for (i = 0; i < g_n; ++i) d->qfrc_passive[g_dadr[i]] += f[i];
+  if (!g_slopes) {
+    for (i = 0; i < g_n; ++i) d->qfrc_passive[g_dadr[i]] += f[i];
+    return;
+  }
+  for (i = 0; i < g_n; ++i) {
+    double *damping = &((mjModel *) m)->dof_damping[g_dadr[i]];
+    /* mj_passive's damper already applied -(damping) dq with the slope of the last call: take that part out */
+    d->qfrc_passive[g_dadr[i]] += f[i] + (*damping - g_base_damping[i]) * dq[i];
+    *damping = g_base_damping[i] + g_force->res[1][i];
+  }
 }
 
 /* Returns 0 at the end, 1 when stopped after leaving a funnel, the step's code (< 0) on its error, -100 when a
@@ -158,6 +177,9 @@ int sfs_mj_loop(sfs_step_fn step, void *state, sfs_mj_step_fn mj_step_, mjfGener
     *k_end = K;
     rc = 0;
   }
+  if (g_slopes)
+    for (i = 0; i < n; ++i) ((mjModel *) m)->dof_damping[dadr[i]] = g_base_damping[i];
+  g_slopes = 0;
   *cb_slot = saved_cb;
   *warn_slot = saved_warn;
   return rc;
