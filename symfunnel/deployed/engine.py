@@ -181,7 +181,7 @@ def engine_substeps(setup: EngineSetup, run: EngineRunPlant, h: float, *, width:
                              f"({k:.6g} steps)", file=file, key="plant.mujoco.timestep",
                              expected="a MuJoCo step h/k for an integer k >= 1, or plant.mujoco.substeps")
         return int(round(k)), "plant.mujoco.timestep"
-    if mj.integrator != "RK4":
+    if mj.integrator == "implicitfast":
         return max(1, int(math.ceil(h / MAX_SUBSTEP_IMPLICIT - 1e-9))), (
             f"implicitfast accuracy: h/substeps <= {MAX_SUBSTEP_IMPLICIT * 1e3:g} ms (the friction's slopes implicit)")
     rho = stiffest_rate(setup, run, width=width, reference=reference)
@@ -239,7 +239,7 @@ def run_engine_loop(setup: EngineSetup, run: EngineRunPlant, controller, *, n: i
         use_force = not _force_is_zero(setup, p)
         setup.force.inputs[3][:] = p
         base = np.ascontiguousarray(np.asarray(model.dof_damping)[eng.dadr], dtype=float)
-        setup.loop.sfs_mj_set_slopes(int(use_force and integrator != "RK4"), base.ctypes.data, n)
+        setup.loop.sfs_mj_set_slopes(int(use_force and integrator == "implicitfast"), base.ctypes.data, n)
         data = mujoco.MjData(model)
         data.qpos[eng.qadr] = run.q0
         data.qvel[eng.dadr] = run.dq0

@@ -10,7 +10,8 @@ ENGINES = Registry("plant engine", "plant.engine")
 ENGINES.add("symfunnel", "symfunnel's own plant: the controller's M, C, G (times plant.mass_scale) with the [plant] "
                          "nonlinearities, integrated by CasADi's RK4 (the default)", "symfunnel")
 ENGINES.add("mujoco", "MuJoCo as the robot: the URDF read by MuJoCo's own parser (planar and dh models: MJCF written "
-                      "from the link tree), stepped by MuJoCo's implicitfast (or RK4); needs pip install 'symfunnel[mujoco]'", "mujoco")
+                      "from the link tree), stepped by MuJoCo's implicitfast (or RK4); needs pip install "
+                      "'symfunnel[mujoco]'", "mujoco")
 
 #: model types a physics engine can load (a `matrices` model gives no geometry or inertias)
 ENGINE_MODEL_TYPES = ("planar", "dh", "urdf")

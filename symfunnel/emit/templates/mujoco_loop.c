@@ -4,8 +4,9 @@
  * MuJoCo does not model, enter as a passive force evaluated at every step or RK4 stage (mjcb_passive), so the
  * engine integrates the same ODE as symfunnel's plant. With slopes on (implicitfast), the callback also puts the
  * force's slope in dq into the joint's damping, which MuJoCo's implicit step then treats implicitly (the damper's
- * force from it is cancelled: only the derivative is used), a linearly implicit Euler step for the stiff friction. MuJoCo's functions and callback slots are passed in
- * as pointers (no link against libmujoco); only the struct layouts come from its headers (version @MJVERSION@). */
+ * force from it is cancelled: only the derivative is used), a linearly implicit Euler step for the stiff friction.
+ * MuJoCo's functions and callback slots are passed in as pointers (no link against libmujoco); only the struct
+ * layouts come from its headers (version @MJVERSION@). */
 #include <math.h>
 #include <string.h>
 #include <mujoco/mujoco.h>
