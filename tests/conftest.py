@@ -126,17 +126,6 @@ def read_only_dir(tmp_path):
         subprocess.run(["umount", str(ro)], capture_output=True)
 
 
-def pytest_collection_modifyitems(config, items):
-    """Under pytest-xdist (`--dist loadgroup`): the tests of a module with a module-scoped fixture (a report built
-    once, a private compile cache whose hits the module counts) stay on one worker, so the fixture is built once and
-    its tests see each other's effects; every other test is handed out on its own."""
-    for item in items:
-        info = getattr(item, "_fixtureinfo", None)
-        defs = getattr(info, "name2fixturedefs", {}) if info is not None else {}
-        if any(d.scope == "module" for ds in defs.values() for d in ds):
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
-
-
 @pytest.fixture(autouse=True)
 def _rounding_stays_to_nearest():
     """Every test leaves the process rounding to nearest: a library that switches the mode (codac does at import)

@@ -100,6 +100,54 @@ def test_read_only_cache_directory(read_only_dir, cc):
     assert _call(b.path, 1.0) == 3.0 and read_only_dir not in b.path.parents
 
 
+def test_two_processes_needing_one_entry_compile_it_once(tmp_path, cc):
+    """Two processes asking at once for the same entry: one compiles (a compiler that logs each build and holds
+    until the other has said it waits), the other waits on the entry's lock and loads what the first built; no
+    lock file is left behind."""
+    log, release = tmp_path / "builds.log", tmp_path / "release"
+    fake = tmp_path / "logcc"
+    fake.write_text(textwrap.dedent(f"""\
+        #!/bin/sh
+        if [ "$1" = "--version" ]; then exec {cc} "$@"; fi
+        echo build >> {log}
+        i=0
+        while [ ! -e {release} ] && [ $i -lt 600 ]; do sleep 0.1; i=$((i+1)); done
+        exec {cc} "$@"
+        """))
+    fake.chmod(0o755)
+    cache = tmp_path / "cache"
+    prog = textwrap.dedent(f"""
+        import ctypes, sys
+        from symfunnel.core.ccompile import compile_cached, SHARED_FLAGS
+        b = compile_cached({SRC!r}, ["f.c"], "libf.so", SHARED_FLAGS, cache={str(cache)!r},
+                           on_build=lambda m: print(m, file=sys.stderr, flush=True))
+        lib = ctypes.CDLL(str(b.path))
+        lib.f.restype, lib.f.argtypes = ctypes.c_double, [ctypes.c_double]
+        print(b.cached, lib.f(3.0))
+        """)
+    env = {**os.environ, "CC": str(fake)}
+    errs = [tmp_path / f"err{i}" for i in range(2)]
+    procs = [subprocess.Popen([sys.executable, "-c", prog], env=env, stdout=subprocess.PIPE,
+                              stderr=open(e, "w"), text=True) for e in errs]
+    try:
+        end = time.monotonic() + 60
+        while time.monotonic() < end and not any("waiting for another process" in e.read_text() for e in errs):
+            time.sleep(0.05)
+        release.touch()
+        outs = [p.communicate(timeout=120)[0] for p in procs]
+    finally:
+        release.touch()
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    said = [e.read_text() for e in errs]
+    assert [p.returncode for p in procs] == [0, 0], said
+    assert sorted(o.split()[0] for o in outs) == ["False", "True"] and all(o.split()[1] == "7.0" for o in outs)
+    assert log.read_text().split() == ["build"]                 # the compiler ran once for the two of them
+    assert sum("waiting for another process compiling libf.so" in e for e in said) == 1, said
+    assert [p.name for p in cache.iterdir() if p.name.endswith(".lock")] == []
+
+
 def _slow_cc(tmp_path: Path) -> Path:
     """A fake compiler that starts a child (as gcc starts cc1) and waits; both write their pids."""
     script = tmp_path / "slowcc"

@@ -4,7 +4,9 @@ The cache lives in $SYMFUNNEL_CACHE, else $XDG_CACHE_HOME/symfunnel, else ~/.cac
 in a temporary directory and renamed into place, so concurrent runs never see half-built files. Each entry records
 the size and sha256 of its output (entry.json); an entry that does not match (truncated, emptied, altered, or from
 before the record existed) is rebuilt with one warning instead of being loaded. When the cache directory cannot be
-written, the output is built in a private temporary directory (removed at exit), again with one warning. The
+written, the output is built in a private temporary directory (removed at exit), again with one warning. Two
+processes that need the same entry at once build it once: the builder holds an exclusive lock on the entry's lock
+file (flock; removed when the build ends), and the other waits for it, then loads what it built. The
 compiler runs in its own process group under a time limit ($SYMFUNNEL_COMPILE_TIMEOUT seconds, default 600); on
 timeout, Ctrl-C or SIGTERM the whole group (gcc and its cc1/as/ld children) is killed and the temporary files removed.
 """
@@ -12,6 +14,7 @@ timeout, Ctrl-C or SIGTERM the whole group (gcc and its cc1/as/ld children) is k
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
 import json
 import os
@@ -116,6 +119,61 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         if not _discard(entry, root):
             root = _private_root()
             entry, target = root / key[:32], root / key[:32] / output
+    with _build_lock(root, key, output, on_build):
+        if entry.exists() and verify_entry(entry, output, key) is None:     # built while this process waited
+            return Built(target, key, True)
+        return _build_entry(sources, compile_files, output, flags, libs, cc, key, root, entry, target, on_build,
+                            timeout)
+
+
+@contextlib.contextmanager
+def _build_lock(root: Path, key: str, output: str, on_build):
+    """Hold an exclusive flock on `root/.<key>.lock` while the entry is built, so that concurrent processes
+    compile it once; no lock (and no error) where the cache cannot be written or flock does not exist."""
+    try:
+        import fcntl
+        root.mkdir(parents=True, exist_ok=True)
+    except (ImportError, OSError):
+        yield
+        return
+    path = root / f".{key[:32]}.lock"
+    said = False
+    while True:
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        except OSError:
+            yield
+            return
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if on_build is not None and not said:
+                    said = True
+                    on_build(f"waiting for another process compiling {output} into {root}")
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            # the holder before us removed the file as it finished: our lock is on an unlinked inode, retry
+            try:
+                same = os.path.samestat(os.fstat(fd), os.stat(path))
+            except FileNotFoundError:
+                same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        os.close(fd)
+
+
+def _build_entry(sources, compile_files, output, flags, libs, cc, key, root, entry, target, on_build,
+                 timeout) -> Built:
+    """Compile into a temporary directory of `root` and rename it into `entry` (the body of compile_cached)."""
     try:
         root.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
@@ -123,7 +181,7 @@ def compile_cached(sources: dict[str, str | bytes], compile_files: list[str], ou
         if str(root) not in _WARNED:            # once per process and cache directory
             _WARNED.add(str(root))
             warnings.warn(f"compile cache {root} is not writable ({exc.strerror or exc}); building in a "
-                          "temporary directory instead", RuntimeWarning, stacklevel=2)
+                          "temporary directory instead", RuntimeWarning, stacklevel=3)
         root = _private_root()
         entry, target = root / key[:32], root / key[:32] / output
         tmp = Path(tempfile.mkdtemp(prefix=f".{key[:12]}.", dir=root))
