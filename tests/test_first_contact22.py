@@ -231,7 +231,7 @@ def test_the_gradient_path_is_chosen_by_a_timed_forward_solve(paper_design, monk
 def test_tune_keeps_its_wall_limit_even_when_an_evaluation_is_long(tmp_path, capsys):
     import json
     from symfunnel.cli import main
-    limit = 25.0
+    limit = 12.0
     t0 = time.monotonic()
     code = main(["tune", "paper", "--wall-limit", str(limit), "--json", "--method", "derivative-free",
                  "--out", str(tmp_path / "t.toml")])
