@@ -80,16 +80,25 @@ class Run:
 
     def _bounded(self, name: str, fn, what: str):
         """A stage of getting the trajectory (derive, build, compile, integrate): all of them within the Run's
-        wall-clock limit (RunOptions.wall_limit, else the scenario's [simulation] wall_limit), counted from the
-        first of them; integration stops gracefully at it, the others raise deadline.WallLimitReached."""
-        if "_expiry" not in self.__dict__:
-            seconds = self.options.wall_limit if self.options.wall_limit is not None else \
-                self.scenario.simulation.wall_limit
+        wall-clock limit (RunOptions.wall_limit, else the scenario's [simulation] wall_limit), counted over the time
+        spent inside them (a Run kept and used again later starts from what its earlier stages used, not from the
+        clock); integration stops gracefully at it, the others raise deadline.WallLimitReached."""
+        budget = self.__dict__.setdefault("_budget", {"spent": 0.0, "depth": 0})
+        seconds = self.options.wall_limit if self.options.wall_limit is not None else \
+            self.scenario.simulation.wall_limit
+        if budget["depth"] == 0:             # a stage inside another runs under the outer one's deadline
             now = time.monotonic()
-            self.__dict__["_expiry"] = (now + seconds if seconds else float("inf"), seconds, now)
-        expiry, seconds, started = self.__dict__["_expiry"]
-        with deadline.until(expiry, seconds, started):
-            return self._timed(name, fn, what)
+            budget["entered"] = now
+            budget["expiry"] = now + seconds - budget["spent"] if seconds else float("inf")
+            budget["started"] = now - budget["spent"]
+        budget["depth"] += 1
+        try:
+            with deadline.until(budget["expiry"], seconds, budget["started"]):
+                return self._timed(name, fn, what)
+        finally:
+            budget["depth"] -= 1
+            if budget["depth"] == 0:
+                budget["spent"] += time.monotonic() - budget["entered"]
 
     @property
     def t_final(self) -> float:
@@ -192,8 +201,10 @@ class Run:
         if o.certify_wall_limit is None and key in _CERTIFICATIONS:
             return _CERTIFICATIONS[key]
         wall = o.certify_wall_limit
-        if wall is not None and "_expiry" in self.__dict__:        # what deriving and simulating left of it
-            wall = max(0.0, min(wall, self.__dict__["_expiry"][0] - time.monotonic()))
+        budget = self.__dict__.get("_budget")
+        seconds = o.wall_limit if o.wall_limit is not None else self.scenario.simulation.wall_limit
+        if wall is not None and budget is not None and seconds:     # what deriving and simulating left of it
+            wall = max(0.0, min(wall, seconds - budget["spent"]))
         self._say("certificates: interval branch and bound on the design's graph")
         cert = self._timed("certify", lambda: run_certificates(
             self.scenario, design, t_final=self.t_final, W_star=W, w_star_info=info, w_hat_range=wr, only=only,

@@ -219,6 +219,28 @@ def test_the_api_raises_a_simulation_error_at_its_wall_limit():
     assert deadline.remaining() == float("inf")
 
 
+def test_a_runs_limit_counts_its_stages_not_the_time_between_them():
+    """A Run kept after its design was derived (a session fixture, a notebook) and used again later than its
+    limit: the limit counts the stages' own time, so the later simulation runs (it raised at once before, after
+    the idle time); the spent part still counts, and a stage past what is left still stops."""
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.scenario import load_scenario
+    sc = load_scenario("paper")
+    assert Run(sc, RunOptions(t_final=0.5)).simulation.ok          # compiled once, cached for what follows
+    run = Run(sc, RunOptions(t_final=0.5, wall_limit=3.0))
+    run.design
+    time.sleep(3.2)                                                 # idle longer than the whole limit
+    res = run.simulation
+    assert res.ok and res.status == "ok"
+    spent = run.__dict__["_budget"]["spent"]
+    assert 0.0 < spent < 3.0
+    late = Run(sc, RunOptions(t_final=0.5, wall_limit=3.0))
+    late.design
+    late.__dict__["_budget"]["spent"] = 3.0 - 1e-3                 # as if the earlier stages had used it all
+    with pytest.raises(deadline.WallLimitReached, match="wall-clock limit of 3 s reached"):
+        late.closed_loop
+
+
 def test_large_reservoirs_get_the_same_spectral_radius_from_arpack_as_from_lapack():
     import numpy as np
 

@@ -19,15 +19,9 @@ from symfunnel.design import derive
 from symfunnel.deployed.loop import step_library
 from symfunnel.scenario import load_scenario
 
-from .conftest import private_cache
 
 GCC = shutil.which("gcc")
 needs_gcc = pytest.mark.skipif(GCC is None, reason="gcc not available")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    yield from private_cache(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

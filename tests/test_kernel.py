@@ -21,18 +21,12 @@ from symfunnel.emit.files import generate
 from symfunnel.emit.step import etd_factors, projection, step_core
 from symfunnel.scenario import from_dict, load_scenario
 
-from .conftest import private_cache
 
 GCC = shutil.which("gcc")
 needs_gcc = pytest.mark.skipif(GCC is None, reason="gcc not available")
 
 #: the error bound of the vectorisable tanh against glibc's, as stated in templates/sf_tanh.h
 TANH_ULP, TANH_ABS = 2.0, 2.3e-16
-
-
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    yield from private_cache(tmp_path_factory)
 
 
 def _native() -> tuple[str, ...]:

@@ -27,18 +27,12 @@ from symfunnel.design import derive  # noqa: E402
 from symfunnel.plant.mujoco import agreement, load_engine, prepare_urdf  # noqa: E402
 from symfunnel.scenario import DATA_DIR, load_scenario  # noqa: E402
 
-from .conftest import private_cache  # noqa: E402
 from .pins import pins  # noqa: E402
 
 TESTS = Path(__file__).parent
 URDFS = {"branched": TESTS / "data" / "branched.urdf", "prismatic": TESTS / "data" / "prismatic.urdf",
          "panda": TESTS / "data" / "third_party" / "panda.urdf"}
 RATE = 3512.5        # twice arm7's minimum rate (1756 Hz by `symfunnel rate arm7`, on either plant)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    yield from private_cache(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

@@ -17,14 +17,8 @@ from symfunnel.design import derive
 from symfunnel.core.errors import InputError
 from symfunnel.scenario import DATA_DIR, load_scenario
 
-from .conftest import private_cache
 
 needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not available")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    yield from private_cache(tmp_path_factory)
 
 
 def paper_with(tmp_path, implementation: str, t_final: float | None = None, name: str = "impl.toml"):
