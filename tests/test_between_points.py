@@ -200,3 +200,19 @@ def test_a_sweep_horizon_of_a_few_output_steps_is_refused(write_scenario, capsys
 def test_ten_output_steps_are_enough():
     r = simulate(load_scenario("paper"), derive(load_scenario("paper")), t_final=0.1)
     assert r.ok and r.t.size == 11
+
+
+@pytest.mark.parametrize("count", [1, 15, 16, 17, 768, 4096, 5000])
+def test_margin_scan_blocks_give_the_pointwise_margins(paper_design, count):
+    """The scan's mapped evaluation in blocks of 4096, 1024, 256, 64 and 16 points gives, bit for bit, the margin
+    function called at each point alone, whatever the count (a tail shorter than the smallest block included)."""
+    from symfunnel.simulation.between import MarginScan, margin_function
+    n = paper_design.n
+    scan = MarginScan(paper_design, {"q": slice(0, n), "dq": slice(n, 2 * n)})
+    rng = np.random.default_rng(count)
+    t = rng.uniform(0, 20, count)
+    q, dq = rng.normal(0, 0.1, (count, n)), rng.normal(0, 0.3, (count, n))
+    got = scan.margins(t, q, dq)
+    f = margin_function(paper_design)
+    want = np.array([np.asarray(f(t[i], q[i], dq[i])).ravel() for i in range(count)])
+    assert got.shape == (count, 2 * n) and np.array_equal(got, want)
