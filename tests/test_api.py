@@ -10,6 +10,7 @@ import symfunnel as sf
 from symfunnel.core.errors import CheckFailed, InputError
 
 
+@pytest.mark.slow
 def test_one_function_per_command_with_json_results(tmp_path):
     v = sf.verify("paper", t_final=1.0, samples=500)
     out = json.loads(json.dumps(v.to_json()))

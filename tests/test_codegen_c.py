@@ -379,6 +379,7 @@ def test_codegen_summary_for_the_report(paper_run, cache):
 
 
 @needs_gcc
+@pytest.mark.slow
 def test_bench_area_reports_c_vm_and_python(cache, monkeypatch):
     from symfunnel.bench import codegen as bench
     monkeypatch.setenv("SYMFUNNEL_BENCH_LARGE_N", "60")          # the N = 500 compile's mechanics, at a test's size

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import resource
 import subprocess
@@ -159,6 +158,7 @@ sys.exit(cli.main(sys.argv[1:]))
 """
 
 
+@pytest.mark.slow
 def test_report_figures_stopped_by_the_limit_leave_nothing(tmp_path):
     """The limit reached after the figures were staged: exit 1 with the limit's line, no figure and no report."""
     figs = tmp_path / "figs"

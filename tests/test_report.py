@@ -211,6 +211,7 @@ def test_renders_in_headless_chromium_without_console_errors(report_path, tmp_pa
     assert float(img.std()) > 0.05
 
 
+@pytest.mark.slow
 def test_failing_scenario_gives_a_report_that_shows_the_failure(write_scenario, tmp_path, capsys):
     """An initial error outside its funnel: `report` still writes the file, and it shows the failed checks."""
     from symfunnel.cli import main

@@ -44,6 +44,7 @@ def independent_run(path):
 
 
 @needs_gcc
+@pytest.mark.slow
 def test_paper_at_1khz_200nm_is_tuned_into_a_design_that_holds(tmp_path, capsys):
     src = write(tmp_path, paper_doc())
     before = independent_run(src)            # the premise: the printed gains leave the funnel or saturate here
@@ -195,6 +196,7 @@ def test_tuned_design_is_robust_to_the_mass_scale(tmp_path, capsys):
         assert r.ok and r.min_margin >= 0.05 and max(r.saturated_fraction) == 0.0
 
 
+@pytest.mark.slow
 def test_continuous_time_tune_without_implementation(tmp_path, capsys, monkeypatch):
     # no [implementation]: candidates are judged by the continuous simulation; no torque limit, so no saturation.
     # The derivative-free search here (its fallback role); the IPOPT path has its own tests in test_tune_gradient.

@@ -181,6 +181,7 @@ def test_original_document_undoes_tune_records(tmp_path):
     assert original_document(sc.raw, sc.n) is None
 
 
+@pytest.mark.slow
 def test_report_compares_original_and_tuned_with_independent_numbers(tmp_path):
     from symfunnel.pipeline import Run
     from symfunnel.reporting import render_report
