@@ -69,6 +69,7 @@ class MarginScan:
         self.width = 2 * design.n
 
     def _block(self, size: int):
+        """The margin function mapped over `size` points on numpy buffers, built on first use."""
         f = self._f.get(size)
         if f is None:
             from .compiled import Buffered
