@@ -127,8 +127,9 @@ def test_two_processes_needing_one_entry_compile_it_once(tmp_path, cc):
         """)
     env = {**os.environ, "CC": str(fake)}
     errs = [tmp_path / f"err{i}" for i in range(2)]
-    procs = [subprocess.Popen([sys.executable, "-c", prog], env=env, stdout=subprocess.PIPE,
-                              stderr=open(e, "w"), text=True) for e in errs]
+    handles = [open(e, "w") for e in errs]
+    procs = [subprocess.Popen([sys.executable, "-c", prog], env=env, stdout=subprocess.PIPE, stderr=h, text=True)
+             for h in handles]
     try:
         end = time.monotonic() + 60
         while time.monotonic() < end and not any("waiting for another process" in e.read_text() for e in errs):
@@ -140,6 +141,9 @@ def test_two_processes_needing_one_entry_compile_it_once(tmp_path, cc):
         for p in procs:
             if p.poll() is None:
                 p.kill()
+                p.wait(timeout=30)
+        for h in handles:
+            h.close()
     said = [e.read_text() for e in errs]
     assert [p.returncode for p in procs] == [0, 0], said
     assert sorted(o.split()[0] for o in outs) == ["False", "True"] and all(o.split()[1] == "7.0" for o in outs)
