@@ -84,8 +84,7 @@ class Run:
         spent inside them (a Run kept and used again later starts from what its earlier stages used, not from the
         clock); integration stops gracefully at it, the others raise deadline.WallLimitReached."""
         budget = self.__dict__.setdefault("_budget", {"spent": 0.0, "depth": 0})
-        seconds = self.options.wall_limit if self.options.wall_limit is not None else \
-            self.scenario.simulation.wall_limit
+        seconds = self.wall_limit
         if budget["depth"] == 0:             # a stage inside another runs under the outer one's deadline
             now = time.monotonic()
             budget["entered"] = now
@@ -99,6 +98,11 @@ class Run:
             budget["depth"] -= 1
             if budget["depth"] == 0:
                 budget["spent"] += time.monotonic() - budget["entered"]
+
+    @property
+    def wall_limit(self) -> float | None:
+        """The seconds the stages of getting the trajectory may take together (None or 0: no limit)."""
+        return self.options.wall_limit if self.options.wall_limit is not None else self.scenario.simulation.wall_limit
 
     @property
     def t_final(self) -> float:
@@ -201,8 +205,7 @@ class Run:
         if o.certify_wall_limit is None and key in _CERTIFICATIONS:
             return _CERTIFICATIONS[key]
         wall = o.certify_wall_limit
-        budget = self.__dict__.get("_budget")
-        seconds = o.wall_limit if o.wall_limit is not None else self.scenario.simulation.wall_limit
+        budget, seconds = self.__dict__.get("_budget"), self.wall_limit
         if wall is not None and budget is not None and seconds:     # what deriving and simulating left of it
             wall = max(0.0, min(wall, seconds - budget["spent"]))
         self._say("certificates: interval branch and bound on the design's graph")
