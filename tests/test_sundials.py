@@ -130,7 +130,7 @@ def _solver(run):
     cl = run.closed_loop
     comp = compile_closed_loop(cl)
     opts = INTEGRATORS.get("cvodes")(run.scenario.simulation, 0.01, 0.01, 1)
-    return cl, comp, sundials.DirectCvodes(comp.library, cl.nx, 1 + len(cl.p0), opts)
+    return cl, comp, sundials.DirectCvodes(comp.library, cl.nx, 1 + len(comp.bind(cl.p0).pvals), opts)
 
 
 def test_fixed_pattern_lu_solves_the_newton_system(paper_run):
@@ -140,8 +140,9 @@ def test_fixed_pattern_lu_solves_the_newton_system(paper_run):
     jac = ca.external("jac_symfunnel_ode", comp.library)
     ix = jac.index_out("jac_ode_x")
     rng = np.random.default_rng(3)
+    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
     for x in (cl.x0, cl.x0 + rng.normal(0, 0.05, cl.nx)):
-        J = jac(0.37, x[comp.perm], ca.DM(0, 1), np.concatenate([[0.0], cl.p0]), ca.DM(0, 1), 0, 0, 0, 0)[ix]
+        J = jac(0.37, x[comp.perm], ca.DM(0, 1), P, ca.DM(0, 1), 0, 0, 0, 0)[ix]
         Jd = np.array(ca.densify(J))
         for gamma in (1e-6, 1e-3, 0.05, 1.0):
             b = rng.normal(size=cl.nx)
@@ -157,8 +158,8 @@ def test_a_vanishing_pivot_or_growth_is_refused_not_used(paper_run):
     step) instead of solving with them; the next good factorisation works again."""
     cl, comp, D = _solver(paper_run)
     jac = ca.external("jac_symfunnel_ode", comp.library)
-    J = jac(0.0, cl.x0[comp.perm], ca.DM(0, 1), np.concatenate([[0.0], cl.p0]), ca.DM(0, 1), 0, 0, 0, 0)[
-        jac.index_out("jac_ode_x")]
+    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
+    J = jac(0.0, cl.x0[comp.perm], ca.DM(0, 1), P, ca.DM(0, 1), 0, 0, 0, 0)[jac.index_out("jac_ode_x")]
     Jx = np.array(J.nonzeros())
     J00 = float(J[0, 0])
     assert J00 != 0.0
@@ -214,7 +215,7 @@ def _create(lib, paper_run):
                       jac.sz_w(), jac.n_in(), jac.n_out(), jx], dtype=np.longlong)
     Jp, Ji = np.array(sp.colind(), dtype=np.intc), np.array(sp.row(), dtype=np.intc)
     err = ctypes.create_string_buffer(400)
-    h = lib.sf_create(cl.nx, 1 + len(cl.p0), ctypes.cast(cll.symfunnel_ode, ctypes.c_void_p).value,
+    h = lib.sf_create(cl.nx, 1 + len(comp.bind(cl.p0).pvals), ctypes.cast(cll.symfunnel_ode, ctypes.c_void_p).value,
                       ctypes.cast(cll.jac_symfunnel_ode, ctypes.c_void_p).value,
                       sizes.ctypes.data_as(ctypes.POINTER(ctypes.c_longlong)),
                       Jp.ctypes.data_as(ctypes.POINTER(ctypes.c_int)), Ji.ctypes.data_as(ctypes.POINTER(ctypes.c_int)),
@@ -245,9 +246,9 @@ def test_unknown_options_fall_back_to_casadi(paper_run):
     comp = compile_closed_loop(cl)
     opts = INTEGRATORS.get("cvodes")(paper_run.scenario.simulation, 0.01, 0.01, 1)
     with pytest.raises(RuntimeError, match="does not implement"):
-        sundials.DirectCvodes(comp.library, cl.nx, 1 + len(cl.p0), dict(opts, nonlin_conv_coeff=0.3))
+        sundials.DirectCvodes(comp.library, cl.nx, 1 + len(comp.bind(cl.p0).pvals), dict(opts, nonlin_conv_coeff=0.3))
     with pytest.raises(RuntimeError, match="does not implement"):
-        sundials.DirectCvodes(comp.library, cl.nx, 1 + len(cl.p0), dict(opts, linear_solver="qr"))
+        sundials.DirectCvodes(comp.library, cl.nx, 1 + len(comp.bind(cl.p0).pvals), dict(opts, linear_solver="qr"))
 
 
 def test_casadi_backend_on_request_and_on_the_vm(paper, paper_design, monkeypatch):

@@ -130,8 +130,8 @@ class Backstepping:
         `offsets` adds a symbol to a signal where it is defined, so every signal computed from it depends on that
         symbol: how the audit finds what depends on a signal through the derivation (circular printed claims).
         `values` replaces design parameters (keys of `scenario.tune.TUNABLE`: controller.k1/k2, adaptation.gamma/sigma,
-        funnel.e2.phi0/phi_inf/a) by expressions, e.g. symbols, so that tune can differentiate the closed loop
-        with respect to them.
+        funnel.e2.phi0/phi_inf/a, and funnel.e1's too) by expressions, e.g. symbols, so that tune can differentiate
+        the closed loop with respect to them and one compiled closed loop serves every value of them.
         """
         from .core import Design
         sc = self.scenario
@@ -152,14 +152,15 @@ class Backstepping:
         val = values or {}
         k1, k2 = val.get("controller.k1", ca.DM(sc.k1)), val.get("controller.k2", ca.DM(sc.k2))
         gamma, sigma = val.get("adaptation.gamma", ca.DM(sc.gamma)), val.get("adaptation.sigma", ca.DM(sc.sigma))
-        shape2 = {k.rsplit(".", 1)[1]: v for k, v in val.items() if k.startswith("funnel.e2.")}
+        shapes = {key: {k.rsplit(".", 1)[1]: v for k, v in val.items() if k.startswith(f"funnel.{key}.")}
+                  for key in ("e1", "e2")}
         s = _Signals(offsets or {})
         s.update(qd=qd, dqd=dqd, ddqd=ddqd)
         s["M"] = model.numeric(model.M)
         s["C"] = model.numeric(model.C)
         s["G"] = model.numeric(model.G)
         for i, key in ((1, "e1"), (2, "e2")):
-            F = sc.funnels[key].sx(t, **(shape2 if key == "e2" else {}))
+            F = sc.funnels[key].sx(t, **shapes[key])
             s[f"F{i}"] = F
             s[f"dF{i}"] = ca.jtimes(F, t, ca.SX(1))
 

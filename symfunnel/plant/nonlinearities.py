@@ -29,7 +29,9 @@ from ..expr import Expression
 Branch = Callable[[ca.SX], ca.SX]
 
 
-def _width(w) -> float:
+def _width(w) -> float | ca.SX:
+    if isinstance(w, ca.SX):       # a symbol (a compiled loop's parameter): the smooth form, for a value > 0
+        return w
     if isinstance(w, bool) or not isinstance(w, (int, float, np.integer, np.floating)) or not math.isfinite(w) \
             or w < 0:
         raise ValueError(f"smoothing width w = {w!r}, expected a finite number >= 0")
@@ -58,7 +60,7 @@ def ramp(x, w: float = 0.0):
     """max(x, 0), or for w > 0 its smooth algebraic approximation (x + sqrt(x^2 + w^2))/2 (error <= w/2, no exp to overflow)."""
     w = _width(w)
     x = _cas(x)
-    if w == 0.0:
+    if not isinstance(w, ca.SX) and w == 0.0:
         return ca.fmax(x, 0)
     return 0.5 * (x + ca.sqrt(x * x + w * w))
 
@@ -83,7 +85,7 @@ def sign(x, w: float = 0.0):
     """sign(x) (0 at 0), or for w > 0 the smooth x / sqrt(x^2 + w^2), which keeps Coulomb friction integrable by CVODES."""
     w = _width(w)
     x = _cas(x)
-    if w == 0.0:
+    if not isinstance(w, ca.SX) and w == 0.0:
         return ca.sign(x)
     return x / ca.sqrt(x * x + w * w)
 

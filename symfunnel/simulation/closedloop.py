@@ -67,6 +67,14 @@ class ClosedLoop:
     p0: np.ndarray = field(default=None, repr=False)        # this scenario's values of p
     xdot_p: ca.SX = field(default=None, repr=False)         # right-hand side in (t, x, p)
     signals_p: dict = field(default_factory=dict, repr=False)   # logged signals in (t, x, p)
+    # the same loop with the design's numbers (layout: design_parameters, then the smoothing width if > 0) as
+    # parameters z too, what is compiled;
+    # None where the design handed in is not the scenario's derivation (then its numbers stay folded in)
+    z: ca.SX = field(default=None, repr=False)
+    z_names: list = field(default_factory=list, repr=False)
+    z0: np.ndarray = field(default=None, repr=False)        # this design's values of z
+    xdot_pz: ca.SX = field(default=None, repr=False)        # right-hand side in (t, x, p, z)
+    signals_pz: dict = field(default_factory=dict, repr=False)  # logged signals in (t, x, p, z)
 
     @property
     def nx(self) -> int:
@@ -168,6 +176,47 @@ def plant_parameters(scenario) -> tuple[list[str], np.ndarray]:
         joints("plant.dead_zone.left_scale", dz.left_scale)
         joints("plant.dead_zone.right_scale", dz.right_scale)
     return names, np.array(vals, dtype=float)
+
+
+#: the design's numbers a compiled closed loop takes as parameters (`design_parameters`): the keys `derive`'s
+#: `values` replaces; the funnels' keys only for the exponential shape (an expression funnel keeps its numbers)
+DESIGN_KEYS = ("controller.k1", "controller.k2", "adaptation.gamma", "adaptation.sigma",
+               "funnel.e1.phi0", "funnel.e1.phi_inf", "funnel.e1.a", "funnel.e2.phi0", "funnel.e2.phi_inf",
+               "funnel.e2.a")
+
+
+def design_parameters(scenario) -> tuple[list[str], np.ndarray, dict]:
+    """Names, values and layout (key -> (first index, shape)) of the design's numbers that the compiled closed loop
+    takes as parameters z beside the plant's: gains, adaptation rates and exponential funnels' shapes, per joint as
+    key[j] (1-based). Designs that differ only in them run on one compiled loop (tune's candidates, a sweep of
+    gains, a user's edits), where folding them in as constants compiled each anew."""
+    names, vals, layout = [], [], {}
+    for key in DESIGN_KEYS:
+        if key.startswith("funnel."):
+            _, fk, attr = key.split(".")
+            shape = scenario.funnels[fk]
+            if attr not in getattr(shape, "KEYS", ()) or not hasattr(shape, attr):
+                continue
+            v = np.asarray(getattr(shape, attr), dtype=float)
+        else:
+            v = np.asarray({"controller.k1": scenario.k1, "controller.k2": scenario.k2,
+                            "adaptation.gamma": scenario.gamma, "adaptation.sigma": scenario.sigma}[key], dtype=float)
+        layout[key] = (len(vals), v.shape)
+        if v.ndim == 0:
+            names.append(key)
+        else:
+            names.extend(f"{key}[{j + 1}]" for j in range(v.size))
+        vals.extend(float(x) for x in v.ravel())
+    return names, np.array(vals, dtype=float), layout
+
+
+def _design_values(layout: dict, z: ca.SX) -> dict:
+    """`derive`'s values: each key of `design_parameters` as its entries of z (a column per joint, a scalar)."""
+    out = {}
+    for key, (i, shape) in layout.items():
+        m = int(np.prod(shape)) if shape else 1
+        out[key] = z[i] if not shape else z[i:i + m]
+    return out
 
 
 def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
@@ -295,7 +344,7 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
         raise InputError(f"is {w!r}", file=scenario.file, key="simulation.smoothing_width",
                          expected="a finite number >= 0")
     w = float(w)
-    L = loop_sx(scenario, design, w)
+    L, zg = _loops(scenario, design, w)
     t, x, p, p0, xdot_p, outs_p, parts_p = (L[k] for k in ("t", "x", "p", "p0", "xdot_p", "signals_p", "plant_p"))
     # the nominal loop in (t, x): p replaced by this scenario's values, for every consumer that takes (t, x)
     pk = list(parts_p)
@@ -310,6 +359,65 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
     if w == 0.0:
         warnings.warn("smoothing_width = 0: exact sign friction and dead-zone kinks; CVODES may stall on them",
                       RuntimeWarning, stacklevel=2)
-    return ClosedLoop(design=design, scenario=scenario, n=design.n, N=L["N"], width=w, t=t, x=x, xdot=xdot, f=f,
-                      outputs=outputs, x0=L["x0"], signals=outs, plant_parts=plant, p=p, p_names=L["p_names"],
-                      p0=p0, xdot_p=xdot_p, signals_p=outs_p)
+    cl = ClosedLoop(design=design, scenario=scenario, n=design.n, N=L["N"], width=w, t=t, x=x, xdot=xdot, f=f,
+                    outputs=outputs, x0=L["x0"], signals=outs, plant_parts=plant, p=p, p_names=L["p_names"],
+                    p0=p0, xdot_p=xdot_p, signals_p=outs_p)
+    if zg is not None:
+        cl.z, cl.z_names, cl.z0, cl.xdot_pz, cl.signals_pz = zg
+    return cl
+
+
+#: (plant scenario, width) pairs whose symbolic loops a design keeps (`_loops`), the oldest dropped first
+_LOOPS_PER_DESIGN = 4
+
+
+def _loops(scenario, design, w: float):
+    """The loop's expressions (`loop_sx`) and its graph in the design's numbers z (`_design_parameter_graph`) for
+    this plant scenario and width, kept on the design: simulating one design again (a bench, a rate search, a
+    notebook) rebuilds neither. Their symbols are shared by every ClosedLoop built from them."""
+    cache = design._functions.setdefault("closed_loops", {})
+    key = (id(scenario), w)
+    hit = cache.get(key)
+    if hit is not None and hit[0] is scenario:
+        return hit[1], hit[2]
+    L = loop_sx(scenario, design, w)
+    zg = _design_parameter_graph(scenario, design, w, L)
+    while len(cache) >= _LOOPS_PER_DESIGN:
+        cache.pop(next(iter(cache)))
+    cache[key] = (scenario, L, zg)
+    return L, zg
+
+
+def _design_parameter_graph(scenario, design, w: float, L: dict):
+    """(z, names, z0, xdot, signals) of the loop `L` with the design's numbers (and a smoothing width > 0) as
+    symbols z: the same derivation with z for the numbers (its design from the design's own scenario, its plant
+    from `scenario`), in L's t, x, p.
+    Kept only if at z0 it gives L's right-hand side at the initial state and at a perturbed one to 1e-10 relative
+    (constant folding rounds a few products differently); else None (a design handed in that is not its
+    scenario's derivation, e.g. a hand-edited twin, keeps its numbers folded in)."""
+    from ..design import derive
+    d = design
+    names, z0, layout = design_parameters(d.scenario)
+    if w > 0:                  # the smoothing width too (0 is the exact, structurally different, kink)
+        names, z0 = [*names, "simulation.smoothing_width"], np.append(z0, w)
+    if not names:
+        return None
+    z = ca.SX.sym("z", len(names))
+    try:
+        Lz = loop_sx(scenario, derive(d.scenario, mutant=d.mutant, values=_design_values(layout, z)),
+                     z[len(names) - 1] if w > 0 else w)
+    except (TypeError, ValueError, RuntimeError):
+        return None
+    if Lz["x"].numel() != L["x"].numel() or Lz["p"].numel() != L["p"].numel():
+        return None
+    exprs = ca.substitute([Lz["xdot_p"], *[Lz["signals_p"][k] for k in OUTPUT_NAMES]], [Lz["t"], Lz["x"], Lz["p"]],
+                          [L["t"], L["x"], L["p"]])
+    fz = ca.Function("fz", [L["t"], L["x"], L["p"], z], [exprs[0]])
+    fp = ca.Function("fp", [L["t"], L["x"], L["p"]], [L["xdot_p"]])
+    x0 = np.asarray(L["x0"], dtype=float)
+    rng = np.random.default_rng(0)
+    for t, x in ((0.0, x0), (0.1, x0 + 1e-2 * rng.standard_normal(x0.shape))):
+        a, b = np.asarray(fz(t, x, L["p0"], z0)).ravel(), np.asarray(fp(t, x, L["p0"])).ravel()
+        if not np.allclose(a, b, rtol=1e-10, atol=1e-10 * float(np.max(np.abs(b), initial=1.0)), equal_nan=True):
+            return None
+    return z, names, z0, exprs[0], dict(zip(OUTPUT_NAMES, exprs[1:]))

@@ -40,8 +40,8 @@ MAX_MAPS = 64
 class Compiled:
     """The integrator's DAE function and the logged-signals function, compiled or on the VM."""
 
-    dae: ca.Function                 # dyn_in -> dyn_out, states permuted, p = [chunk start time; plant p]
-    outputs: ca.Function             # (t, x, p) -> OUTPUT_NAMES, public state order
+    dae: ca.Function                 # dyn_in -> dyn_out, states permuted, p = [chunk start time; plant p; z]
+    outputs: ca.Function             # (t, x, [plant p; z]) -> OUTPUT_NAMES, public state order
     perm: np.ndarray                 # integrator state i = public state perm[i]
     mode: str                        # "compiled" or "vm"
     compile_time: float = 0.0
@@ -49,12 +49,16 @@ class Compiled:
     library: str | None = None
     source_hash: str | None = None
     maps: dict = field(default_factory=dict, repr=False)
-    pvals: np.ndarray | None = None  # the plant parameters of the run this copy is bound to (see `bind`)
+    pvals: np.ndarray | None = None  # [plant p; z] of the run this copy is bound to (see `bind`)
     integrators: dict = field(default_factory=dict, repr=False)
+    #: the design's numbers z (closedloop.design_parameters) this loop runs with; empty where they are folded in
+    design_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def bind(self, pvals) -> Compiled:
-        """This compiled loop bound to one run's plant parameters (shares the code and the output maps)."""
-        return dataclasses.replace(self, pvals=np.asarray(pvals, dtype=float).reshape(-1))
+        """This compiled loop bound to one run's plant parameters (shares the code and the output maps); its
+        parameter vector is those followed by the design's numbers."""
+        return dataclasses.replace(self, pvals=np.concatenate([np.asarray(pvals, dtype=float).reshape(-1),
+                                                               self.design_values]))
 
 
 def state_permutation(n: int, states: list) -> tuple[np.ndarray, dict]:
@@ -81,18 +85,27 @@ def _permutation(cl: ClosedLoop) -> np.ndarray:
     return state_permutation(cl.n, cl.design.states)[0]
 
 
+def _parameters(cl: ClosedLoop) -> tuple[ca.SX, ca.SX, dict, np.ndarray]:
+    """What the compiled loop takes as its parameters beyond time: [plant p; z] with the right-hand side and signals
+    in them and this design's z, or the plant's p alone where the design's numbers are folded in."""
+    if cl.xdot_pz is None:
+        return cl.p, cl.xdot_p, cl.signals_p, np.zeros(0)
+    return ca.vertcat(cl.p, cl.z), cl.xdot_pz, cl.signals_pz, np.asarray(cl.z0, dtype=float)
+
+
 def _dae_function(cl: ClosedLoop, perm: np.ndarray) -> ca.Function:
     t0 = ca.SX.sym("t0")
-    p = ca.vertcat(t0, cl.p)
+    P, xdot, _, _ = _parameters(cl)
+    p = ca.vertcat(t0, P)
     xi = cl.x[list(perm)]
-    ode = ca.substitute(cl.xdot_p, cl.t, cl.t + t0)[list(perm)]
+    ode = ca.substitute(xdot, cl.t, cl.t + t0)[list(perm)]
     empty = ca.SX(0, 1)
     return ca.Function("symfunnel_ode", [cl.t, xi, ca.SX.sym("z", 0, 1), p, ca.SX.sym("u", 0, 1)],
                        [ode, empty, empty, empty], ca.dyn_in(), ca.dyn_out(), {"cse": True})
 
 
-def _newton_jacobian(cl: ClosedLoop, dae: ca.Function, perm: np.ndarray) -> ca.Function:
-    """The Jacobian CVODES' Newton iteration uses: exact, except the reservoir's internal coupling.
+def _newton_jacobian(cl: ClosedLoop, dae: ca.Function, perm: np.ndarray, approx: bool = True) -> ca.Function:
+    """The Jacobian CVODES' Newton iteration uses: exact, except (`approx`) the reservoir's internal coupling.
 
     The block d(x_esn_dot)/d(x_esn) = (1/time_constant)(-leak I + diag(tanh') W) is replaced by its diagonal: the
     dropped part has norm <= spectral-radius-ish 0.9/time_constant, so h*||dropped|| << 1 at the step sizes the
@@ -107,7 +120,7 @@ def _newton_jacobian(cl: ClosedLoop, dae: ca.Function, perm: np.ndarray) -> ca.F
     J = outs[ix]
     pos = np.empty(cl.nx, dtype=int)
     pos[perm] = np.arange(cl.nx)
-    esn = set(int(v) for v in pos[cl.slices["x_esn"]]) if "x_esn" in cl.slices else set()
+    esn = set(int(v) for v in pos[cl.slices["x_esn"]]) if "x_esn" in cl.slices and approx else set()
     rows, cols = J.sparsity().get_triplet()
     keep_r, keep_c, vals = [], [], []
     for r, c in zip(rows, cols):
@@ -119,6 +132,12 @@ def _newton_jacobian(cl: ClosedLoop, dae: ca.Function, perm: np.ndarray) -> ca.F
     sp = ca.Sparsity.triplet(J.size1(), J.size2(), keep_r, keep_c)
     Jn = ca.SX(sp, ca.vertcat(*vals) if vals else ca.SX(0, 1))
     outs[ix] = Jn
+    # the blocks in t and p are left structurally zero: the Newton matrix needs d/dx alone, and d/dp (the plant's
+    # quantities and the design's numbers) had cost more than d/dx at every Jacobian update
+    for k in ("jac_ode_t", "jac_ode_p"):
+        if k in jac.name_out():
+            i = jac.name_out().index(k)
+            outs[i] = ca.SX(*outs[i].shape)
     return ca.Function(jac.name(), ins, outs, jac.name_in(), jac.name_out(), {"cse": True})
 
 
@@ -134,9 +153,11 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     perm = _permutation(cl)
     jit = jit and not os.environ.get("SYMFUNNEL_NO_JIT")
 
+    P, _, signals, zvals = _parameters(cl)
+
     def functions():
         dae = _dae_function(cl, perm)
-        outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x, cl.p], [cl.signals_p[k] for k in OUTPUT_NAMES],
+        outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x, P], [signals[k] for k in OUTPUT_NAMES],
                               ["t", "x", "p"], list(OUTPUT_NAMES), {"cse": True})
         if not jit:
             return dae, outputs, b""
@@ -153,7 +174,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     big = int(ca.n_nodes(cl.xdot_p)) > FORK_ABOVE_NODES
     dae, outputs, identity = (run_killable(functions, what="building the closed loop's functions") if big
                               else functions())
-    vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm")
+    vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm", design_values=zvals)
     if not jit:
         return vm
     t0 = time.perf_counter()
@@ -161,7 +182,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     if digest in _LOADED:
         ext_dae, ext_out, lib, maps = _LOADED[digest]
         return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, True, lib, digest,
-                        maps=_thread_maps(maps))
+                        maps=_thread_maps(maps), design_values=zvals)
 
     def sources() -> dict[str, bytes]:
         # in a forked worker: the Jacobian and the C of a large graph are long CasADi calls no signal interrupts
@@ -171,7 +192,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
         with tempfile.TemporaryDirectory(prefix="symfunnel-cg-") as tmp:
             cg = ca.CodeGenerator("symfunnel_cl.c", {"with_header": False})
             cg.add(dae)
-            cg.add(_newton_jacobian(cl, dae, perm) if approx_jacobian else dae.jacobian())
+            cg.add(_newton_jacobian(cl, dae, perm, approx_jacobian))
             cg.add(outputs)
             cg.generate(tmp + os.sep)
             src = Path(tmp, "symfunnel_cl.c").read_bytes()
@@ -204,7 +225,7 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
     maps: dict = {}
     _LOADED[digest] = (ext_dae, ext_out, str(lib), maps)
     return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, cached, str(lib), digest,
-                    maps=_thread_maps(maps))
+                    maps=_thread_maps(maps), design_values=zvals)
 
 
 def _thread_maps(maps: dict) -> dict:

@@ -1,10 +1,11 @@
 """tune's gradient path: IPOPT over the log-scaled `[tune]` parameters with CVODES forward sensitivities.
 
 Used when the scenario has no `[implementation]`: the continuous-time closed loop is smooth in its gains and e2
-funnel, so the simulated constraints have exact derivatives. The tunable parameters z in [0, 1]^d (log scale of
-their bounds) become symbolic values of the design (`design.derive(values=...)`), so the closed loop
-(`simulation.closedloop.loop_sx`) has p = [z; plant quantities]; one CVODES call returns the states on a fixed output grid of
-K points, and CasADi differentiates it (forward sensitivities, d directions). Constraints per grid point and joint,
+funnel, so the simulated constraints have exact derivatives. The closed loop (`simulation.closedloop.loop_sx`)
+takes all the design's numbers as parameters zd (`design.derive(values=...)`): p = [zd; plant quantities], and the
+tunable parameters z in [0, 1]^d (log scale of their bounds) map into zd outside the compiled DAE, so every tune of
+a scenario shares one. One CVODES call returns the states on a fixed output grid of K points, and CasADi
+differentiates it (forward sensitivities, d directions). Constraints per grid point and joint,
 on the nominal plant and every uncertainty sample: m1, m2 >= margin (m = 1 - |e|/F) and |tau| <= tau_max when
 given. Objective: peak torque through an epigraph variable s (|tau_i(t_k)| <= s ref on the nominal run) or the
 integral of |e1|^2 by the trapezoidal rule on the grid, both divided by the user's design's value.
@@ -65,6 +66,19 @@ def design_values(scenario, vars_, z: ca.SX) -> dict:
     return out
 
 
+def _mapped(layout: dict, zd0: np.ndarray, values: dict) -> ca.SX:
+    """The design's numbers (layout of `simulation.closedloop.design_parameters`) with the searched keys' entries
+    replaced by their expressions in z (`design_values`), the others at the scenario's values."""
+    out = ca.SX(ca.DM(zd0))
+    for key, expr in values.items():
+        if key not in layout:
+            raise ValueError(f"{key} is not one of the design's numbers the closed loop takes as parameters")
+        i, shape = layout[key]
+        m = int(np.prod(shape)) if shape else 1
+        out[i:i + m] = ca.vec(expr) if m > 1 else expr
+    return out
+
+
 def _funnel_order(scenario, values: dict):
     """1 - phi_inf/phi0 per joint (>= 0: the e2 funnel narrows, as verify's funnel.parameters requires) when the
     search moves phi0 or phi_inf, else None."""
@@ -82,7 +96,7 @@ class GradientProblem:
     def __init__(self, scenario, spec, vars_, *, t_final: float, tau_max=None, sample_values=(),
                  grid_points: int = GRID_POINTS, tolerance=TOLERANCE, compiled: bool = True, progress=None,
                  coarse: float | None = COARSE_FRACTION):
-        from ..simulation.closedloop import loop_sx
+        from ..simulation.closedloop import _design_values, design_parameters, loop_sx
         from ..simulation.compiled import compiled_dae, state_permutation
         from ..design import derive
         self.sc, self.spec, self.vars = scenario, spec, vars_
@@ -93,10 +107,16 @@ class GradientProblem:
         self.tau_max = None if tau_max is None else np.broadcast_to(np.asarray(tau_max, float), (n,)).copy()
         z = ca.SX.sym("z", d)
         values = design_values(scenario, vars_, z)
-        design = derive(scenario, values=values)
         order = _funnel_order(scenario, values)
+        # The DAE takes all the design's numbers as parameters zd (as the simulated closed loop does), the search
+        # coordinates z map into them outside it: every tune of one scenario, whatever its [tune] parameters and
+        # bounds, and the coarse pass run on one compiled DAE.
+        zd_names, zd0, layout = design_parameters(scenario)
+        zd = ca.SX.sym("zd", len(zd_names))
+        design = derive(scenario, values=_design_values(layout, zd))
+        zmap = ca.Function("tune_zmap", [z], [_mapped(layout, zd0, values)])
         L = loop_sx(scenario, design, float(scenario.simulation.smoothing_width))
-        P = ca.vertcat(z, L["p"])
+        P = ca.vertcat(zd, L["p"])
         self.grid = np.linspace(0.0, self.T, K + 1)
         opts = {"abstol": tolerance[0], "reltol": tolerance[1], "max_num_steps": MAX_STEPS, "linear_solver": "csparse",
                 "disable_internal_warnings": True, "show_eval_warnings": False,
@@ -134,7 +154,7 @@ class GradientProblem:
         tgrid = ca.DM(self.grid).T
         cons, taus, ise = [], [], None
         for i, (pv, x0) in enumerate(plants):
-            Pm = ca.vertcat(zM, ca.DM(np.asarray(pv, float)))
+            Pm = ca.vertcat(zmap(zM), ca.DM(np.asarray(pv, float)))
             x0v = np.asarray(x0, float)
             xf = integ(x0=ca.DM(x0v[perm]), p=Pm)["xf"]
             X = ca.horzcat(ca.DM(x0v), xf[list(inv), :])
