@@ -153,14 +153,15 @@ def test_two_processes_needing_one_entry_compile_it_once(tmp_path, cc):
 
 
 def _slow_cc(tmp_path: Path) -> Path:
-    """A fake compiler that starts a child (as gcc starts cc1) and waits; both write their pids."""
+    """A fake compiler that starts a child (as gcc starts cc1) and waits; both pids are published by rename, so
+    a pid file that exists holds its pid (a test signalling on its appearance can never catch it empty)."""
     script = tmp_path / "slowcc"
     script.write_text(textwrap.dedent(f"""\
         #!/bin/sh
         if [ "$1" = "--version" ]; then echo slowcc 1.0; exit 0; fi
-        echo $$ > {tmp_path}/cc.pid
+        echo $$ > {tmp_path}/cc.pid.part && mv {tmp_path}/cc.pid.part {tmp_path}/cc.pid
         sleep 300 &
-        echo $! > {tmp_path}/child.pid
+        echo $! > {tmp_path}/child.pid.part && mv {tmp_path}/child.pid.part {tmp_path}/child.pid
         wait
         """))
     script.chmod(0o755)
