@@ -284,14 +284,3 @@ def test_arm7_codegen_c_check_passes(tmp_path, capsys):
     assert code == 0
     man = json.loads((tmp_path / "c" / "manifest.json").read_text())
     assert man["scenario"] == "arm7"
-
-
-@pytest.mark.slow
-def test_arm7_report(tmp_path, capsys):
-    if not _has_command("report"):
-        pytest.skip("symfunnel report is not registered yet")
-    out = tmp_path / "arm7.html"
-    assert main(["report", "arm7", "--out", str(out), "--quiet", "--t-final", "3", "--samples", "2000",
-                 "--no-deployed"]) == 0
-    capsys.readouterr()
-    assert out.is_file() and "arm7" in out.read_text(encoding="utf-8")
