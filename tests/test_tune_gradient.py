@@ -239,6 +239,7 @@ def test_arm7_is_tuned_within_its_urdf_effort_limits(tmp_path, capsys):
                  "--method", "gradient"])
     res = json.loads(capsys.readouterr().out)
     assert code == 0 and res["status"] == "ok" and res["method"].startswith("gradient: IPOPT")
+    assert res["objective"]["after"] < res["objective"]["before"]      # IPOPT lowered the peak torque
     effort = np.array(effort_limits(tmp_path / "arm7.urdf"), float)
     assert effort.shape == (7,) and np.all(effort > 0)
     sim = Run(load_scenario(out)).simulation             # independent run of the written scenario
