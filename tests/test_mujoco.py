@@ -515,9 +515,12 @@ def test_engine_section_shows_both_plants_side_by_side(tmp_path):
 def test_report_has_the_engine_section(tmp_path):
     from symfunnel.pipeline import Run, RunOptions
     from symfunnel.reporting import build_report
+    from symfunnel.deployed.summary import implementation_report
     sc = load_scenario(init_scenario(tmp_path, extra="[implementation]\nrate_hz = 400.0\n"))
-    html = build_report(Run(sc, RunOptions(t_final=0.5, samples=1000, engine="mujoco")), tmp_path / "r.html",
-                        codegen=False, mutants=False).read_text()
+    run = Run(sc, RunOptions(t_final=0.5, samples=1000, engine="mujoco"))
+    # the deployed section without its design help (the rate per parameter has tests of its own), as above
+    run.__dict__["implementation"] = implementation_report(sc, run.design, sensitivity=False, t_final=0.5)
+    html = build_report(run, tmp_path / "r.html", codegen=False, mutants=False).read_text()
     assert 'id="engine"' in html and "fig-engine-difference" in html and "implementation.containment" in html
 
 
