@@ -41,6 +41,7 @@ class _Deadline:
     seconds: float
     started: float
     make: Callable[[], BaseException] | None    # None: WallLimitReached
+    fired: bool = False                 # the alarm's handler raised this deadline's exception
 
 
 _stack: list[_Deadline] = []
@@ -121,6 +122,7 @@ def _handler(signum, frame):
             # process (the API's, a test worker's: "module 'sympy' has no attribute 'polys'"): raise after it
             signal.setitimer(signal.ITIMER_REAL, 0.01)
             return
+        d.fired = True
         raise _error(d)
     _arm()                               # woke early (an outer deadline was re-armed): wait for the next one
 
@@ -186,6 +188,11 @@ def _push(d: _Deadline):
         _arm()
         try:
             yield
+            if d.fired:
+                # the block went on after its alarm's exception: SWIG's overload resolution drops an exception
+                # raised inside a typemap's Python callback (DM_from_array) and tries the next overload, so the
+                # exception vanished without a trace; the limit was reached all the same
+                raise _error(d)
         except SWALLOWED as exc:
             # the alarm's exception raised inside a CasADi call comes out as SWIG's or CasADi's own error (e.g.
             # "Wrong number or type of arguments" while converting arguments): past the expiry, it is the limit
