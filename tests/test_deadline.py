@@ -218,15 +218,20 @@ def test_a_limit_never_interrupts_an_import_half_way(tmp_path):
                 while True:
                     time.sleep(0.01)
         except deadline.WallLimitReached:
-            print("limit", round(time.monotonic() - t0, 2), "slow_module" in sys.modules)
+            m = sys.modules.get("slow_module")
+            print("limit", round(time.monotonic() - t0, 2), getattr(m, "DONE", False))
         """)
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
                        env={**os.environ, "PYTHONPATH": str(tmp_path)})
     assert r.returncode == 0, r.stderr[-2000:]
-    imported, limit = r.stdout.splitlines()
-    assert float(imported.split()[1]) >= 0.3                        # the import ran to its end ...
-    assert limit.split()[0] == "limit" and limit.split()[2] == "True"    # ... and the limit was raised after it
-    assert float(limit.split()[1]) < 0.3 + 0.5
+    lines = r.stdout.splitlines()
+    # once the import is done the alarm (re-armed at 10 ms) may come before the line "imported" is printed (seen
+    # under load): that line is there or not; the limit line always, with the module complete
+    assert lines and len(lines) <= 2 and all(x.startswith("imported") for x in lines[:-1]), lines
+    assert all(float(x.split()[1]) >= 0.3 for x in lines[:-1])      # the import ran to its end ...
+    limit = lines[-1].split()
+    assert limit[0] == "limit" and limit[2] == "True"                 # ... whole, and the limit was raised after it
+    assert 0.3 <= float(limit[1]) < 0.3 + 0.5
 
 
 def test_verify_under_a_limit_too_short_for_the_integration_stops_with_one_line(capsys):
