@@ -207,6 +207,8 @@ def test_a_limit_never_interrupts_an_import_half_way(tmp_path):
     broken in sys.modules for the rest of the process (an API session, a test worker: after a limit that fired 0.2 s
     into the lazy `import sympy`, "module 'sympy' has no attribute 'polys'")."""
     (tmp_path / "slow_module.py").write_text("import time\ntime.sleep(0.3)\nDONE = True\n")
+    # nothing is printed inside the block: the alarm, due 10 ms after the import, may land in any statement after it
+    # (seen under load: in the middle of a print)
     code = textwrap.dedent("""
         import sys, time
         from symfunnel.core import deadline
@@ -214,24 +216,19 @@ def test_a_limit_never_interrupts_an_import_half_way(tmp_path):
         try:
             with deadline.limit(0.05):
                 import slow_module
-                print("imported", round(time.monotonic() - t0, 2))
                 while True:
                     time.sleep(0.01)
         except deadline.WallLimitReached:
-            m = sys.modules.get("slow_module")
-            print("limit", round(time.monotonic() - t0, 2), getattr(m, "DONE", False))
+            t = time.monotonic() - t0
+        m = sys.modules.get("slow_module")
+        print(round(t, 3), getattr(m, "DONE", False))
         """)
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
                        env={**os.environ, "PYTHONPATH": str(tmp_path)})
     assert r.returncode == 0, r.stderr[-2000:]
-    lines = r.stdout.splitlines()
-    # once the import is done the alarm (re-armed at 10 ms) may come before the line "imported" is printed (seen
-    # under load): that line is there or not; the limit line always, with the module complete
-    assert lines and len(lines) <= 2 and all(x.startswith("imported") for x in lines[:-1]), lines
-    assert all(float(x.split()[1]) >= 0.3 for x in lines[:-1])      # the import ran to its end ...
-    limit = lines[-1].split()
-    assert limit[0] == "limit" and limit[2] == "True"                 # ... whole, and the limit was raised after it
-    assert 0.3 <= float(limit[1]) < 0.3 + 0.5
+    t, done = r.stdout.split()
+    assert done == "True"                         # the import ran to its end and the module is whole ...
+    assert 0.3 <= float(t) < 0.3 + 0.5            # ... and the limit was raised after it, soon
 
 
 def test_verify_under_a_limit_too_short_for_the_integration_stops_with_one_line(capsys):
