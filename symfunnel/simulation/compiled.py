@@ -147,8 +147,13 @@ def compile_closed_loop(cl: ClosedLoop, *, progress=None, jit: bool = True,
 
     `approx_jacobian` selects the modified-Newton Jacobian of `_newton_jacobian` (right for CVODES, whose error
     control does not depend on it); collocation solves its stage equations with that Jacobian too, and needs the
-    exact one to converge.
+    exact one to converge. A limit reached anywhere inside names the step (never the bare "working").
     """
+    with deadline.step("compiling the closed loop"):
+        return _compile_closed_loop(cl, progress, jit, approx_jacobian)
+
+
+def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: bool) -> Compiled:
     say = progress or (lambda s: None)
     perm = _permutation(cl)
     jit = jit and not os.environ.get("SYMFUNNEL_NO_JIT")
