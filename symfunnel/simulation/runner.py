@@ -87,16 +87,18 @@ class Runner:
             self._integrators[key] = d
         return self._integrators[key]
 
-    def run_dense(self, t0: float, x0: np.ndarray, K: int, sub: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def run_dense(self, t0: float, x0: np.ndarray, K: int, sub: int, *,
+                  count: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """States (K, n_x) at t0 + h, ..., t0 + K h -- the same as `run`'s -- and samples between them about as dense
         as the integrator's steps (`between` module): (X, t_between (B,), X_between (B, n_x)). RuntimeError when the
-        chunk's integration fails; a failing extra integration only leaves its samples out (`self.unchecked`)."""
+        chunk's integration fails; a failing extra integration only leaves its samples out (`self.unchecked`).
+        `count=False`: the chunk integrated again (denser), its steps already counted."""
         h = self.h
         none = np.zeros(0), np.zeros((0, x0.size))
         if sub <= 1:
-            return self.run(t0, x0, K), *none
+            return self.run(t0, x0, K, count=count), *none
         if self.method != "cvodes":
-            X = self.run(t0, x0, K)
+            X = self.run(t0, x0, K, count=count)
             try:
                 Xf = self.run(t0, x0, K * sub, h / sub, count=False)
             except RuntimeError:
@@ -106,9 +108,9 @@ class Runner:
             tf = t0 + (h / sub) * np.arange(1, K * sub + 1)
             return X, tf[keep], Xf[keep]
         try:
-            Xg = self.run(t0, x0, K, sub=sub)
+            Xg = self.run(t0, x0, K, sub=sub, count=count)
         except RuntimeError:
-            return self.run(t0, x0, K), *none        # the plain grid decides (its failure is the run's)
+            return self.run(t0, x0, K, count=count), *none    # the plain grid decides (its failure is the run's)
         idx = np.arange(Xg.shape[0])
         stored = idx % sub == 0
         X = Xg[stored]
