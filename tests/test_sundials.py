@@ -272,3 +272,77 @@ def test_cvodes_failure_reads_as_casadis(paper, paper_design, monkeypatch):
     r = simulate(sc, paper_design, t_final=0.2)
     assert r.status == "failed" and r.stats["cvodes_backend"] == "direct"
     assert 'CVode returned "CV_TOO_MUCH_WORK"' in r.message
+
+
+def _direct_solver(run):
+    from symfunnel.simulation.compiled import compile_closed_loop
+    from symfunnel.simulation.runner import Runner
+    cl = run.closed_loop
+    comp = compile_closed_loop(cl).bind(cl.p0)
+    sim = run.scenario.simulation
+    r = Runner(cl, comp, "cvodes", sim.dt, sim)
+    return r, r.direct(), np.concatenate([[0.0], comp.pvals]), cl.x0[r.perm]
+
+
+def test_samples_from_kept_steps_are_cvodes_output_points_bit_for_bit(paper_run, monkeypatch):
+    """`run_sampled` integrates on the plain grid keeping the steps, then interpolates where asked: the values are
+    those CVODES returns with the same times as output points (`run` on the merged grid), to the last bit, and the
+    plain grid's states and step counts are `run`'s -- for sample times that fall on several per step, one per
+    step, and exactly on output points."""
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
+    _, D, p, x0 = _direct_solver(paper_run)
+    h = paper_run.scenario.simulation.dt
+    grid = h * np.arange(1, 101)
+    Xp, stp = D.run(p, x0, grid)
+    for extra in (np.array([h * (k + 1) + j * (h / 8) for k in range(99) for j in range(1, 8)]),
+                  np.sort(np.random.default_rng(3).uniform(grid[0] + 1e-6, grid[-1] - 1e-6, 300)),
+                  grid[10:20] + 0.0):
+        got = D.run_sampled(p, x0, grid, lambda st, e=extra: e)
+        assert got is not None
+        X, st, Y = got
+        assert np.array_equal(X, Xp) and st == stp
+        merged = np.unique(np.concatenate([grid, extra]))
+        Xm, _ = D.run(p, x0, merged)
+        assert np.array_equal(Y, Xm[np.searchsorted(merged, extra)])
+    # a history above its memory cap is left to `run`, not used incomplete
+    assert D.run_sampled(p, x0, grid, lambda st: grid[:3] + h / 2, max_bytes=1e4) is None
+    # the samples are chosen after the chunk, from its statistics
+    seen = {}
+    D.run_sampled(p, x0, grid, lambda st: seen.setdefault("st", st) and np.zeros(0))
+    assert seen["st"] == stp
+
+
+@pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])
+def test_a_run_sampled_from_its_steps_is_the_run_integrated_again_bit_for_bit(which, monkeypatch, tmp_path_factory):
+    """The whole run with the samples between output points taken from the kept steps equals the run that
+    integrates a chunk again on the denser grid: trajectory, every signal, the between-points statistics and the
+    step counts, bit for bit; and it integrates less (the paper's 20 s: no chunk integrated twice)."""
+    from symfunnel.pipeline import Run
+    from symfunnel.scenario import load_scenario
+    from symfunnel.simulation import runner as runner_mod
+    from symfunnel.simulation import simulate
+    monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
+    sc = _urdf_scenario(tmp_path_factory) if which == "urdf" else load_scenario(which)
+    run = Run(sc)
+    tf = {"paper": sc.simulation.t_final, "arm7": 2.0, "urdf": 2.0}[which]
+    calls = {True: 0, False: 0}
+    real = sundials.DirectCvodes.run
+
+    def counting(self, *a, **k):
+        calls[runner_mod.SAMPLE_FROM_STEPS] += 1
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(sundials.DirectCvodes, "run", counting)
+    out = {}
+    for flag in (False, True):
+        monkeypatch.setattr(runner_mod, "SAMPLE_FROM_STEPS", flag)
+        out[flag] = simulate(sc, run.design, t_final=tf, closed_loop=run.closed_loop)
+    a, b = out[False], out[True]
+    assert a.ok and b.ok, (a.message, b.message)
+    assert np.array_equal(a.t, b.t) and np.array_equal(a.x, b.x)
+    for k in a.signals:
+        assert np.array_equal(np.asarray(a.signals[k]), np.asarray(b.signals[k]), equal_nan=True), k
+    assert a.stats["between"] == b.stats["between"]
+    for k in ("steps", "rhs_evaluations", "jacobian_evaluations", "error_test_failures"):
+        assert a.stats[k] == b.stats[k], k
+    assert calls[True] < calls[False]       # the first output steps and refinements only, no chunk again

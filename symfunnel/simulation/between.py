@@ -11,7 +11,10 @@ How the samples are taken (`simulation.runner.Runner.run_dense`):
   interpolant of the very same steps. The first output step of a chunk is sampled by a separate integration of that
   step on a grid of `sub` points. `sub` is the integrator's own density: the power of two at or above the steps per
   output point CVODES took in the previous chunk (BETWEEN_MAX for the first; a chunk that took more is sampled
-  again), at most BETWEEN_MAX.
+  again, at its own density), at most BETWEEN_MAX. On the direct backend the chunk is integrated once, on its
+  output grid, keeping every step's Nordsieck array; the extra points are then interpolated from the step that
+  reaches each (CVodeGetDky, as CVODES does for an output point) once the chunk's own step count is known: the
+  same samples, bit for bit, without integrating a chunk again.
 - rk and collocation (fixed steps, `rk_substeps` per output step): the chunk is integrated again on a grid of
   `sub` points per output step (`sub` = the power of two at or above the fixed steps per output step, at most
   BETWEEN_MAX).

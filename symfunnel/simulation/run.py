@@ -201,7 +201,7 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
                 c0 = time.perf_counter()
                 steps0 = runner.stats["steps"]
                 try:
-                    X, tb, Xb = runner.run_dense(t0, x, Kc, _density(method, sim, sub))
+                    X, tb, Xb = runner.run_dense(t0, x, Kc, _density(method, sim, sub), adapt=method == "cvodes")
                     failed = False
                 except RuntimeError:
                     X, failed = None, True
@@ -213,13 +213,9 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
                     X_list.extend(res["X"])
                     status, message, breach = res["status"], res["message"], res["breach"]
                     break
-                used = _density(method, sim, sub)
+                used = runner.last_density     # at least as dense as this chunk's own steps (CVODES)
                 if method == "cvodes":
                     sub = density(runner.stats["steps"] - steps0, Kc)    # the integrator's own density
-                    if sub > used:                     # more steps than this chunk was sampled for: sample again
-                        # (the same steps again, counted once; a third of CVODES' time in the 20 s paper run)
-                        X, tb, Xb = runner.run_dense(t0, x, Kc, sub, count=False)
-                        used = sub
                 tc = t0 + h * np.arange(1, Kc + 1)
                 tc[-1] = min(tc[-1], float(tf)) if k + Kc == M else tc[-1]
                 # every sample in time order: the output points and the samples between them

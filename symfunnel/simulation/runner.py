@@ -13,6 +13,12 @@ from .closedloop import ClosedLoop
 from ..family.integrators import INTEGRATORS
 from .compiled import Buffered, Compiled
 from . import sundials
+from .between import density
+
+#: take a chunk's samples between output points from its kept steps (direct backend) instead of integrating a chunk
+#: that took more steps than it was sampled for again (a third of CVODES' time in the 20 s paper run); tests switch
+#: it off to compare the two
+SAMPLE_FROM_STEPS = True
 
 if TYPE_CHECKING:
     from ..scenario import SimulationSpec
@@ -88,17 +94,21 @@ class Runner:
         return self._integrators[key]
 
     def run_dense(self, t0: float, x0: np.ndarray, K: int, sub: int, *,
-                  count: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  adapt: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """States (K, n_x) at t0 + h, ..., t0 + K h -- the same as `run`'s -- and samples between them about as dense
         as the integrator's steps (`between` module): (X, t_between (B,), X_between (B, n_x)). RuntimeError when the
         chunk's integration fails; a failing extra integration only leaves its samples out (`self.unchecked`).
-        `count=False`: the chunk integrated again (denser), its steps already counted."""
+        `sub` samples per output step; with `adapt` (CVODES), at least as many as this chunk's own steps ask for
+        (`between.density`), the density used left in `self.last_density`: the direct backend keeps the chunk's
+        steps and takes the samples from them (`DirectCvodes.run_sampled`), the others integrate a chunk that took
+        more steps than `sub` again, on the denser grid (the same steps, counted once)."""
         h = self.h
         none = np.zeros(0), np.zeros((0, x0.size))
-        if sub <= 1:
-            return self.run(t0, x0, K, count=count), *none
+        self.last_density = sub
         if self.method != "cvodes":
-            X = self.run(t0, x0, K, count=count)
+            if sub <= 1:
+                return self.run(t0, x0, K), *none
+            X = self.run(t0, x0, K)
             try:
                 Xf = self.run(t0, x0, K * sub, h / sub, count=False)
             except RuntimeError:
@@ -107,16 +117,74 @@ class Runner:
             keep = np.arange(K * sub) % sub != sub - 1
             tf = t0 + (h / sub) * np.arange(1, K * sub + 1)
             return X, tf[keep], Xf[keep]
+        D = self.direct() if adapt and SAMPLE_FROM_STEPS else None
+        if D is not None:
+            res = self._dense_from_steps(D, t0, x0, K, sub)
+            if res is not None:
+                return res
+        steps0 = self.stats["steps"]
+        if sub <= 1:
+            X, Xg = self.run(t0, x0, K), None
+        else:
+            try:
+                Xg = self.run(t0, x0, K, sub=sub)
+            except RuntimeError:
+                return self.run(t0, x0, K), *none    # the plain grid decides (its failure is the run's)
+            X = Xg[np.arange(Xg.shape[0]) % sub == 0]
+        if adapt:
+            need = density(self.stats["steps"] - steps0, K)
+            if need > sub:
+                try:
+                    Xg = self.run(t0, x0, K, sub=need, count=False)
+                except RuntimeError:                 # (its step limit per point is the plain grid's / need)
+                    return X, *none
+                sub = self.last_density = need
+        if sub <= 1:
+            return X, *none
+        stored = np.arange(Xg.shape[0]) % sub == 0
+        return self._with_first_step(t0, x0, K, sub, Xg[stored], Xg[~stored])
+
+    def _dense_from_steps(self, D: sundials.DirectCvodes, t0: float, x0: np.ndarray, K: int,
+                          sub: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """`run_dense` with `adapt` on the direct backend: one integration on the plain grid that keeps its steps,
+        then the samples of the dense grid of max(sub, the chunk's own density) taken from them; None where the
+        driver leaves it to the plain path (a failure, the step limit, a history too large)."""
+        h = self.h
+        p = np.concatenate([[t0], self.comp.pvals])
+        chosen = {}
+
+        def times(st: dict) -> np.ndarray:
+            s = chosen["sub"] = max(sub, density(st["nsteps"], K))
+            if s <= 1:
+                return np.zeros(0)
+            full = np.array(self.grid(K, h, s), dtype=float)     # the very doubles of the dense grid
+            return full[np.arange(full.size) % s != 0]
+
+        c0 = time.perf_counter()
         try:
-            Xg = self.run(t0, x0, K, sub=sub, count=count)
-        except RuntimeError:
-            return self.run(t0, x0, K, count=count), *none    # the plain grid decides (its failure is the run's)
-        idx = np.arange(Xg.shape[0])
-        stored = idx % sub == 0
-        X = Xg[stored]
+            res = D.run_sampled(p, x0[self.perm], np.array(self.grid(K, h), dtype=float), times)
+        finally:
+            self.stats["integrate_time"] += time.perf_counter() - c0
+        if res is None:
+            return None
+        Xp, st, Y = res
+        self.stats["cvodes_backend"] = "direct"
+        self._count(st)
+        s = self.last_density = chosen["sub"]
+        X = Xp[:, self.inv]
+        if s <= 1:
+            return X, np.zeros(0), np.zeros((0, x0.size))
+        return self._with_first_step(t0, x0, K, s, X, Y[:, self.inv])
+
+    def _with_first_step(self, t0: float, x0: np.ndarray, K: int, sub: int, X: np.ndarray,
+                         Xin: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(X, t_between, X_between) of a chunk from its samples inside output steps 2..K (the dense grid's), with
+        those of the first output step from an integration of its own on sub points (extra points inside the first
+        output step would change CVODES' first step)."""
+        h = self.h
         t_in = np.concatenate([[h * (k + 1) + j * (h / sub) for j in range(1, sub)] for k in range(K - 1)]) \
             if K > 1 else np.zeros(0)
-        tb, Xb = t0 + t_in, Xg[~stored]
+        tb, Xb = t0 + t_in, Xin
         try:                                           # the first output step: its own grid of sub points
             X1 = self.run(t0, x0, sub, h / sub, count=False)
             t1 = t0 + (h / sub) * np.arange(1, sub)
@@ -182,10 +250,13 @@ class Runner:
             raise
         finally:
             self.stats["integrate_time"] += time.perf_counter() - c0
-        if not count:
-            return X[:, self.inv]
+        if count:
+            self._count(st)
+        return X[:, self.inv]
+
+    def _count(self, st: dict) -> None:
+        """Add a direct-backend integration's statistics to the run's."""
         self.stats["steps"] += st["nsteps"]
         self.stats["rhs_evaluations"] += st["nfevals"]
         self.stats["jacobian_evaluations"] += st["n_call_jacF"]
         self.stats["error_test_failures"] += st["netfails"]
-        return X[:, self.inv]

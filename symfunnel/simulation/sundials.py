@@ -28,6 +28,8 @@ import numpy as np
 __all__ = ["BACKENDS", "DirectCvodes", "available", "backend", "driver_library", "unavailable_reason"]
 
 BACKENDS = ("direct", "casadi")
+#: the most memory one chunk's step history may take (the paper's 500-point chunks: ~12 MB)
+HISTORY_BYTES = 256e6
 DRIVER_FLAGS = ("-std=c99", "-O2", "-fPIC", "-shared")
 _SOURCES = ("cvodes_driver.c", "cvodes_mem.h")
 _REASON: list[str] = []
@@ -73,6 +75,11 @@ def driver_library() -> ctypes.CDLL | None:
     lib.sf_run.restype = ctypes.c_int
     lib.sf_run.argtypes = [vp, dp, dp, ctypes.c_int, dp, dp, ctypes.POINTER(ctypes.c_long), ctypes.c_char_p,
                            ctypes.c_int]
+    lib.sf_run_hist.restype = ctypes.c_int
+    lib.sf_run_hist.argtypes = [vp, dp, dp, ctypes.c_int, dp, dp, ctypes.POINTER(ctypes.c_long), ctypes.c_char_p,
+                                ctypes.c_int, ctypes.c_double]
+    lib.sf_sample.restype = ctypes.c_int
+    lib.sf_sample.argtypes = [vp, ctypes.c_int, dp, dp]
     lib.sf_free.restype = None
     lib.sf_free.argtypes = [vp]
     lib.sf_max_growth.restype = ctypes.c_double
@@ -164,6 +171,33 @@ class DirectCvodes:
         if rc < 0:
             raise RuntimeError(self._msg.value.decode(errors="replace"))
         return X, stats
+
+    def run_sampled(self, p: np.ndarray, x0: np.ndarray, grid: np.ndarray, times_for,
+                    max_bytes: float = HISTORY_BYTES) -> tuple[np.ndarray, dict, np.ndarray] | None:
+        """`run`'s integration (the same steps, output points and statistics, bit for bit) keeping every step, then
+        the states at `times_for(stats)` (relative times inside the chunk, ascending) as CVODES interpolates an
+        output point there -- what `run` on a grid holding those times too returns at them, without integrating
+        again. None where the driver leaves it to `run` (a CVODES failure, the step limit, a history above
+        `max_bytes`): the caller then integrates with `run`."""
+        K = int(grid.size)
+        X = np.empty((K, self.nx))
+        p = np.ascontiguousarray(p, dtype=float)
+        x0 = np.ascontiguousarray(x0, dtype=float)
+        grid = np.ascontiguousarray(grid, dtype=float)
+        with self._lock:                # the history is this solver's until the next run
+            rc = self._lib.sf_run_hist(self._h, _ptr(p), _ptr(x0), K, _ptr(grid), _ptr(X),
+                                       self._stats.ctypes.data_as(ctypes.POINTER(ctypes.c_long)), self._msg,
+                                       len(self._msg), float(max_bytes))
+            if rc != 0:
+                return None
+            s = [int(v) for v in self._stats]
+            stats = {"nsteps": s[0], "nfevals": s[1], "nlinsetups": s[2], "netfails": s[3], "nniters": s[4],
+                     "nncfails": s[5], "n_call_jacF": s[6], "pivot_failures": s[7]}
+            times = np.ascontiguousarray(times_for(stats), dtype=float)
+            Y = np.empty((times.size, self.nx))
+            if times.size and self._lib.sf_sample(self._h, int(times.size), _ptr(times), _ptr(Y)):
+                return None
+        return X, stats, Y
 
     def max_growth(self) -> float:
         """The largest growth factor (largest entry during the elimination / largest entry of I - gamma J) of the

@@ -47,6 +47,8 @@ int CVodeGetIntegratorStats(void *mem, long int *nsteps, long int *nfevals, long
                             realtype *hcur, realtype *tcur);
 int CVodeGetNonlinSolvStats(void *mem, long int *nniters, long int *nncfails);
 char *CVodeGetReturnFlagName(long int flag);
+int CVodeGetDky(void *mem, realtype t, int k, N_Vector dky);
+void N_VSetArrayPointer(realtype *v_data, N_Vector v);
 void CVodeFree(void **mem);
 N_Vector N_VMake_Serial(long int length, realtype *data);
 void N_VDestroy_Serial(N_Vector v);
@@ -55,6 +57,7 @@ realtype *N_VGetArrayPointer(N_Vector v);
 #define SF_BDF 2
 #define SF_NEWTON 2
 #define SF_NORMAL 1
+#define SF_ONE_STEP 2
 
 /* ---- LU of A = I - gamma J on a fixed pattern, diagonal pivots ------------------------------------------- */
 
@@ -213,6 +216,12 @@ typedef struct {
   N_Vector y;
   long njac, npivfail;
   char msg[400];
+  /* the last sf_run_hist's steps: each one's tn, h, hu, q and Nordsieck array zn[0..q] (hist_z from hist_off) */
+  double *hist_t, *hist_h, *hist_hu, *hist_z;
+  int *hist_q;
+  size_t *hist_off, hist_n, hist_cap, hist_zlen, hist_zcap;
+  int hist_ok;
+  N_Vector hist_v[L_MAX];
 } sf_solver;
 
 static void sf_ehfun(int error_code, const char *module, const char *function, char *msg, void *data) {
@@ -270,6 +279,11 @@ void sf_free(void *handle) {
   if (s->y) N_VDestroy_Serial(s->y);
   sf_lu_free(&s->lu);
   free(s->arg); free(s->res); free(s->iw); free(s->w); free(s->p); free(s->Jx);
+  free(s->hist_t); free(s->hist_h); free(s->hist_hu); free(s->hist_z); free(s->hist_q); free(s->hist_off);
+  {
+    int j;
+    for (j = 0; j < L_MAX; ++j) if (s->hist_v[j]) N_VDestroy_Serial(s->hist_v[j]);
+  }
   free(s);
 }
 
@@ -399,4 +413,150 @@ int sf_factor_solve(void *handle, const double *Jx, double gamma, double *b) {
   if (sf_lu_factor(&s->lu, Jx, s->nnzJ, gamma)) return 1;
   sf_lu_solve(&s->lu, b);
   return 0;
+}
+
+/* ---- one chunk, its samples chosen after it: the history of its steps ----------------------------------- */
+
+/* Keep the step CVODES has just taken (tn, h, hu, q, zn[0..q]); 0 when the history would pass max_bytes or memory
+ * runs out (the history is then incomplete and sf_sample refuses). */
+static int sf_hist_push(sf_solver *s, double max_bytes) {
+  struct CVodeMemRec *m = (struct CVodeMemRec *) s->mem;
+  size_t nx = (size_t) s->nx, need = (size_t) (m->cv_q + 1) * nx, j;
+  if ((double) (s->hist_zlen + need) * sizeof(double) > max_bytes) return 0;
+  if (s->hist_n == s->hist_cap) {
+    size_t cap = s->hist_cap ? 2 * s->hist_cap : 256;
+    double *t = realloc(s->hist_t, cap * sizeof *t);
+    if (t) s->hist_t = t;
+    double *h = realloc(s->hist_h, cap * sizeof *h);
+    if (h) s->hist_h = h;
+    double *hu = realloc(s->hist_hu, cap * sizeof *hu);
+    if (hu) s->hist_hu = hu;
+    int *q = realloc(s->hist_q, cap * sizeof *q);
+    if (q) s->hist_q = q;
+    size_t *off = realloc(s->hist_off, cap * sizeof *off);
+    if (off) s->hist_off = off;
+    if (!t || !h || !hu || !q || !off) return 0;
+    s->hist_cap = cap;
+  }
+  if (s->hist_zlen + need > s->hist_zcap) {
+    size_t cap = s->hist_zcap ? 2 * s->hist_zcap : 64 * need;
+    double *z;
+    while (cap < s->hist_zlen + need) cap *= 2;
+    z = realloc(s->hist_z, cap * sizeof *z);
+    if (!z) return 0;
+    s->hist_z = z;
+    s->hist_zcap = cap;
+  }
+  s->hist_t[s->hist_n] = m->cv_tn;
+  s->hist_h[s->hist_n] = m->cv_h;
+  s->hist_hu[s->hist_n] = m->cv_hu;
+  s->hist_q[s->hist_n] = m->cv_q;
+  s->hist_off[s->hist_n] = s->hist_zlen;
+  for (j = 0; j <= (size_t) m->cv_q; ++j)
+    memcpy(s->hist_z + s->hist_zlen + j * nx, N_VGetArrayPointer(m->cv_zn[j]), nx * sizeof(double));
+  s->hist_zlen += need;
+  s->hist_n++;
+  return 1;
+}
+
+/* sf_run's integration (the same CVODES calls: the steps, the output points and the statistics are sf_run's, bit
+ * for bit), stepping in CV_ONE_STEP mode so that every step is kept (at most max_bytes of Nordsieck arrays): the
+ * samples between the output points can then be chosen after the chunk, from its step count, and taken by
+ * sf_sample exactly as CVode would have interpolated them -- instead of integrating the chunk again on a denser
+ * grid. CV_NORMAL returns at the first step reaching each output point and interpolates there (CVodeGetDky);
+ * here the same step is followed by the same CVodeGetDky. Returns 0; CVODES' flag (< 0); or 1 where this driver
+ * does not reproduce CV_NORMAL (an output point within 1e-9 of the one before, or the step limit per output point
+ * reached: CVODES' own message comes from sf_run) -- the caller then uses sf_run. */
+int sf_run_hist(void *handle, const double *p, const double *x0, int K, const double *grid, double *X, long *stats,
+                char *msg, int msglen, double max_bytes) {
+  sf_solver *s = (sf_solver *) handle;
+  struct CVodeMemRec *m = (struct CVodeMemRec *) s->mem;
+  double *y = N_VGetArrayPointer(s->y), tret = 0.0, hinused, hlast, hcur, tcur, prev = 0.0;
+  long nsteps = 0, nfevals = 0, nlinsetups = 0, netfails = 0, nniters = 0, nncfails = 0, nstloc = 0;
+  int k = 0, flag = 0, qlast, qcur, j;
+  if (!s->hist_v[0]) {
+    for (j = 0; j < L_MAX; ++j) {
+      s->hist_v[j] = N_VMake_Serial(s->nx, y);
+      if (!s->hist_v[j]) return 1;
+    }
+  }
+  for (k = 0; k < K; ++k) {
+    if (fabs(grid[k] - prev) < 1e-9) return 1;
+    prev = grid[k];
+  }
+  memcpy(s->p, p, (size_t) s->np * sizeof(double));
+  memcpy(y, x0, (size_t) s->nx * sizeof(double));
+  s->njac = s->npivfail = 0;
+  s->msg[0] = '\0';
+  msg[0] = '\0';
+  s->hist_n = s->hist_zlen = 0;
+  s->hist_ok = 1;
+  flag = CVodeReInit(s->mem, 0.0, s->y);
+  if (flag >= 0) flag = CVodeSetStopTime(s->mem, grid[K - 1]);
+  k = 0;
+  while (flag >= 0 && k < K) {
+    if (m->cv_mxstep > 0 && nstloc >= m->cv_mxstep) return 1;
+    flag = CVode(s->mem, grid[k], s->y, &tret, SF_ONE_STEP);    /* tout: the first call's initial step, as sf_run's */
+    if (flag < 0) break;
+    nstloc++;
+    if (s->hist_ok) s->hist_ok = sf_hist_push(s, max_bytes);
+    while (k < K && (m->cv_tn - grid[k]) * m->cv_h >= 0.0) {
+      N_VSetArrayPointer(X + (size_t) k * (size_t) s->nx, s->hist_v[0]);
+      if (CVodeGetDky(s->mem, grid[k], 0, s->hist_v[0]) != 0) return 1;
+      ++k;
+      nstloc = 0;
+    }
+  }
+  CVodeGetIntegratorStats(s->mem, &nsteps, &nfevals, &nlinsetups, &netfails, &qlast, &qcur, &hinused, &hlast,
+                          &hcur, &tcur);
+  CVodeGetNonlinSolvStats(s->mem, &nniters, &nncfails);
+  stats[0] = nsteps; stats[1] = nfevals; stats[2] = nlinsetups; stats[3] = netfails;
+  stats[4] = nniters; stats[5] = nncfails; stats[6] = s->njac; stats[7] = s->npivfail;
+  if (flag < 0) {
+    char *name = CVodeGetReturnFlagName(flag);
+    strncpy(msg, "CVode returned \"", (size_t) msglen - 1);
+    msg[msglen - 1] = '\0';
+    strncat(msg, name ? name : "?", (size_t) msglen - strlen(msg) - 1);
+    strncat(msg, "\"", (size_t) msglen - strlen(msg) - 1);
+    free(name);
+    return flag;
+  }
+  return 0;
+}
+
+/* The states at the relative times t[0..M-1] (ascending, inside the last sf_run_hist's chunk) into Y (M x nx):
+ * each from the first kept step reaching it, by CVodeGetDky on that step's tn, h, hu, q and Nordsieck array --
+ * the value CVode in CV_NORMAL mode returns for that time as an output point. 0, or 1 (history incomplete, or a
+ * time outside the chunk). CVODES' memory is as before afterwards. */
+int sf_sample(void *handle, int M, const double *t, double *Y) {
+  sf_solver *s = (sf_solver *) handle;
+  struct CVodeMemRec *m = (struct CVodeMemRec *) s->mem;
+  N_Vector zn[L_MAX];
+  double tn = m->cv_tn, h = m->cv_h, hu = m->cv_hu;
+  int q = m->cv_q, i, j, rc = 0;
+  size_t step = 0, nx = (size_t) s->nx;
+  N_Vector out = N_VMake_Serial(s->nx, Y);
+  if (!s->hist_ok || !s->hist_v[0] || !out) {
+    if (out) N_VDestroy_Serial(out);
+    return 1;
+  }
+  memcpy(zn, m->cv_zn, sizeof zn);
+  for (i = 0; i < M && rc == 0; ++i) {
+    while (step < s->hist_n && (s->hist_t[step] - t[i]) * s->hist_h[step] < 0.0) ++step;
+    if (step == s->hist_n || (i > 0 && t[i] < t[i - 1])) { rc = 1; break; }
+    m->cv_tn = s->hist_t[step];
+    m->cv_h = s->hist_h[step];
+    m->cv_hu = s->hist_hu[step];
+    m->cv_q = s->hist_q[step];
+    for (j = 0; j <= m->cv_q; ++j) {
+      N_VSetArrayPointer(s->hist_z + s->hist_off[step] + (size_t) j * nx, s->hist_v[j]);
+      m->cv_zn[j] = s->hist_v[j];
+    }
+    N_VSetArrayPointer(Y + (size_t) i * nx, out);
+    if (CVodeGetDky(s->mem, t[i], 0, out) != 0) rc = 1;
+  }
+  memcpy(m->cv_zn, zn, sizeof zn);
+  m->cv_tn = tn; m->cv_h = h; m->cv_hu = hu; m->cv_q = q;
+  N_VDestroy_Serial(out);
+  return rc;
 }
