@@ -249,3 +249,20 @@ def test_a_chunk_sampled_again_counts_its_steps_once(which, tmp_path):
     assert r.stats["jacobian_evaluations"] == plain.stats["jacobian_evaluations"]
     if which == "paper":
         assert again >= 1, "the paper's run samples no chunk again: this test no longer tests the double count"
+
+
+@pytest.mark.parametrize("K,h,sub", [(1, 0.01, 4), (2, 0.01, 2), (25, 0.01, 64), (500, 0.04, 4), (375, 1 / 3, 8),
+                                     (7, 0.001, 1)])
+def test_the_dense_grid_is_the_same_doubles_as_written_out_point_by_point(K, h, sub):
+    """The vectorised grid is the scalar expressions h (k + 1) and h (k + 1) + j (h / sub), point for point and in
+    order, bit for bit (the dense grid's output points must be the plain grid's doubles)."""
+    ref = []
+    for k in range(K):
+        ref.append(h * (k + 1))
+        if sub > 1 and k + 1 < K:
+            ref += [h * (k + 1) + j * (h / sub) for j in range(1, sub)]
+    got = Runner.grid(K, h, sub)
+    assert got.dtype == np.float64 and got.tolist() == ref
+    inner = [h * (k + 1) + j * (h / sub) for k in range(K - 1) for j in range(1, sub)] if sub > 1 else []
+    assert Runner.between_times(K, h, sub).tolist() == inner
+    assert np.array_equal(got[np.arange(got.size) % sub == 0], Runner.grid(K, h))

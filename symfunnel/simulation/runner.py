@@ -49,7 +49,7 @@ class Runner:
         key = (self.method, K, h, self.h, self.sim.atol, self.sim.rtol, self.sim.rk_substeps,
                self.sim.max_step, sub)
         if key not in self._integrators:
-            grid = self.grid(K, h, sub)
+            grid = self.grid(K, h, sub).tolist()
             opts = self._options(K, h)
             if sub > 1:
                 # CVODES counts its step limit per output point: per stored output step as without the extra points
@@ -60,14 +60,23 @@ class Runner:
         return self._integrators[key]
 
     @staticmethod
-    def grid(K: int, h: float, sub: int = 1) -> list[float]:
+    def grid(K: int, h: float, sub: int = 1) -> np.ndarray:
         """The relative output times h, 2h, ..., K h, with sub - 1 points inside every step after the first."""
-        grid = []
-        for k in range(K):
-            grid.append(h * (k + 1))                  # the plain grid's times, bit for bit
-            if sub > 1 and k + 1 < K:
-                grid += [h * (k + 1) + j * (h / sub) for j in range(1, sub)]
-        return grid
+        plain = h * np.arange(1, K + 1, dtype=float)          # h * (k + 1): the plain grid's times, bit for bit
+        if sub <= 1 or K <= 1:
+            return plain
+        full = np.empty((K, sub))
+        full[:, 0] = plain
+        full[:-1, 1:] = Runner.between_times(K, h, sub, plain).reshape(K - 1, sub - 1)
+        return full.reshape(-1)[:K * sub - (sub - 1)]
+
+    @staticmethod
+    def between_times(K: int, h: float, sub: int, plain: np.ndarray | None = None) -> np.ndarray:
+        """The dense grid's points inside output steps 2..K: h (k + 1) + j (h / sub), k < K - 1, 0 < j < sub."""
+        if sub <= 1 or K <= 1:
+            return np.zeros(0)
+        plain = h * np.arange(1, K + 1, dtype=float) if plain is None else plain
+        return (plain[:-1, None] + np.arange(1, sub, dtype=float) * (h / sub)).reshape(-1)
 
     def _options(self, K: int, h: float) -> dict:
         opts = INTEGRATORS.get(self.method)(self.sim, h, self.h, K)
@@ -155,14 +164,11 @@ class Runner:
 
         def times(st: dict) -> np.ndarray:
             s = chosen["sub"] = max(sub, density(st["nsteps"], K))
-            if s <= 1:
-                return np.zeros(0)
-            full = np.array(self.grid(K, h, s), dtype=float)     # the very doubles of the dense grid
-            return full[np.arange(full.size) % s != 0]
+            return self.between_times(K, h, s)                  # the very doubles of the dense grid
 
         c0 = time.perf_counter()
         try:
-            res = D.run_sampled(p, x0[self.perm], np.array(self.grid(K, h), dtype=float), times)
+            res = D.run_sampled(p, x0[self.perm], self.grid(K, h), times)
         finally:
             self.stats["integrate_time"] += time.perf_counter() - c0
         if res is None:
@@ -182,9 +188,7 @@ class Runner:
         those of the first output step from an integration of its own on sub points (extra points inside the first
         output step would change CVODES' first step)."""
         h = self.h
-        t_in = np.concatenate([[h * (k + 1) + j * (h / sub) for j in range(1, sub)] for k in range(K - 1)]) \
-            if K > 1 else np.zeros(0)
-        tb, Xb = t0 + t_in, Xin
+        tb, Xb = t0 + self.between_times(K, h, sub), Xin
         try:                                           # the first output step: its own grid of sub points
             X1 = self.run(t0, x0, sub, h / sub, count=False)
             t1 = t0 + (h / sub) * np.arange(1, sub)
@@ -241,7 +245,7 @@ class Runner:
 
     def _run_direct(self, D: sundials.DirectCvodes, p: np.ndarray, x0: np.ndarray, K: int, h: float, sub: int = 1,
                     count: bool = True) -> np.ndarray:
-        grid = np.array(self.grid(K, h, sub), dtype=float)   # the very doubles casadi.integrator's grid holds
+        grid = self.grid(K, h, sub)                          # the very doubles casadi.integrator's grid holds
         c0 = time.perf_counter()
         try:
             X, st = D.run(p, x0[self.perm], grid)
