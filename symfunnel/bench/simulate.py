@@ -90,6 +90,28 @@ def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
     return {"cpu": cpu, "wall": wall, "steps": steps}
 
 
+def samples_from_steps(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """CPU seconds per run with the samples between output points taken from the kept steps and with a chunk
+    integrated again instead (`runner.SAMPLE_FROM_STEPS`), interleaved over the perturbed runs; their paired ratio."""
+    from ..simulation import runner as runner_mod
+    from ..simulation import simulate
+    old = runner_mod.SAMPLE_FROM_STEPS
+    cpu = {True: [], False: []}
+    try:
+        for k in range(rounds):
+            for eps in PERTURBATIONS:
+                for flag in ((True, False) if k % 2 else (False, True)):
+                    runner_mod.SAMPLE_FROM_STEPS = flag
+                    c0 = time.process_time()
+                    simulate(sc, d, t_final=t_final, closed_loop=cl,
+                             params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
+                    cpu[flag].append(time.process_time() - c0)
+    finally:
+        runner_mod.SAMPLE_FROM_STEPS = old
+    ratio = np.array(cpu[False]) / np.array(cpu[True])
+    return {"with": cpu[True], "without": cpu[False], "paired_ratio": float(np.median(ratio))}
+
+
 def _process_seconds(cmd: list[str], env: dict, repeats: int = 3) -> dict:
     """Median wall and CPU (the child's rusage) seconds of running `cmd`, after one warm-up run."""
     subprocess.run(cmd, env=env, capture_output=True, timeout=600)
@@ -141,6 +163,16 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     say("simulate: CPU per run, direct CVODES backend and casadi.integrator, interleaved")
     direct, casadi_ = cpu_per_run(sc, d, cl, tf, "direct"), cpu_per_run(sc, d, cl, tf, "casadi")
     cpu_d, cpu_c = float(np.median(direct["cpu"])), float(np.median(casadi_["cpu"]))
+    say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
+    old_backend = os.environ.get("SYMFUNNEL_CVODES")
+    os.environ["SYMFUNNEL_CVODES"] = "direct"
+    try:
+        sfs = samples_from_steps(sc, d, cl, tf)
+    finally:
+        if old_backend is None:
+            os.environ.pop("SYMFUNNEL_CVODES", None)
+        else:
+            os.environ["SYMFUNNEL_CVODES"] = old_backend
     say("simulate: `symfunnel simulate paper` in a fresh process (warm caches)")
     cli = cli_seconds()
     say(f"simulate: symfunnel {wall:.3f} s for {tf:g} s; now scipy solve_ivp (BDF) on the numpy RHS")
@@ -174,6 +206,10 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
                cpus=cli["cli"]["cpus"], command="symfunnel simulate paper -q"),
         result("simulate.speedup_vs_scipy", wall, "s", "scipy solve_ivp BDF, numpy RHS", base_wall,
                base_wall / wall, **info),
+        result("simulate.samples_from_steps", float(np.median(sfs["with"])), "CPU s",
+               "the same runs integrating a chunk again for its samples", float(np.median(sfs["without"])),
+               sfs["paired_ratio"], cpu_with=sfs["with"], cpu_without=sfs["without"], t_final=tf,
+               note="median CPU per run; ratio: median of the paired ratios (interleaved, same variants)"),
         result("simulate.overhead_ratio", wall / float(np.median(integ)), "x", "time inside the integrator calls",
                float(np.median(integ)), None, target=1.3, meets_target=bool(wall / float(np.median(integ)) <= 1.3),
                note="simulate() wall time with a built closed loop over the time spent in CVODES itself"),
