@@ -156,8 +156,9 @@ class Runner:
     def _dense_from_steps(self, D: sundials.DirectCvodes, t0: float, x0: np.ndarray, K: int,
                           sub: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """`run_dense` with `adapt` on the direct backend: one integration on the plain grid that keeps its steps,
-        then the samples of the dense grid of max(sub, the chunk's own density) taken from them; None where the
-        driver leaves it to the plain path (a failure, the step limit, a history too large)."""
+        then the samples of the dense grid of max(sub, the chunk's own density) taken from them (a history too
+        large for memory: integrated again for them); None where the driver leaves the chunk to the plain path
+        (a failure, the step limit)."""
         h = self.h
         p = np.concatenate([[t0], self.comp.pvals])
         chosen = {}
@@ -180,6 +181,13 @@ class Runner:
         X = Xp[:, self.inv]
         if s <= 1:
             return X, np.zeros(0), np.zeros((0, x0.size))
+        if Y is None:                                   # the kept steps did not fit in memory
+            try:
+                Xg = self.run(t0, x0, K, sub=s, count=False)
+            except RuntimeError:
+                return X, np.zeros(0), np.zeros((0, x0.size))
+            Y = Xg[np.arange(Xg.shape[0]) % s != 0]
+            return self._with_first_step(t0, x0, K, s, X, Y)
         return self._with_first_step(t0, x0, K, s, X, Y[:, self.inv])
 
     def _with_first_step(self, t0: float, x0: np.ndarray, K: int, sub: int, X: np.ndarray,

@@ -173,12 +173,12 @@ class DirectCvodes:
         return X, stats
 
     def run_sampled(self, p: np.ndarray, x0: np.ndarray, grid: np.ndarray, times_for,
-                    max_bytes: float = HISTORY_BYTES) -> tuple[np.ndarray, dict, np.ndarray] | None:
+                    max_bytes: float | None = None) -> tuple[np.ndarray, dict, np.ndarray | None] | None:
         """`run`'s integration (the same steps, output points and statistics, bit for bit) keeping every step, then
         the states at `times_for(stats)` (relative times inside the chunk, ascending) as CVODES interpolates an
         output point there -- what `run` on a grid holding those times too returns at them, without integrating
-        again. None where the driver leaves it to `run` (a CVODES failure, the step limit, a history above
-        `max_bytes`): the caller then integrates with `run`."""
+        again. None where the driver leaves the integration to `run` (a CVODES failure, the step limit per output
+        point); the samples None when the kept steps would pass `max_bytes` (the caller integrates again for them)."""
         K = int(grid.size)
         X = np.empty((K, self.nx))
         p = np.ascontiguousarray(p, dtype=float)
@@ -187,7 +187,7 @@ class DirectCvodes:
         with self._lock:                # the history is this solver's until the next run
             rc = self._lib.sf_run_hist(self._h, _ptr(p), _ptr(x0), K, _ptr(grid), _ptr(X),
                                        self._stats.ctypes.data_as(ctypes.POINTER(ctypes.c_long)), self._msg,
-                                       len(self._msg), float(max_bytes))
+                                       len(self._msg), float(HISTORY_BYTES if max_bytes is None else max_bytes))
             if rc != 0:
                 return None
             s = [int(v) for v in self._stats]
@@ -196,7 +196,7 @@ class DirectCvodes:
             times = np.ascontiguousarray(times_for(stats), dtype=float)
             Y = np.empty((times.size, self.nx))
             if times.size and self._lib.sf_sample(self._h, int(times.size), _ptr(times), _ptr(Y)):
-                return None
+                Y = None
         return X, stats, Y
 
     def max_growth(self) -> float:
