@@ -18,6 +18,10 @@
  * smaller step, where I - gamma J is closer to I. (The pivots themselves may be tiny against their column: the
  * joint columns of the funnel loop have pivot 1 beside entries of 1e9 at t = 0, and the elimination is exact
  * block elimination there, without growth.)
+ *
+ * sf_run_hist / sf_sample: the same integration in CV_ONE_STEP mode, every step's Nordsieck array kept, so that
+ * the samples between output points are interpolated (CVodeGetDky, as CV_NORMAL does at an output point) once the
+ * chunk's step count has said how dense they must be, instead of integrating the chunk again.
  */
 #include <float.h>
 #include <math.h>
@@ -358,29 +362,13 @@ void *sf_create(int nx, int np, void *ode, void *jac, const long long *sizes, co
 #undef SF_FAIL
 }
 
-/* Integrate from x0 at relative time 0 over grid[0..K-1] (relative times, ascending) with parameters p (np values:
- * the chunk's start time, then the plant's); X (K x nx, row k = the state at grid[k]). stats: steps, rhs
- * evaluations, linear setups, error-test failures, Newton iterations, Newton convergence failures, Jacobian
- * evaluations, pivot failures. Returns 0, or CVODES' flag (< 0) with msg = 'CVode returned "NAME"'. */
-int sf_run(void *handle, const double *p, const double *x0, int K, const double *grid, double *X, long *stats,
-           char *msg, int msglen) {
-  sf_solver *s = (sf_solver *) handle;
-  double *y = N_VGetArrayPointer(s->y), t = 0.0, tret = 0.0, hinused, hlast, hcur, tcur;
+/* The chunk's statistics (steps, rhs evaluations, linear setups, error-test failures, Newton iterations, Newton
+ * convergence failures, Jacobian evaluations, pivot failures) into stats; returns 0, or CVODES' flag (< 0) with
+ * msg = 'CVode returned "NAME"'. */
+static int sf_finish(sf_solver *s, int flag, long *stats, char *msg, int msglen) {
+  double hinused, hlast, hcur, tcur;
   long nsteps = 0, nfevals = 0, nlinsetups = 0, netfails = 0, nniters = 0, nncfails = 0;
-  int k, flag = 0, qlast, qcur;
-  memcpy(s->p, p, (size_t) s->np * sizeof(double));
-  memcpy(y, x0, (size_t) s->nx * sizeof(double));
-  s->njac = s->npivfail = 0;
-  s->msg[0] = '\0';
-  msg[0] = '\0';
-  flag = CVodeReInit(s->mem, 0.0, s->y);
-  for (k = 0; flag >= 0 && k < K; ++k) {
-    flag = CVodeSetStopTime(s->mem, grid[K - 1]);
-    if (flag >= 0 && fabs(t - grid[k]) >= 1e-9) flag = CVode(s->mem, grid[k], s->y, &tret, SF_NORMAL);
-    if (flag < 0) break;
-    t = grid[k];
-    memcpy(X + (size_t) k * (size_t) s->nx, y, (size_t) s->nx * sizeof(double));
-  }
+  int qlast, qcur;
   CVodeGetIntegratorStats(s->mem, &nsteps, &nfevals, &nlinsetups, &netfails, &qlast, &qcur, &hinused, &hlast,
                           &hcur, &tcur);
   CVodeGetNonlinSolvStats(s->mem, &nniters, &nncfails);
@@ -400,6 +388,31 @@ int sf_run(void *handle, const double *p, const double *x0, int K, const double 
     return flag;
   }
   return 0;
+}
+
+/* Integrate from x0 at relative time 0 over grid[0..K-1] (relative times, ascending) with parameters p (np values:
+ * the chunk's start time, then the plant's); X (K x nx, row k = the state at grid[k]). stats: steps, rhs
+ * evaluations, linear setups, error-test failures, Newton iterations, Newton convergence failures, Jacobian
+ * evaluations, pivot failures. Returns 0, or CVODES' flag (< 0) with msg = 'CVode returned "NAME"'. */
+int sf_run(void *handle, const double *p, const double *x0, int K, const double *grid, double *X, long *stats,
+           char *msg, int msglen) {
+  sf_solver *s = (sf_solver *) handle;
+  double *y = N_VGetArrayPointer(s->y), t = 0.0, tret = 0.0;
+  int k, flag = 0;
+  memcpy(s->p, p, (size_t) s->np * sizeof(double));
+  memcpy(y, x0, (size_t) s->nx * sizeof(double));
+  s->njac = s->npivfail = 0;
+  s->msg[0] = '\0';
+  msg[0] = '\0';
+  flag = CVodeReInit(s->mem, 0.0, s->y);
+  for (k = 0; flag >= 0 && k < K; ++k) {
+    flag = CVodeSetStopTime(s->mem, grid[K - 1]);
+    if (flag >= 0 && fabs(t - grid[k]) >= 1e-9) flag = CVode(s->mem, grid[k], s->y, &tret, SF_NORMAL);
+    if (flag < 0) break;
+    t = grid[k];
+    memcpy(X + (size_t) k * (size_t) s->nx, y, (size_t) s->nx * sizeof(double));
+  }
+  return sf_finish(s, flag, stats, msg, msglen);
 }
 
 /* The largest growth factor of the factorisations so far (0 before the first), for the tests. */
@@ -471,9 +484,9 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
                 char *msg, int msglen, double max_bytes) {
   sf_solver *s = (sf_solver *) handle;
   struct CVodeMemRec *m = (struct CVodeMemRec *) s->mem;
-  double *y = N_VGetArrayPointer(s->y), tret = 0.0, hinused, hlast, hcur, tcur, prev = 0.0;
-  long nsteps = 0, nfevals = 0, nlinsetups = 0, netfails = 0, nniters = 0, nncfails = 0, nstloc = 0;
-  int k = 0, flag = 0, qlast, qcur, j;
+  double *y = N_VGetArrayPointer(s->y), tret = 0.0, prev = 0.0;
+  long nstloc = 0;
+  int k = 0, flag = 0, j;
   if (!s->hist_v[0]) {
     for (j = 0; j < L_MAX; ++j) {
       s->hist_v[j] = N_VMake_Serial(s->nx, y);
@@ -507,21 +520,7 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
       nstloc = 0;
     }
   }
-  CVodeGetIntegratorStats(s->mem, &nsteps, &nfevals, &nlinsetups, &netfails, &qlast, &qcur, &hinused, &hlast,
-                          &hcur, &tcur);
-  CVodeGetNonlinSolvStats(s->mem, &nniters, &nncfails);
-  stats[0] = nsteps; stats[1] = nfevals; stats[2] = nlinsetups; stats[3] = netfails;
-  stats[4] = nniters; stats[5] = nncfails; stats[6] = s->njac; stats[7] = s->npivfail;
-  if (flag < 0) {
-    char *name = CVodeGetReturnFlagName(flag);
-    strncpy(msg, "CVode returned \"", (size_t) msglen - 1);
-    msg[msglen - 1] = '\0';
-    strncat(msg, name ? name : "?", (size_t) msglen - strlen(msg) - 1);
-    strncat(msg, "\"", (size_t) msglen - strlen(msg) - 1);
-    free(name);
-    return flag;
-  }
-  return 0;
+  return sf_finish(s, flag, stats, msg, msglen);
 }
 
 /* The states at the relative times t[0..M-1] (ascending, inside the last sf_run_hist's chunk) into Y (M x nx):
