@@ -165,12 +165,16 @@ class DirectCvodes:
             rc = self._lib.sf_run(self._h, _ptr(p), _ptr(x0), K, _ptr(grid), _ptr(X),
                                   self._stats.ctypes.data_as(ctypes.POINTER(ctypes.c_long)), self._msg,
                                   len(self._msg))
-        s = [int(v) for v in self._stats]
-        stats = {"nsteps": s[0], "nfevals": s[1], "nlinsetups": s[2], "netfails": s[3], "nniters": s[4],
-                 "nncfails": s[5], "n_call_jacF": s[6], "pivot_failures": s[7]}
+        stats = self._read_stats()
         if rc < 0:
             raise RuntimeError(self._msg.value.decode(errors="replace"))
         return X, stats
+
+    def _read_stats(self) -> dict:
+        """The last integration's CVODES statistics, by name (the driver's stats array)."""
+        s = [int(v) for v in self._stats]
+        return {"nsteps": s[0], "nfevals": s[1], "nlinsetups": s[2], "netfails": s[3], "nniters": s[4],
+                "nncfails": s[5], "n_call_jacF": s[6], "pivot_failures": s[7]}
 
     def run_sampled(self, p: np.ndarray, x0: np.ndarray, grid: np.ndarray, times_for,
                     max_bytes: float | None = None) -> tuple[np.ndarray, dict, np.ndarray | None] | None:
@@ -190,9 +194,7 @@ class DirectCvodes:
                                        len(self._msg), float(HISTORY_BYTES if max_bytes is None else max_bytes))
             if rc != 0:
                 return None
-            s = [int(v) for v in self._stats]
-            stats = {"nsteps": s[0], "nfevals": s[1], "nlinsetups": s[2], "netfails": s[3], "nniters": s[4],
-                     "nncfails": s[5], "n_call_jacF": s[6], "pivot_failures": s[7]}
+            stats = self._read_stats()
             times = np.ascontiguousarray(times_for(stats), dtype=float)
             Y = np.empty((times.size, self.nx))
             if times.size and self._lib.sf_sample(self._h, int(times.size), _ptr(times), _ptr(Y)):
