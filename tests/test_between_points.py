@@ -57,14 +57,19 @@ def _urdf_robot(tmp_path):
     return load_scenario(s)
 
 
+def _compiled_loop(sc):
+    """The scenario's design, closed loop and compiled loop bound to its plant parameters."""
+    d = derive(sc)
+    cl = build_closed_loop(sc, d, width=sc.simulation.smoothing_width)
+    return d, cl, compile_closed_loop(cl).bind(cl.p0)
+
+
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])
 def test_the_dense_grid_is_the_plain_grid_bit_for_bit_and_samples_the_same_trajectory(which, tmp_path):
     """CVODES takes the same steps with extra output points (no stop time at output points, the same first step):
     the output points are identical, and the samples between them agree with an integration at rtol 1e-11."""
     sc = _urdf_robot(tmp_path) if which == "urdf" else load_scenario(which)
-    d = derive(sc)
-    cl = build_closed_loop(sc, d, width=sc.simulation.smoothing_width)
-    comp = compile_closed_loop(cl).bind(cl.p0)
+    d, cl, comp = _compiled_loop(sc)
     h = sc.simulation.dt
     plain = Runner(cl, comp, "cvodes", h, sc.simulation)
     X = plain.run(0.0, cl.x0.copy(), 25)
@@ -227,11 +232,9 @@ def test_a_chunk_sampled_again_counts_its_steps_once(which, tmp_path):
     from symfunnel.simulation.run import CHUNK_SIZES, _grid
     sc = _urdf_robot(tmp_path) if which == "urdf" else load_scenario(which)
     tf = {"paper": sc.simulation.t_final, "arm7": 2.0, "urdf": 2.0}[which]
-    d = derive(sc)
-    cl = build_closed_loop(sc, d, width=sc.simulation.smoothing_width)
+    d, cl, comp = _compiled_loop(sc)
     r = simulate(sc, d, t_final=tf, closed_loop=cl)
     assert r.ok, r.message
-    comp = compile_closed_loop(cl).bind(cl.p0)
     M, h = _grid(tf, sc.simulation.dt)
     plain = Runner(cl, comp, "cvodes", h, sc.simulation)
     k, K, x = 0, 25, cl.x0.copy()
@@ -254,9 +257,7 @@ def test_a_chunk_denser_than_it_was_sampled_for_is_counted_once_and_sampled_at_i
     run's), with the output points of the plain run."""
     from symfunnel.simulation import runner as runner_mod
     monkeypatch.setattr(runner_mod, "SAMPLE_FROM_STEPS", from_steps)
-    d = derive(paper)
-    cl = build_closed_loop(paper, d, width=paper.simulation.smoothing_width)
-    comp = compile_closed_loop(cl).bind(cl.p0)
+    _, cl, comp = _compiled_loop(paper)
     h = paper.simulation.dt
     plain = Runner(cl, comp, "cvodes", h, paper.simulation)
     X = plain.run(0.0, cl.x0.copy(), 25)

@@ -275,13 +275,14 @@ def test_cvodes_failure_reads_as_casadis(paper, paper_design, monkeypatch):
 
 
 def _direct_solver(run):
+    """The run's direct CVODES solver, its parameter vector for a chunk starting at 0, and x0 in its state order."""
     from symfunnel.simulation.compiled import compile_closed_loop
     from symfunnel.simulation.runner import Runner
     cl = run.closed_loop
     comp = compile_closed_loop(cl).bind(cl.p0)
     sim = run.scenario.simulation
     r = Runner(cl, comp, "cvodes", sim.dt, sim)
-    return r, r.direct(), np.concatenate([[0.0], comp.pvals]), cl.x0[r.perm]
+    return r.direct(), np.concatenate([[0.0], comp.pvals]), cl.x0[r.perm]
 
 
 def test_samples_from_kept_steps_are_cvodes_output_points_bit_for_bit(paper_run, monkeypatch):
@@ -290,7 +291,7 @@ def test_samples_from_kept_steps_are_cvodes_output_points_bit_for_bit(paper_run,
     plain grid's states and step counts are `run`'s -- for sample times that fall on several per step, one per
     step, and exactly on output points."""
     monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
-    _, D, p, x0 = _direct_solver(paper_run)
+    D, p, x0 = _direct_solver(paper_run)
     h = paper_run.scenario.simulation.dt
     grid = h * np.arange(1, 101)
     Xp, stp = D.run(p, x0, grid)

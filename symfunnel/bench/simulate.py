@@ -13,6 +13,7 @@ warm compile cache and bytecode cache, CPU time beside; baseline: a process that
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 import subprocess
@@ -65,12 +66,24 @@ def run_scipy(cl, t_final: float, method: str = "BDF"):
     return time.perf_counter() - t0, sol
 
 
-def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
-    """CPU and wall seconds of each perturbed run with one CVODES backend (`PERTURBATIONS`), and their steps."""
-    from ..simulation import simulate
+@contextlib.contextmanager
+def _cvodes_backend(backend: str):
+    """$SYMFUNNEL_CVODES set to `backend` for the block, and as it was afterwards."""
     old = os.environ.get("SYMFUNNEL_CVODES")
     os.environ["SYMFUNNEL_CVODES"] = backend
     try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("SYMFUNNEL_CVODES", None)
+        else:
+            os.environ["SYMFUNNEL_CVODES"] = old
+
+
+def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
+    """CPU and wall seconds of each perturbed run with one CVODES backend (`PERTURBATIONS`), and their steps."""
+    from ..simulation import simulate
+    with _cvodes_backend(backend):
         simulate(sc, d, t_final=min(t_final, 0.5), closed_loop=cl)          # the backend's one-time set-up
         cpu, wall, steps = [], [], []
         for eps in PERTURBATIONS:
@@ -82,11 +95,6 @@ def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
             steps.append(int(r.stats.get("steps") or 0))
             if r.stats.get("cvodes_backend") != backend:
                 raise RuntimeError(f"the {backend} CVODES backend did not run: {r.stats.get('cvodes_backend')}")
-    finally:
-        if old is None:
-            os.environ.pop("SYMFUNNEL_CVODES", None)
-        else:
-            os.environ["SYMFUNNEL_CVODES"] = old
     return {"cpu": cpu, "wall": wall, "steps": steps}
 
 
@@ -164,15 +172,8 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     direct, casadi_ = cpu_per_run(sc, d, cl, tf, "direct"), cpu_per_run(sc, d, cl, tf, "casadi")
     cpu_d, cpu_c = float(np.median(direct["cpu"])), float(np.median(casadi_["cpu"]))
     say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
-    old_backend = os.environ.get("SYMFUNNEL_CVODES")
-    os.environ["SYMFUNNEL_CVODES"] = "direct"
-    try:
+    with _cvodes_backend("direct"):
         sfs = samples_from_steps(sc, d, cl, tf)
-    finally:
-        if old_backend is None:
-            os.environ.pop("SYMFUNNEL_CVODES", None)
-        else:
-            os.environ["SYMFUNNEL_CVODES"] = old_backend
     say("simulate: `symfunnel simulate paper` in a fresh process (warm caches)")
     cli = cli_seconds()
     say(f"simulate: symfunnel {wall:.3f} s for {tf:g} s; now scipy solve_ivp (BDF) on the numpy RHS")
