@@ -49,6 +49,16 @@ def test_an_alarm_whose_exception_was_swallowed_still_ends_the_block():
         _swallowing(0.01)
 
 
+def test_a_swallowed_alarm_raised_after_its_step_names_that_step():
+    """The limit raised when the block goes on after a swallowed alarm names the step the alarm landed in, not the
+    bare "working" of the code around it (a 2000-unit derive under load read "reached while working")."""
+    with pytest.raises(deadline.WallLimitReached) as info:
+        with deadline.limit(0.05):
+            with deadline.step("deriving the design"):
+                _swallowing(0.3)
+    assert info.value.step == "deriving the design" and "while deriving the design" in str(info.value)
+
+
 def test_the_alarm_stops_python_code_at_the_limit():
     t0 = time.monotonic()
     with pytest.raises(deadline.WallLimitReached) as info:

@@ -42,6 +42,7 @@ class _Deadline:
     started: float
     make: Callable[[], BaseException] | None    # None: WallLimitReached
     fired: bool = False                 # the alarm's handler raised this deadline's exception
+    step: str | None = None             # what the command was doing then (the block may raise it after that step)
 
 
 _stack: list[_Deadline] = []
@@ -103,7 +104,7 @@ def current_step() -> str:
 def _error(d: _Deadline) -> BaseException:
     if d.make is not None:
         return d.make()
-    return WallLimitReached(d.seconds, current_step(), time.monotonic() - d.started)
+    return WallLimitReached(d.seconds, d.step or current_step(), time.monotonic() - d.started)
 
 
 def _expired() -> _Deadline | None:
@@ -122,7 +123,7 @@ def _handler(signum, frame):
             # process (the API's, a test worker's: "module 'sympy' has no attribute 'polys'"): raise after it
             signal.setitimer(signal.ITIMER_REAL, 0.01)
             return
-        d.fired = True
+        d.fired, d.step = True, current_step()
         raise _error(d)
     _arm()                               # woke early (an outer deadline was re-armed): wait for the next one
 
