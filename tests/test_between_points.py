@@ -208,19 +208,29 @@ def test_ten_output_steps_are_enough():
 
 
 @pytest.mark.parametrize("count", [1, 15, 16, 17, 768, 4096, 5000])
-def test_margin_scan_blocks_give_the_pointwise_margins(paper_design, count):
-    """The scan's mapped evaluation in blocks of 4096, 1024, 256, 64 and 16 points gives, bit for bit, the margin
-    function called at each point alone, whatever the count (a tail shorter than the smallest block included)."""
+def test_margin_scan_blocks_give_the_pointwise_margins(paper_run, count):
+    """The scan's mapped evaluation in blocks of 4096, 1024, 256, 64 and 16 points gives, bit for bit, its margin
+    function called at each point alone, whatever the count (a tail shorter than the smallest block included): the
+    loop's compiled one with the run's parameters, and the design's where the loop has none; the two agree to
+    rounding (one from the closed loop's graph, the other from the design's signals)."""
+    import dataclasses
     from symfunnel.simulation.between import MarginScan, margin_function
-    n = paper_design.n
-    scan = MarginScan(paper_design, {"q": slice(0, n), "dq": slice(n, 2 * n)})
+    from symfunnel.simulation.compiled import compile_closed_loop
+    cl = paper_run.closed_loop
+    comp = compile_closed_loop(cl).bind(cl.p0)
+    assert comp.mode == "compiled" and comp.margins is not None and comp.margins.class_name() == "External"
+    n = cl.n
     rng = np.random.default_rng(count)
     t = rng.uniform(0, 20, count)
     q, dq = rng.normal(0, 0.1, (count, n)), rng.normal(0, 0.3, (count, n))
-    got = scan.margins(t, q, dq)
-    f = margin_function(paper_design)
-    want = np.array([np.asarray(f(t[i], q[i], dq[i])).ravel() for i in range(count)])
+    got = MarginScan(comp, cl.slices).margins(t, q, dq)
+    want = np.array([np.asarray(comp.margins(t[i], q[i], dq[i], comp.pvals)).ravel() for i in range(count)])
     assert got.shape == (count, 2 * n) and np.array_equal(got, want)
+    f = margin_function(paper_run.design)
+    design = np.array([np.asarray(f(t[i], q[i], dq[i])).ravel() for i in range(count)])
+    assert np.allclose(got, design, rtol=1e-13, atol=1e-13)
+    vm = MarginScan(dataclasses.replace(comp, margins=None), cl.slices, paper_run.design).margins(t, q, dq)
+    assert np.array_equal(vm, design)
 
 
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])

@@ -59,24 +59,37 @@ def margin_function(design) -> ca.Function:
 class MarginScan:
     """The margins between consecutive samples at SCAN_POINTS - 1 times each, on the linearly interpolated q, dq:
     the funnels, the reference and alpha2 are exact functions of t there, so a dip they make between two samples
-    shows even where the integrator's steps do not resolve it (the state moves smoothly at that scale)."""
+    shows even where the integrator's steps do not resolve it (the state moves smoothly at that scale).
+
+    It evaluates the compiled loop's own margin function (`compiled.scan_function`: generated C where the loop is
+    compiled, a fifth of the paper run's time on CasADi's virtual machine before) with the run's parameters, or,
+    where the loop has none, the design's (`margin_function`)."""
 
     #: the mapped evaluation's sizes: a call takes the largest block that fits what is left, the smallest at the
     #: end (one 4096-point block for every call wasted 61 % of the paper run's evaluations: calls of 1 and 768)
     BLOCKS = (4096, 1024, 256, 64, 16)
 
-    def __init__(self, design, slices: dict):
-        self._margin = margin_function(design)
-        self._f: dict = {}
+    def __init__(self, comp, slices: dict, design=None):
+        self._p = None if comp.margins is None else np.asarray(comp.pvals, dtype=float)
+        if self._p is None:
+            if design is None:
+                raise ValueError("a loop without its margin function needs the design's")
+            self._margin, self._f = margin_function(design), {}
+        else:
+            # the mapped blocks are kept with the loaded loop's output maps (per thread): every run on it reuses them
+            self._margin, self._f = comp.margins, comp.maps
         self.q, self.dq = slices["q"], slices["dq"]
-        self.width = 2 * design.n
+        self.width = 2 * (slices["q"].stop - slices["q"].start)
 
     def _block(self, size: int):
         """The margin function mapped over `size` points on numpy buffers, built on first use."""
-        f = self._f.get(size)
+        key = ("scan", size)
+        f = self._f.get(key)
         if f is None:
             from .compiled import Buffered
-            f = self._f[size] = Buffered(self._margin.map(size))
+            mapped = (self._margin.map(size) if self._p is None
+                      else self._margin.map("scan_map", "serial", size, [3], []))
+            f = self._f[key] = Buffered(mapped)
         return f
 
     def margins(self, t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
@@ -93,7 +106,10 @@ class MarginScan:
             qq = np.zeros((q.shape[1], size))
             dd = np.zeros((dq.shape[1], size))
             tt[:b - a], qq[:, :b - a], dd[:, :b - a] = t[a:b], q[a:b].T, dq[a:b].T
-            f(tt, qq, dd)
+            if self._p is None:
+                f(tt, qq, dd)
+            else:
+                f(tt, qq, dd, self._p)
             out[a:b] = f.res[0].reshape(size, self.width)[:b - a]
             a = b
         return out
@@ -140,6 +156,9 @@ def density(steps: float, points: int) -> int:
 
 class Between:
     """The extremes seen between output points over a run (per joint), and how many samples showed them."""
+
+    #: the logged signals `update` reads
+    KEYS = ("m1", "m2", "tau", "tau_applied")
 
     def __init__(self, n: int):
         self.n = n

@@ -29,7 +29,7 @@ COMPILE_FLAGS = ["-Og", "-shared", "-fPIC"]
 APPROX_ESN_JACOBIAN = True
 #: a closed loop with more SX nodes than this builds its functions in a killable worker (core.lifecycle.run_killable)
 FORK_ABOVE_NODES = 100000
-#: graph digest (see compile_closed_loop) -> (ode, outputs, library, output maps per thread) loaded in this
+#: graph digest (see compile_closed_loop) -> (ode, outputs, margins, library, output maps per thread) loaded in this
 #: process; the maps (evaluate_outputs) are per thread because their numpy buffers are not for concurrent calls
 _LOADED: dict = {}
 #: output maps kept per loaded loop and thread (one per chunk length T), the oldest dropped first
@@ -51,6 +51,9 @@ class Compiled:
     maps: dict = field(default_factory=dict, repr=False)
     pvals: np.ndarray | None = None  # [plant p; z] of the run this copy is bound to (see `bind`)
     integrators: dict = field(default_factory=dict, repr=False)
+    #: (t, q, dq, [plant p; z]) -> the margins [1 - |e1|/F1; 1 - |e2|/F2] (`scan_function`), compiled beside the
+    #: loop; None where they depend on more of the state than q and dq
+    margins: ca.Function | None = None
     #: the design's numbers z (closedloop.design_parameters) this loop runs with; empty where they are folded in
     design_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -91,6 +94,21 @@ def _parameters(cl: ClosedLoop) -> tuple[ca.SX, ca.SX, dict, np.ndarray]:
     if cl.xdot_pz is None:
         return cl.p, cl.xdot_p, cl.signals_p, np.zeros(0)
     return ca.vertcat(cl.p, cl.z), cl.xdot_pz, cl.signals_pz, np.asarray(cl.z0, dtype=float)
+
+
+def scan_function(cl: ClosedLoop) -> ca.Function | None:
+    """(t, q, dq, [plant p; z]) -> the margins [1 - |e1|/F1; 1 - |e2|/F2] of the closed loop's signals, which the
+    margin scan between samples evaluates (`between.MarginScan`) -- from the loop's own graph, so that it is compiled
+    with it and shared by every design on the same library; None when they depend on other states (never, for a
+    funnel of the tracking errors)."""
+    P, _, S, _ = _parameters(cl)
+    sl = cl.slices
+    m = ca.vertcat(1 - ca.fabs(S["e1"]) / S["F1"], 1 - ca.fabs(S["e2"]) / S["F2"])
+    q, dq = ca.SX.sym("q", cl.n), ca.SX.sym("dq", cl.n)
+    m = ca.substitute([m], [cl.x[sl["q"]], cl.x[sl["dq"]]], [q, dq])[0]
+    if ca.depends_on(m, cl.x):
+        return None
+    return ca.Function("symfunnel_margins", [cl.t, q, dq, P], [m], ["t", "q", "dq", "p"], ["m"], {"cse": True})
 
 
 def _dae_function(cl: ClosedLoop, perm: np.ndarray) -> ca.Function:
@@ -164,30 +182,32 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
         dae = _dae_function(cl, perm)
         outputs = ca.Function("symfunnel_outputs", [cl.t, cl.x, P], [signals[k] for k in OUTPUT_NAMES],
                               ["t", "x", "p"], list(OUTPUT_NAMES), {"cse": True})
+        margins = scan_function(cl)
         if not jit:
-            return dae, outputs, b""
+            return dae, outputs, margins, b""
         # The library is keyed by the graphs it is generated from (and this module, which generates it), so a
         # cached entry skips generating the Newton Jacobian and the C: for a large reservoir most of the cost.
         identity = hashlib.sha256(b"\0".join([
-            dae.serialize().encode(), outputs.serialize().encode(), b"approx" if approx_jacobian else b"exact",
+            dae.serialize().encode(), outputs.serialize().encode(),
+            margins.serialize().encode() if margins is not None else b"", b"approx" if approx_jacobian else b"exact",
             " ".join(COMPILE_FLAGS).encode(), ca.__version__.encode(), Path(__file__).read_bytes()])).digest()
-        return dae, outputs, identity
+        return dae, outputs, margins, identity
 
     from ..core.lifecycle import run_killable
     # building and hashing the functions of a large graph are long CasADi calls no signal interrupts: in a worker
     # process the limit can kill, when the graph is large enough for it to matter
     big = int(ca.n_nodes(cl.xdot_p)) > FORK_ABOVE_NODES
-    dae, outputs, identity = (run_killable(functions, what="building the closed loop's functions") if big
-                              else functions())
-    vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm", design_values=zvals)
+    dae, outputs, margins, identity = (run_killable(functions, what="building the closed loop's functions") if big
+                                       else functions())
+    vm = Compiled(dae=dae, outputs=outputs, perm=perm, mode="vm", design_values=zvals, margins=margins)
     if not jit:
         return vm
     t0 = time.perf_counter()
     digest = identity.hex()[:24]
     if digest in _LOADED:
-        ext_dae, ext_out, lib, maps = _LOADED[digest]
+        ext_dae, ext_out, ext_m, lib, maps = _LOADED[digest]
         return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, True, lib, digest,
-                        maps=_thread_maps(maps), design_values=zvals)
+                        maps=_thread_maps(maps), design_values=zvals, margins=ext_m)
 
     def sources() -> dict[str, bytes]:
         # in a forked worker: the Jacobian and the C of a large graph are long CasADi calls no signal interrupts
@@ -199,6 +219,8 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
             cg.add(dae)
             cg.add(_newton_jacobian(cl, dae, perm, approx_jacobian))
             cg.add(outputs)
+            if margins is not None:
+                cg.add(margins)
             cg.generate(tmp + os.sep)
             src = Path(tmp, "symfunnel_cl.c").read_bytes()
         deadline.check()                       # generating the Jacobian is one CasADi call no signal interrupts
@@ -222,15 +244,16 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
     try:
         ext_dae = ca.external("symfunnel_ode", str(lib))
         ext_out = ca.external("symfunnel_outputs", str(lib))
+        ext_m = ca.external("symfunnel_margins", str(lib)) if margins is not None else None
     except RuntimeError as exc:
         from .hints import error_line
         warnings.warn(f"loading {lib} failed ({error_line(str(exc))}); simulating on the CasADi virtual machine",
                       RuntimeWarning, stacklevel=2)
         return vm
     maps: dict = {}
-    _LOADED[digest] = (ext_dae, ext_out, str(lib), maps)
+    _LOADED[digest] = (ext_dae, ext_out, ext_m, str(lib), maps)
     return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, cached, str(lib), digest,
-                    maps=_thread_maps(maps), design_values=zvals)
+                    maps=_thread_maps(maps), design_values=zvals, margins=ext_m)
 
 
 def _thread_maps(maps: dict) -> dict:

@@ -23,10 +23,21 @@ def settle_time(design, t_final: float, declared: float | None = None) -> tuple[
     every joint stay within SETTLE_BAND of their width at t_final."""
     if declared is not None:
         return float(declared), "simulation.settle_time"
-    import casadi as ca
     T = float(t_final)
     if not T > 0:
         return 0.0, "no horizon"
+    # a design's funnels do not change: every run of a campaign on it has the same horizon (a tenth of a short run)
+    known = design.__dict__.setdefault("_settle_times", {})
+    if T not in known:
+        if len(known) >= 16:
+            known.clear()
+        known[T] = _settle(design, T)
+    return known[T]
+
+
+def _settle(design, T: float) -> tuple[float, str]:
+    """settle_time's search on SETTLE_GRID points of [0, T]."""
+    import casadi as ca
     t = np.linspace(0.0, T, SETTLE_GRID)
     f = ca.Function("settle_funnels", [design.sym["t"]], [design.signals["F1"], design.signals["F2"]])
     F1, F2 = (np.asarray(a, float).reshape(-1, t.size) for a in f.map(t.size)(t.reshape(1, -1)))

@@ -186,9 +186,7 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
     sub = BETWEEN_MAX          # samples per output step between the output points (the first chunk: the most)
     between = Between(n)
     lowest = float(np.min(np.fmin(o0["m1"], o0["m2"])))      # the smallest margin sampled so far
-    mscan = cl.__dict__.get("_margin_scan")
-    if mscan is None:
-        mscan = cl.__dict__["_margin_scan"] = MarginScan(design if closed_loop is None else cl.design, cl.slices)
+    mscan = MarginScan(comp, cl.slices, cl.design)
     last_report = sim_start
     with deadline.paused():                    # the loop stops at `limit` itself, keeping the trajectory
         try:
@@ -249,7 +247,8 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
                     X_list.extend(res["X"])
                     status, message, breach = res["status"], res["message"], res["breach"]
                     break
-                between.update(ta[~is_out], {key: v[~is_out] for key, v in oa.items()}, used)
+                inside = ~is_out
+                between.update(ta[inside], {key: oa[key][inside] for key in Between.KEYS}, used)
                 t_list.append(tc)
                 X_list.append(X)
                 O_list.append({key: np.array(v[is_out], order="F") for key, v in oa.items()})
