@@ -122,15 +122,25 @@ def paper_arm_numpy():
     l1, l2, m1, m2, m3, m4 = 1.0, 0.8, 1.0, 1.5, 2.0, 1.5
     al, be, ga = m1 / 4 + m2 + m3 + m4, m3 / 4 + m4, m3 / 2 + m4
 
+    def dead_zone(v):
+        return 1.1 * (v - 1.0) if v >= 1.0 else (0.9 * (v + 1.5) if v <= -1.5 else 0.0)
+
+    def sign(v):
+        return (v > 0) - (v < 0)
+
     def ddq(t, q, dq, u):
-        c2, s2 = math.cos(q[1]), math.sin(q[1])
-        M = np.array([[al * l1**2 + be * l2**2 + 2 * ga * l1 * l2 * c2, be * l2**2 + ga * l1 * l2 * c2],
-                      [be * l2**2 + ga * l1 * l2 * c2, be * l2**2]])
+        # in plain floats (the 2 x 2 solve by Cramer's rule): 320,000 calls in the 10 kHz test
+        q2, v1, v2 = float(q[1]), float(dq[0]), float(dq[1])
+        c2, s2 = math.cos(q2), math.sin(q2)
+        m11 = al * l1**2 + be * l2**2 + 2 * ga * l1 * l2 * c2
+        m12 = be * l2**2 + ga * l1 * l2 * c2
+        m22 = be * l2**2
         hh = ga * l1 * l2 * s2
-        C = np.array([[-hh * dq[1], -hh * (dq[0] + dq[1])], [hh * dq[0], 0.0]])
-        D = np.where(u >= 1.0, 1.1 * (u - 1.0), np.where(u <= -1.5, 0.9 * (u + 1.5), 0.0))
-        rhs = D - C @ dq - 15 * dq - 6 * np.sign(dq) - 0.5 * math.sin(2 * t)
-        return np.linalg.solve(M, rhs)
+        d = 0.5 * math.sin(2 * t)
+        r1 = dead_zone(float(u[0])) - (-hh * v2 * v1 - hh * (v1 + v2) * v2) - 15 * v1 - 6 * sign(v1) - d
+        r2 = dead_zone(float(u[1])) - hh * v1 * v1 - 15 * v2 - 6 * sign(v2) - d
+        det = m11 * m22 - m12 * m12
+        return np.array([(m22 * r1 - m12 * r2) / det, (m11 * r2 - m12 * r1) / det])
     return ddq
 
 
