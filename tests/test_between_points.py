@@ -229,8 +229,36 @@ def test_margin_scan_blocks_give_the_pointwise_margins(paper_run, count):
     f = margin_function(paper_run.design)
     design = np.array([np.asarray(f(t[i], q[i], dq[i])).ravel() for i in range(count)])
     assert np.allclose(got, design, rtol=1e-13, atol=1e-13)
-    vm = MarginScan(dataclasses.replace(comp, margins=None), cl.slices, paper_run.design).margins(t, q, dq)
+    vm = MarginScan(dataclasses.replace(comp, margins=None, margins_many=None), cl.slices,
+                    paper_run.design).margins(t, q, dq)
     assert np.array_equal(vm, design)
+    blocks = MarginScan(dataclasses.replace(comp, margins_many=None), cl.slices).margins(t, q, dq)
+    assert np.array_equal(blocks, got)                 # CasADi's map of the library's function, block by block
+
+
+@pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])
+def test_the_logged_signals_in_one_call_are_casadis_map_bit_for_bit(which, tmp_path):
+    """evaluate_outputs calls the library's symfunnel_outputs_many once per chunk (compiled.Many): the signals are,
+    bit for bit and in the same column-major layout, what CasADi's serial map of the same function gives, at any
+    number of points; a wrong input size is refused before C reads past it."""
+    import dataclasses
+    from symfunnel.simulation.closedloop import OUTPUT_NAMES
+    from symfunnel.simulation.compiled import evaluate_outputs
+    sc = _urdf_robot(tmp_path) if which == "urdf" else load_scenario(which)
+    d, cl, comp = _compiled_loop(sc)
+    assert comp.outputs_many is not None
+    via_map = dataclasses.replace(comp, outputs_many=None, maps={})
+    rng = np.random.default_rng(3)
+    for T in (1, 17, 500):
+        t = rng.uniform(0, 5, T)
+        X = cl.x0 + 0.05 * rng.standard_normal((T, cl.nx))
+        a, b = evaluate_outputs(comp, cl.n, t, X), evaluate_outputs(via_map, cl.n, t, X)
+        assert list(a) == list(OUTPUT_NAMES)
+        for k in OUTPUT_NAMES:
+            assert a[k].shape == b[k].shape and a[k].flags.f_contiguous == b[k].flags.f_contiguous
+            assert np.array_equal(a[k], b[k], equal_nan=True), k
+    with pytest.raises(ValueError, match="input 1"):
+        comp.outputs_many(3, np.zeros(3), np.zeros((2, cl.nx)), comp.pvals)
 
 
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])

@@ -29,8 +29,9 @@ COMPILE_FLAGS = ["-Og", "-shared", "-fPIC"]
 APPROX_ESN_JACOBIAN = True
 #: a closed loop with more SX nodes than this builds its functions in a killable worker (core.lifecycle.run_killable)
 FORK_ABOVE_NODES = 100000
-#: graph digest (see compile_closed_loop) -> (ode, outputs, margins, library, output maps per thread) loaded in this
-#: process; the maps (evaluate_outputs) are per thread because their numpy buffers are not for concurrent calls
+#: graph digest (see compile_closed_loop) -> (ode, outputs, margins, library, output maps per thread, (outputs_many,
+#: margins_many)) loaded in this process; the maps (evaluate_outputs on the VM) are per thread because their numpy
+#: buffers are not for concurrent calls
 _LOADED: dict = {}
 #: output maps kept per loaded loop and thread (one per chunk length T), the oldest dropped first
 MAX_MAPS = 64
@@ -54,6 +55,9 @@ class Compiled:
     #: (t, q, dq, [plant p; z]) -> the margins [1 - |e1|/F1; 1 - |e2|/F2] (`scan_function`), compiled beside the
     #: loop; None where they depend on more of the state than q and dq
     margins: ca.Function | None = None
+    #: outputs and margins at many points in one call into the compiled library (`Many`); None on the VM
+    outputs_many: Many | None = None
+    margins_many: Many | None = None
     #: the design's numbers z (closedloop.design_parameters) this loop runs with; empty where they are folded in
     design_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -94,6 +98,79 @@ def _parameters(cl: ClosedLoop) -> tuple[ca.SX, ca.SX, dict, np.ndarray]:
     if cl.xdot_pz is None:
         return cl.p, cl.xdot_p, cl.signals_p, np.zeros(0)
     return ca.vertcat(cl.p, cl.z), cl.xdot_pz, cl.signals_pz, np.asarray(cl.z0, dtype=float)
+
+
+def many_source(f: ca.Function, shared: tuple[int, ...]) -> str:
+    """C of `<name>_many(T, in, out)`: the generated function f at T points in one call -- the evaluation CasADi's
+    serial map makes, without its dispatch at every point (a tenth of the paper run's time). in[i] holds the T
+    points of input i one after another (the inputs in `shared`: one value for all), out[i] receives output i
+    column-major (T x nnz), the layout the logged signals keep."""
+    name = f.name()
+    nnz_in = [f.nnz_in(i) for i in range(f.n_in())]
+    nnz_out = [f.nnz_out(i) for i in range(f.n_out())]
+    flags = [1 if i in shared else 0 for i in range(f.n_in())]
+
+    def arr(v):
+        return ", ".join(str(int(x)) for x in v)
+    return f"""
+#include <stdlib.h>
+CASADI_SYMBOL_EXPORT int {name}_many(casadi_int T, const casadi_real** in, casadi_real** out) {{
+  static const casadi_int nnz_in[{len(nnz_in)}] = {{{arr(nnz_in)}}}, shared[{len(nnz_in)}] = {{{arr(flags)}}};
+  static const casadi_int nnz_out[{len(nnz_out)}] = {{{arr(nnz_out)}}};
+  const casadi_real* arg[{f.sz_arg() + 1}];
+  casadi_real* res[{f.sz_res() + 1}];
+  casadi_int iw[{f.sz_iw() + 1}];
+  casadi_real *w = (casadi_real*) malloc(sizeof(casadi_real) * ({f.sz_w()} + {sum(nnz_out)} + 1)), *scratch;
+  casadi_int i, j, k, off;
+  int rc = 0;
+  if (!w) return 2;
+  scratch = w + {f.sz_w()};
+  for (k = 0; k < T && !rc; ++k) {{
+    for (i = 0; i < {len(nnz_in)}; ++i) arg[i] = in[i] + (shared[i] ? 0 : k * nnz_in[i]);
+    for (i = 0, off = 0; i < {len(nnz_out)}; off += nnz_out[i], ++i) res[i] = scratch + off;
+    rc = {name}(arg, res, iw, w, 0);
+    for (i = 0, off = 0; i < {len(nnz_out)}; off += nnz_out[i], ++i)
+      for (j = 0; j < nnz_out[i]; ++j) out[i][j * T + k] = scratch[off + j];
+  }}
+  free(w);
+  return rc;
+}}
+"""
+
+
+class Many:
+    """`<name>_many` of a loaded library (`many_source`) through ctypes: the function at T points in one call,
+    bit for bit what its serial map gives."""
+
+    def __init__(self, library: str, f: ca.Function, shared: tuple[int, ...]):
+        import ctypes
+        self._ct = ctypes
+        self._c = getattr(ctypes.CDLL(library), f.name() + "_many")
+        self._c.restype = ctypes.c_int
+        self._c.argtypes = [ctypes.c_longlong, ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(ctypes.c_void_p)]
+        self.name = f.name()
+        self.nnz_in = [f.nnz_in(i) for i in range(f.n_in())]
+        self.nnz_out = [f.nnz_out(i) for i in range(f.n_out())]
+        self.shared = shared
+
+    def __call__(self, T: int, *inputs) -> list[np.ndarray]:
+        """The outputs (each (T, nnz), column-major) at T points: input i given as T rows of its nnz values, or,
+        for a shared input, its values once."""
+        ct = self._ct
+        ins = [np.ascontiguousarray(a, dtype=float) for a in inputs]
+        for i, a in enumerate(ins):
+            want = self.nnz_in[i] * (1 if i in self.shared else T)
+            if a.size != want:
+                raise ValueError(f"{self.name}_many: input {i} has {a.size} values, not {want}")
+        outs = [np.empty((T, m), order="F") for m in self.nnz_out]
+        if T == 0:
+            return outs
+        pin = (ct.c_void_p * len(ins))(*[a.ctypes.data for a in ins])
+        pout = (ct.c_void_p * len(outs))(*[o.ctypes.data for o in outs])
+        rc = self._c(int(T), pin, pout)
+        if rc:
+            raise RuntimeError(f"{self.name}_many failed ({rc})")
+        return outs
 
 
 def scan_function(cl: ClosedLoop) -> ca.Function | None:
@@ -205,9 +282,10 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
     t0 = time.perf_counter()
     digest = identity.hex()[:24]
     if digest in _LOADED:
-        ext_dae, ext_out, ext_m, lib, maps = _LOADED[digest]
+        ext_dae, ext_out, ext_m, lib, maps, many = _LOADED[digest]
         return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, True, lib, digest,
-                        maps=_thread_maps(maps), design_values=zvals, margins=ext_m)
+                        maps=_thread_maps(maps), design_values=zvals, margins=ext_m, outputs_many=many[0],
+                        margins_many=many[1])
 
     def sources() -> dict[str, bytes]:
         # in a forked worker: the Jacobian and the C of a large graph are long CasADi calls no signal interrupts
@@ -222,7 +300,9 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
             if margins is not None:
                 cg.add(margins)
             cg.generate(tmp + os.sep)
-            src = Path(tmp, "symfunnel_cl.c").read_bytes()
+            src = Path(tmp, "symfunnel_cl.c").read_bytes() + many_source(outputs, (2,)).encode()
+            if margins is not None:
+                src += many_source(margins, (3,)).encode()
         deadline.check()                       # generating the Jacobian is one CasADi call no signal interrupts
         return {"symfunnel_cl.c": src}
 
@@ -245,15 +325,21 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
         ext_dae = ca.external("symfunnel_ode", str(lib))
         ext_out = ca.external("symfunnel_outputs", str(lib))
         ext_m = ca.external("symfunnel_margins", str(lib)) if margins is not None else None
+        many = (Many(str(lib), outputs, (2,)), Many(str(lib), margins, (3,)) if margins is not None else None)
+    except (AttributeError, OSError) as exc:          # a library without the _many entry points: an old cache
+        warnings.warn(f"loading {lib} failed ({exc}); simulating on the CasADi virtual machine", RuntimeWarning,
+                      stacklevel=2)
+        return vm
     except RuntimeError as exc:
         from .hints import error_line
         warnings.warn(f"loading {lib} failed ({error_line(str(exc))}); simulating on the CasADi virtual machine",
                       RuntimeWarning, stacklevel=2)
         return vm
     maps: dict = {}
-    _LOADED[digest] = (ext_dae, ext_out, ext_m, str(lib), maps)
+    _LOADED[digest] = (ext_dae, ext_out, ext_m, str(lib), maps, many)
     return Compiled(ext_dae, ext_out, perm, "compiled", time.perf_counter() - t0, cached, str(lib), digest,
-                    maps=_thread_maps(maps), design_values=zvals, margins=ext_m)
+                    maps=_thread_maps(maps), design_values=zvals, margins=ext_m, outputs_many=many[0],
+                    margins_many=many[1])
 
 
 def _thread_maps(maps: dict) -> dict:
@@ -336,6 +422,8 @@ def evaluate_outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> di
     T = t.size
     if T == 0:
         return {k: np.zeros((0, n)) for k in OUTPUT_NAMES}
+    if comp.outputs_many is not None:
+        return dict(zip(OUTPUT_NAMES, comp.outputs_many(T, t, X, comp.pvals)))
     fm = comp.maps.get(T)
     if fm is None:
         # one serial map over the chunk, the plant parameters shared (reduce_in), evaluated on numpy buffers
