@@ -4,9 +4,7 @@ without its record is refused, damaged files are named, bad scheduler addresses 
 
 from __future__ import annotations
 
-import copy
 import json
-import shutil
 import subprocess
 import sys
 import time

@@ -271,7 +271,6 @@ def test_input_gain_proven_lower_bound_holds_at_1e5_random_points(name, tmp_path
 
 def _ordinary_batch(prob, X, names):
     """The ordinary design functions (not the rewritten graph) at many region points."""
-    out = {k: [] for k in names}
     pts = [prob.state_point(prob.point(x)) for x in X]
     keys = ["t", "q", "dq", "qd", "dqd", "ddqd", "p", *prob.state_names]
     K = len(pts)

@@ -3,7 +3,6 @@ derive --latex, and simulation failures that say why and what to change."""
 
 from __future__ import annotations
 
-import copy
 import re
 import shutil
 import subprocess

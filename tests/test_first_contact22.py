@@ -4,8 +4,6 @@ that say what to do, and the on-ramps (init --from, Scenario.replace, mimic join
 from __future__ import annotations
 
 import math
-import os
-import signal
 import time
 from pathlib import Path
 

@@ -60,7 +60,7 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     if invariant:
         m, m_source = float(inv.extra["m"]), "the margin the invariance certificate proves"
     else:
-        m, m_source = BOUNDS_MARGIN, f"BOUNDS_MARGIN (no invariance certificate gives one)"
+        m, m_source = BOUNDS_MARGIN, "BOUNDS_MARGIN (no invariance certificate gives one)"
     states = {}
     w_source = None
     if d.n_regressor:

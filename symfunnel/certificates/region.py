@@ -62,13 +62,11 @@ def parameter_box(scenario) -> ParameterBox:
         a, b = (float(v) for v in unc.extremes())
         keys.append(unc.key)
         if unc.key in ("initial.q", "initial.dq"):
-            base = np.asarray(scenario.q0 if unc.key == "initial.q" else scenario.dq0, dtype=float)
             box = (np.full(n, a), np.full(n, b))
             if unc.key == "initial.q":
                 q0 = box
             else:
                 dq0 = box
-            del base
             continue
         cols = [k for k in names if k == unc.key or k.startswith(unc.key + "[")]
         for k in cols:

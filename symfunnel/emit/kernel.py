@@ -203,7 +203,7 @@ def shared_source(design, F: str) -> str:
     esn = design.variant.approximator.esn
     return "\n".join([
         "",
-        f"/* ---- loops over the reservoir and the weights, sizes fixed at generation (emit/kernel.py) ---- */",
+        "/* ---- loops over the reservoir and the weights, sizes fixed at generation (emit/kernel.py) ---- */",
         "#include <stdint.h>",
         "#include <string.h>",
         template("sf_tanh.h").replace("@P@", F + "sk_"),

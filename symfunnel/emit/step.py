@@ -87,7 +87,7 @@ class Projection:
 
     def __init__(self, design):
         s, S = design.sym, design.signals
-        self.t, self.q, self.dq = t, q, dq = s["t"], s["q"], s["dq"]
+        self.t, self.q, self.dq = _, q, dq = s["t"], s["q"], s["dq"]
         self._ref_syms = [s["qd"], s["dqd"], s["ddqd"]]
         self._ref_t = [design.reference_t[k] for k in ("qd", "dqd", "ddqd")]
         F1, F2 = self.ref(S["F1"]), self.ref(S["F2"])

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..core.errors import InputError
 from ..core.names import IDENT, KEYWORDS
-from ..core.validate import as_float, did_you_mean, get_list, join, a_type, type_name
+from ..core.validate import as_float, did_you_mean, get_list, join, a_type
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 SNAP = 1e-14           # rotation-matrix entries this close to 0 are exactly 0 (rpy of pi/2 and the like)

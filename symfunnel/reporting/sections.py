@@ -20,7 +20,6 @@ from .mathml import (
     WIDTH_CLAIM,
     WIDTH_PAGE,
     WIDTH_SIGNAL,
-    WIDTH_TABLE,
     claim_sympy,
     formula_html,
     mathml_body,

@@ -10,7 +10,6 @@ report can embed `sweep_section(...)` the same way as its other sections.
 from __future__ import annotations
 
 import html
-import json
 from pathlib import Path
 
 import numpy as np

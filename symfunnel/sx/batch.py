@@ -368,7 +368,6 @@ def _compile(tape, in_off, out_off):
     deps: list[int] = []                    # per failing instruction (in culprit numbering), its inputs' bitmask
     outs = [None] * out_off[-1]
     ns = {"np": np}
-    consts: dict = {}
     # slots carry a mask of "value computed under a certainly-false if-else condition": such a branch's domain
     # errors do not count (CasADi evaluates both branches and multiplies the dead one by 0)
     for ins in tape.instructions:
