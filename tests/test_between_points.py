@@ -234,6 +234,8 @@ def test_margin_scan_blocks_give_the_pointwise_margins(paper_run, count):
     assert np.array_equal(vm, design)
     blocks = MarginScan(dataclasses.replace(comp, margins_many=None), cl.slices).margins(t, q, dq)
     assert np.array_equal(blocks, got)                 # CasADi's map of the library's function, block by block
+    with pytest.raises(ValueError, match="not bound"):
+        MarginScan(compile_closed_loop(cl), cl.slices)    # the margins need the run's [plant p; z]
 
 
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])
@@ -259,6 +261,17 @@ def test_the_logged_signals_in_one_call_are_casadis_map_bit_for_bit(which, tmp_p
             assert np.array_equal(a[k], b[k], equal_nan=True), k
     with pytest.raises(ValueError, match="input 1"):
         comp.outputs_many(3, np.zeros(3), np.zeros((2, cl.nx)), comp.pvals)
+
+
+def test_a_function_with_a_sparse_output_is_not_evaluated_in_one_call():
+    """Many writes nnz values per point: a sparse output (whose signal CasADi's map densifies) is refused."""
+    import casadi as ca
+    from symfunnel.simulation.compiled import Many
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("f", [x], [ca.vertcat(x[0], ca.SX(1, 1))])
+    assert not f.sparsity_out(0).is_dense()
+    with pytest.raises(ValueError, match="dense"):
+        Many("no-such-library.so", f, ())
 
 
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])

@@ -71,6 +71,8 @@ class MarginScan:
 
     def __init__(self, comp, slices: dict, design=None):
         self._many = comp.margins_many        # all points in one call into the library (compiled.Many)
+        if comp.margins is not None and comp.pvals is None:
+            raise ValueError("the compiled loop is not bound to a run's parameters (Compiled.bind)")
         self._p = None if comp.margins is None else np.asarray(comp.pvals, dtype=float)
         if self._p is None:
             if design is None:

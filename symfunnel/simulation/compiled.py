@@ -144,6 +144,8 @@ class Many:
 
     def __init__(self, library: str, f: ca.Function, shared: tuple[int, ...]):
         import ctypes
+        if not Buffered.supports(f):
+            raise ValueError(f"{f.name()}_many takes and gives dense values only")
         self._ct = ctypes
         self._c = getattr(ctypes.CDLL(library), f.name() + "_many")
         self._c.restype = ctypes.c_int
@@ -325,7 +327,9 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
         ext_dae = ca.external("symfunnel_ode", str(lib))
         ext_out = ca.external("symfunnel_outputs", str(lib))
         ext_m = ca.external("symfunnel_margins", str(lib)) if margins is not None else None
-        many = (Many(str(lib), outputs, (2,)), Many(str(lib), margins, (3,)) if margins is not None else None)
+        # (a sparse output keeps CasADi's map: its signals are densified there)
+        many = (Many(str(lib), outputs, (2,)) if Buffered.supports(outputs) else None,
+                Many(str(lib), margins, (3,)) if margins is not None and Buffered.supports(margins) else None)
     except (AttributeError, OSError) as exc:          # a library without the _many entry points: an old cache
         warnings.warn(f"loading {lib} failed ({exc}); simulating on the CasADi virtual machine", RuntimeWarning,
                       stacklevel=2)
