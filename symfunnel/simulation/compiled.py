@@ -1,5 +1,7 @@
-"""The closed loop compiled for the integrator: its DAE function (states permuted), the Newton Jacobian and the
-logged-signals function, generated as C, compiled once (cached by `core.ccompile`) and loaded, or on the CasADi VM.
+"""The closed loop compiled for the integrator: its DAE function (states permuted), the Newton Jacobian, the
+logged-signals function and the margins the scan between samples evaluates, generated as C with entry points that
+evaluate the last two at a whole chunk's points in one call (`many_source`), compiled once (cached by
+`core.ccompile`) and loaded, or on the CasADi VM.
 """
 
 from __future__ import annotations
