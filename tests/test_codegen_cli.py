@@ -105,3 +105,30 @@ def test_generated_python_matches_casadi_at_the_funnel_edge(paper_run):
     files = paper_run.code("python")
     report = check_output(paper_run.design, "python", files, points=2000, fill=0.999)
     assert report.worst <= 1e-13
+
+
+@pytest.mark.parametrize("signalled", [False, True])
+def test_a_check_stopped_by_a_signal_writes_nothing_a_failing_one_writes_for_reading(tmp_path, monkeypatch, capsys,
+                                                                                   signalled):
+    """A RuntimeError out of the check is a failed check (the files are written to read, exit 1) unless it is a
+    SIGTERM that a C call turned into one (CasADi's "... KeyboardInterrupt"): then the command stops with 143 and
+    writes nothing. Found by the twenty-SIGTERM test: exit 143, and the output there."""
+    import signal
+
+    from symfunnel.core import lifecycle
+    from symfunnel.emit import check
+
+    def failing(*a, **k):
+        if signalled:
+            lifecycle._pending.append(int(signal.SIGTERM))       # what the handler records before CasADi throws
+            raise RuntimeError("Error in Function::call for 'f' [MXFunction] at .../casadi: KeyboardInterrupt")
+        raise RuntimeError("gcc: error: main.c: no such file")
+    monkeypatch.setattr(check, "check_output", failing)
+    out = tmp_path / "o"
+    code = main(["codegen", "--lang", "python", "--out", str(out), "--check", "-q"])
+    err = capsys.readouterr().err
+    if signalled:
+        assert code == 143 and not out.exists() and "terminated by signal 15" in err
+        assert sorted(p.name for p in tmp_path.iterdir()) == []
+    else:
+        assert code == 1 and (out / "symfunnel_controller.py").is_file() and "no such file" in err

@@ -73,6 +73,10 @@ def run(args) -> int:
             report = check_output(design, args.lang, files, points=args.points, seed=args.seed)
         except RuntimeError as exc:            # compiler diagnostics, a failing main.c: the check failed
             from ..core.errors import CheckFailed
+            from ..core.lifecycle import reraise_interrupt
+            # unless it is a signal or the limit that a C call turned into a RuntimeError (CasADi's "...
+            # KeyboardInterrupt"): a stopped command writes nothing (the twenty-SIGTERM test found it writing)
+            reraise_interrupt(exc)
             write_output(files, args.out, force=args.force)
             raise CheckFailed(f"codegen --check: {exc}") from None
         code = 0 if report.passed else 1
