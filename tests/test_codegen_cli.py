@@ -132,3 +132,29 @@ def test_a_check_stopped_by_a_signal_writes_nothing_a_failing_one_writes_for_rea
         assert sorted(p.name for p in tmp_path.iterdir()) == []
     else:
         assert code == 1 and (out / "symfunnel_controller.py").is_file() and "no such file" in err
+
+
+def test_the_reports_code_check_stops_at_a_signal_a_c_call_turned_into_an_error(paper_run, monkeypatch):
+    """codegen_summary shows why a language could not be checked (the report's code section), except a signal
+    that surfaced as a RuntimeError: that stops the report (Terminated), instead of a section saying
+    'KeyboardInterrupt' and a report committed after the signal."""
+    import signal
+
+    from symfunnel.core import lifecycle
+    from symfunnel.emit import check
+
+    def failing(*a, **k):
+        raise RuntimeError("gcc: error: main.c: no such file")
+    monkeypatch.setattr(check, "check_output", failing)
+    s = check.codegen_summary(paper_run.design, paper_run.code_trajectory)
+    assert s["languages"]["c"]["check"] is None and "no such file" in s["languages"]["c"]["error"]
+
+    def signalled(*a, **k):
+        lifecycle._pending.append(int(signal.SIGTERM))
+        raise RuntimeError("Error in Function::call for 'f' [MXFunction]: KeyboardInterrupt")
+    monkeypatch.setattr(check, "check_output", signalled)
+    try:
+        with pytest.raises(lifecycle.Terminated):
+            check.codegen_summary(paper_run.design, paper_run.code_trajectory)
+    finally:
+        lifecycle._pending.clear()

@@ -362,6 +362,8 @@ def codegen_summary(design: Design, trajectory: dict, *, points: int = 1000) -> 
                     find_compiler()
                 entry["check"] = check_output(design, lang, files[lang], pts=pts).to_json()
             except Exception as exc:  # noqa: BLE001 - the report shows why a language could not be checked
+                from ..core.lifecycle import reraise_interrupt
+                reraise_interrupt(exc)        # a signal or the limit a C call turned into an error: stop, not show
                 entry["check"] = None
                 entry["error"] = f"{type(exc).__name__}: {exc}"
             out["languages"][lang] = entry
