@@ -158,3 +158,4 @@ def test_the_reports_code_check_stops_at_a_signal_a_c_call_turned_into_an_error(
             check.codegen_summary(paper_run.design, paper_run.code_trajectory)
     finally:
         lifecycle._pending.clear()
+

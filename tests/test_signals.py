@@ -500,3 +500,27 @@ def test_sigterm_at_twenty_random_instants_exits_143_within_two_seconds_and_leav
             import shutil
             shutil.rmtree(tmp_path / "out")
     assert failures == []
+
+
+def test_a_signal_recorded_before_the_commit_stops_it_and_one_during_it_is_late():
+    """committing: a signal recorded before the block and swallowed on its way (a C call turned it into an error
+    that a report section showed) raises at the block's start, so the command stops before its output; one that
+    arrives inside the block is late (the output stands, the exit code is the command's)."""
+    from symfunnel.core import lifecycle
+    written = []
+    try:
+        lifecycle._pending.append(int(signal.SIGTERM))
+        with pytest.raises(lifecycle.Terminated):
+            with lifecycle.committing(0):
+                written.append("output")
+        assert written == [] and lifecycle._state["committed"] is None
+        lifecycle._pending.clear()
+        with lifecycle.committing(0):
+            lifecycle._raise(int(signal.SIGTERM), None)       # the handler, inside the block: deferred
+            written.append("output")
+        assert written == ["output"] and lifecycle._state["committed"] == 0
+        assert lifecycle.late_signal() == int(signal.SIGTERM) and lifecycle._pending == []
+    finally:
+        lifecycle._pending.clear()
+        lifecycle._state["committed"] = None
+        lifecycle._state["late"] = None

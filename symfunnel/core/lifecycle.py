@@ -98,7 +98,10 @@ def committing(code: int = 0):
     block; once it has completed, the command has succeeded, and a signal that arrived during it or arrives later
     neither undoes nor denies that: the command prints what is left and exits with its own code (`code`, should the
     watchdog have to end a process that does not get there), one line saying the signal came too late
-    (`late_signal`). A block that fails raises the signal as `signals_deferred` does."""
+    (`late_signal`). A block that fails raises the signal as `signals_deferred` does. A signal recorded before the
+    block and swallowed on its way (a C call turned it into an error that a report section showed) stops the
+    command here: it came before the output, not after."""
+    check()
     _state["deferred"] += 1
     ok = False
     try:
