@@ -209,10 +209,11 @@ def test_ten_output_steps_are_enough():
 
 @pytest.mark.parametrize("count", [1, 15, 16, 17, 768, 4096, 5000])
 def test_margin_scan_blocks_give_the_pointwise_margins(paper_run, count):
-    """The scan's mapped evaluation in blocks of 4096, 1024, 256, 64 and 16 points gives, bit for bit, its margin
-    function called at each point alone, whatever the count (a tail shorter than the smallest block included): the
-    loop's compiled one with the run's parameters, and the design's where the loop has none; the two agree to
-    rounding (one from the closed loop's graph, the other from the design's signals)."""
+    """The scan's evaluation -- all points in one call into the library, or CasADi's map in blocks of 4096, 1024,
+    256, 64 and 16 points -- gives, bit for bit, its margin function called at each point alone, whatever the count
+    (a tail shorter than the smallest block included): the loop's compiled one with the run's parameters, and the
+    design's where the loop has none; the two agree to rounding (one from the closed loop's graph, the other from
+    the design's signals)."""
     import dataclasses
     from symfunnel.simulation.between import MarginScan, margin_function
     from symfunnel.simulation.compiled import compile_closed_loop
@@ -271,7 +272,7 @@ def test_a_function_with_a_sparse_output_is_not_evaluated_in_one_call():
     f = ca.Function("f", [x], [ca.vertcat(x[0], ca.SX(1, 1))])
     assert not f.sparsity_out(0).is_dense()
     with pytest.raises(ValueError, match="dense"):
-        Many("no-such-library.so", f, ())
+        Many("no-such-library.so", f)
 
 
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])

@@ -90,15 +90,16 @@ class MarginScan:
         f = self._f.get(key)
         if f is None:
             from .compiled import Buffered
+            from .compiled import shared_inputs
             mapped = (self._margin.map(size) if self._p is None
-                      else self._margin.map("scan_map", "serial", size, [3], []))
+                      else self._margin.map("scan_map", "serial", size, shared_inputs(self._margin), []))
             f = self._f[key] = Buffered(mapped)
         return f
 
     def margins(self, t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
         """Margins (B, 2n) at times t (B,) and joint states q, dq (B, n)."""
         B = t.size
-        if self._many is not None and self._p is not None:
+        if self._many is not None:
             return self._many(B, t, q, dq, self._p)[0]
         out = np.empty((B, self.width))
         a = 0

@@ -102,12 +102,19 @@ def _parameters(cl: ClosedLoop) -> tuple[ca.SX, ca.SX, dict, np.ndarray]:
     return ca.vertcat(cl.p, cl.z), cl.xdot_pz, cl.signals_pz, np.asarray(cl.z0, dtype=float)
 
 
-def many_source(f: ca.Function, shared: tuple[int, ...]) -> str:
+def shared_inputs(f: ca.Function) -> list[int]:
+    """The inputs every point of a chunk shares: the parameter vector "p" ([plant p; z]) of the outputs and the
+    margins."""
+    return [f.name_in().index("p")]
+
+
+def many_source(f: ca.Function) -> str:
     """C of `<name>_many(T, in, out)`: the generated function f at T points in one call -- the evaluation CasADi's
     serial map makes, without its dispatch at every point (a tenth of the paper run's time). in[i] holds the T
-    points of input i one after another (the inputs in `shared`: one value for all), out[i] receives output i
+    points of input i one after another (the `shared_inputs`: one value for all), out[i] receives output i
     column-major (T x nnz), the layout the logged signals keep."""
     name = f.name()
+    shared = shared_inputs(f)
     nnz_in = [f.nnz_in(i) for i in range(f.n_in())]
     nnz_out = [f.nnz_out(i) for i in range(f.n_out())]
     flags = [1 if i in shared else 0 for i in range(f.n_in())]
@@ -144,7 +151,7 @@ class Many:
     """`<name>_many` of a loaded library (`many_source`) through ctypes: the function at T points in one call,
     bit for bit what its serial map gives."""
 
-    def __init__(self, library: str, f: ca.Function, shared: tuple[int, ...]):
+    def __init__(self, library: str, f: ca.Function):
         import ctypes
         if not Buffered.supports(f):
             raise ValueError(f"{f.name()}_many takes and gives dense values only")
@@ -155,7 +162,7 @@ class Many:
         self.name = f.name()
         self.nnz_in = [f.nnz_in(i) for i in range(f.n_in())]
         self.nnz_out = [f.nnz_out(i) for i in range(f.n_out())]
-        self.shared = shared
+        self.shared = shared_inputs(f)
 
     def __call__(self, T: int, *inputs) -> list[np.ndarray]:
         """The outputs (each (T, nnz), column-major) at T points: input i given as T rows of its nnz values, or,
@@ -304,9 +311,9 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
             if margins is not None:
                 cg.add(margins)
             cg.generate(tmp + os.sep)
-            src = Path(tmp, "symfunnel_cl.c").read_bytes() + many_source(outputs, (2,)).encode()
+            src = Path(tmp, "symfunnel_cl.c").read_bytes() + many_source(outputs).encode()
             if margins is not None:
-                src += many_source(margins, (3,)).encode()
+                src += many_source(margins).encode()
         deadline.check()                       # generating the Jacobian is one CasADi call no signal interrupts
         return {"symfunnel_cl.c": src}
 
@@ -330,8 +337,8 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
         ext_out = ca.external("symfunnel_outputs", str(lib))
         ext_m = ca.external("symfunnel_margins", str(lib)) if margins is not None else None
         # (a sparse output keeps CasADi's map: its signals are densified there)
-        many = (Many(str(lib), outputs, (2,)) if Buffered.supports(outputs) else None,
-                Many(str(lib), margins, (3,)) if margins is not None and Buffered.supports(margins) else None)
+        many = (Many(str(lib), outputs) if Buffered.supports(outputs) else None,
+                Many(str(lib), margins) if margins is not None and Buffered.supports(margins) else None)
     except (AttributeError, OSError) as exc:          # a library without the _many entry points: an old cache
         warnings.warn(f"loading {lib} failed ({exc}); simulating on the CasADi virtual machine", RuntimeWarning,
                       stacklevel=2)
@@ -433,7 +440,7 @@ def evaluate_outputs(comp: Compiled, n: int, t: np.ndarray, X: np.ndarray) -> di
     fm = comp.maps.get(T)
     if fm is None:
         # one serial map over the chunk, the plant parameters shared (reduce_in), evaluated on numpy buffers
-        f = comp.outputs.map("outputs_map", "serial", T, [2], [])
+        f = comp.outputs.map("outputs_map", "serial", T, shared_inputs(comp.outputs), [])
         while len(comp.maps) >= MAX_MAPS:
             comp.maps.pop(next(iter(comp.maps)))
         fm = comp.maps[T] = Buffered(f) if Buffered.supports(f) else f

@@ -179,13 +179,14 @@ class Runner:
         self._count(st)
         s = self.last_density = chosen["sub"]
         X = Xp[:, self.inv]
+        none = np.zeros(0), np.zeros((0, x0.size))
         if s <= 1:
-            return X, np.zeros(0), np.zeros((0, x0.size))
+            return X, *none
         if Y is None:                                   # the kept steps did not fit in memory
             try:
                 Xg = self.run(t0, x0, K, sub=s, count=False)
             except RuntimeError:
-                return X, np.zeros(0), np.zeros((0, x0.size))
+                return X, *none
             Y = Xg[np.arange(Xg.shape[0]) % s != 0]
             return self._with_first_step(t0, x0, K, s, X, Y)
         return self._with_first_step(t0, x0, K, s, X, Y[:, self.inv])
