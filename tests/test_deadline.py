@@ -119,17 +119,20 @@ def test_the_compiler_is_killed_with_its_children_at_the_limit(tmp_path):
     assert alive in ("", "Z"), f"the compiler's child {pid} survived the limit ({alive})"
 
 
-def _big_esn(tmp_path: Path, size: int) -> Path:
+def _big_esn(tmp_path: Path, size: int, wall_limit: float | None = None, name: str = "big.toml") -> Path:
+    """The paper's scenario with a reservoir of `size` units (and `[simulation] wall_limit`, if given)."""
     text = PAPER.read_text()
     lines = text.splitlines()
-    out, in_esn = [], False
+    out, section = [], None
     for line in lines:
         if line.startswith("["):
-            in_esn = line.strip() == "[esn]"
-        if in_esn and line.startswith("size ="):
+            section = line.strip()
+        if section == "[esn]" and line.startswith("size ="):
             line = f"size = {size}"
         out.append(line)
-    p = tmp_path / "big.toml"
+        if line.strip() == "[simulation]" and wall_limit is not None:
+            out.append(f"wall_limit = {wall_limit:g}")
+    p = tmp_path / name
     p.write_text("\n".join(out) + "\n")
     return p
 
@@ -142,17 +145,85 @@ def _cli(args, **kw):
     return r, time.monotonic() - t0
 
 
+def _timeout_step(line: str, seconds: str) -> str:
+    """The step named by the CLI's timeout line of a `seconds` s limit."""
+    head = f"symfunnel: timeout: wall-clock limit of {seconds} s reached while "
+    assert line.startswith(head), line
+    return line[len(head):line.index(" (after ")]
+
+
 @pytest.mark.slow
 def test_derive_of_the_largest_reservoir_stops_at_the_limit(tmp_path):
-    big = _big_esn(tmp_path, 2000)
-    r, wall = _cli(["derive", str(big), "-q", "--json", "--wall-limit", "2"], cache=tmp_path / "cache")
-    assert r.returncode == 1, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("symfunnel: timeout: wall-clock limit of 2 s reached while")
-    assert r.stdout == ""
-    # the step that was interrupted is named, and the limit held to within the longest uninterruptible call
-    assert "deriving the design" in lines[0]
-    assert wall < 30.0
+    """`derive --wall-limit 2` of a 2000-unit reservoir stops with one line naming one of derive's steps, never the
+    bare "working". That limit counts from the command's start, so under load it may land in loading the scenario
+    (importing casadi and numpy, reading the file) as well as in the derivation (a clean-clone run under load read
+    "while working": the loading ran outside any step). The scenario's `[simulation] wall_limit` counts from the
+    derivation's start, so that one must land in the derivation (many seconds at 2000 units): its line names
+    "deriving the design". The two runs go at once (each is its interpreter's start and its limit)."""
+    from symfunnel.commands import derive
+    env = dict(os.environ, SYMFUNNEL_CACHE=str(tmp_path / "cache"))
+    runs = []
+    for argv in (["derive", str(_big_esn(tmp_path, 2000)), "-q", "--json", "--wall-limit", "2"],
+                 ["derive", str(_big_esn(tmp_path, 2000, wall_limit=1, name="staged.toml")), "-q", "--json"]):
+        runs.append((subprocess.Popen([sys.executable, "-m", "symfunnel", *argv], stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True, env=env), time.monotonic()))
+    done = []
+    for p, t0 in runs:
+        out, err = p.communicate(timeout=600)
+        done.append((p.returncode, out, err, time.monotonic() - t0))
+    steps = []
+    for (rc, out, err, wall), seconds in zip(done, ("2", "1")):
+        assert rc == 1, err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, lines
+        steps.append(_timeout_step(lines[0], seconds))
+        assert out == ""
+        assert wall < 30.0                 # the limit held to within the longest uninterruptible call
+    # the step that was interrupted is named: one of derive's, and one it can be in 2 s after its start (deriving
+    # 2000 units takes far longer, so counting the signals' operations cannot have started)
+    assert steps[0] in derive.STEPS and steps[0] in (derive.LOADING, derive.DERIVING), steps
+    assert steps[1] == "deriving the design"
+
+
+@pytest.mark.parametrize("phase", ["loading", "counting", "evaluating", "writing"])
+def test_each_phase_of_derive_names_its_step_at_the_limit(tmp_path, monkeypatch, capsys, phase):
+    """Every phase of `derive` runs under a named step: a limit reached while reading the scenario, counting the
+    signals' operations (tens of seconds at 2000 units), evaluating them at --eval points or writing --latex names
+    that phase, not "working" (the first two ran outside any step)."""
+    import symfunnel.design as design_mod
+    import symfunnel.pipeline as pipeline
+    import symfunnel.scenario as scenario_mod
+    from symfunnel.cli import main
+    from symfunnel.commands import derive
+
+    def slow(*a, **k):
+        time.sleep(30.0)                          # the alarm interrupts the sleep
+
+    class FakeDesign:
+        signal_info, signals = {"tau": None}, {"tau": type("SX", (), {"shape": (2, 1)})()}
+        ops = staticmethod(slow if phase == "counting" else (lambda k: 1))
+        free_symbols = staticmethod(lambda k: [])
+
+    class FakeRun:
+        def __init__(self, sc, *a, **k):
+            self.design = FakeDesign()
+
+    monkeypatch.setattr(scenario_mod, "load_scenario", slow if phase == "loading" else (lambda name: object()))
+    monkeypatch.setattr(pipeline, "Run", FakeRun)
+    monkeypatch.setattr(design_mod, "evaluate", slow)
+    monkeypatch.setattr(derive, "_write_latex", slow)
+    points = tmp_path / "p.json"
+    points.write_text('{"t": 0, "q": [0, 0], "dq": [0, 0]}')
+    argv = ["derive", "-q", "--wall-limit", "0.3"]
+    argv += {"evaluating": ["--eval", str(points)], "writing": ["--latex", str(tmp_path / "d.tex")]}.get(phase, [])
+    t0 = time.monotonic()
+    assert main(argv) == 1
+    assert time.monotonic() - t0 < 5.0
+    err = capsys.readouterr().err.strip().splitlines()
+    expected = {"loading": "loading the scenario", "counting": "counting the signals' operations and free variables",
+                "evaluating": "evaluating the signals at the points", "writing": "writing the LaTeX"}[phase]
+    assert len(err) == 1 and _timeout_step(err[0], "0.3") == expected, err
+    assert not (tmp_path / "d.tex").exists()
 
 
 @pytest.mark.slow

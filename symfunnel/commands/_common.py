@@ -23,9 +23,16 @@ def _dump(obj) -> str:
     return json.dumps(json_safe(obj), indent=2, allow_nan=False)
 
 
+#: the step of reading the scenario (and importing what reads it), named in the message of a limit reached there
+LOADING = "loading the scenario"
+
+
 def _load(args):
-    from ..scenario import load_scenario
-    return load_scenario(args.scenario)
+    """The command's scenario, read under the step LOADING (a limit reached meanwhile names it, not "working")."""
+    from ..core import deadline
+    with deadline.step(LOADING):
+        from ..scenario import load_scenario
+        return load_scenario(args.scenario)
 
 
 def add_plant_option(sp) -> None:

@@ -35,14 +35,17 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Generate, write atomically, and optionally cross-check."""
-    from ..emit.check import FILL, check_output
-    from ..emit.files import foreign_files, write_output
-    from ._common import _progress
-    from ..core.errors import InputError
-    from ..core.outputs import check_count
-    from ..pipeline import Run
-    from ..emit.step import valid_prefix
-    from ..scenario.implementation import check_rate
+    from ..core import deadline
+    from ._common import LOADING
+    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+        from ..emit.check import FILL, check_output
+        from ..emit.files import foreign_files, write_output
+        from ._common import _progress
+        from ..core.errors import InputError
+        from ..core.outputs import check_count
+        from ..pipeline import Run
+        from ..emit.step import valid_prefix
+        from ..scenario.implementation import check_rate
     check_count(args.points, key="--points", minimum=1000, maximum=MAX_POINTS, what="a number of check points")
     check_count(args.seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")
     if Path(args.out).exists() and not Path(args.out).is_dir():
@@ -58,7 +61,8 @@ def run(args) -> int:
             if value is not None:
                 raise InputError(f"is given with --lang {args.lang}", key=opt,
                                  expected="--lang c (the Python module has no step API to name or time)")
-    run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
+    with deadline.step(LOADING):            # a limit reached in reading the scenario names it, not "working"
+        run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
     sc, design = run.scenario, run.design
     files = run.code(args.lang, prefix=args.prefix, rate_hz=args.rate)
     from ..core.lifecycle import committing

@@ -4,7 +4,15 @@ and free variables, their values at points, or a LaTeX document of them."""
 from __future__ import annotations
 
 from ..core.errors import InputError
-from ._common import _dump, _load
+from ._common import LOADING, _dump, _load
+
+#: the steps of `derive`, in order; each phase runs under one of them (deadline.step), so a wall-clock limit reached
+#: anywhere in the command names what it was doing
+DERIVING = "deriving the design"             # Run.design's step
+EVALUATING = "evaluating the signals at the points"
+COUNTING = "counting the signals' operations and free variables"
+WRITING = "writing the LaTeX"
+STEPS = (LOADING, DERIVING, EVALUATING, COUNTING, WRITING)
 
 
 def register(sub, common) -> None:
@@ -27,22 +35,25 @@ def _read_points(path: str):
 
 def cmd_derive(args) -> int:
     """`symfunnel derive`: signals with size and free variables; --eval values at points; --latex formulas."""
-    from ..design import evaluate
-    from ..core.names import compress_names
-    from ..pipeline import Run
+    from ..core import deadline
     if args.latex:
         from ..core.outputs import check_output_file
         check_output_file(args.latex, key="--latex")
-    sc = _load(args)
-    d = Run(sc).design
+    with deadline.step(LOADING):        # the imports of casadi, numpy and the design take a second under load
+        from ..design import evaluate
+        from ..core.names import compress_names
+        from ..pipeline import Run
+        sc = _load(args)
+    d = Run(sc).design                  # under its own step, DERIVING
     if args.eval:
-        data = _read_points(args.eval)
-        if isinstance(data, list):
-            if not data:
-                raise InputError("is an empty list", file=args.eval, expected="at least one point")
-            values = [evaluate(d, p, file=args.eval, key=f"[{i}]") for i, p in enumerate(data)]
-        else:
-            values = evaluate(d, data, file=args.eval)
+        with deadline.step(EVALUATING):
+            data = _read_points(args.eval)
+            if isinstance(data, list):
+                if not data:
+                    raise InputError("is an empty list", file=args.eval, expected="at least one point")
+                values = [evaluate(d, p, file=args.eval, key=f"[{i}]") for i, p in enumerate(data)]
+            else:
+                values = evaluate(d, data, file=args.eval)
         if args.json:
             print(_dump({"values": values}))
         else:
@@ -56,11 +67,12 @@ def cmd_derive(args) -> int:
         return 0
     names = list(d.signal_info)
     info = {}
-    for k in names:
-        info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
+    with deadline.step(COUNTING):       # tens of seconds for a large reservoir
+        for k in names:
+            info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
     if args.latex:
         from ..core.lifecycle import committing
-        with committing():              # the command's one file: from here on it has succeeded
+        with deadline.step(WRITING), committing():      # the command's one file: from here on it has succeeded
             _write_latex(d, names, args.latex)
     if args.json:
         print(_dump({"scenario": sc.name, "signals": info}))

@@ -23,9 +23,12 @@ def run(args) -> int:
     """Search, print (table or JSON); exit 1 when no rate up to 1 MHz holds."""
     import math
 
-    from ._common import _dump, _engine, _load, _progress
-    from ..core.errors import InputError
-    from ..deployed.rate import min_rate
+    from ..core import deadline
+    from ._common import LOADING
+    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+        from ._common import _dump, _engine, _load, _progress
+        from ..core.errors import InputError
+        from ..deployed.rate import min_rate
     if not (math.isfinite(args.margin) and 0 <= args.margin < 1):
         raise InputError(f"is {args.margin:g}", key="--margin", expected="a number in [0, 1)")
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):

@@ -31,10 +31,13 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Write the report and print its path. Failed checks are shown in the report; the exit code is still 0."""
-    from ._common import _engine, _load, _progress
-    from ..core.outputs import check_count, check_output_file
-    from ..pipeline import Run, RunOptions
-    from ..reporting import build_report, default_path
+    from ..core import deadline
+    from ._common import LOADING
+    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+        from ._common import _engine, _load, _progress
+        from ..core.outputs import check_count, check_output_file
+        from ..pipeline import Run, RunOptions
+        from ..reporting import build_report, default_path
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     if args.sweep:
         from ..reporting.sweep import write_sweep_page

@@ -44,9 +44,12 @@ def print_checks(checks, indent: str = "  ") -> None:
 
 def run(args) -> int:
     """Run every check; print a table (or JSON); exit 1 exactly when an outcome is not the declared one."""
-    from ._common import _dump, _engine, _load, _progress
-    from ..core.outputs import check_count
-    from ..pipeline import Run, RunOptions
+    from ..core import deadline
+    from ._common import LOADING
+    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+        from ._common import _dump, _engine, _load, _progress
+        from ..core.outputs import check_count
+        from ..pipeline import Run, RunOptions
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     if args.rate is not None:
         from ..scenario.implementation import check_rate
