@@ -31,6 +31,19 @@ def pytest_xdist_auto_num_workers(config):
     return cores + 1
 
 
+def pytest_collection_modifyitems(session, config, items):
+    """Modules with more `slow` tests run first (each module kept whole, in its own order): xdist hands tests out in
+    collection order, and alphabetical order put the long tune and twin tests last, where one worker ran them alone
+    while the others idled. A module stays contiguous so that its module-scoped fixtures are built no more often."""
+    slow: dict[str, int] = {}
+    first: dict[str, int] = {}
+    for i, item in enumerate(items):
+        mod = item.nodeid.split("::", 1)[0]
+        first.setdefault(mod, i)
+        slow[mod] = slow.get(mod, 0) + (item.get_closest_marker("slow") is not None)
+    items.sort(key=lambda it: (-slow[it.nodeid.split("::", 1)[0]], first[it.nodeid.split("::", 1)[0]]))
+
+
 @pytest.fixture(scope="session")
 def paper():
     """The built-in paper scenario."""
