@@ -27,6 +27,21 @@ def _verify(path, capsys, *extra):
     return code, out, {c["id"]: c for c in out["checks"]}
 
 
+@pytest.fixture(scope="module")
+def perfect_verify(tmp_path_factory):
+    """verify of PERFECT with the FAST options, run once for the module: (code, out, checks by id). The two tests
+    that read it ran the same command on the same scenario text each."""
+    import contextlib
+    import io
+    path = tmp_path_factory.mktemp("perfect") / "s.toml"
+    path.write_text(PERFECT, encoding="utf-8")
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main(["verify", str(path), "--json", *FAST])
+    out = json.loads(buf.getvalue())
+    return code, out, {c["id"]: c for c in out["checks"]}
+
+
 def test_paper_passes_the_gate_with_its_findings_declared(paper_run, capsys):
     code, out, ids = _verify("paper", capsys)
     assert code == 0 and out["status"] == "pass" and out["unexpected"] == []
@@ -55,8 +70,8 @@ def test_undeclared_input_gain_failure_fails_the_gate(write_scenario, capsys):
     assert ev["lambda_min"] < 0 < ev["lambda_min_without_dead_zone"]
 
 
-def test_input_gain_passes_without_a_dead_zone_and_fails_with_disparate_slopes(write_scenario, capsys):
-    _, _, ids = _verify(write_scenario(PERFECT), capsys)
+def test_input_gain_passes_without_a_dead_zone_and_fails_with_disparate_slopes(write_scenario, capsys, perfect_verify):
+    _, _, ids = perfect_verify
     assert ids["assumption.input_gain"]["status"] == "pass"
     # M^-1 D M with D = diag(1, 0.2): an independent numpy computation of the smallest eigenvalue it must find
     text = PERFECT + '\n[plant.dead_zone]\nb_l = -0.1\nb_r = 0.1\nleft = "u - b_l"\nright = "u - b_r"\n'
@@ -86,8 +101,8 @@ def test_a_claim_declared_to_fail_that_holds_fails_the_gate(write_scenario, caps
     assert code == 1 and out["unexpected"] == ["claim.eq20_z1"]
 
 
-def test_a_perfect_model_passes_with_a_real_guarantee(write_scenario, capsys):
-    code, out, ids = _verify(write_scenario(PERFECT), capsys)
+def test_a_perfect_model_passes_with_a_real_guarantee(perfect_verify):
+    code, out, ids = perfect_verify
     assert code == 0, out["unexpected"]
     g = ids["lyapunov.guarantee"]
     assert g["status"] == "pass" and g["margin"] > 0.05
