@@ -211,10 +211,36 @@ def emit_controller_c(design, contract: list, *, prefix: str | None, basename: s
     controller and the step core as an SX scalar part plus loops (`emit.kernel`) where the design has that form;
     False keeps each one unrolled SX function (the baseline the bench compares with).
     """
+    fprefix = prefix or ""
+    sprefix = prefix if prefix is not None else "symfunnel_"
+    files, head, body = _rate_free_part(design, contract, prefix, basename, tau_max, structured)
+    x0, w0 = step_initial(design)
+    src, hdr = c_step_files(design, prefix=sprefix, fprefix=fprefix, basename=basename, rate_hz=rate_hz,
+                            tau_max=tau_max, x0=x0, w0=w0)
+    guard = basename.upper() + "_H"
+    return {basename + ".c": body + src,
+            basename + ".h": f"#ifndef {guard}\n#define {guard}\n" + head + hdr + f"\n#endif /* {guard} */\n",
+            **files}
+
+
+#: the rate-free part of the last few emit_controller_c calls (a rate search generates one design at many rates)
+_RATE_FREE: list[tuple[tuple, tuple, tuple]] = []
+
+
+def _rate_free_part(design, contract: list, prefix, basename: str, tau_max, structured: bool):
+    """(the other files, the header's text before the step API, the source's before it): everything of the C pair
+    that does not depend on the rate, reused while the design, its signals and the contract are the same objects
+    (a design whose signals are replaced, as the twin tests do, is generated again)."""
+    tm = None if tau_max is None else tuple(np.broadcast_to(np.asarray(tau_max, float), (design.n,)).tolist())
+    key = (prefix, basename, tm, bool(structured))
+    held = (design, *design.signals.values(), *contract)       # the objects themselves: ids are never reused
+    for k, h, value in _RATE_FREE:
+        if k == key and len(h) == len(held) and all(a is b for a, b in zip(h, held)):
+            files, head, body = value
+            return dict(files), head, body
     from .c import emit_c
     from .kernel import controller_kernel, shared_source, step_kernel
     fprefix = prefix or ""
-    sprefix = prefix if prefix is not None else "symfunnel_"
     funcs = [renamed(f, fprefix + f.name()) for f in contract]
     funcs.append(renamed(design.reference, fprefix + "reference"))
     core = step_core(design, tau_max, fprefix + "step_core")
@@ -225,16 +251,12 @@ def emit_controller_c(design, contract: list, *, prefix: str | None, basename: s
     done = {k.name for k in kernels}
     generated = [f for f in funcs + [core] if f.name() not in done] + [k.scalar for k in kernels]
     files = emit_c(generated, basename, prefix=prefix)
-    x0, w0 = step_initial(design)
-    src, hdr = c_step_files(design, prefix=sprefix, fprefix=fprefix, basename=basename, rate_hz=rate_hz,
-                            tau_max=tau_max, x0=x0, w0=w0)
-    guard = basename.upper() + "_H"
-    h = files[basename + ".h"] + "".join(k.header for k in kernels)
-    files[basename + ".h"] = (f"#ifndef {guard}\n#define {guard}\n" + _doc(funcs + [core]) + h + hdr
-                              + f"\n#endif /* {guard} */\n")
+    head = _doc(funcs + [core]) + files.pop(basename + ".h") + "".join(k.header for k in kernels)
     loops = (shared_source(design, fprefix) + "\n".join(k.source for k in kernels)) if kernels else ""
-    files[basename + ".c"] = files[basename + ".c"] + loops + src
-    return files
+    body = files.pop(basename + ".c") + loops
+    _RATE_FREE.append((key, held, (dict(files), head, body)))
+    del _RATE_FREE[:-4]
+    return files, head, body
 
 
 def step_settings(design, rate_hz=None, tau_max=None) -> tuple[float, object]:
