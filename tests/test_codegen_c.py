@@ -394,3 +394,6 @@ def test_bench_area_reports_c_vm_and_python(cache, monkeypatch):
     assert c["value"] < c["baseline_value"]                    # compiled C beats the VM called from Python
     assert c["unrolled_c_ns"] > 0 and "-O" in c["flags"]
     assert res["codegen.python_controller_ns"]["value"] > 0
+    g = res["codegen.rate_search_generate_s"]                 # paired in the same run; the figures, not a target
+    assert g["unit"] == "CPU s" and g["value"] > 0 and g["baseline_value"] > 0 and len(g["rates"]) == 7
+    assert g["ratio"] == pytest.approx(g["baseline_value"] / g["value"])

@@ -6,7 +6,8 @@ Ids: `codegen.c_controller_ns` (baseline: CasADi's VM from Python; the unrolled 
 same flags in `unrolled_c_ns`), `codegen.python_controller_ns`, `codegen.python_batch_ns`, `codegen.controller_ops`,
 `codegen.c_compile_n500_s` (CPU seconds of the compiler for the N = 500 paper's generated pair, strict flags;
 baseline: the same file with the controller and step unrolled, stopped at the target's 60 s, so a lower bound;
-$SYMFUNNEL_BENCH_LARGE_N sets another N).
+$SYMFUNNEL_BENCH_LARGE_N sets another N), `codegen.rate_search_generate_s` (CPU seconds of generating the C pair at
+a rate search's seven rates, its rate-free part reused; baseline: each rate generated afresh).
 """
 
 from __future__ import annotations
@@ -33,9 +34,37 @@ def large_reservoir(size: int = 500):
     return from_dict(raw, file=sc.file, base_dir=Path(sc.file).parent, default_name=f"paper_n{size}")
 
 
+#: rates a rate search visits (bisection between 125 Hz and 1 kHz), each generated once per round
+RATE_SEARCH_RATES = (1000.0, 500.0, 250.0, 125.0, 750.0, 375.0, 625.0)
+
+
+def rate_search_generation(design, rounds: int = 3) -> tuple[float, float]:
+    """(reused, fresh): median CPU seconds of generating the C pair at every rate of RATE_SEARCH_RATES, with the
+    rate-free part reused across the rates (as a rate search does) and with it generated afresh at each rate;
+    the two interleaved in every round."""
+    import statistics
+    import time
+
+    from ..emit import step
+    from ..emit.files import generate
+    reused, fresh = [], []
+    for _ in range(rounds):
+        step._RATE_FREE.clear()
+        t0 = time.process_time()
+        for r in RATE_SEARCH_RATES:
+            generate(design, "c", rate_hz=r)
+        reused.append(time.process_time() - t0)
+        t0 = time.process_time()
+        for r in RATE_SEARCH_RATES:
+            step._RATE_FREE.clear()
+            generate(design, "c", rate_hz=r)
+        fresh.append(time.process_time() - t0)
+    return statistics.median(reused), statistics.median(fresh)
+
+
 def run(progress) -> list[dict]:
-    """Results codegen.c_controller_ns, .python_controller_ns, .python_batch_ns, .controller_ops and
-    .c_compile_n500_s."""
+    """Results codegen.c_controller_ns, .python_controller_ns, .python_batch_ns, .controller_ops,
+    .rate_search_generate_s and .c_compile_n500_s."""
     from ._timing import bench_cflags, compile_seconds, run_c_bench, time_controller
     from ..design import derive
     from ..emit.c import STRICT_CFLAGS
@@ -65,6 +94,11 @@ def run(progress) -> list[dict]:
         result("codegen.controller_ops", tm["operations"], "ops", None, None, None,
                note="tape operations of the controller after CSE (count_ops)", **common),
     ]
+    progress("codegen: generating the C pair at the rates of a rate search, the rate-free part reused and fresh")
+    reused, fresh = rate_search_generation(design)
+    out.append(result("codegen.rate_search_generate_s", reused, "CPU s",
+                      "the same rates, each generated afresh (the rate-free part not reused)", fresh,
+                      fresh / max(reused, 1e-9), rates=list(RATE_SEARCH_RATES), **common))
     N = int(os.environ.get("SYMFUNNEL_BENCH_LARGE_N", 500))
     progress(f"codegen: generating C for an N = {N} reservoir (loops, and unrolled as the baseline)")
     big = derive(large_reservoir(N))
