@@ -33,8 +33,9 @@ def pytest_xdist_auto_num_workers(config):
 
 def pytest_collection_modifyitems(session, config, items):
     """Modules with more `slow` tests run first (each module kept whole, in its own order): xdist hands tests out in
-    collection order, and alphabetical order put the long tune and twin tests last, where one worker ran them alone
-    while the others idled. A module stays contiguous so that its module-scoped fixtures are built no more often."""
+    collection order, and alphabetical order put the long tune and twin tests last, where one worker could be left
+    running them alone (in a profiled run the workers finished 20 s apart). A module stays contiguous so that its
+    module-scoped fixtures are built no more often."""
     slow: dict[str, int] = {}
     first: dict[str, int] = {}
     for i, item in enumerate(items):
