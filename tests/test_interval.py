@@ -715,3 +715,16 @@ def test_batch_eval_points_are_casadis_values_point_by_point():
             o1, o2 = f(X[k, :3], ca.DM(ca.Sparsity.lower(2), X[k, 3:]))
             want = np.array(ca.DM(o1).nonzeros() + ca.DM(o2).nonzeros(), float)
             assert np.array_equal(got[k], want)
+
+
+def test_batch_eval_points_over_several_maps_is_casadis_map_bit_for_bit():
+    """More points than one map holds (POINTS_PER_MAP) go through it chunk by chunk: the values are CasADi's map over
+    all of them, NaN included, in the same order."""
+    from symfunnel.sx.batch import POINTS_PER_MAP, BatchIntervalFunction
+    x = ca.SX.sym("x", 3)
+    f = ca.Function("f", [x], [ca.vertcat(ca.sin(x[0]) * x[1] / x[2], ca.log(x[2]))])
+    K = 2 * POINTS_PER_MAP + 123
+    X = np.random.default_rng(3).normal(size=(K, 3))
+    got = BatchIntervalFunction(f).eval_points(X)
+    assert got.shape == (K, 2) and np.isnan(got[:, 1]).any()
+    np.testing.assert_array_equal(got, np.array(f.map(K)(X.T)).T)

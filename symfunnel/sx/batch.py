@@ -430,6 +430,9 @@ def _compile(tape, in_off, out_off):
     return ns["run"], deps
 
 
+#: the largest map eval_points builds (a power of two, as its other sizes are)
+POINTS_PER_MAP = 8192
+
 _FAILING = frozenset(("DIV", "INV", "LOG", "SQRT", "TAN", "ASIN", "ACOS", "ATANH", "POW", "CONSTPOW"))
 
 
@@ -494,9 +497,13 @@ class BatchIntervalFunction(IntervalFunction):
         raise NotImplementedError("BatchIntervalFunction evaluates bounds only (eval_batch)")
 
     def eval_points(self, X: np.ndarray) -> np.ndarray:
-        """CasADi's double values of the output nonzeros at K flat points (K, n_in_nz) -> (K, n_out_nz)."""
+        """CasADi's double values of the output nonzeros at K flat points (K, n_in_nz) -> (K, n_out_nz); more than
+        POINTS_PER_MAP points go through one map of that size, chunk by chunk (building map(K) costs time linear
+        in K, about as much as evaluating it; each point's value is its own either way)."""
         X = np.asarray(X, float).reshape(-1, self.n_in_nz)
         K0 = X.shape[0]
+        if K0 > POINTS_PER_MAP:
+            return np.concatenate([self.eval_points(X[s:s + POINTS_PER_MAP]) for s in range(0, K0, POINTS_PER_MAP)])
         K = 1 << max(0, (K0 - 1).bit_length())          # a few map sizes only (building one costs more than a call)
         if K > K0:
             X = np.concatenate([X, np.repeat(X[-1:], K - K0, axis=0)])
