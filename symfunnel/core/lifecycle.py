@@ -5,8 +5,8 @@ The policy (docs/architecture.md, "Signals and long calls"):
 - SIGINT, SIGTERM and SIGHUP are recorded and raised in the main thread (`KeyboardInterrupt`, `Terminated`), so
   every `finally` / `except BaseException` clean-up runs (atomic writes remove their temporary files, the compile
   cache its half-built directory, the compiler and forked workers are killed).
-- A raise that lands where Python cannot deliver it (a weakref callback or a finalizer swallows it, a C callback
-  turns it into a SystemError or CasADi's "... KeyboardInterrupt" RuntimeError) is not lost: `check()` re-raises a
+- A raise that lands where Python cannot deliver it (a weakref callback, a finalizer or a Cython `noexcept`
+  function swallows it, the last after printing it through `sys.excepthook`, which stays quiet; a C callback turns it into a SystemError or CasADi's "... KeyboardInterrupt" RuntimeError) is not lost: `check()` re-raises a
   recorded signal, a swallowed one is re-delivered to the main thread, and the CLI reads the record.
 - A watchdog thread hears every signal at once (through the wakeup fd, also while the main thread is inside one
   long C call) and watches the command's wall-clock limit. When the main thread has not finished unwinding
@@ -338,6 +338,18 @@ def _unraisable(hook):
     return unraisable
 
 
+def _excepthook(hook):
+    def excepthook(kind, value, tb):
+        # a Cython `noexcept` function prints the exception it cannot raise through sys.excepthook before handing it
+        # to sys.unraisablehook (which re-delivers it): a signal's exception is not a crash to print
+        if isinstance(value, (Terminated, KeyboardInterrupt)) and _pending:
+            return
+        if isinstance(value, deadline.WallLimitReached):
+            return
+        hook(kind, value, tb)
+    return excepthook
+
+
 def install() -> None:
     """The CLI's signal policy and one-line warnings (main thread only for signals; undone by `uninstall`)."""
     if _saved:
@@ -346,6 +358,8 @@ def install() -> None:
     warnings.showwarning = _one_line
     _saved["unraisablehook"] = sys.unraisablehook
     sys.unraisablehook = _unraisable(sys.unraisablehook)
+    _saved["excepthook"] = sys.excepthook
+    sys.excepthook = _excepthook(sys.excepthook)
     _pending.clear()
     _announced.clear()
     _done.clear()
@@ -371,6 +385,7 @@ def uninstall() -> None:
     _done.set()
     warnings.showwarning = _saved.pop("showwarning")
     sys.unraisablehook = _saved.pop("unraisablehook")
+    sys.excepthook = _saved.pop("excepthook")
     if "wakeup" in _saved:
         signal.set_wakeup_fd(_saved.pop("wakeup"))
         t = _state.pop("thread", None)
