@@ -125,6 +125,40 @@ def test_batch_rounds_outward_and_keeps_signs_of_wide_products():
     assert A.eval_flat(np.array([0.05, 0.01]), np.array([0.95, 0.39]))[0][0] < 0     # why arb is not used here
 
 
+def test_batch_product_by_a_constant_is_the_general_product_bit_for_bit():
+    """MULC (a product with a constant factor, as the compiled tapes use it) against MUL with bl = bh = c, over
+    infinities, NaN, signed zeros, subnormals and huge values, for constants of either sign, zero and extremes."""
+    from symfunnel.sx.batch import MUL, MULC
+    rng = np.random.default_rng(11)
+    special = np.array([0.0, -0.0, 5e-324, -5e-324, 1e-300, 1.0, -1.0, 1e300, -1e300, np.inf, -np.inf, np.nan])
+    a = np.concatenate([special, rng.normal(size=200) * 10.0 ** rng.integers(-300, 300, 200)])
+    b = np.concatenate([special[::-1], rng.normal(size=200) * 10.0 ** rng.integers(-300, 300, 200)])
+    al, ah = np.minimum(a, b), np.maximum(a, b)
+    al[:12], ah[:12] = a[:12], b[:12]                     # also some disordered and NaN pairs, as they arrive
+    with np.errstate(all="ignore"):
+        for c in (0.0, -0.0, 2.0, -3.0, 0.1, 5e-324, -1.7e308, 1e308):
+            lo, hi = MULC(al, ah, c)
+            l2, h2, _ = MUL(al, ah, c, c)
+            assert lo.tobytes() == l2.tobytes() and hi.tobytes() == h2.tobytes(), c
+            lo, hi = MULC(al, ah, c)
+            l2, h2, _ = MUL(c, c, al, ah)
+            assert lo.tobytes() == l2.tobytes() and hi.tobytes() == h2.tobytes(), c
+
+
+def test_batch_flags_a_domain_error_through_constant_products_and_only_there():
+    """A domain error (sqrt of a negative) carried through products by constants invalidates its own output and
+    names its input as the culprit; an output without a domain on the same box stays a valid enclosure."""
+    x, y = ca.SX.sym("x"), ca.SX.sym("y")
+    F = BatchIntervalFunction(ca.Function("f", [x, y], [ca.vertcat(-2 * (3 * ca.sqrt(x)) + 0.5 * y, 4 * y)]))
+    LO, HI = np.array([[-1.0, 1.0], [1.0, 1.0]]), np.array([[2.0, 2.0], [4.0, 2.0]])
+    L, H, sw, culprit = F.eval_batch_culprit(LO, HI)
+    assert L[0, 0] == -math.inf and H[0, 0] == math.inf and culprit[0] >= 0
+    assert F.culprit_inputs(int(culprit[0])).tolist() == [0]
+    assert L[0, 1] <= 4.0 <= 8.0 <= H[0, 1] and H[0, 1] - L[0, 1] < 4.0 + 1e-12
+    assert culprit[1] == -1 and not sw.any()
+    assert L[1, 0] <= -6 * 2.0 + 0.5 and H[1, 0] >= -6 * 1.0 + 1.0 and H[1, 0] - L[1, 0] < 6.5 + 1e-12
+
+
 # --- the rewritten graph ------------------------------------------------------------------------------------
 
 def test_replace_nodes_is_the_same_function_where_the_replacement_equals_the_node():

@@ -81,6 +81,13 @@ def MUL(al, ah, bl, bh):
     return _dn(lo), _up(hi), None
 
 
+def MULC(al, ah, c):
+    """MUL with a constant factor c (bl = bh = c): of its four products two pairs are equal, so two are enough;
+    the same values bit for bit, NaN and infinities included (np.minimum(p, p) is p)."""
+    p, q = al * c, ah * c
+    return _dn(np.minimum(p, q)), _up(np.maximum(p, q))
+
+
 def DIV(al, ah, bl, bh):
     bad = (bl <= 0) & (bh >= 0)
     bl = np.where(bad, 1.0, bl)
@@ -349,7 +356,7 @@ def ASSIGN(al, ah):
 
 
 _RULES = {name: fn for name, fn in globals().items() if name.isupper() and callable(fn)
-          and name not in ("TRANSCENDENTAL_ULPS",)}
+          and name not in ("TRANSCENDENTAL_ULPS", "MULC")}
 _UNARY = frozenset(("ASSIGN", "NEG", "SQ", "TWICE", "INV", "EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN",
                     "ACOS", "ATAN", "SINH", "COSH", "TANH", "ATANH", "FABS", "SIGN", "FLOOR", "CEIL", "NOT"))
 _SWITCHING = frozenset(("SIGN", "FLOOR", "CEIL", "LT", "LE", "EQ", "NE", "NOT", "AND", "OR", "IF_ELSE_ZERO"))
@@ -360,31 +367,52 @@ BATCH_OPS = frozenset(_RULES)
 def _compile(tape, in_off, out_off):
     """Straight-line numpy code: run(LO, HI) -> (L, H, bad, switched, culprit) with arrays (K,) per value, and the
     flat inputs each failing instruction depends on (culprit k: the first instruction with a domain error on box k,
-    whose inputs are `deps[culprit]`; -1 for none)."""
+    whose inputs are `deps[culprit]`; -1 for none).
+
+    Two facts known before running shorten the code (and CPython's compile of it) without changing a bit of what
+    it computes: which values may carry a domain-error flag at all (only those downstream of an operation with a
+    domain, `_FAILING`, or of a non-finite constant; the flags of the others are None and are not written), and
+    which factors of a product are constants (`MULC`, the same four products with two of them equal)."""
     name = tape.function.name()
     lines = ["def run(LO, HI):", "    K = LO.shape[0]", "    sw = np.zeros(K, dtype=bool)",
              "    culprit = np.full(K, -1)"]
     dep: dict[int, int] = {}                # work slot -> bitmask of the flat inputs it depends on
     deps: list[int] = []                    # per failing instruction (in culprit numbering), its inputs' bitmask
+    flagged: dict[int, bool] = {}           # work slot -> its flag b<slot> may be an array (else it is None)
+    const: dict[int, float] = {}            # work slot -> the constant it holds
     outs = [None] * out_off[-1]
-    ns = {"np": np}
+    ns = {"np": np, "MULC": MULC}
+
+    def flags(slots):
+        return [f"b{j}" for j in slots if flagged.get(j)]
+
     # slots carry a mask of "value computed under a certainly-false if-else condition": such a branch's domain
     # errors do not count (CasADi evaluates both branches and multiplies the dead one by 0)
     for ins in tape.instructions:
         op, a, r = ins.op, ins.args, ins.res
+        if op == casadi.OP_OUTPUT:
+            k = out_off[r[0]] + r[1]
+            lines.append(f"    L{k} = l{a[0]}; H{k} = h{a[0]}")
+            outs[k] = (k, a[0]) if flagged.get(a[0]) else (k, None)
+            if flagged.get(a[0]):
+                lines.append(f"    B{k} = b{a[0]}")
+            continue
+        w = r[0]
+        const.pop(w, None)
         if op == casadi.OP_INPUT:
             j = in_off[a[0]] + a[1]
-            dep[r[0]] = 1 << j
-            lines.append(f"    l{r[0]} = LO[:, {j}]; h{r[0]} = HI[:, {j}]; b{r[0]} = None")
-        elif op == casadi.OP_OUTPUT:
-            k = out_off[r[0]] + r[1]
-            lines.append(f"    L{k} = l{a[0]}; H{k} = h{a[0]}; B{k} = b{a[0]}")
-            outs[k] = k
+            dep[w] = 1 << j
+            flagged[w] = False
+            lines.append(f"    l{w} = LO[:, {j}]; h{w} = HI[:, {j}]")
         elif op == casadi.OP_CONST:
-            dep[r[0]] = 0
+            dep[w] = 0
             c = float(ins.constant)
-            lines.append(f"    l{r[0]} = h{r[0]} = {c!r}; b{r[0]} = None" if math.isfinite(c) else
-                         f"    l{r[0]} = h{r[0]} = np.float64({c!r}); b{r[0]} = np.ones(K, dtype=bool)")
+            flagged[w] = not math.isfinite(c)
+            if math.isfinite(c):
+                const[w] = c
+                lines.append(f"    l{w} = h{w} = {c!r}")
+            else:
+                lines.append(f"    l{w} = h{w} = np.float64({c!r}); b{w} = np.ones(K, dtype=bool)")
         elif op == casadi.OP_PARAMETER:
             raise IntervalError(f"function {name!r} has free SX variables; interval evaluation needs every symbol "
                                 "as an input")
@@ -397,24 +425,40 @@ def _compile(tape, in_off, out_off):
             mask = 0
             for j in args:
                 mask |= dep.get(j, 0)
-            dep[r[0]] = mask
             argtxt = ", ".join(f"l{j}, h{j}" for j in args)
-            w = r[0]
-            badargs = " | ".join(f"b{j}" for j in args)
+            fl = flags(args)
             if opname == "IF_ELSE_ZERO":
                 c, x = args
                 lines.append(f"    l{w}, h{w}, _, s_, dead = IF_ELSE_ZERO({argtxt}); sw |= s_")
                 # the condition's errors count; the branch's only where the condition is not certainly false
-                lines.append(f"    b{w} = _orb(b{c}, None if b{x} is None else (b{x} & ~dead))")
+                if fl:
+                    bx = f"(b{x} & ~dead)" if flagged.get(x) else "None"
+                    bc = f"b{c}" if flagged.get(c) else "None"
+                    lines.append(f"    b{w} = _orb({bc}, {bx})")
+                is_flagged = bool(fl)
             elif opname in _SWITCHING:
-                lines.append(f"    l{w}, h{w}, e_, s_ = {opname}({argtxt}); sw |= s_")
-                lines.append(f"    b{w} = _orb({badargs.replace(' | ', ', ')}, e_)")
-            else:
+                lines.append(f"    l{w}, h{w}, _, s_ = {opname}({argtxt}); sw |= s_")
+                is_flagged = bool(fl)
+                if fl:
+                    lines.append(f"    b{w} = _orb({', '.join(fl)})")
+            elif opname in _FAILING:
                 lines.append(f"    l{w}, h{w}, e_ = {opname}({argtxt})")
-                if opname in _FAILING:
-                    lines.append(f"    if e_ is not None: culprit = np.where((culprit < 0) & e_, {len(deps)}, culprit)")
-                    deps.append(mask)
-                lines.append(f"    b{w} = _orb({badargs.replace(' | ', ', ')}, e_)")
+                lines.append(f"    if e_ is not None: culprit = np.where((culprit < 0) & e_, {len(deps)}, culprit)")
+                deps.append(mask)
+                lines.append(f"    b{w} = _orb({', '.join(fl + ['e_'])})")
+                is_flagged = True
+            else:
+                if opname == "MUL" and (args[0] in const or args[1] in const) \
+                        and not (args[0] in const and args[1] in const):
+                    x, c = (args[1], const[args[0]]) if args[0] in const else (args[0], const[args[1]])
+                    lines.append(f"    l{w}, h{w} = MULC(l{x}, h{x}, {c!r})")
+                else:
+                    lines.append(f"    l{w}, h{w}, _ = {opname}({argtxt})")
+                is_flagged = bool(fl)
+                if fl:
+                    lines.append(f"    b{w} = {fl[0]}" if len(fl) == 1 else f"    b{w} = _orb({', '.join(fl)})")
+            dep[w] = mask
+            flagged[w] = is_flagged
     ns["_orb"] = _orb
     n = out_off[-1]
     lines.append("    Lo = np.empty((K, %d)); Hi = np.empty((K, %d)); Bad = np.zeros((K, %d), dtype=bool)" % (n, n, n))
@@ -423,7 +467,8 @@ def _compile(tape, in_off, out_off):
             lines.append(f"    Lo[:, {k}] = 0.0; Hi[:, {k}] = 0.0")
         else:
             lines.append(f"    Lo[:, {k}] = L{k}; Hi[:, {k}] = H{k}")
-            lines.append(f"    if B{k} is not None: Bad[:, {k}] = B{k}")
+            if outs[k][1] is not None:
+                lines.append(f"    if B{k} is not None: Bad[:, {k}] = B{k}")
     lines.append("    return Lo, Hi, Bad, sw, culprit")
     code = compile_source("\n".join(lines), f"<batch interval tape of {name}>")
     exec(code, ns)
