@@ -101,8 +101,22 @@ class RoundoffBound:
         return vals, mags
 
 
+#: numpy's functions the rules use, bound by their bare names in the generated code (fewer tokens to parse)
+_NUMPY_NAMES = ("sqrt", "exp", "log", "power", "sin", "cos", "tan", "arcsin", "arccos", "arctan", "sinh", "cosh",
+                "tanh", "arcsinh", "arccosh", "arctanh", "arctan2", "log1p", "expm1", "hypot", "fabs", "sign",
+                "copysign", "fmin", "fmax", "floor", "ceil", "where", "logical_and", "logical_or")
+
+
+def _bare(expr: str) -> str:
+    return expr.replace("np.", "")
+
+
 def _compile(tape):
-    """Straight-line numpy for the tape: run(inputs, zero) -> (values, magnitudes), lists of (nnz_out, K) arrays."""
+    """Straight-line numpy for the tape: run(inputs, zero) -> (values, magnitudes), lists of (nnz_out, K) arrays.
+
+    CPython's parser is most of the cost of building it (a tape is often evaluated once: an identity's residual
+    per mutant), so the code is kept short: numpy's functions by bare name, the value written straight into its
+    slot unless the slot is also an argument's, and parentheses only around a compound partial."""
     lines = ["def run(x, Z):"]
     zero_m: set[int] = set()          # work slots whose magnitude is known to be 0 (exact inputs, constants)
     outs: list[list[tuple[str, str]]] = [[("Z", "Z")] * n for n in (len(nz) for nz in tape.out_nz)]
@@ -120,39 +134,43 @@ def _compile(tape):
         else:
             w = [f"w{j}" for j in a] + ["_"] * (2 - len(a))
             if name not in _VALUE:
-                lines.append(f"    w{r[0]} = Z + np.nan")
-                lines.append(f"    m{r[0]} = Z + np.inf")
+                lines.append(f"    w{r[0]} = Z + nan")
+                lines.append(f"    m{r[0]} = Z + inf")
                 zero_m.discard(r[0])
                 continue
-            # the value first, into a temporary: the result slot may be an argument's slot too
-            lines.append(f"    v_ = {_VALUE[name].format(*w)}")
+            # the value goes into a temporary only when the result slot is an argument's slot too
+            v = "v_" if r[0] in a else f"w{r[0]}"
+            lines.append(f"    {v} = {_bare(_VALUE[name].format(*w))}")
             terms = []
             if name == "IF_ELSE_ZERO":
                 if a[1] not in zero_m:
-                    terms.append(f"np.where({w[0]} != 0.0, m{a[1]}, 0.0)")
+                    terms.append(f"where({w[0]} != 0.0, m{a[1]}, 0.0)")
             elif name in ("FMIN", "FMAX"):
                 ms = [f"m{j}" for j in a if j not in zero_m]
                 if ms:
-                    terms.append(ms[0] if len(ms) == 1 else f"np.fmax({ms[0]}, {ms[1]})")
+                    terms.append(ms[0] if len(ms) == 1 else f"fmax({ms[0]}, {ms[1]})")
             else:
                 for k, j in enumerate(a):
                     d = _PARTIALS[name][k]
                     if d is not None and j not in zero_m:
-                        terms.append(f"m{j}" if d == "1.0" else f"({d.format(w[0], w[1], 'v_')}) * m{j}")
+                        d = _bare(d.format(w[0], w[1], v))
+                        terms.append(f"m{j}" if d == "1.0" else f"({d}) * m{j}" if " " in d else f"{d} * m{j}")
             if name not in EXACT_OPS:
-                terms.append("np.fabs(v_)")
+                terms.append(f"fabs({v})")
             if terms:
                 lines.append(f"    m{r[0]} = " + " + ".join(terms))
                 zero_m.discard(r[0])
             else:
                 zero_m.add(r[0])
-            lines.append(f"    w{r[0]} = v_")
+            if v == "v_":
+                lines.append(f"    w{r[0]} = v_")
     lines.append("    vals = [" + ", ".join("np.array([" + ", ".join(v for v, _ in o) + "]).reshape(-1, Z.size)"
                                           for o in outs) + "]")
     lines.append("    mags = [" + ", ".join("np.array([" + ", ".join(m for _, m in o) + "]).reshape(-1, Z.size)"
                                           for o in outs) + "]")
     lines.append("    return vals, mags")
-    ns = {"np": np, "_erf": np.vectorize(math.erf, otypes=[float])}
+    ns = {"np": np, "_erf": np.vectorize(math.erf, otypes=[float]), "nan": np.nan, "inf": np.inf}
+    ns.update({k: getattr(np, k) for k in _NUMPY_NAMES})
     exec(compile_source("\n".join(lines), f"<round-off tape of {tape.function.name()}>"), ns)
     return ns["run"]
 
