@@ -174,3 +174,30 @@ def test_sigterm_inside_the_integrator_is_not_an_integrator_failure(tmp_path):
     _, err = p.communicate(timeout=60)
     assert p.returncode == 128 + signal.SIGTERM, err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_main_collects_garbage_at_its_own_thresholds_and_gives_the_callers_back(monkeypatch):
+    """A command runs at symfunnel.cli.GC_THRESHOLDS; a caller of main() (the Python API, a test) gets its own
+    thresholds back, also when the command fails."""
+    import gc
+
+    import symfunnel.cli as cli
+    seen = []
+
+    def command(argv, deadline, lifecycle):
+        seen.append(gc.get_threshold())
+        if argv == ["fail"]:
+            raise RuntimeError("boom")
+        return 0
+    monkeypatch.setattr(cli, "_run", command)
+    before = gc.get_threshold()
+    try:
+        gc.set_threshold(1234, 5, 6)
+        assert cli.main(["ok"]) == 0
+        assert gc.get_threshold() == (1234, 5, 6)
+        with pytest.raises(RuntimeError):
+            cli.main(["fail"])
+        assert gc.get_threshold() == (1234, 5, 6)
+    finally:
+        gc.set_threshold(*before)
+    assert seen == [cli.GC_THRESHOLDS] * 2 and cli.GC_THRESHOLDS[0] > 700
