@@ -196,7 +196,7 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
     text, hdr = files[base + ".c"], files[base + ".h"]
     cut = text.index(MARK)
     obj = compile_cached({"core.c": text[:cut]}, ["core.c"], "core.o",
-                         ("-std=c99", "-O2", "-fPIC", "-c"), libs=(), on_build=on_build)
+                         tuple(f for f in SHARED_FLAGS if f != "-shared") + ("-c",), libs=(), on_build=on_build)
     built = compile_cached({"api.c": text[cut:], base + ".h": hdr, "core.o": obj.path.read_bytes()},
                            ["api.c", "core.o"], f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
     nr, n = design.sym["w_hat"].shape
