@@ -13,6 +13,7 @@ import numpy as np
 
 from ..core.errors import InputError
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
+from ..sx.buffered import Buffered
 from ..sx.interval import IntervalError
 from .region import ParameterBox, region_signals, true_unknown
 
@@ -211,16 +212,19 @@ def improve(f: ca.Function, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, pos: 
         outs = f.call(xin)
         y = ca.vertcat(*[ca.SX(o).nz[:] for o in outs])[pos]
         xs = ca.vertcat(*[v.nz[:] for v in xin])
-        _WITNESS[key] = (f, ca.Function("witness", xin, [y, ca.jacobian(y, xs)]))
+        _WITNESS[key] = (f, ca.Function("witness", xin, [y, ca.densify(ca.jacobian(y, xs))]))
         while len(_WITNESS) > 64:
             _WITNESS.pop(next(iter(_WITNESS)))
-    fx = _WITNESS[key][1]
+    # on numpy buffers: a DM per input and call cost more than the evaluation (the inputs' nonzeros are the
+    # slices of the flat point, the dense gradient's nonzeros the gradient)
+    fx = Buffered(_WITNESS[key][1])
     offs = np.cumsum([0] + [v.nnz() for v in xin])
 
     def call(z):
-        args = [ca.DM(ca.Sparsity(f.sparsity_in(i)), z[offs[i]:offs[i + 1]]) for i in range(len(xin))]
-        v, g = fx(*args)
-        return float(v), np.asarray(ca.DM(g).full(), float).ravel()
+        for i, a in enumerate(fx.args):
+            a[:] = z[offs[i]:offs[i + 1]]
+        fx.evaluate()
+        return float(fx.res[0][0]), fx.res[1].copy()
     x = np.clip(np.asarray(x, float).copy(), lo, hi)
     v, g = call(x)
     best = sign * v
