@@ -90,6 +90,30 @@ def test_the_coarse_pass_runs_first_on_a_quarter_of_the_horizon(tmp_path):
     assert problem(tmp_path, t_final=0.5, grid=40, coarse=None)[2].coarse is None
 
 
+def test_the_polish_after_a_feasible_coarse_result_is_short_and_never_worse(tmp_path, monkeypatch):
+    """A coarse result that meets the whole horizon's constraints is only polished: at most POLISH_ITER IPOPT
+    iterations, warm-started, and the result's peak is never above the coarse result's on the whole horizon."""
+    from symfunnel.synthesis.gradient import POLISH_ITER, GradientProblem
+    sc, vs, gp = problem(tmp_path, t_final=0.5, grid=40)
+    z0 = np.array([v.z_of(v.user_x()) for v in vs])
+    runs = []
+    real = GradientProblem._solve
+
+    def spy(self, z, **kw):
+        r = real(self, z, **kw)
+        runs.append({"T": self.T, "z0": np.array(z, float), "max_iter": kw["max_iter"], "warm": kw["warm"], **r})
+        return r
+    monkeypatch.setattr(GradientProblem, "_solve", spy)
+    r = gp.solve(z0, objective="peak_torque", ref=500.0, wall_s=120.0, max_iter=40)
+    coarse, polish = runs
+    assert coarse["T"] == pytest.approx(0.125) and coarse["max_iter"] == 40 and not coarse["warm"]
+    assert polish["T"] == pytest.approx(0.5) and polish["warm"] and polish["max_iter"] == POLISH_ITER < 40
+    assert np.min(np.asarray(gp.g(polish["z0"]))) >= 0                    # why it was only polished
+    assert r["iterations"] <= POLISH_ITER
+    peak = lambda z: float(np.max(np.abs(np.asarray(gp.figures(z)[0]))))  # noqa: E731
+    assert peak(r["z"]) <= peak(polish["z0"]) * 1.01
+
+
 def test_symbolic_parameters_reproduce_an_independent_simulation(tmp_path):
     # the grid constraints at the user's values are the ordinary simulation's margins and torque at those times
     from symfunnel.pipeline import Run
