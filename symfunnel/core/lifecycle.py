@@ -6,7 +6,8 @@ The policy (docs/architecture.md, "Signals and long calls"):
   every `finally` / `except BaseException` clean-up runs (atomic writes remove their temporary files, the compile
   cache its half-built directory, the compiler and forked workers are killed).
 - A raise that lands where Python cannot deliver it (a weakref callback, a finalizer or a Cython `noexcept`
-  function swallows it, the last after printing it through `sys.excepthook`, which stays quiet; a C callback turns it into a SystemError or CasADi's "... KeyboardInterrupt" RuntimeError) is not lost: `check()` re-raises a
+  function swallows it, the last after printing it through `sys.excepthook`, which stays quiet for it; a C callback
+  turns it into a SystemError or CasADi's "... KeyboardInterrupt" RuntimeError) is not lost: `check()` re-raises a
   recorded signal, a swallowed one is re-delivered to the main thread, and the CLI reads the record.
 - A watchdog thread hears every signal at once (through the wakeup fd, also while the main thread is inside one
   long C call) and watches the command's wall-clock limit. When the main thread has not finished unwinding
