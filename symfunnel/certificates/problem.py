@@ -212,7 +212,7 @@ def improve(f: ca.Function, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, pos: 
         outs = f.call(xin)
         y = ca.vertcat(*[ca.SX(o).nz[:] for o in outs])[pos]
         xs = ca.vertcat(*[v.nz[:] for v in xin])
-        _WITNESS[key] = (f, ca.Function("witness", xin, [y, ca.densify(ca.jacobian(y, xs))]))
+        _WITNESS[key] = (f, ca.Function("witness", xin, [ca.densify(y), ca.densify(ca.jacobian(y, xs))]))
         while len(_WITNESS) > 64:
             _WITNESS.pop(next(iter(_WITNESS)))
     # on numpy buffers: a DM per input and call cost more than the evaluation (the inputs' nonzeros are the
