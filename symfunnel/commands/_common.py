@@ -27,10 +27,16 @@ def _dump(obj) -> str:
 LOADING = "loading the scenario"
 
 
-def _load(args):
-    """The command's scenario, read under the step LOADING (a limit reached meanwhile names it, not "working")."""
+def loading():
+    """The step LOADING, around a command's imports (casadi, numpy and the stages: a second under load) and its
+    reading of the scenario, so that a limit reached there names it, not "working"."""
     from ..core import deadline
-    with deadline.step(LOADING):
+    return deadline.step(LOADING)
+
+
+def _load(args):
+    """The command's scenario, read under the step LOADING."""
+    with loading():
         from ..scenario import load_scenario
         return load_scenario(args.scenario)
 

@@ -17,9 +17,8 @@ def register(sub, common) -> None:
 
 def cmd_audit(args) -> int:
     """`symfunnel audit`: model properties and printed claims; --strict exits 1 on any failed check."""
-    from ..core import deadline
-    from ._common import LOADING
-    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+    from ._common import loading
+    with loading():
         from ..pipeline import Run
         sc = _load(args)
     say = _progress(args.quiet or args.json)

@@ -35,9 +35,8 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Generate, write atomically, and optionally cross-check."""
-    from ..core import deadline
-    from ._common import LOADING
-    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+    from ._common import loading
+    with loading():
         from ..emit.check import FILL, check_output
         from ..emit.files import foreign_files, write_output
         from ._common import _progress
@@ -61,7 +60,7 @@ def run(args) -> int:
             if value is not None:
                 raise InputError(f"is given with --lang {args.lang}", key=opt,
                                  expected="--lang c (the Python module has no step API to name or time)")
-    with deadline.step(LOADING):            # a limit reached in reading the scenario names it, not "working"
+    with loading():
         run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
     sc, design = run.scenario, run.design
     files = run.code(args.lang, prefix=args.prefix, rate_hz=args.rate)

@@ -4,7 +4,7 @@ and free variables, their values at points, or a LaTeX document of them."""
 from __future__ import annotations
 
 from ..core.errors import InputError
-from ._common import LOADING, _dump, _load
+from ._common import LOADING, _dump, _load, loading
 
 #: the steps of `derive`, in order; each phase runs under one of them (deadline.step), so a wall-clock limit reached
 #: anywhere in the command names what it was doing
@@ -39,7 +39,7 @@ def cmd_derive(args) -> int:
     if args.latex:
         from ..core.outputs import check_output_file
         check_output_file(args.latex, key="--latex")
-    with deadline.step(LOADING):        # the imports of casadi, numpy and the design take a second under load
+    with loading():
         from ..design import evaluate
         from ..core.names import compress_names
         from ..pipeline import Run

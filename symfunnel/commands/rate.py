@@ -23,9 +23,8 @@ def run(args) -> int:
     """Search, print (table or JSON); exit 1 when no rate up to 1 MHz holds."""
     import math
 
-    from ..core import deadline
-    from ._common import LOADING
-    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+    from ._common import loading
+    with loading():
         from ._common import _dump, _engine, _load, _progress
         from ..core.errors import InputError
         from ..deployed.rate import min_rate

@@ -31,9 +31,8 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Write the report and print its path. Failed checks are shown in the report; the exit code is still 0."""
-    from ..core import deadline
-    from ._common import LOADING
-    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+    from ._common import loading
+    with loading():
         from ._common import _engine, _load, _progress
         from ..core.outputs import check_count, check_output_file
         from ..pipeline import Run, RunOptions

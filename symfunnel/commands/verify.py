@@ -44,9 +44,8 @@ def print_checks(checks, indent: str = "  ") -> None:
 
 def run(args) -> int:
     """Run every check; print a table (or JSON); exit 1 exactly when an outcome is not the declared one."""
-    from ..core import deadline
-    from ._common import LOADING
-    with deadline.step(LOADING):            # importing casadi, numpy and the stages: a second under load
+    from ._common import loading
+    with loading():
         from ._common import _dump, _engine, _load, _progress
         from ..core.outputs import check_count
         from ..pipeline import Run, RunOptions

@@ -81,7 +81,7 @@ def MUL(al, ah, bl, bh):
     return _dn(lo), _up(hi), None
 
 
-def MULC(al, ah, c):
+def _mulc(al, ah, c):
     """MUL with a constant factor c (bl = bh = c): of its four products two pairs are equal, so two are enough;
     the same values bit for bit, NaN and infinities included (np.minimum(p, p) is p)."""
     p, q = al * c, ah * c
@@ -356,7 +356,7 @@ def ASSIGN(al, ah):
 
 
 _RULES = {name: fn for name, fn in globals().items() if name.isupper() and callable(fn)
-          and name not in ("TRANSCENDENTAL_ULPS", "MULC")}
+          and name not in ("TRANSCENDENTAL_ULPS",)}
 _UNARY = frozenset(("ASSIGN", "NEG", "SQ", "TWICE", "INV", "EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN",
                     "ACOS", "ATAN", "SINH", "COSH", "TANH", "ATANH", "FABS", "SIGN", "FLOOR", "CEIL", "NOT"))
 _SWITCHING = frozenset(("SIGN", "FLOOR", "CEIL", "LT", "LE", "EQ", "NE", "NOT", "AND", "OR", "IF_ELSE_ZERO"))
@@ -372,7 +372,7 @@ def _compile(tape, in_off, out_off):
     Two facts known before running shorten the code (and CPython's compile of it) without changing a bit of what
     it computes: which values may carry a domain-error flag at all (only those downstream of an operation with a
     domain, `_FAILING`, or of a non-finite constant; the flags of the others are None and are not written), and
-    which factors of a product are constants (`MULC`, the same four products with two of them equal)."""
+    which factors of a product are constants (`_mulc`, the same four products with two of them equal)."""
     name = tape.function.name()
     lines = ["def run(LO, HI):", "    K = LO.shape[0]", "    sw = np.zeros(K, dtype=bool)",
              "    culprit = np.full(K, -1)"]
@@ -381,7 +381,7 @@ def _compile(tape, in_off, out_off):
     flagged: dict[int, bool] = {}           # work slot -> its flag b<slot> may be an array (else it is None)
     const: dict[int, float] = {}            # work slot -> the constant it holds
     outs = [None] * out_off[-1]
-    ns = {"np": np, "MULC": MULC}
+    ns = {"np": np, "_mulc": _mulc}
 
     def flags(slots):
         return [f"b{j}" for j in slots if flagged.get(j)]
@@ -393,8 +393,8 @@ def _compile(tape, in_off, out_off):
         if op == casadi.OP_OUTPUT:
             k = out_off[r[0]] + r[1]
             lines.append(f"    L{k} = l{a[0]}; H{k} = h{a[0]}")
-            outs[k] = (k, a[0]) if flagged.get(a[0]) else (k, None)
-            if flagged.get(a[0]):
+            outs[k] = bool(flagged.get(a[0]))              # whether the output has a flag to copy
+            if outs[k]:
                 lines.append(f"    B{k} = b{a[0]}")
             continue
         w = r[0]
@@ -451,7 +451,7 @@ def _compile(tape, in_off, out_off):
                 if opname == "MUL" and (args[0] in const or args[1] in const) \
                         and not (args[0] in const and args[1] in const):
                     x, c = (args[1], const[args[0]]) if args[0] in const else (args[0], const[args[1]])
-                    lines.append(f"    l{w}, h{w} = MULC(l{x}, h{x}, {c!r})")
+                    lines.append(f"    l{w}, h{w} = _mulc(l{x}, h{x}, {c!r})")
                 else:
                     lines.append(f"    l{w}, h{w}, _ = {opname}({argtxt})")
                 is_flagged = bool(fl)
@@ -467,7 +467,7 @@ def _compile(tape, in_off, out_off):
             lines.append(f"    Lo[:, {k}] = 0.0; Hi[:, {k}] = 0.0")
         else:
             lines.append(f"    Lo[:, {k}] = L{k}; Hi[:, {k}] = H{k}")
-            if outs[k][1] is not None:
+            if outs[k]:
                 lines.append(f"    if B{k} is not None: Bad[:, {k}] = B{k}")
     lines.append("    return Lo, Hi, Bad, sw, culprit")
     code = compile_source("\n".join(lines), f"<batch interval tape of {name}>")

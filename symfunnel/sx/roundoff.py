@@ -16,6 +16,7 @@ over a trailing axis of points); an operation without a rule gives m = inf (the 
 from __future__ import annotations
 
 import math
+import re
 
 import casadi
 import numpy as np
@@ -102,9 +103,8 @@ class RoundoffBound:
 
 
 #: numpy's functions the rules use, bound by their bare names in the generated code (fewer tokens to parse)
-_NUMPY_NAMES = ("sqrt", "exp", "log", "power", "sin", "cos", "tan", "arcsin", "arccos", "arctan", "sinh", "cosh",
-                "tanh", "arcsinh", "arccosh", "arctanh", "arctan2", "log1p", "expm1", "hypot", "fabs", "sign",
-                "copysign", "fmin", "fmax", "floor", "ceil", "where", "logical_and", "logical_or")
+_NUMPY_NAMES = frozenset(re.findall(r"np\.(\w+)", " ".join([*_VALUE.values(), *(d for pair in _PARTIALS.values()
+                                                                                for d in pair if d)])))
 
 
 def _bare(expr: str) -> str:
