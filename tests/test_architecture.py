@@ -343,6 +343,23 @@ def test_each_registry_is_documented_in_the_scenario_docs(registry, key):
         assert f"`{entry.name}`" in docs, (key, entry.name)
 
 
+#: the plant's equations (`plant.equations`): defined there once, imported from there by every loop that integrates them
+PLANT_EQUATIONS = ("plant_acceleration", "plant_forces", "plant_parameters", "dead_zone_branches")
+
+
+def test_the_plant_equations_live_in_plant_and_both_loops_import_them_from_there():
+    defined = {}
+    for mod, path in modules(PKG).items():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.FunctionDef) and node.name in PLANT_EQUATIONS:
+                defined.setdefault(node.name, []).append(mod)
+    assert defined == {name: ["plant.equations"] for name in PLANT_EQUATIONS}
+    for loop in ("simulation.closedloop", "deployed.loop", "deployed.engine"):
+        got = imports(loop, PKG / (loop.replace(".", "/") + ".py"))
+        assert any(g.startswith("plant.equations") for g in got), (loop, sorted(got))
+        assert not any(g.startswith("simulation.closedloop") for g in got if loop != "simulation.closedloop"), loop
+
+
 def test_every_design_variant_name_has_its_class():
     from symfunnel.design import VARIANT_CLASSES, VARIANTS
     assert sorted(e.name for e in VARIANTS) == sorted(VARIANT_CLASSES)

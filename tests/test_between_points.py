@@ -155,7 +155,7 @@ def test_the_sampled_loop_sees_the_plant_leave_a_funnel_between_samples(tmp_path
     assert rs.between_margins.shape == (rs.tau.shape[0], 4)
     from symfunnel.deployed.loop import plant_substeps
     from symfunnel.simulation.between import margin_function
-    from symfunnel.simulation.closedloop import plant_acceleration
+    from symfunnel.plant.equations import plant_acceleration
     subs = plant_substeps(smooth, 1e-3)
     n = smooth.n
     q, dq, s_, th, u = (ca.SX.sym(k, m) for k, m in (("q", n), ("dq", n), ("s", 1), ("th", 2), ("u", n)))

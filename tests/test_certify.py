@@ -26,7 +26,7 @@ from symfunnel.certificates.region import (homogeneity_proven, inertia_functions
                                            slope_box, true_unknown)
 from symfunnel.cli import main
 from symfunnel.core.toml_write import dumps
-from symfunnel.simulation.closedloop import plant_acceleration, plant_parameters
+from symfunnel.plant.equations import plant_acceleration, plant_parameters
 from symfunnel.sx.batch import BatchIntervalFunction
 from symfunnel.sx.interval import IntervalFunction
 from symfunnel.sx.rewrite import replace_nodes

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from symfunnel.design import derive
-from symfunnel.simulation.closedloop import build_closed_loop, ldl_solve, plant_acceleration
+from symfunnel.plant.equations import plant_acceleration
+from symfunnel.simulation.closedloop import build_closed_loop
+from symfunnel.sx.linalg import ldl_solve
 from symfunnel.scenario import from_dict, load_scenario
 
 

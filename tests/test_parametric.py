@@ -58,7 +58,8 @@ def test_parametric_rhs_is_the_rhs_of_the_variant(paper):
     """p = a variant's values gives, at random states, the right-hand side and signals built for that variant."""
     import casadi as ca
 
-    from symfunnel.simulation.closedloop import build_closed_loop, plant_parameters
+    from symfunnel.plant.equations import plant_parameters
+    from symfunnel.simulation.closedloop import build_closed_loop
     var = _variant(paper, _shaken)
     cl, clv = build_closed_loop(paper, derive(paper)), build_closed_loop(var, derive(var))
     names, pv = plant_parameters(var)
@@ -81,7 +82,8 @@ def test_parametric_rhs_is_the_rhs_of_the_variant(paper):
 
 def test_variant_runs_on_the_nominal_compiled_loop(paper):
     """simulate(nominal loop, params=variant's values) = simulate(variant, derive(variant)), with no second compilation."""
-    from symfunnel.simulation.closedloop import build_closed_loop, plant_parameters
+    from symfunnel.plant.equations import plant_parameters
+    from symfunnel.simulation.closedloop import build_closed_loop
     var = _variant(paper, _shaken)
     cl = build_closed_loop(paper, derive(paper))
     simulate(paper, cl.design, t_final=1.0, closed_loop=cl)
@@ -122,7 +124,7 @@ def test_scales_are_factors_of_disturbance_and_branches(paper):
     # the dead zone alone, on given torques: right branch x1.5 on both joints, left x0.5 / x2
     import casadi as ca
 
-    from symfunnel.simulation.closedloop import plant_acceleration
+    from symfunnel.plant.equations import plant_acceleration
     sc = _variant(paper, scaled)
     u = ca.SX.sym("u", 2)
     parts = plant_acceleration(sc, sc.model.q, sc.model.dq, ca.SX.sym("t"), u, 0.0)

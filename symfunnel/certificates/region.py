@@ -1,6 +1,6 @@
 """The region a certificate holds on, built from the scenario, and the design's own signals written over it.
 
-- Parameters: the plant's quantities in the layout of `simulation.closedloop.plant_parameters`, each a point (its
+- Parameters: the plant's quantities in the layout of `plant.equations.plant_parameters`, each a point (its
   scenario value) or, for an `[[uncertainty]]` key, a box: uniform [low, high], normal mean +- 5 std, choice its
   hull. A per-joint quantity drawn once for every joint gets the same box on each joint (a superset).
 - Dead-zone slopes: per joint the hull of both branches' slopes d(branch)/du, interval-evaluated over
@@ -24,7 +24,7 @@ import casadi as ca
 import numpy as np
 
 from ..core.errors import InputError
-from ..simulation.closedloop import plant_acceleration, plant_parameters
+from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.branch import rigorous_range
 from ..sx.interval import IntervalFunction
 from ..sx.rewrite import replace_nodes

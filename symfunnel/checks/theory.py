@@ -224,7 +224,7 @@ def check_guarantee(design, L) -> CheckResult:
 
 def _slope_sets(scenario) -> list[np.ndarray]:
     """Per joint, the dead-zone branch slopes to combine (1 without a dead zone)."""
-    from ..simulation.closedloop import dead_zone_branches
+    from ..plant.equations import dead_zone_branches
     from ..plant.nonlinearities import dead_zone_slope_bounds
     n = scenario.n
     dz = scenario.plant.dead_zone
@@ -238,7 +238,7 @@ def _slope_sets(scenario) -> list[np.ndarray]:
 
 def check_input_gain(design, rng, *, samples: int = 400) -> CheckResult:
     """assumption.input_gain: lambda_min of sym(M_p(q)^-1 D M(q)) > 0 over sampled q and every slope combination."""
-    from ..simulation.closedloop import plant_acceleration
+    from ..plant.equations import plant_acceleration
     sc = design.scenario
     n = design.n
     q, dq = design.sym["q"], design.sym["dq"]

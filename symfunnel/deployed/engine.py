@@ -3,7 +3,7 @@
 The loop is the one of `deployed.loop` (measurement noise, quantisation, the step at every sample, zero-order hold,
 optional one-sample delay, saturation inside the step), run in C (templates/mujoco_loop.c): between samples
 MuJoCo advances `substeps` times (`mj_step`) at timestep h / substeps under the held torque. What MuJoCo does not
-model is applied exactly as in symfunnel's plant, from the same SX (`simulation.closedloop.plant_forces`): the dead
+model is applied exactly as in symfunnel's plant, from the same SX (`plant.equations.plant_forces`): the dead
 zone on the held torque (held too, so exact once per period), the viscous and smoothed Coulomb friction and the
 disturbance d(t, q, dq) as a passive force evaluated at every step or stage (MuJoCo's `mjcb_passive`). The plant's
 mass scale and the engine-only `[plant.mujoco]` mismatch change the engine's bodies and joints; the controller
@@ -129,7 +129,7 @@ def engine_setup(scenario, on_build=None) -> EngineSetup:
     if width in cache:
         return cache[width]
     from ..plant.mujoco import load_engine, require_mujoco
-    from ..simulation.closedloop import plant_forces, plant_parameters
+    from ..plant.equations import plant_forces, plant_parameters
     from .cfun import _compiled
     mujoco = require_mujoco(file=scenario.file)
     engine = load_engine(scenario.model, file=scenario.file)

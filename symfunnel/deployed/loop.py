@@ -4,7 +4,7 @@ At each sample t_k = k h (h = 1/rate_hz) the measurements q + noise, dq + noise 
 resolution) go to the compiled `symfunnel_step` of the files `codegen --lang c` writes (loaded with ctypes), so
 the code verified is the code shipped. Its torque is held over the period (one period later with
 delay_samples = 1; zero torque before the first one arrives) and the true plant (dead zone, friction,
-disturbance, the plant's M, C, G: `simulation.closedloop.plant_acceleration`) is integrated over the period by CasADi's
+disturbance, the plant's M, C, G: `plant.equations.plant_acceleration`) is integrated over the period by CasADi's
 fixed-step `rk` integrator, expanded to SX and compiled to C. Funnel margins 1 - |e|/F are those of the true
 state, at the samples and, between them, at every RK4 step of the plant (`between_margins`: per period the smallest
 over its steps; the controller only sees the samples, the plant's state leaves a funnel wherever it does).
@@ -249,7 +249,7 @@ def plant_step_function(scenario, substeps: int, name: str = "sfs_plant", design
 
     The ODE is integrated in s = (t - t0)/h over [0, 1], so one compiled function serves every period h.
     """
-    from ..simulation.closedloop import plant_acceleration
+    from ..plant.equations import plant_acceleration
     n = scenario.n
     q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
     s, th, tau, s0 = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n), ca.SX.sym("s0")
@@ -514,7 +514,7 @@ def _between_breach(sc, subs: int, design, t0: float, h: float, x0: np.ndarray, 
     """The first plant step of the period from (t0, x0) under tau whose state is outside a funnel: (t, index of the
     margin [e1 columns, then e2], margin)."""
     n = sc.n
-    from ..simulation.closedloop import plant_acceleration
+    from ..plant.equations import plant_acceleration
     q, dq = ca.SX.sym("q", n), ca.SX.sym("dq", n)
     s, th, u = ca.SX.sym("s"), ca.SX.sym("th", 2), ca.SX.sym("tau", n)
     ddq = plant_acceleration(sc, q, dq, th[0] + th[1] * s, u, sc.simulation.smoothing_width)["ddq"]

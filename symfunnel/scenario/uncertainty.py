@@ -287,7 +287,7 @@ def _sweep(t: Any, file: str) -> SweepSpec:
 # --- applying a run's values -----------------------------------------------------------------------------
 
 def run_inputs(campaign: Campaign, cl, values: np.ndarray) -> tuple[dict, np.ndarray]:
-    """Plant parameters (names of `simulation.closedloop.plant_parameters`) and initial state of one run's drawn values."""
+    """Plant parameters (names of `plant.equations.plant_parameters`) and initial state of one run's drawn values."""
     params: dict = {}
     x0 = cl.x0.copy()
     n = cl.n

@@ -95,7 +95,7 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
 
     Returns a SimResult whose status is 'ok', 'breach', 'initial_outside', 'timeout' or 'failed', with the
     trajectory up to where the run stopped. Bad settings raise InputError. `params` (name -> value, names of
-    `simulation.closedloop.plant_parameters`) and `x0` (public state order) override the closed loop's plant quantities and
+    `plant.equations.plant_parameters`) and `x0` (public state order) override the closed loop's plant quantities and
     initial state without recompiling: a campaign runs every variant on one compiled loop. `fixed_chunks`
     integrates in the chunks a fast machine chooses (25 points, then 500) whatever the wall time, so that the
     result does not depend on the machine's speed (CVODES restarts at every chunk).
