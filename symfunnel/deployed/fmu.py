@@ -1,0 +1,237 @@
+"""The FMU checked by a real FMI client (FMPy), which validates it and steps it in the sampled loop against the C step.
+
+FMPy validates the FMU's modelDescription.xml and loads its binary; the FMU, stepped by FMPy, closes the
+sampled-data loop of `deployed.loop` in place of the compiled C step.
+
+`check_fmu(path, scenario, design, rate_hz)` runs the loop twice with the same plant step, measurements and
+hold: once with the generated C step (`simulate_sampled`, as `simulate --rate`), once with the FMU driven through
+FMPy's `FMU2Slave` (one `fmi2DoStep(t_k, 1/rate)` per sample: the inputs q, dq set before it, tau read after it),
+and compares the torque sequences, the states and where each run leaves a funnel. FMPy is needed here only
+(`pip install 'symfunnel[fmu]'`); the FMU itself needs nothing but a C compiler.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import shutil
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core.errors import InputError
+
+__all__ = ["FmuCheck", "FmuController", "check_fmu", "load_fmpy", "TOLERANCE"]
+
+_COUNTER = itertools.count()
+
+#: the largest relative difference |tau_fmu - tau_c| / max(1, |tau_c|) (and of q, dq) the check accepts
+TOLERANCE = 1e-9
+
+
+def load_fmpy():
+    """The fmpy package, or InputError saying how to install it."""
+    try:
+        import fmpy
+        import fmpy.fmi2  # noqa: F401
+        import fmpy.validation  # noqa: F401
+    except ImportError:
+        raise InputError("needs FMPy, which is not installed", key="--check",
+                         expected="pip install 'symfunnel[fmu]' (FMPy loads, validates and steps the FMU)") from None
+    return fmpy
+
+
+class FmuController:
+    """An FMU stepped by FMPy, with the buffers and `raw()` of `deployed.loop.StepLibrary`, so that
+    `simulate_sampled(..., controller=FmuController(path))` runs the sampled loop with it."""
+
+    def __init__(self, path, *, instance: str | None = None):
+        fmpy = load_fmpy()
+        from fmpy.fmi2 import FMU2Slave
+        self.md = fmpy.read_model_description(str(path))
+        self._dir = fmpy.extract(str(path))
+        vs = {v.name: v for v in self.md.modelVariables}
+        self.n = n = sum(1 for name in vs if name.startswith("q["))
+        self.vr_in = [vs[f"q[{i + 1}]"].valueReference for i in range(n)] + \
+            [vs[f"dq[{i + 1}]"].valueReference for i in range(n)]
+        self.vr_tau = [vs[f"tau[{i + 1}]"].valueReference for i in range(n)]
+        self.vr_status = [vs["status"].valueReference]
+        self.h = float(self.md.defaultExperiment.stepSize)
+        instance = instance or f"symfunnel-check-{next(_COUNTER)}"
+        self.fmu = FMU2Slave(guid=self.md.guid, unzipDirectory=self._dir,
+                             modelIdentifier=self.md.coSimulation.modelIdentifier, instanceName=instance)
+        self.instance = instance
+        self.log: list[tuple[int, str, str]] = []      # (status, category, message) the FMU logged
+        self._callbacks = _collecting_callbacks(instance, self.log)
+        self.fmu.instantiate(callbacks=self._callbacks)
+        self.q, self.dq, self.tau = np.zeros(n), np.zeros(n), np.zeros(n)
+        self.steps = 0
+        self.error: str | None = None
+        self._initialized = False
+
+    def init(self) -> int:
+        """Reset the FMU to its start values and initialise it (start time 0)."""
+        if self._initialized:
+            self.fmu.reset()
+        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+        self._initialized = True
+        self.steps = 0
+        return 0
+
+    def step(self, t: float, q, dq) -> tuple[int, np.ndarray]:
+        """One fmi2DoStep(t, h) with inputs q, dq: (status output, or -3 when the FMU refused; tau)."""
+        from fmpy.fmi1 import FMICallException
+        self.fmu.setReal(self.vr_in, [float(v) for v in np.concatenate([q, dq])])
+        try:
+            self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=self.h)
+        except FMICallException as exc:
+            self.error = str(exc)
+            return -3, np.full(self.n, np.nan)
+        self.steps += 1
+        return int(self.fmu.getInteger(self.vr_status)[0]), np.array(self.fmu.getReal(self.vr_tau))
+
+    def raw(self):
+        """(function, None, (q, dq, tau)) as StepLibrary.raw: rc = function(None, t, *buffers)."""
+        def stepf(_state, t, q, dq, tau):
+            rc, out = self.step(t, q, dq)
+            tau[:] = out
+            return rc
+        return stepf, None, (self.q, self.dq, self.tau)
+
+    def close(self) -> None:
+        """Terminate and free the instance, remove the extracted files."""
+        try:
+            if self._initialized:
+                self.fmu.terminate()
+        except Exception:          # a failed FMU may refuse fmi2Terminate: free it all the same
+            pass
+        self.fmu.freeInstance()
+        _LOGS.pop(self.instance, None)
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+#: the one set of FMI callbacks of this process and the log list of each instance name: FMPy's native logger
+#: proxy (which formats the FMU's variadic messages) keeps the last Python logger it was given in a global, so a
+#: logger that is freed while that global still points to it crashes the next FMU that logs (found by the tests);
+#: one logger, created once and kept, routes the messages instead
+_LOGS: dict[str, list] = {}
+_CALLBACKS: list = []
+
+
+def _collecting_callbacks(name: str, log: list):
+    """fmi2CallbackFunctions whose logger appends (status, category, message) of instance `name` to `log`
+    (messages of other instances are printed as FMPy prints them)."""
+    _LOGS[name] = log
+    if _CALLBACKS:
+        return _CALLBACKS[0]
+    from ctypes import byref
+
+    from fmpy import calloc, free
+    from fmpy.fmi2 import (fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions,
+                           fmi2CallbackLoggerTYPE)
+    from fmpy.logging import addLoggerProxy
+
+    def logger(env, instance, status, category, message):
+        entry = (int(status), (category or b"").decode("utf-8", "replace"),
+                 (message or b"").decode("utf-8", "replace"))
+        target = _LOGS.get((instance or b"").decode("utf-8", "replace"))
+        if target is None:
+            print(f"[{['OK', 'WARNING', 'DISCARD', 'ERROR', 'FATAL', 'PENDING'][min(max(entry[0], 0), 5)]}] "
+                  f"{entry[2]}")
+        else:
+            target.append(entry)
+    cb = fmi2CallbackFunctions()
+    cb.logger = fmi2CallbackLoggerTYPE(logger)
+    cb.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
+    cb.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
+    addLoggerProxy(byref(cb))
+    _CALLBACKS.append(cb)
+    return cb
+
+
+@dataclass
+class FmuCheck:
+    """The result of `check_fmu`."""
+
+    problems: list[str]                 # FMPy's validation of the modelDescription (empty: none)
+    rate_hz: float
+    samples: int                        # controller periods both runs stepped
+    samples_reference: int
+    max_abs_tau: float                  # max |tau_fmu - tau_c| over samples and joints
+    max_rel_tau: float                  # max |tau_fmu - tau_c| / max(1, |tau_c|)
+    max_rel_state: float                # the same for q, dq at the samples
+    status: str                         # the FMU loop's: ok | breach | failed
+    status_reference: str               # the C step loop's
+    breach: dict | None
+    breach_reference: dict | None
+    error: str | None = None
+    wall: dict = field(default_factory=dict)
+
+    @property
+    def same_breach(self) -> bool:
+        """Both runs leave the funnels at the same time, funnel and joint (or neither does)."""
+        def key(b):
+            return None if b is None else (b["time"], b["funnel"], b["joint"])
+        return key(self.breach) == key(self.breach_reference)
+
+    @property
+    def passed(self) -> bool:
+        return (not self.problems and self.error is None and self.samples == self.samples_reference
+                and self.status == self.status_reference and self.same_breach
+                and self.max_rel_tau <= TOLERANCE and self.max_rel_state <= TOLERANCE)
+
+    def to_json(self) -> dict:
+        return {"passed": self.passed, "validation_problems": list(self.problems), "rate_hz": self.rate_hz,
+                "samples": self.samples, "samples_reference": self.samples_reference,
+                "max_abs_tau_difference": self.max_abs_tau, "max_rel_tau_difference": self.max_rel_tau,
+                "max_rel_state_difference": self.max_rel_state, "tolerance": TOLERANCE,
+                "status": self.status, "status_reference": self.status_reference,
+                "breach": self.breach, "breach_reference": self.breach_reference, "same_breach": self.same_breach,
+                "error": self.error, "wall_s": self.wall}
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(max |a - b|, max |a - b| / max(1, |b|)) over the finite common part; inf when a non-finite value differs."""
+    if a.shape != b.shape:
+        k = min(a.shape[0], b.shape[0])
+        a, b = a[:k], b[:k]
+    if a.size == 0:
+        return 0.0, 0.0
+    same_nan = np.isnan(a) & np.isnan(b)
+    d = np.where(same_nan, 0.0, np.abs(a - b))
+    if not np.all(np.isfinite(d)):
+        return math.inf, math.inf
+    return float(d.max()), float((d / np.maximum(1.0, np.abs(b))).max())
+
+
+def check_fmu(path, scenario, design, rate_hz: float, *, t_final: float | None = None, progress=None) -> FmuCheck:
+    """Validate the FMU with FMPy and run the sampled loop with it and with the C step (see the module doc)."""
+    import time
+
+    from .loop import simulate_sampled
+    fmpy = load_fmpy()
+    problems = list(fmpy.validation.validate_fmu(str(path)))
+    t0 = time.perf_counter()
+    ref = simulate_sampled(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=progress)
+    t1 = time.perf_counter()
+    with FmuController(path) as ctl:
+        if abs(ctl.h * rate_hz - 1.0) > 1e-12:
+            problems.append(f"DefaultExperiment stepSize {ctl.h!r} is not 1/{rate_hz:g} s")
+        run = simulate_sampled(scenario, design, rate_hz=rate_hz, t_final=t_final, controller=ctl,
+                               progress=progress)
+        error = ctl.error
+    t2 = time.perf_counter()
+    abs_tau, rel_tau = _rel(run.tau, ref.tau)
+    _, rel_q = _rel(run.q, ref.q)
+    _, rel_dq = _rel(run.dq, ref.dq)
+    return FmuCheck(problems, float(rate_hz), int(run.tau.shape[0]), int(ref.tau.shape[0]), abs_tau, rel_tau,
+                    max(rel_q, rel_dq), run.status, ref.status, run.breach, ref.breach, error,
+                    {"c_step_loop": t1 - t0, "fmu_loop": t2 - t1})
