@@ -249,3 +249,72 @@ def test_the_library_exports_only_the_fmi_functions(built):
     lib_path.write_bytes(data)
     lib = ctypes.CDLL(str(lib_path))
     assert lib.fmi2GetVersion and not hasattr(lib, src.identifier + "_step")
+
+
+# ---- the command line: symfunnel codegen --lang fmu ---------------------------------------------------------------
+
+def test_cli_writes_only_the_fmu_and_its_check_passes(tmp_path, capsys):
+    import json
+
+    from symfunnel.cli import main
+    out = tmp_path / "out"
+    assert main(["codegen", "paper", "--lang", "fmu", "--rate", "2000", "--out", str(out), "--check", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["file"] == "paper.fmu" and data["fmi_version"] == "2.0" and data["rate_hz"] == 2000.0
+    check = data["check"]
+    assert check["passed"] and check["validation_problems"] == [] and check["samples"] == 40000
+    assert check["max_abs_tau_difference"] == 0.0 and check["status"] == check["status_reference"] == "ok"
+    assert sorted(p.name for p in out.iterdir()) == ["paper.fmu"]
+    assert validate_fmu(str(out / "paper.fmu")) == []
+    # written again over its own file: no --force needed; a file of the user's is kept without --force
+    assert main(["codegen", "paper", "--lang", "fmu", "--rate", "2000", "--out", str(out), "-q"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    (out / "paper.fmu").write_bytes(b"the user's own file")
+    assert main(["codegen", "paper", "--lang", "fmu", "--rate", "2000", "--out", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--force" in err and "paper.fmu" in err
+    assert (out / "paper.fmu").read_bytes() == b"the user's own file"
+    assert main(["codegen", "paper", "--lang", "fmu", "--rate", "2000", "--out", str(out), "--force", "-q"]) == 0
+    assert validate_fmu(str(out / "paper.fmu")) == []
+
+
+@pytest.mark.parametrize("args, option, words", [
+    (["--lang", "fmu"], "--rate", "missing"),
+    (["--lang", "fmu", "--rate", "0"], "--rate", ""),
+    (["--lang", "fmu", "--rate", "1000", "--fmi", "3"], "--fmi", "not supported yet"),
+    (["--lang", "fmu", "--rate", "1000", "--fmi", "2.5"], "--fmi", "'2.5'"),
+    (["--lang", "c", "--fmi", "2"], "--fmi", "--lang fmu"),
+    (["--lang", "fmu", "--rate", "1000", "--prefix", "p_"], "--prefix", "--lang fmu"),
+])
+def test_cli_bad_input_is_one_line_naming_the_option_and_writes_nothing(tmp_path, capsys, args, option, words):
+    from symfunnel.cli import main
+    out = tmp_path / "out"
+    assert main(["codegen", "paper", *args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("symfunnel: error:") and option in err and words in err
+    assert not out.exists()
+
+
+def test_cli_check_without_fmpy_says_how_to_install_it(tmp_path, capsys, monkeypatch):
+    import sys
+
+    from symfunnel.cli import main
+    monkeypatch.setitem(sys.modules, "fmpy", None)
+    out = tmp_path / "out"
+    assert main(["codegen", "paper", "--lang", "fmu", "--rate", "1000", "--out", str(out), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--check" in err and "symfunnel[fmu]" in err
+    assert not out.exists()
+
+
+def test_python_api_exports_and_checks_the_fmu(tmp_path):
+    import symfunnel
+    from symfunnel.core.errors import InputError
+    res = symfunnel.codegen("paper", "fmu", tmp_path / "o", rate_hz=2000.0, check=True)
+    assert res.path == tmp_path / "o" / "paper.fmu" and res.check.passed and res.check.samples == 40000
+    assert res.to_json("paper", tmp_path / "o")["check"]["max_abs_tau_difference"] == 0.0
+    with pytest.raises(InputError, match="rate_hz"):
+        symfunnel.codegen("paper", "fmu", tmp_path / "p")
+    with pytest.raises(InputError, match="fmi"):
+        symfunnel.codegen("paper", "c", fmi="2")
+    assert not (tmp_path / "p").exists()

@@ -16,12 +16,14 @@ import itertools
 import math
 import shutil
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from ..core.errors import InputError
 
-__all__ = ["FmuCheck", "FmuController", "check_fmu", "load_fmpy", "TOLERANCE"]
+__all__ = ["FmuCheck", "FmuController", "FmuExport", "check_fmu", "export_fmu", "fmu_options", "load_fmpy",
+           "TOLERANCE"]
 
 _COUNTER = itertools.count()
 
@@ -235,3 +237,83 @@ def check_fmu(path, scenario, design, rate_hz: float, *, t_final: float | None =
     return FmuCheck(problems, float(rate_hz), int(run.tau.shape[0]), int(ref.tau.shape[0]), abs_tau, rel_tau,
                     max(rel_q, rel_dq), run.status, ref.status, run.breach, ref.breach, error,
                     {"c_step_loop": t1 - t0, "fmu_loop": t2 - t1})
+
+
+@dataclass
+class FmuExport:
+    """What `export_fmu` wrote: the .fmu's path and bytes, its sources, and the check when asked for."""
+
+    path: Path
+    data: bytes
+    sources: object                     # emit.fmu.FmuSources
+    check: FmuCheck | None = None
+
+    def to_json(self, scenario: str, out) -> dict:
+        """The shape of `codegen --lang fmu --json`."""
+        src = self.sources
+        d = {"scenario": scenario, "language": "fmu", "fmi_version": "2.0", "kind": "CoSimulation", "out": str(out),
+             "file": self.path.name, "bytes": len(self.data), "guid": src.guid, "model_identifier": src.identifier,
+             "rate_hz": src.rate_hz, "sources": list(src.sources)}
+        if self.check is not None:
+            d["check"] = self.check.to_json()
+        return d
+
+
+def fmu_options(fmi, rate_hz, prefix=None, *, check: bool = False, keys=("--fmi", "--rate", "--prefix", "--check")) \
+        -> str:
+    """The FMI version of `--lang fmu` options ("2"), or InputError naming the option that is wrong: FMI 3 (not
+    supported yet) or another version, a missing rate, a prefix, --check without FMPy. Checked before any work."""
+    from ..emit.fmu import FMI_VERSIONS
+    fmi = "2" if fmi is None else str(fmi).strip()
+    if fmi in ("3", "3.0"):
+        raise InputError(f"is {fmi}: FMI 3.0 export is not supported yet", key=keys[0],
+                         expected="2 (FMI 2.0 Co-Simulation, the default)")
+    if fmi == "2.0":
+        fmi = "2"
+    if fmi not in FMI_VERSIONS:
+        raise InputError(f"is '{fmi}'", key=keys[0], expected="2 (FMI 2.0; 3 is not supported yet)")
+    if rate_hz is None:
+        raise InputError("is missing", key=keys[1],
+                         expected="the controller's sample rate in Hz with --lang fmu (one fmi2DoStep period = 1/HZ)")
+    from ..scenario.implementation import check_rate
+    check_rate(rate_hz, file=None, key=keys[1])
+    if prefix is not None:
+        raise InputError("is given with --lang fmu", key=keys[2],
+                         expected="no prefix: the FMU's symbols are the FMI functions, named by the standard")
+    if check:
+        load_fmpy()
+    return fmi
+
+
+def export_fmu(scenario, design, out, rate_hz: float, *, fmi: str = "2", check: bool = False, force: bool = False,
+               progress=None) -> FmuExport:
+    """Build `out/<id>.fmu` (emit.fmu), check it with FMPy when asked (`check_fmu`, on a private copy before
+    anything is written), and write it atomically. An existing file of that name is replaced only when symfunnel
+    wrote it or with `force` (InputError otherwise, before any work); the result is written even when the check
+    fails (to read), and `FmuExport.check.passed` says so."""
+    import tempfile
+
+    from ..core.io import atomic_write
+    from ..core.lifecycle import committing
+    from ..emit.fmu import build_fmu, fmu_sources, model_identifier, written_by_symfunnel
+    target = Path(out) / f"{model_identifier(scenario.name)}.fmu"
+    if Path(out).exists() and not Path(out).is_dir():
+        raise InputError("exists and is not a directory", file=str(out), key="--out",
+                         expected="a directory (created when missing)")
+    if target.is_dir() or (target.exists() and not target.is_file()):
+        raise InputError("exists and is not a regular file", file=str(target), key="--out",
+                         expected="a directory without a directory or device of that name")
+    if target.exists() and not force and not written_by_symfunnel(target):
+        raise InputError("holds a file not written by symfunnel codegen", file=str(target), key="--out",
+                         expected="--force to overwrite it, or another directory")
+    src = fmu_sources(design, rate_hz, fmi=fmi)
+    data = build_fmu(src, on_build=progress)
+    report = None
+    if check:
+        with tempfile.TemporaryDirectory(prefix="symfunnel-fmu-") as tmp:
+            path = Path(tmp) / target.name
+            path.write_bytes(data)
+            report = check_fmu(path, scenario, design, src.rate_hz, progress=progress)
+    with committing(0 if report is None or report.passed else 1):
+        atomic_write(target, data)
+    return FmuExport(target, data, src, report)
