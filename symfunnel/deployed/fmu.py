@@ -89,7 +89,8 @@ class FmuController:
         try:
             self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=self.h)
         except FMICallException as exc:
-            self.error = str(exc)
+            said = "; ".join(m for st, _, m in self.log[-3:] if st >= 3)
+            self.error = f"the FMU refused fmi2DoStep at t = {t!r} s: {exc}" + (f" ({said})" if said else "")
             return -3, np.full(self.n, np.nan)
         self.steps += 1
         return int(self.fmu.getInteger(self.vr_status)[0]), np.array(self.fmu.getReal(self.vr_tau))
@@ -222,7 +223,14 @@ def check_fmu(path, scenario, design, rate_hz: float, *, t_final: float | None =
     fmpy = load_fmpy()
     problems = list(fmpy.validation.validate_fmu(str(path)))
     t0 = time.perf_counter()
-    ref = simulate_sampled(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=progress)
+    try:
+        ref = simulate_sampled(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=progress)
+        ref_error = None
+    except KeyError as exc:
+        # deployed.loop.step_library reads design.sym["x_esn"] / ["w_hat"], which a design without an echo state
+        # network does not have: the reference loop cannot run (the FMU can: it sizes its state by step_states)
+        ref, ref_error = None, (f"the C step's own sampled loop does not run for this design (deployed.loop: "
+                                f"KeyError {exc}); nothing to compare the FMU with")
     t1 = time.perf_counter()
     with FmuController(path) as ctl:
         if abs(ctl.h * rate_hz - 1.0) > 1e-12:
@@ -231,6 +239,9 @@ def check_fmu(path, scenario, design, rate_hz: float, *, t_final: float | None =
                                progress=progress)
         error = ctl.error
     t2 = time.perf_counter()
+    if ref is None:
+        return FmuCheck(problems, float(rate_hz), int(run.tau.shape[0]), 0, math.inf, math.inf, math.inf,
+                        run.status, "failed", run.breach, None, ref_error, {"fmu_loop": t2 - t1})
     abs_tau, rel_tau = _rel(run.tau, ref.tau)
     _, rel_q = _rel(run.q, ref.q)
     _, rel_dq = _rel(run.dq, ref.dq)
