@@ -3,7 +3,6 @@ the closed loop against our own sampled loop, refused communication steps, FMU s
 
 from __future__ import annotations
 
-import ctypes
 import shutil
 import subprocess
 import zipfile
@@ -37,19 +36,26 @@ RATE = 2000.0
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    """{key: (scenario, design, FmuSources, path of the .fmu)} at RATE, built on first use."""
+    """{key: (scenario, design, FmuSources, path of the .fmu)} at a rate and FMI version, built on first use."""
     cache = {}
 
-    def get(key: str, rate: float = RATE):
-        if (key, rate) not in cache:
+    def get(key: str, rate: float = RATE, fmi: str = "2"):
+        if (key, rate, fmi) not in cache:
             sc = load_scenario(SCENARIOS[key])
             design = derive(sc)
-            src = fmu_sources(design, rate)
-            path = tmp_path_factory.mktemp(f"fmu_{key}") / f"{src.identifier}.fmu"
+            src = fmu_sources(design, rate, fmi=fmi)
+            path = tmp_path_factory.mktemp(f"fmu{fmi}_{key}") / f"{src.identifier}.fmu"
             path.write_bytes(build_fmu(src))
-            cache[key, rate] = (sc, design, src, path)
-        return cache[key, rate]
+            cache[key, rate, fmi] = (sc, design, src, path)
+        return cache[key, rate, fmi]
     return get
+
+
+def exported_functions(fmi: str) -> set[str]:
+    """The functions the standard's header declares (FMI2_Export / FMI3_Export)."""
+    import re
+    text = (REPO / "symfunnel" / "emit" / "templates" / f"fmi{fmi}Functions.h").read_text()
+    return set(re.findall(rf"FMI{fmi}_Export\s+fmi{fmi}\w+TYPE\s+(fmi{fmi}\w+);", text))
 
 
 def c_step(design, rate):
@@ -62,30 +68,36 @@ def c_step(design, rate):
     return StepLibrary(lib.path, "ref_", design.n, int(x.numel()), int(w.numel()))
 
 
+@pytest.mark.parametrize("fmi", ["2", "3"])
 @pytest.mark.parametrize("key", list(SCENARIOS))
-def test_fmpy_validates_loads_and_steps_the_fmu_of_every_family_member(built, key):
-    sc, design, src, path = built(key)
+def test_fmpy_validates_loads_and_steps_the_fmu_of_every_family_member(built, key, fmi):
+    sc, design, src, path = built(key, fmi=fmi)
     assert validate_fmu(str(path)) == []
     md = fmpy.read_model_description(str(path))
-    assert md.fmiVersion == "2.0" and md.coSimulation is not None and md.modelExchange is None
+    assert md.fmiVersion == f"{fmi}.0" and md.coSimulation is not None and md.modelExchange is None
     assert md.coSimulation.modelIdentifier == src.identifier and md.guid == src.guid
     assert md.coSimulation.canGetAndSetFMUstate and md.coSimulation.canSerializeFMUstate
-    assert md.defaultExperiment.stepSize == repr(1.0 / RATE) or float(md.defaultExperiment.stepSize) == 1.0 / RATE
+    assert float(md.defaultExperiment.stepSize) == 1.0 / RATE
     n = design.n
     by = {v.name: v for v in md.modelVariables}
     for i in range(1, n + 1):
         for name in (f"q[{i}]", f"dq[{i}]"):
             assert by[name].causality == "input" and by[name].variability == "discrete"
-        assert by[f"tau[{i}]"].causality == "output"
+        assert by[f"tau[{i}]"].causality == "output" and by[f"tau[{i}]"].unit in ("N.m", "N")
     outputs = [v for v in md.modelVariables if v.causality == "output"]
-    assert len(outputs) == 4 * n + 1 and by["status"].type == "Integer"
-    assert [u.variable for u in md.outputs] == outputs          # ModelStructure: one Unknown per output
+    assert len(outputs) == 4 * n + 1 and by["status"].type == ("Integer" if fmi == "2" else "Int32")
+    assert [u.variable for u in md.outputs] == outputs          # ModelStructure: one Unknown / Output per output
     for v in md.modelVariables:
-        assert v.description and (v.type == "Integer" or v.unit), v.name
+        assert v.description and (v.type in ("Integer", "Int32") or v.unit), v.name
     assert not [v for v in md.modelVariables if v.causality == "parameter"]   # the step takes no design numbers
+    if fmi == "3":
+        assert float(md.coSimulation.fixedInternalStepSize) == 1.0 / RATE and not md.coSimulation.hasEventMode
+        assert by["time"].causality == "independent" and by["time"].unit == "s"     # no clocks: none declared
+        assert not [v for v in md.modelVariables if v.type == "Clock"]
+        assert md.buildConfigurations[0].sourceFileSets[0].sourceFiles == list(src.compile_files)
     with zipfile.ZipFile(path) as zf:
         names = set(zf.namelist())
-    assert f"binaries/{fmu_platform()}/{src.identifier}.so" in names
+    assert f"binaries/{fmu_platform(fmi)}/{src.identifier}.so" in names
     assert {f"sources/{f}" for f in src.sources} <= names and "modelDescription.xml" in names
     # one source: the FMU compiles the generated step C as codegen --lang c writes it (with the FMU's prefix)
     step = generate(design, "c", prefix=src.identifier + "_", rate_hz=RATE)
@@ -96,11 +108,12 @@ def test_fmpy_validates_loads_and_steps_the_fmu_of_every_family_member(built, ke
         assert rc == 0 and np.all(np.isfinite(tau)) and tau.shape == (n,)
 
 
+@pytest.mark.parametrize("fmi", ["2", "3"])
 @pytest.mark.parametrize("key", list(SCENARIOS))
-def test_the_fmu_gives_the_c_steps_torque_bit_for_bit_along_a_closed_loop_run(built, key):
+def test_the_fmu_gives_the_c_steps_torque_bit_for_bit_along_a_closed_loop_run(built, key, fmi):
     """The FMU (stepped by FMPy) closes our sampled loop; the compiled C step, fed the same measurements, gives the
     same torque to the last bit (works for every family member, the loop's own C step included or not)."""
-    sc, design, src, path = built(key)
+    sc, design, src, path = built(key, fmi=fmi)
     with FmuController(path) as ctl:
         run = simulate_sampled(sc, design, rate_hz=RATE, t_final=1.0, controller=ctl)
     assert run.status == "ok" and run.tau.shape == (int(RATE), design.n)
@@ -111,9 +124,10 @@ def test_the_fmu_gives_the_c_steps_torque_bit_for_bit_along_a_closed_loop_run(bu
     assert np.array_equal(tau, run.tau)
 
 
-@pytest.mark.parametrize("key", ["paper", pytest.param("arm7", marks=pytest.mark.slow)])
-def test_fmpy_driven_loop_reproduces_our_sampled_loop_over_ten_thousand_steps(built, key):
-    sc, design, src, path = built(key)
+@pytest.mark.parametrize("key, fmi", [("paper", "2"), ("paper", "3"), pytest.param("arm7", "2", marks=pytest.mark.slow),
+                                      pytest.param("arm7", "3", marks=pytest.mark.slow)])
+def test_fmpy_driven_loop_reproduces_our_sampled_loop_over_ten_thousand_steps(built, key, fmi):
+    sc, design, src, path = built(key, fmi=fmi)
     report = check_fmu(path, sc, design, RATE)
     assert report.samples >= 10_000 and report.samples == report.samples_reference
     assert report.status == report.status_reference == "ok"
@@ -121,8 +135,9 @@ def test_fmpy_driven_loop_reproduces_our_sampled_loop_over_ten_thousand_steps(bu
     assert report.problems == [] and report.passed
 
 
-def test_at_a_rate_too_low_the_fmu_loop_breaches_exactly_where_ours_does(built):
-    sc, design, src, path = built("paper", 1000.0)
+@pytest.mark.parametrize("fmi", ["2", "3"])
+def test_at_a_rate_too_low_the_fmu_loop_breaches_exactly_where_ours_does(built, fmi):
+    sc, design, src, path = built("paper", 1000.0, fmi)
     report = check_fmu(path, sc, design, 1000.0)
     assert report.status_reference == "breach" and report.status == "breach"
     assert report.breach["time"] == report.breach_reference["time"]
@@ -143,28 +158,30 @@ def test_check_on_designs_without_reservoir_or_weights(built, key):
     assert report.passed
 
 
-def test_a_communication_step_not_a_multiple_of_the_period_is_refused_with_a_logged_message(built):
-    sc, design, src, path = built("paper")
+@pytest.mark.parametrize("fmi", ["2", "3"])
+def test_a_communication_step_not_a_multiple_of_the_period_is_refused_with_a_logged_message(built, fmi):
+    sc, design, src, path = built("paper", fmi=fmi)
     h = 1.0 / RATE
     with FmuController(path) as ctl:
         ctl.init()
-        ctl.fmu.setReal(ctl.vr_in, [0.01, -0.02, 0.0, 0.0])
-        with pytest.raises(FMICallException, match="fmi2DoStep failed with status 3"):
-            ctl.fmu.doStep(0.0, 1.5 * h)
+        ctl.set_inputs([0.01, -0.02], [0.0, 0.0])
+        with pytest.raises(FMICallException, match=f"fmi{fmi}DoStep failed with status 3"):
+            ctl.do_step(0.0, 1.5 * h)
         status, category, message = ctl.log[-1]
         assert status == 3 and category == "logStatusError"
         assert "not a whole number of controller periods" in message and "0.0005" in message
         # refused without effect: the FMU steps on from the same state; a multiple of the period is accepted
-        ctl.fmu.doStep(0.0, 3 * h)
-        tau3 = np.array(ctl.fmu.getReal(ctl.vr_tau))
+        ctl.do_step(0.0, 3 * h)
+        tau3 = ctl.outputs()[1]
         ctl.init()
         for k in range(3):
             rc, tau = ctl.step(k * h, [0.01, -0.02], [0.0, 0.0])
         assert np.array_equal(tau, tau3)
 
 
-def test_fmu_state_get_set_and_serialize_round_trip(built):
-    sc, design, src, path = built("paper")
+@pytest.mark.parametrize("fmi", ["2", "3"])
+def test_fmu_state_get_set_and_serialize_round_trip(built, fmi):
+    sc, design, src, path = built("paper", fmi=fmi)
     h = 1.0 / RATE
     rng = np.random.default_rng(0)
     qs = rng.normal(0, 0.02, (200, 2))
@@ -172,21 +189,31 @@ def test_fmu_state_get_set_and_serialize_round_trip(built):
         ctl.init()
         for k in range(100):
             ctl.step(k * h, qs[k], -qs[k])
-        state = ctl.fmu.getFMUstate()
-        blob = ctl.fmu.serializeFMUstate(state)
+        state = ctl.get_state()
+        blob = ctl.serialize(state)
         first = [ctl.step(k * h, qs[k], -qs[k]) for k in range(100, 200)]
-        ctl.fmu.setFMUstate(state)
+        ctl.set_state(state)
         again = [ctl.step(k * h, qs[k], -qs[k]) for k in range(100, 200)]
-        ctl.fmu.freeFMUstate(state)
+        ctl.free_state(state)
         assert all(a[0] == b[0] and np.array_equal(a[1], b[1]) for a, b in zip(first, again))
-        restored = ctl.fmu.deSerializeFMUstate(blob)
-        ctl.fmu.setFMUstate(restored)
+        restored = ctl.deserialize(blob)
+        ctl.set_state(restored)
         third = [ctl.step(k * h, qs[k], -qs[k]) for k in range(100, 200)]
-        ctl.fmu.freeFMUstate(restored)
+        ctl.free_state(restored)
         assert all(np.array_equal(a[1], b[1]) for a, b in zip(first, third))
         with pytest.raises(FMICallException):
-            ctl.fmu.deSerializeFMUstate(blob[:-1])
+            ctl.deserialize(blob[:-1])
         assert "not a serialized state" in ctl.log[-1][2]
+        # a state of another FMU (another rate: another GUID, the same size) is refused too
+        with FmuController(built("paper", 2 * RATE, fmi)[3]) as other:
+            other.init()
+            s2 = other.get_state()
+            foreign = other.serialize(s2)
+            other.free_state(s2)
+        assert len(foreign) == len(blob) and foreign != blob
+        with pytest.raises(FMICallException):
+            ctl.deserialize(foreign)
+        assert "GUID" in ctl.log[-1][2] or "token" in ctl.log[-1][2]
 
 
 def test_instantiate_checks_the_guid_and_refuses_model_exchange(built):
@@ -207,19 +234,42 @@ def test_instantiate_checks_the_guid_and_refuses_model_exchange(built):
         shutil.rmtree(d, ignore_errors=True)
 
 
-def test_the_sources_alone_build_with_gcc_into_an_fmu_that_gives_identical_results(built, tmp_path):
-    sc, design, src, path = built("paper")
+def test_fmi3_instantiate_checks_the_token_and_refuses_model_exchange(built):
+    sc, design, src, path = built("paper", fmi="3")
+    from fmpy.fmi3 import FMU3Model, FMU3Slave
+    d = fmpy.extract(str(path))
+    try:
+        bad = FMU3Slave(guid="{00000000-0000-0000-0000-000000000000}", unzipDirectory=d,
+                        modelIdentifier=src.identifier, instanceName="x")
+        with pytest.raises(Exception, match="Failed to instantiate"):
+            bad.instantiate(logMessage=lambda *a: None)
+        bad.freeLibrary()
+        me = FMU3Model(guid=src.guid, unzipDirectory=d, modelIdentifier=src.identifier, instanceName="x")
+        with pytest.raises(Exception, match="Failed to instantiate"):
+            me.instantiate(logMessage=lambda *a: None)
+        me.freeLibrary()
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.mark.parametrize("fmi", ["2", "3"])
+def test_the_sources_alone_build_with_gcc_into_an_fmu_that_gives_identical_results(built, tmp_path, fmi):
+    sc, design, src, path = built("paper", fmi=fmi)
     d = Path(fmpy.extract(str(path), unzipdir=str(tmp_path / "fmu")))
-    so = d / "binaries" / fmu_platform() / f"{src.identifier}.so"
+    so = d / "binaries" / fmu_platform(fmi) / f"{src.identifier}.so"
     so.unlink()
     build = tmp_path / "build"
     shutil.copytree(d / "sources", build)
-    cmd = [GCC, "-std=c99", "-O2", "-shared", "-fPIC", "-fvisibility=hidden", "-DCASADI_SYMBOL_EXPORT=", "-o",
-           str(so), *[str(build / f) for f in src.compile_files], "-lm"]
+    if fmi == "3":        # the files to compile, as a build tool reads them from buildDescription.xml
+        md = fmpy.read_model_description(str(d))
+        files = md.buildConfigurations[0].sourceFileSets[0].sourceFiles
+    else:                 # FMI 2: modelDescription's SourceFiles
+        import xml.etree.ElementTree as ET
+        files = [f.get("name") for f in ET.parse(d / "modelDescription.xml").getroot().iter("File")]
+    assert files == list(src.compile_files)
+    cmd = [GCC, "-std=c99", "-O2", "-shared", "-fPIC", "-fvisibility=hidden", "-o", str(so),
+           *[str(build / f) for f in files], "-lm"]
     subprocess.run(cmd, check=True, capture_output=True, cwd=build)
-    exported = subprocess.run(["nm", "-D", "--defined-only", str(so)], capture_output=True, text=True).stdout
-    funcs = {line.split()[-1] for line in exported.splitlines() if " T " in line}
-    assert funcs and all(f.startswith("fmi2") for f in funcs) and len(funcs) == 44
     rebuilt = tmp_path / "rebuilt.fmu"
     with zipfile.ZipFile(rebuilt, "w") as zf:
         for p in sorted(d.rglob("*")):
@@ -233,23 +283,26 @@ def test_the_sources_alone_build_with_gcc_into_an_fmu_that_gives_identical_resul
     assert np.array_equal(runs[0].tau, runs[1].tau) and np.array_equal(runs[0].q, runs[1].q)
 
 
-def test_generation_is_deterministic(built):
-    sc, design, src, path = built("paper")
-    again = fmu_sources(design, RATE)
+@pytest.mark.parametrize("fmi", ["2", "3"])
+def test_the_shipped_library_exports_every_fmi_function_and_nothing_else(built, tmp_path, fmi):
+    sc, design, src, path = built("paper", fmi=fmi)
+    with zipfile.ZipFile(path) as zf:
+        data = zf.read(f"binaries/{fmu_platform(fmi)}/{src.identifier}.so")
+    so = tmp_path / "probe.so"
+    so.write_bytes(data)
+    exported = subprocess.run(["nm", "-D", "--defined-only", str(so)], capture_output=True, text=True).stdout
+    funcs = {line.split()[-1] for line in exported.splitlines() if " T " in line}
+    assert funcs == exported_functions(fmi) and len(funcs) == (44 if fmi == "2" else 75)
+
+
+@pytest.mark.parametrize("fmi", ["2", "3"])
+def test_generation_is_deterministic(built, fmi):
+    sc, design, src, path = built("paper", fmi=fmi)
+    again = fmu_sources(design, RATE, fmi=fmi)
     assert again.guid == src.guid and again.sources == src.sources
     assert build_fmu(again) == path.read_bytes()
-    other = fmu_sources(design, 2 * RATE)
+    other = fmu_sources(design, 2 * RATE, fmi=fmi)
     assert other.guid != src.guid
-
-
-def test_the_library_exports_only_the_fmi_functions(built):
-    sc, design, src, path = built("paper")
-    with zipfile.ZipFile(path) as zf:
-        data = zf.read(f"binaries/{fmu_platform()}/{src.identifier}.so")
-    lib_path = path.parent / "probe.so"
-    lib_path.write_bytes(data)
-    lib = ctypes.CDLL(str(lib_path))
-    assert lib.fmi2GetVersion and not hasattr(lib, src.identifier + "_step")
 
 
 # ---- the command line: symfunnel codegen --lang fmu ---------------------------------------------------------------
@@ -277,12 +330,16 @@ def test_cli_writes_only_the_fmu_and_its_check_passes(tmp_path, capsys):
     assert (out / "paper.fmu").read_bytes() == b"the user's own file"
     assert main(["codegen", "paper", "--lang", "fmu", "--rate", "2000", "--out", str(out), "--force", "-q"]) == 0
     assert validate_fmu(str(out / "paper.fmu")) == []
+    assert main(["codegen", "paper", "--lang", "fmu", "--fmi", "3", "--rate", "2000", "--out", str(out), "-q"]) == 0
+    assert "FMI 3.0 Co-Simulation" in capsys.readouterr().out
+    assert validate_fmu(str(out / "paper.fmu")) == [] and fmpy.read_model_description(
+        str(out / "paper.fmu")).fmiVersion == "3.0"
 
 
 @pytest.mark.parametrize("args, option, words", [
     (["--lang", "fmu"], "--rate", "missing"),
     (["--lang", "fmu", "--rate", "0"], "--rate", ""),
-    (["--lang", "fmu", "--rate", "1000", "--fmi", "3"], "--fmi", "not supported yet"),
+    (["--lang", "fmu", "--rate", "1000", "--fmi", "4"], "--fmi", "'4'"),
     (["--lang", "fmu", "--rate", "1000", "--fmi", "2.5"], "--fmi", "'2.5'"),
     (["--lang", "c", "--fmi", "2"], "--fmi", "--lang fmu"),
     (["--lang", "fmu", "--rate", "1000", "--prefix", "p_"], "--prefix", "--lang fmu"),

@@ -1,6 +1,6 @@
 """`symfunnel codegen [SCENARIO] --lang c|python|fmu --out DIR [--check]`: generated code plus DIR/manifest.json.
 
-`--lang fmu [--fmi 2] --rate HZ` writes the deployed controller as DIR/<name>.fmu (FMI 2.0 Co-Simulation) instead.
+`--lang fmu [--fmi 2|3] --rate HZ` writes the deployed controller as DIR/<name>.fmu (FMI Co-Simulation) instead.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ def register(sub, common) -> None:
                         description="Write the controller's functions (funnels, errors, alpha2, alpha2_dot, "
                         "controller) as C (CasADi's C API, one .c and one .h, with main.c, bench.c, a Makefile "
                         "and a recorded trajectory) or as one numpy-only Python module, plus DIR/manifest.json; "
-                        "or (--lang fmu) the deployed controller's C step as an FMI 2.0 Co-Simulation FMU, "
+                        "or (--lang fmu) the deployed controller's C step as an FMI 2.0 or 3.0 Co-Simulation FMU, "
                         "DIR/<name>.fmu, with its binary for this platform and its sources.")
     common(sp)
     sp.add_argument("--lang", required=True, choices=["c", "python", "fmu"], help="target language")
-    sp.add_argument("--fmi", metavar="VERSION", help="fmu: the FMI version (default 2; 3 is not supported yet)")
+    sp.add_argument("--fmi", metavar="VERSION", help="fmu: the FMI version, 2 (default) or 3")
     sp.add_argument("--out", required=True, metavar="DIR", help="output directory (created when missing)")
     sp.add_argument("--check", action="store_true",
                     help="compile (C) or import (Python) the result and compare every function with CasADi at "
@@ -37,7 +37,7 @@ def register(sub, common) -> None:
                     "the step API is then Pstate, Pinit, Pstep (default: historical names, symfunnel_step)")
     sp.add_argument("--rate", type=float, metavar="HZ", help="C: sample rate the generated step advances the "
                     "controller state by (default: [implementation].rate_hz, else 1000); fmu: required, the "
-                    "controller period 1/HZ one fmi2DoStep advances")
+                    "controller period 1/HZ one DoStep advances")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
     sp.add_argument("--force", action="store_true", help="overwrite files in DIR that symfunnel did not write")
     sp.set_defaults(func=run)
@@ -149,8 +149,8 @@ def _run_fmu(args) -> int:
         print(json.dumps(json_safe(res.to_json(run.scenario.name, args.out)), indent=2, allow_nan=False))
         return code
     src = res.sources
-    print(f"wrote {res.path} ({len(res.data)} bytes): FMI 2.0 Co-Simulation, model identifier {src.identifier}, "
-          f"one fmi2DoStep period = 1/{src.rate_hz:g} s, binary for this platform and sources/ "
+    print(f"wrote {res.path} ({len(res.data)} bytes): FMI {src.fmi}.0 Co-Simulation, model identifier "
+          f"{src.identifier}, one fmi{src.fmi}DoStep period = 1/{src.rate_hz:g} s, binary for this platform and sources/ "
           f"({len(src.sources)} files)")
     if report is not None:
         found = "found no problem" if not report.problems else "found: " + "; ".join(report.problems)

@@ -5,7 +5,7 @@ sampled-data loop of `deployed.loop` in place of the compiled C step.
 
 `check_fmu(path, scenario, design, rate_hz)` runs the loop twice with the same plant step, measurements and
 hold: once with the generated C step (`simulate_sampled`, as `simulate --rate`), once with the FMU driven through
-FMPy's `FMU2Slave` (one `fmi2DoStep(t_k, 1/rate)` per sample: the inputs q, dq set before it, tau read after it),
+FMPy's `FMU2Slave` or `FMU3Slave` (one DoStep(t_k, 1/rate) per sample: the inputs q, dq set before it, tau read after it),
 and compares the torque sequences, the states and where each run leaves a funnel. FMPy is needed here only
 (`pip install 'symfunnel[fmu]'`); the FMU itself needs nothing but a C compiler.
 """
@@ -44,13 +44,14 @@ def load_fmpy():
 
 
 class FmuController:
-    """An FMU stepped by FMPy, with the buffers and `raw()` of `deployed.loop.StepLibrary`, so that
-    `simulate_sampled(..., controller=FmuController(path))` runs the sampled loop with it."""
+    """An FMU (FMI 2.0 or 3.0 Co-Simulation) stepped by FMPy, with the buffers and `raw()` of
+    `deployed.loop.StepLibrary`, so that `simulate_sampled(..., controller=FmuController(path))` runs the sampled
+    loop with it. `log` collects what the FMU logged: (status, category, message)."""
 
     def __init__(self, path, *, instance: str | None = None):
         fmpy = load_fmpy()
-        from fmpy.fmi2 import FMU2Slave
         self.md = fmpy.read_model_description(str(path))
+        self.fmi = self.md.fmiVersion.split(".")[0]
         self._dir = fmpy.extract(str(path))
         vs = {v.name: v for v in self.md.modelVariables}
         self.n = n = sum(1 for name in vs if name.startswith("q["))
@@ -60,12 +61,26 @@ class FmuController:
         self.vr_status = [vs["status"].valueReference]
         self.h = float(self.md.defaultExperiment.stepSize)
         instance = instance or f"symfunnel-check-{next(_COUNTER)}"
-        self.fmu = FMU2Slave(guid=self.md.guid, unzipDirectory=self._dir,
-                             modelIdentifier=self.md.coSimulation.modelIdentifier, instanceName=instance)
         self.instance = instance
-        self.log: list[tuple[int, str, str]] = []      # (status, category, message) the FMU logged
-        self._callbacks = _collecting_callbacks(instance, self.log)
-        self.fmu.instantiate(callbacks=self._callbacks)
+        self.log: list[tuple[int, str, str]] = []
+        ident = self.md.coSimulation.modelIdentifier
+        if self.fmi == "3":
+            from fmpy.fmi3 import FMU3Slave
+
+            def log3(env, status, category, message):
+                self.log.append((int(status), (category or b"").decode("utf-8", "replace"),
+                                 (message or b"").decode("utf-8", "replace")))
+            self.fmu = FMU3Slave(guid=self.md.guid, unzipDirectory=self._dir, modelIdentifier=ident,
+                                 instanceName=instance)
+            self.fmu.instantiate(logMessage=log3)
+            self._set, self._get, self._get_int = self.fmu.setFloat64, self.fmu.getFloat64, self.fmu.getInt32
+        else:
+            from fmpy.fmi2 import FMU2Slave
+            self.fmu = FMU2Slave(guid=self.md.guid, unzipDirectory=self._dir, modelIdentifier=ident,
+                                 instanceName=instance)
+            self._callbacks = _collecting_callbacks(instance, self.log)
+            self.fmu.instantiate(callbacks=self._callbacks)
+            self._set, self._get, self._get_int = self.fmu.setReal, self.fmu.getReal, self.fmu.getInteger
         self.q, self.dq, self.tau = np.zeros(n), np.zeros(n), np.zeros(n)
         self.steps = 0
         self.error: str | None = None
@@ -75,25 +90,56 @@ class FmuController:
         """Reset the FMU to its start values and initialise it (start time 0)."""
         if self._initialized:
             self.fmu.reset()
-        self.fmu.setupExperiment(startTime=0.0)
-        self.fmu.enterInitializationMode()
+        if self.fmi == "3":
+            self.fmu.enterInitializationMode(startTime=0.0)
+        else:
+            self.fmu.setupExperiment(startTime=0.0)
+            self.fmu.enterInitializationMode()
         self.fmu.exitInitializationMode()
         self._initialized = True
         self.steps = 0
         return 0
 
+    def set_inputs(self, q, dq) -> None:
+        """Set q and dq."""
+        self._set(self.vr_in, [float(v) for v in np.concatenate([np.ravel(q), np.ravel(dq)])])
+
+    def outputs(self) -> tuple[int, np.ndarray]:
+        """(status, tau) as the FMU holds them now."""
+        return int(self._get_int(self.vr_status)[0]), np.array(self._get(self.vr_tau))
+
+    def do_step(self, t: float, h: float) -> None:
+        """fmi2DoStep / fmi3DoStep(t, h); FMICallException when the FMU refuses."""
+        self.fmu.doStep(t, h)
+
     def step(self, t: float, q, dq) -> tuple[int, np.ndarray]:
-        """One fmi2DoStep(t, h) with inputs q, dq: (status output, or -3 when the FMU refused; tau)."""
+        """One DoStep(t, h) with inputs q, dq: (status output, or -3 when the FMU refused; tau)."""
         from fmpy.fmi1 import FMICallException
-        self.fmu.setReal(self.vr_in, [float(v) for v in np.concatenate([q, dq])])
+        self.set_inputs(q, dq)
         try:
-            self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=self.h)
+            self.fmu.doStep(t, self.h)
         except FMICallException as exc:
             said = "; ".join(m for st, _, m in self.log[-3:] if st >= 3)
-            self.error = f"the FMU refused fmi2DoStep at t = {t!r} s: {exc}" + (f" ({said})" if said else "")
+            self.error = f"the FMU refused DoStep at t = {t!r} s: {exc}" + (f" ({said})" if said else "")
             return -3, np.full(self.n, np.nan)
         self.steps += 1
-        return int(self.fmu.getInteger(self.vr_status)[0]), np.array(self.fmu.getReal(self.vr_tau))
+        return self.outputs()
+
+    # FMU state, under one name for both versions
+    def get_state(self):
+        return self.fmu.getFMUState() if self.fmi == "3" else self.fmu.getFMUstate()
+
+    def set_state(self, state) -> None:
+        (self.fmu.setFMUState if self.fmi == "3" else self.fmu.setFMUstate)(state)
+
+    def free_state(self, state) -> None:
+        (self.fmu.freeFMUState if self.fmi == "3" else self.fmu.freeFMUstate)(state)
+
+    def serialize(self, state) -> bytes:
+        return (self.fmu.serializeFMUState if self.fmi == "3" else self.fmu.serializeFMUstate)(state)
+
+    def deserialize(self, blob: bytes):
+        return (self.fmu.deserializeFMUState if self.fmi == "3" else self.fmu.deSerializeFMUstate)(blob)
 
     def raw(self):
         """(function, None, (q, dq, tau)) as StepLibrary.raw: rc = function(None, t, *buffers)."""
@@ -108,7 +154,7 @@ class FmuController:
         try:
             if self._initialized:
                 self.fmu.terminate()
-        except Exception:          # a failed FMU may refuse fmi2Terminate: free it all the same
+        except Exception:          # a failed FMU may refuse to terminate: free it all the same
             pass
         self.fmu.freeInstance()
         _LOGS.pop(self.instance, None)
@@ -262,7 +308,7 @@ class FmuExport:
     def to_json(self, scenario: str, out) -> dict:
         """The shape of `codegen --lang fmu --json`."""
         src = self.sources
-        d = {"scenario": scenario, "language": "fmu", "fmi_version": "2.0", "kind": "CoSimulation", "out": str(out),
+        d = {"scenario": scenario, "language": "fmu", "fmi_version": f"{src.fmi}.0", "kind": "CoSimulation", "out": str(out),
              "file": self.path.name, "bytes": len(self.data), "guid": src.guid, "model_identifier": src.identifier,
              "rate_hz": src.rate_hz, "sources": list(src.sources)}
         if self.check is not None:
@@ -272,20 +318,16 @@ class FmuExport:
 
 def fmu_options(fmi, rate_hz, prefix=None, *, check: bool = False, keys=("--fmi", "--rate", "--prefix", "--check")) \
         -> str:
-    """The FMI version of `--lang fmu` options ("2"), or InputError naming the option that is wrong: FMI 3 (not
-    supported yet) or another version, a missing rate, a prefix, --check without FMPy. Checked before any work."""
+    """The FMI version of `--lang fmu` options ("2" or "3"), or InputError naming the option that is wrong: another
+    version, a missing rate, a prefix, --check without FMPy. Checked before any work."""
     from ..emit.fmu import FMI_VERSIONS
     fmi = "2" if fmi is None else str(fmi).strip()
-    if fmi in ("3", "3.0"):
-        raise InputError(f"is {fmi}: FMI 3.0 export is not supported yet", key=keys[0],
-                         expected="2 (FMI 2.0 Co-Simulation, the default)")
-    if fmi == "2.0":
-        fmi = "2"
+    fmi = {"2.0": "2", "3.0": "3"}.get(fmi, fmi)
     if fmi not in FMI_VERSIONS:
-        raise InputError(f"is '{fmi}'", key=keys[0], expected="2 (FMI 2.0; 3 is not supported yet)")
+        raise InputError(f"is '{fmi}'", key=keys[0], expected="2 (FMI 2.0, the default) or 3 (FMI 3.0)")
     if rate_hz is None:
         raise InputError("is missing", key=keys[1],
-                         expected="the controller's sample rate in Hz with --lang fmu (one fmi2DoStep period = 1/HZ)")
+                         expected="the controller's sample rate in Hz with --lang fmu (one DoStep period = 1/HZ)")
     from ..scenario.implementation import check_rate
     check_rate(rate_hz, file=None, key=keys[1])
     if prefix is not None:

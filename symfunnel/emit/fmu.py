@@ -1,24 +1,24 @@
-"""The deployed controller as an FMI 2.0 Co-Simulation FMU: the generated C step API wrapped in the FMI functions.
+"""The deployed controller as an FMI Co-Simulation FMU (FMI 2.0 or 3.0): the generated C step API wrapped in the FMI functions.
 
-`fmu_sources(design, rate_hz)` gives every source file of the FMU ({name: text}): the generated step pair of
-`files.generate(design, "c", prefix=<id>_, ...)` unchanged (one source: the FMU does not re-derive anything), the
-wrapper `<id>_fmi2.c` (templates/fmi2_cs.c) and the FMI 2.0 headers (templates/fmi2*.h, 2-Clause BSD, Modelica
-Association, their licence text kept in them); `model_description` the modelDescription.xml; `build_fmu` compiles
-the binary for this platform (cached, `core.ccompile`) and zips it all:
+`fmu_sources(design, rate_hz, fmi="2"|"3")` gives every source file of the FMU ({name: text}): the generated step
+pair of `files.generate(design, "c", prefix=<id>_, ...)` unchanged (one source: the FMU does not re-derive
+anything), the wrapper `<id>_fmi2.c` / `<id>_fmi3.c` (templates/fmi2_cs.c, fmi3_cs.c) and the FMI headers
+(templates/fmi2*.h, fmi3*.h, 2-Clause BSD, Modelica Association, their licence text kept in them);
+`model_description` the modelDescription.xml; `build_fmu` compiles the binary for this platform (cached,
+`core.ccompile`) and zips it all:
 
     <id>.fmu
       modelDescription.xml
-      binaries/linux64/<id>.so          (built with the strict C99 flags, only the fmi2* symbols exported)
-      sources/<id>_fmi2.c, <base>.c, <base>.h, fmi2Functions.h, fmi2FunctionTypes.h, fmi2TypesPlatform.h
+      binaries/<platform>/<id>.so       (linux64 for FMI 2, x86_64-linux for FMI 3; the strict C99 flags, only the
+                                         FMI functions exported)
+      sources/<id>_fmi<V>.c, <base>.c, <base>.h, the FMI headers (and buildDescription.xml for FMI 3)
 
-Variables (value references): inputs q[i], dq[i] (Real, causality input, variability discrete); outputs tau[i],
-margin[j] (1 - |e|/F, e1 rows then e2 rows), qd[i] (Real) and status (Integer: the last Pstep return code, 0 inside
-both funnels, 1 outside), all variability discrete, initial exact at the values before the first step (Pinit's).
-The step takes no design numbers at run time (the gains, funnels, reference and rate are baked into the generated
-C), so the FMU has no parameters. The GUID is a hash of every source file and of the model description, so two
-FMUs with the same GUID have the same behaviour.
-
-FMI 3 is not produced yet (`FMI_VERSIONS`).
+Variables (value references): inputs q[i], dq[i] (Real / Float64, causality input, variability discrete); outputs
+tau[i], margin_e1[i], margin_e2[i] (1 - |e|/F), qd[i] and status (Integer / Int32: the last Pstep return code, 0
+inside both funnels, 1 outside), all variability discrete, initial exact at the values before the first step
+(Pinit's). The step takes no design numbers at run time (the gains, funnels, reference and rate are baked into the
+generated C), so the FMU has no parameters. The GUID (FMI 3: instantiation token) is a hash of every source file and
+of the model description, so two FMUs with the same GUID have the same behaviour. No clocks (see docs/fmu.md).
 """
 
 from __future__ import annotations
@@ -33,15 +33,16 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 __all__ = ["FMI_VERSIONS", "FmuSources", "model_identifier", "fmu_sources", "model_description", "build_fmu",
-           "FMU_CFLAGS", "fmu_platform"]
+           "FMU_CFLAGS", "fmu_platform", "written_by_symfunnel"]
 
 #: the FMI versions `codegen --lang fmu --fmi V` can produce
-FMI_VERSIONS = ("2",)
+FMI_VERSIONS = ("2", "3")
 #: flags the FMU's binary is built with: the generated code's strict flags, position-independent, and only the
 #: FMI functions visible (CasADi's helpers and the step API stay inside the library)
 FMU_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", "-fPIC", "-shared",
               "-fvisibility=hidden", "-DCASADI_SYMBOL_EXPORT=")
-_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
+_HEADERS = {"2": ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h"),
+            "3": ("fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")}
 #: the fixed time stamp of every zip entry (deterministic archive)
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
@@ -57,6 +58,12 @@ class FmuSources:
     sources: dict[str, str]
     compile_files: tuple[str, ...]
     model_description: str
+    fmi: str = "2"
+
+    @property
+    def platform(self) -> str:
+        """The binaries/ folder of this platform for this FMI version."""
+        return fmu_platform(self.fmi)
 
 
 def model_identifier(name: str) -> str:
@@ -67,12 +74,17 @@ def model_identifier(name: str) -> str:
     return ident[:48]
 
 
-def fmu_platform() -> str:
-    """FMI 2's binaries folder for this machine (linux64, darwin64, win64; 32-bit variants)."""
+def fmu_platform(fmi: str = "2") -> str:
+    """The binaries folder for this machine: FMI 2 linux64, darwin64, win64 (32-bit variants); FMI 3 the
+    architecture-os tuple (x86_64-linux, aarch64-darwin, x86_64-windows, ...)."""
     import platform
     import struct
-    bits = "64" if struct.calcsize("P") == 8 else "32"
     system = platform.system()
+    if fmi == "3":
+        arch = {"amd64": "x86_64", "x86_64": "x86_64", "arm64": "aarch64", "aarch64": "aarch64", "i386": "x86",
+                "i686": "x86"}.get(platform.machine().lower(), platform.machine().lower())
+        return f"{arch}-" + {"Linux": "linux", "Darwin": "darwin", "Windows": "windows"}.get(system, system.lower())
+    bits = "64" if struct.calcsize("P") == 8 else "32"
     return {"Linux": "linux", "Darwin": "darwin", "Windows": "win"}.get(system, system.lower()) + bits
 
 
@@ -125,13 +137,14 @@ def _variables(design, tau_max) -> list[dict]:
 
 
 def model_description(design, *, identifier: str, guid: str, rate_hz: float, tau_max, source_files,
-                      generator: str) -> str:
-    """modelDescription.xml of the FMI 2.0 Co-Simulation FMU (see the module doc)."""
+                      generator: str, fmi: str = "2") -> str:
+    """modelDescription.xml of the FMI 2.0 or 3.0 Co-Simulation FMU (see the module doc)."""
+    if fmi == "3":
+        return _model_description_3(design, identifier=identifier, guid=guid, rate_hz=rate_hz, tau_max=tau_max,
+                                    generator=generator)
     sc = design.scenario
     vs = _variables(design, tau_max)
-    used = sorted({v["unit"] for v in vs if v["unit"]})
-    units = "\n".join(f'    <Unit name={quoteattr(u)}>{_UNIT_DEFS[u]}</Unit>' if _UNIT_DEFS[u]
-                      else f'    <Unit name={quoteattr(u)}/>' for u in used)
+    units = _unit_definitions(vs)
     lines = []
     for v in vs:
         typ = v["type"]
@@ -145,8 +158,7 @@ def model_description(design, *, identifier: str, guid: str, rate_hz: float, tau
     outputs = "\n".join(f'      <Unknown index="{v["vr"] + 1}" dependencies=""/>' for v in vs
                         if v["causality"] == "output")
     files = "\n".join(f'      <File name={quoteattr(f)}/>' for f in source_files)
-    desc = (f"Funnel controller of scenario '{sc.name}' ({sc.title}), deployed at {rate_hz:g} Hz: one fmi2DoStep "
-            f"period = 1/{rate_hz:g} s (a communication step must be a whole number of periods)")
+    desc = _description(sc, rate_hz, "fmi2DoStep")
     return f'''<?xml version="1.0" encoding="UTF-8"?>
 <fmiModelDescription
   fmiVersion="2.0"
@@ -192,6 +204,87 @@ def model_description(design, *, identifier: str, guid: str, rate_hz: float, tau
 '''
 
 
+def _description(sc, rate_hz: float, do_step: str) -> str:
+    return (f"Funnel controller of scenario '{sc.name}' ({sc.title}), deployed at {rate_hz:g} Hz: one {do_step} "
+            f"period = 1/{rate_hz:g} s (a communication step must be a whole number of periods)")
+
+
+def _unit_definitions(vs, extra=()) -> str:
+    used = sorted({v["unit"] for v in vs if v["unit"]} | set(extra))
+    return "\n".join(f'    <Unit name={quoteattr(u)}>{_UNIT_DEFS[u]}</Unit>' if _UNIT_DEFS[u]
+                     else f'    <Unit name={quoteattr(u)}/>' for u in used)
+
+
+def _model_description_3(design, *, identifier: str, guid: str, rate_hz: float, tau_max, generator: str) -> str:
+    """modelDescription.xml of the FMI 3.0 Co-Simulation FMU: the FMI 2 variables as Float64 / Int32, no clocks, no
+    event mode; the controller period is the fixedInternalStepSize and the DefaultExperiment's stepSize."""
+    sc = design.scenario
+    vs = _variables(design, tau_max)
+    lines = []
+    for v in vs:
+        typ = "Float64" if v["type"] == "Real" else "Int32"
+        start = repr(float(v["start"])) if typ == "Float64" else str(int(v["start"]))
+        unit = f' unit={quoteattr(v["unit"])}' if v["unit"] and typ == "Float64" else ""
+        initial = '' if v["causality"] == "input" else ' initial="exact"'
+        lines.append(f'    <{typ} name={quoteattr(v["name"])} valueReference="{v["vr"]}" causality="{v["causality"]}" '
+                     f'variability="discrete"{initial}{unit} start="{start}"\n'
+                     f'      description={quoteattr(v["description"])}/>')
+    lines.insert(0, f'    <Float64 name="time" valueReference="{len(vs)}" causality="independent" variability="continuous" '
+                    f'unit="s"\n      description="the FMU\'s time (the last communication point reached)"/>')
+    outputs = "\n".join(f'    <Output valueReference="{v["vr"]}" dependencies=""/>' for v in vs
+                        if v["causality"] == "output")
+    h = 1.0 / rate_hz
+    return f'''<?xml version="1.0" encoding="UTF-8"?>
+<fmiModelDescription
+  fmiVersion="3.0"
+  modelName={quoteattr(sc.name)}
+  instantiationToken={quoteattr(guid)}
+  description={quoteattr(_description(sc, rate_hz, "fmi3DoStep"))}
+  generationTool={quoteattr(generator)}
+  variableNamingConvention="structured">
+  <CoSimulation
+    modelIdentifier={quoteattr(identifier)}
+    canGetAndSetFMUState="true"
+    canSerializeFMUState="true"
+    providesDirectionalDerivatives="false"
+    providesAdjointDerivatives="false"
+    canHandleVariableCommunicationStepSize="true"
+    fixedInternalStepSize="{h!r}"
+    maxOutputDerivativeOrder="0"
+    hasEventMode="false"/>
+  <UnitDefinitions>
+{_unit_definitions(vs, ("s",))}
+  </UnitDefinitions>
+  <LogCategories>
+    <Category name="logStatusWarning" description={quoteattr("warnings: the state left a funnel")}/>
+    <Category name="logStatusError" description={quoteattr("errors: a refused call, a failed step")}/>
+  </LogCategories>
+  <DefaultExperiment startTime="0.0" stopTime="{float(sc.simulation.t_final)!r}" stepSize="{h!r}"/>
+  <ModelVariables>
+{chr(10).join(lines)}
+  </ModelVariables>
+  <ModelStructure>
+{outputs}
+  </ModelStructure>
+</fmiModelDescription>
+'''
+
+
+def _build_description(identifier: str, compile_files) -> str:
+    """sources/buildDescription.xml of an FMI 3.0 FMU: one C99 source file set, linked with the math library."""
+    files = "\n".join(f'        <SourceFile name={quoteattr(f)}/>' for f in compile_files)
+    return f'''<?xml version="1.0" encoding="UTF-8"?>
+<fmiBuildDescription fmiVersion="3.0">
+  <BuildConfiguration modelIdentifier={quoteattr(identifier)}>
+    <SourceFileSet language="C99">
+{files}
+    </SourceFileSet>
+    <Library name="m" external="true" description="the C math library (libm)"/>
+  </BuildConfiguration>
+</fmiBuildDescription>
+'''
+
+
 def _guid(parts: list[str]) -> str:
     h = hashlib.sha256("\0".join(parts).encode("utf-8")).hexdigest()
     return "{" + f"{h[:8]}-{h[8:12]}-{h[12:16]}-{h[16:20]}-{h[20:32]}" + "}"
@@ -211,12 +304,12 @@ def fmu_sources(design, rate_hz: float, tau_max=None, *, fmi: str = "2") -> FmuS
     prefix = ident + "_"
     base = c_basename(prefix)
     step = generate(design, "c", prefix=prefix, rate_hz=rate_hz, tau_max=tau_max)
-    wrapper = ident + "_fmi2.c"
+    wrapper = f"{ident}_fmi{fmi}.c"
     compile_files = (wrapper, base + ".c")
     generator = f"symfunnel {__version__}"
     md_free = model_description(design, identifier=ident, guid="", rate_hz=rate_hz, tau_max=tau_max,
-                                source_files=compile_files, generator=generator)
-    wrapper_text = template("fmi2_cs.c")
+                                source_files=compile_files, generator=generator, fmi=fmi)
+    wrapper_text = template(f"fmi{fmi}_cs.c")
     guid = _guid([md_free, step[base + ".c"], step[base + ".h"], wrapper_text])
     subs = {"@SCENARIO@": sc.name, "@BASENAME@": base, "@P@": prefix, "@ID@": ident, "@N@": str(design.n),
             "@GUID@": guid, "@RATE@": repr(float(rate_hz)),
@@ -224,10 +317,12 @@ def fmu_sources(design, rate_hz: float, tau_max=None, *, fmi: str = "2") -> FmuS
     for k, v in subs.items():
         wrapper_text = wrapper_text.replace(k, v)
     sources = {wrapper: wrapper_text, base + ".c": step[base + ".c"], base + ".h": step[base + ".h"],
-               **{h: template(h) for h in _HEADERS}}
+               **{h: template(h) for h in _HEADERS[fmi]}}
+    if fmi == "3":
+        sources["buildDescription.xml"] = _build_description(ident, compile_files)
     md = model_description(design, identifier=ident, guid=guid, rate_hz=rate_hz, tau_max=tau_max,
-                           source_files=compile_files, generator=generator)
-    return FmuSources(ident, guid, float(rate_hz), design.n, sources, compile_files, md)
+                           source_files=compile_files, generator=generator, fmi=fmi)
+    return FmuSources(ident, guid, float(rate_hz), design.n, sources, compile_files, md, fmi)
 
 
 def build_binary(src: FmuSources, on_build=None):
@@ -241,7 +336,7 @@ def build_fmu(src: FmuSources, on_build=None) -> bytes:
     """The .fmu archive (zip) as bytes: modelDescription.xml, the binary for this platform, the sources."""
     binary = build_binary(src, on_build=on_build).path.read_bytes()
     entries = [("modelDescription.xml", src.model_description.encode("utf-8")),
-               (f"binaries/{fmu_platform()}/{src.identifier}.so", binary)]
+               (f"binaries/{src.platform}/{src.identifier}.so", binary)]
     entries += [(f"sources/{name}", text.encode("utf-8")) for name, text in src.sources.items()]
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:

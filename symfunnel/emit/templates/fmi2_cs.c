@@ -56,7 +56,9 @@ typedef struct {
   int logging;
 } Comp;
 
+/* a serialized state: this tag, the GUID, then the Data bytes */
 static const char magic_[8] = {'s', 'f', 'f', 'm', 'u', '2', '\0', '\1'};
+#define TAG_SIZE_ (sizeof magic_ + sizeof GUID_)
 
 static void say_(Comp *c, fmi2Status st, const char *category, const char *msg) {
   if (!c || !c->cb.logger) return;
@@ -327,7 +329,7 @@ fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *FMUstate) {
 fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate FMUstate, size_t *size) {
   (void) FMUstate;
   if (!c || !size) return fmi2Error;
-  *size = sizeof magic_ + sizeof(Data);
+  *size = TAG_SIZE_ + sizeof(Data);
   return fmi2OK;
 }
 
@@ -335,9 +337,10 @@ fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate FMUstate, fmi2Byt
   Comp *p = (Comp *) c;
   if (!p) return fmi2Error;
   if (!FMUstate || !serializedState) return fail_(p, "fmi2SerializeFMUstate", "null state or buffer");
-  if (size < sizeof magic_ + sizeof(Data)) return fail_(p, "fmi2SerializeFMUstate", "buffer too small");
+  if (size < TAG_SIZE_ + sizeof(Data)) return fail_(p, "fmi2SerializeFMUstate", "buffer too small");
   memcpy(serializedState, magic_, sizeof magic_);
-  memcpy(serializedState + sizeof magic_, FMUstate, sizeof(Data));
+  memcpy(serializedState + sizeof magic_, GUID_, sizeof GUID_);
+  memcpy(serializedState + TAG_SIZE_, FMUstate, sizeof(Data));
   return fmi2OK;
 }
 
@@ -346,13 +349,14 @@ fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte serializedSta
   Comp *p = (Comp *) c;
   if (!p) return fmi2Error;
   if (!serializedState || !FMUstate) return fail_(p, "fmi2DeSerializeFMUstate", "null buffer or state pointer");
-  if (size != sizeof magic_ + sizeof(Data) || memcmp(serializedState, magic_, sizeof magic_) != 0)
-    return fail_(p, "fmi2DeSerializeFMUstate", "not a serialized state of this FMU (size or tag differs)");
+  if (size != TAG_SIZE_ + sizeof(Data) || memcmp(serializedState, magic_, sizeof magic_) != 0
+      || memcmp(serializedState + sizeof magic_, GUID_, sizeof GUID_) != 0)
+    return fail_(p, "fmi2DeSerializeFMUstate", "not a serialized state of this FMU (size, tag or GUID differs)");
   if (!*FMUstate) {
     *FMUstate = p->cb.allocateMemory(1, sizeof(Data));
     if (!*FMUstate) return fail_(p, "fmi2DeSerializeFMUstate", "out of memory");
   }
-  memcpy(*FMUstate, serializedState + sizeof magic_, sizeof(Data));
+  memcpy(*FMUstate, serializedState + TAG_SIZE_, sizeof(Data));
   return fmi2OK;
 }
 
