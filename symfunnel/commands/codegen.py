@@ -150,8 +150,8 @@ def _run_fmu(args) -> int:
         return code
     src = res.sources
     print(f"wrote {res.path} ({len(res.data)} bytes): FMI {src.fmi}.0 Co-Simulation, model identifier "
-          f"{src.identifier}, one fmi{src.fmi}DoStep period = 1/{src.rate_hz:g} s, binary for this platform and sources/ "
-          f"({len(src.sources)} files)")
+          f"{src.identifier}, one fmi{src.fmi}DoStep period = 1/{src.rate_hz:g} s, binary for this platform and "
+          f"sources/ ({len(src.sources)} files)")
     if report is not None:
         found = "found no problem" if not report.problems else "found: " + "; ".join(report.problems)
         print(f"check: FMPy validation {found}")

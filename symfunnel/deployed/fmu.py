@@ -5,8 +5,8 @@ sampled-data loop of `deployed.loop` in place of the compiled C step.
 
 `check_fmu(path, scenario, design, rate_hz)` runs the loop twice with the same plant step, measurements and
 hold: once with the generated C step (`simulate_sampled`, as `simulate --rate`), once with the FMU driven through
-FMPy's `FMU2Slave` or `FMU3Slave` (one DoStep(t_k, 1/rate) per sample: the inputs q, dq set before it, tau read after it),
-and compares the torque sequences, the states and where each run leaves a funnel. FMPy is needed here only
+FMPy's `FMU2Slave` or `FMU3Slave` (one DoStep(t_k, 1/rate) per sample: the inputs q, dq set before it, tau read
+after it), and compares the torque sequences, the states and where each run leaves a funnel. FMPy is needed here only
 (`pip install 'symfunnel[fmu]'`); the FMU itself needs nothing but a C compiler.
 """
 
@@ -308,9 +308,9 @@ class FmuExport:
     def to_json(self, scenario: str, out) -> dict:
         """The shape of `codegen --lang fmu --json`."""
         src = self.sources
-        d = {"scenario": scenario, "language": "fmu", "fmi_version": f"{src.fmi}.0", "kind": "CoSimulation", "out": str(out),
-             "file": self.path.name, "bytes": len(self.data), "guid": src.guid, "model_identifier": src.identifier,
-             "rate_hz": src.rate_hz, "sources": list(src.sources)}
+        d = {"scenario": scenario, "language": "fmu", "fmi_version": f"{src.fmi}.0", "kind": "CoSimulation",
+             "out": str(out), "file": self.path.name, "bytes": len(self.data), "guid": src.guid,
+             "model_identifier": src.identifier, "rate_hz": src.rate_hz, "sources": list(src.sources)}
         if self.check is not None:
             d["check"] = self.check.to_json()
         return d

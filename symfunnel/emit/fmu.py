@@ -1,4 +1,4 @@
-"""The deployed controller as an FMI Co-Simulation FMU (FMI 2.0 or 3.0): the generated C step API wrapped in the FMI functions.
+"""The deployed controller as an FMI 2.0 or 3.0 Co-Simulation FMU: the generated C step API in the FMI functions.
 
 `fmu_sources(design, rate_hz, fmi="2"|"3")` gives every source file of the FMU ({name: text}): the generated step
 pair of `files.generate(design, "c", prefix=<id>_, ...)` unchanged (one source: the FMU does not re-derive
@@ -229,8 +229,9 @@ def _model_description_3(design, *, identifier: str, guid: str, rate_hz: float, 
         lines.append(f'    <{typ} name={quoteattr(v["name"])} valueReference="{v["vr"]}" causality="{v["causality"]}" '
                      f'variability="discrete"{initial}{unit} start="{start}"\n'
                      f'      description={quoteattr(v["description"])}/>')
-    lines.insert(0, f'    <Float64 name="time" valueReference="{len(vs)}" causality="independent" variability="continuous" '
-                    f'unit="s"\n      description="the FMU\'s time (the last communication point reached)"/>')
+    lines.insert(0, f'    <Float64 name="time" valueReference="{len(vs)}" causality="independent" '
+                    f'variability="continuous" unit="s"\n'
+                    '      description="the FMU\'s time (the last communication point reached)"/>')
     outputs = "\n".join(f'    <Output valueReference="{v["vr"]}" dependencies=""/>' for v in vs
                         if v["causality"] == "output")
     h = 1.0 / rate_hz

@@ -426,7 +426,8 @@ fmi3Status fmi3GetDirectionalDerivative(fmi3Instance instance, const fmi3ValueRe
                                         size_t nSeed, fmi3Float64 sensitivity[], size_t nSensitivity) {
   (void) unknowns; (void) nUnknowns; (void) knowns; (void) nKnowns; (void) seed; (void) nSeed; (void) sensitivity;
   (void) nSensitivity;
-  return fail_((Comp *) instance, "fmi3GetDirectionalDerivative", "not supported (providesDirectionalDerivatives=false)");
+  return fail_((Comp *) instance, "fmi3GetDirectionalDerivative",
+               "not supported (providesDirectionalDerivatives=false)");
 }
 
 fmi3Status fmi3GetAdjointDerivative(fmi3Instance instance, const fmi3ValueReference unknowns[], size_t nUnknowns,
@@ -469,7 +470,8 @@ fmi3Status fmi3GetIntervalDecimal(fmi3Instance instance, const fmi3ValueReferenc
 }
 
 fmi3Status fmi3GetIntervalFraction(fmi3Instance instance, const fmi3ValueReference vr[], size_t nvr,
-                                   fmi3UInt64 counters[], fmi3UInt64 resolutions[], fmi3IntervalQualifier qualifiers[]) {
+                                   fmi3UInt64 counters[], fmi3UInt64 resolutions[],
+                                   fmi3IntervalQualifier qualifiers[]) {
   (void) vr; (void) nvr; (void) counters; (void) resolutions; (void) qualifiers;
   return fail_((Comp *) instance, "fmi3GetIntervalFraction", "this FMU has no clocks");
 }
