@@ -180,6 +180,28 @@ def test_a_communication_step_not_a_multiple_of_the_period_is_refused_with_a_log
 
 
 @pytest.mark.parametrize("fmi", ["2", "3"])
+def test_a_non_finite_input_is_a_logged_error_and_the_instance_recovers_by_state_or_reset(built, fmi):
+    sc, design, src, path = built("paper", fmi=fmi)
+    h = 1.0 / RATE
+    with FmuController(path) as ctl:
+        ctl.init()
+        ctl.step(0.0, [0.01, 0.0], [0.0, 0.0])
+        state = ctl.get_state()
+        good = ctl.step(h, [0.012, 0.0], [0.1, 0.0])
+        ctl.set_state(state)
+        rc, tau = ctl.step(h, [float("nan"), 0.0], [0.0, 0.0])
+        assert rc == -3 and "non-finite q or dq" in ctl.error and ctl.log[-1][0] == 3
+        with pytest.raises(FMICallException):       # the instance is in its error state: no further step
+            ctl.do_step(2 * h, h)
+        ctl.set_state(state)                          # back to the state before the failed step
+        again = ctl.step(h, [0.012, 0.0], [0.1, 0.0])
+        ctl.free_state(state)
+        assert again[0] == good[0] and np.array_equal(again[1], good[1])
+        ctl.init()                                    # and fmi*Reset brings it back to the start
+        assert ctl.step(0.0, [0.01, 0.0], [0.0, 0.0])[0] == 0
+
+
+@pytest.mark.parametrize("fmi", ["2", "3"])
 def test_fmu_state_get_set_and_serialize_round_trip(built, fmi):
     sc, design, src, path = built("paper", fmi=fmi)
     h = 1.0 / RATE
@@ -378,9 +400,10 @@ def test_python_api_exports_and_checks_the_fmu(tmp_path):
     assert not (tmp_path / "p").exists()
 
 
-def test_the_fmpy_lines_of_docs_fmu_run_as_printed(built, capsys):
+@pytest.mark.parametrize("fmi", ["2", "3"])
+def test_the_fmpy_lines_of_docs_fmu_run_as_printed(built, capsys, fmi):
     import re
-    sc, design, src, path = built("paper")
+    sc, design, src, path = built("paper", fmi=fmi)
     text = (REPO / "docs" / "fmu.md").read_text(encoding="utf-8")
     block = re.search(r"```python\n(.*?)```", text, re.S).group(1)
     assert len(block.strip().splitlines()) == 3
