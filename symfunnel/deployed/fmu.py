@@ -262,7 +262,8 @@ def _rel(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def check_fmu(path, scenario, design, rate_hz: float, *, t_final: float | None = None, progress=None) -> FmuCheck:
-    """Validate the FMU with FMPy and run the sampled loop with it and with the C step (see the module doc)."""
+    """Validate the FMU with FMPy and run the sampled loop with it and with the C step (see the module doc), both on
+    symfunnel's plant whatever the scenario's `[plant] engine` (the check is about the controller)."""
     import time
 
     from .loop import simulate_sampled
@@ -270,7 +271,8 @@ def check_fmu(path, scenario, design, rate_hz: float, *, t_final: float | None =
     problems = list(fmpy.validation.validate_fmu(str(path)))
     t0 = time.perf_counter()
     try:
-        ref = simulate_sampled(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=progress)
+        ref = simulate_sampled(scenario, design, rate_hz=rate_hz, t_final=t_final, progress=progress,
+                               engine="symfunnel")
         ref_error = None
     except KeyError as exc:
         # deployed.loop.step_library reads design.sym["x_esn"] / ["w_hat"], which a design without an echo state
@@ -282,7 +284,7 @@ def check_fmu(path, scenario, design, rate_hz: float, *, t_final: float | None =
         if abs(ctl.h * rate_hz - 1.0) > 1e-12:
             problems.append(f"DefaultExperiment stepSize {ctl.h!r} is not 1/{rate_hz:g} s")
         run = simulate_sampled(scenario, design, rate_hz=rate_hz, t_final=t_final, controller=ctl,
-                               progress=progress)
+                               progress=progress, engine="symfunnel")
         error = ctl.error
     t2 = time.perf_counter()
     if ref is None:
