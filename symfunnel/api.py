@@ -23,6 +23,7 @@ from .scenario import Scenario, load_scenario
 if TYPE_CHECKING:
     from .campaigns.campaign import SweepResult
     from .emit.check import CheckReport
+    from .deployed.fmu import FmuExport
     from .simulation.result import SimResult
     from .synthesis.search import TuneResult
 
@@ -213,11 +214,26 @@ def certify(scenario, *, only=None, wall_limit: float | None = None, t_final: fl
 @_bounded
 def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix: str | None = None,
             rate_hz: float | None = None, points: int = 1000, seed: int = 0, t_final: float | None = None,
-            wall_limit: float | None = None, force: bool = False) -> CodegenResult:
+            wall_limit: float | None = None, force: bool = False, fmi: str | None = None) -> CodegenResult | FmuExport:
     """`symfunnel codegen`: the generated files (written to `out` when given; `force` as `--force`), cross-checked
-    with `check=True` (a failed cross-check raises CheckFailed); `prefix` and `rate_hz` as `--prefix`, `--rate`."""
+    with `check=True` (a failed cross-check raises CheckFailed); `prefix` and `rate_hz` as `--prefix`, `--rate`.
+    `lang="fmu"` (with `rate_hz`, `out`; `fmi` as `--fmi`) writes `out/<name>.fmu` and returns
+    `deployed.fmu.FmuExport` (its `check` the FMPy check; a failed one raises CheckFailed after writing)."""
+    from .core.errors import InputError
     from .emit.check import check_output
     from .emit.files import write_output
+    if lang == "fmu":
+        from .deployed.fmu import export_fmu, fmu_options
+        fmi = fmu_options(fmi, rate_hz, prefix, check=check, keys=("fmi", "rate_hz", "prefix", "check"))
+        if out is None:
+            raise InputError("is missing", key="out", expected="a directory for <name>.fmu with lang='fmu'")
+        r = run(scenario, t_final=t_final, wall_limit=wall_limit)
+        res = export_fmu(r.scenario, r.design, out, rate_hz, fmi=fmi, check=check, force=force)
+        if res.check is not None and not res.check.passed:
+            raise CheckFailed(f"codegen --lang fmu check failed: {res.check.to_json()}")
+        return res
+    if fmi is not None:
+        raise InputError(f"is given with lang={lang!r}", key="fmi", expected="lang='fmu'")
     r = run(scenario, t_final=t_final, wall_limit=wall_limit)
     files = r.code(lang, prefix=prefix, rate_hz=rate_hz)
     res = CodegenResult(r.scenario.name, lang, files)

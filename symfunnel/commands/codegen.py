@@ -1,4 +1,7 @@
-"""`symfunnel codegen [SCENARIO] --lang c|python --out DIR [--check]`: generated code plus DIR/manifest.json."""
+"""`symfunnel codegen [SCENARIO] --lang c|python|fmu --out DIR [--check]`: generated code plus DIR/manifest.json.
+
+`--lang fmu [--fmi 2|3] --rate HZ` writes the deployed controller as DIR/<name>.fmu (FMI Co-Simulation) instead.
+"""
 
 from __future__ import annotations
 
@@ -12,22 +15,29 @@ MAX_POINTS = 100_000
 
 def register(sub, common) -> None:
     """Add the `codegen` subcommand."""
-    sp = sub.add_parser("codegen", help="generate C or numpy-only Python for the controller (+ manifest.json)",
+    sp = sub.add_parser("codegen", help="generate C or numpy-only Python for the controller (+ manifest.json), "
+                        "or the deployed controller as an FMU",
                         description="Write the controller's functions (funnels, errors, alpha2, alpha2_dot, "
                         "controller) as C (CasADi's C API, one .c and one .h, with main.c, bench.c, a Makefile "
-                        "and a recorded trajectory) or as one numpy-only Python module, plus DIR/manifest.json.")
+                        "and a recorded trajectory) or as one numpy-only Python module, plus DIR/manifest.json; "
+                        "or (--lang fmu) the deployed controller's C step as an FMI 2.0 or 3.0 Co-Simulation FMU, "
+                        "DIR/<name>.fmu, with its binary for this platform and its sources.")
     common(sp)
-    sp.add_argument("--lang", required=True, choices=["c", "python"], help="target language")
+    sp.add_argument("--lang", required=True, choices=["c", "python", "fmu"], help="target language")
+    sp.add_argument("--fmi", metavar="VERSION", help="fmu: the FMI version, 2 (default) or 3")
     sp.add_argument("--out", required=True, metavar="DIR", help="output directory (created when missing)")
     sp.add_argument("--check", action="store_true",
                     help="compile (C) or import (Python) the result and compare every function with CasADi at "
-                    "random points inside the funnels; exit 1 above 1e-12 (C) or 1e-10 (Python)")
+                    "random points inside the funnels; exit 1 above 1e-12 (C) or 1e-10 (Python); fmu: FMPy "
+                    "validates the FMU and steps it in the sampled loop against the C step, exit 1 when FMPy "
+                    "finds a problem or tau differs by more than 1e-9 relative (needs symfunnel[fmu])")
     sp.add_argument("--points", type=int, default=1000, metavar="N", help="check points (default 1000, 1000..100000)")
     sp.add_argument("--seed", type=int, default=0, help="seed of the check points (default 0, >= 0)")
     sp.add_argument("--prefix", metavar="P", help="C: start every exported symbol with P (a C identifier prefix); "
                     "the step API is then Pstate, Pinit, Pstep (default: historical names, symfunnel_step)")
     sp.add_argument("--rate", type=float, metavar="HZ", help="C: sample rate the generated step advances the "
-                    "controller state by (default: [implementation].rate_hz, else 1000)")
+                    "controller state by (default: [implementation].rate_hz, else 1000); fmu: required, the "
+                    "controller period 1/HZ one DoStep advances")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
     sp.add_argument("--force", action="store_true", help="overwrite files in DIR that symfunnel did not write")
     sp.set_defaults(func=run)
@@ -55,6 +65,10 @@ def run(args) -> int:
                          "not '__' or '_' + capital)")
     if args.rate is not None:
         check_rate(args.rate, file=None, key="--rate")
+    if args.lang == "fmu":
+        return _run_fmu(args)
+    if args.fmi is not None:
+        raise InputError(f"is given with --lang {args.lang}", key="--fmi", expected="--lang fmu")
     if args.lang != "c":
         for opt, value in (("--prefix", args.prefix), ("--rate", args.rate)):
             if value is not None:
@@ -107,4 +121,50 @@ def run(args) -> int:
             print(f"  {name:<28} {err:.3e}")
         verdict = "PASS" if report.passed else "FAIL"
         print(f"worst relative error {report.worst:.3e} (threshold {report.threshold:.0e}): {verdict}")
+    return code
+
+
+def _run_fmu(args) -> int:
+    """codegen --lang fmu: build DIR/<name>.fmu, optionally check it with FMPy, write it atomically."""
+    from ._common import _progress, loading
+    from ..core.errors import CheckFailed
+    with loading():
+        from ..deployed.fmu import TOLERANCE, export_fmu, fmu_options
+        from ..pipeline import Run
+    fmi = fmu_options(args.fmi, args.rate, args.prefix, check=args.check)     # before any work
+    quiet = getattr(args, "quiet", False) or args.json
+    with loading():
+        run = Run.load(args.scenario, progress=_progress(quiet))
+    try:
+        res = export_fmu(run.scenario, run.design, args.out, args.rate, fmi=fmi, check=args.check, force=args.force,
+                         progress=_progress(quiet))
+    except RuntimeError as exc:                # compiler diagnostics: the generated FMU does not build
+        from ..core.lifecycle import reraise_interrupt
+        reraise_interrupt(exc)
+        raise CheckFailed(f"codegen --lang fmu: the FMU does not compile: {exc}") from None
+    report = res.check
+    code = 0 if report is None or report.passed else 1
+    if args.json:
+        from ..core.io import json_safe
+        print(json.dumps(json_safe(res.to_json(run.scenario.name, args.out)), indent=2, allow_nan=False))
+        return code
+    src = res.sources
+    print(f"wrote {res.path} ({len(res.data)} bytes): FMI {src.fmi}.0 Co-Simulation, model identifier "
+          f"{src.identifier}, one fmi{src.fmi}DoStep period = 1/{src.rate_hz:g} s, binary for this platform and "
+          f"sources/ ({len(src.sources)} files)")
+    if report is not None:
+        found = "found no problem" if not report.problems else "found: " + "; ".join(report.problems)
+        print(f"check: FMPy validation {found}")
+        print(f"  sampled loop, FMU stepped by FMPy against the C step: {report.samples} periods "
+              f"(C step: {report.samples_reference}), status {report.status} (C step: {report.status_reference})")
+        print(f"  max |tau difference| {report.max_abs_tau:.3e}, relative {report.max_rel_tau:.3e}, states "
+              f"{report.max_rel_state:.3e} (threshold {TOLERANCE:.0e}); same breach: {report.same_breach}")
+        if report.error:
+            print(f"  {report.error}")
+        if report.breach_reference is not None:
+            print(f"  note: at {src.rate_hz:g} Hz the sampled loop leaves funnel {report.breach_reference['funnel']} "
+                  f"(joint {report.breach_reference['joint']}) at t = {report.breach_reference['time']:.6g} s, in "
+                  f"both runs; the check compares the FMU with the C step, `symfunnel rate` gives a rate that keeps "
+                  "the funnels")
+        print(f"check: {'PASS' if report.passed else 'FAIL'}")
     return code
