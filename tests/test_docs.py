@@ -120,8 +120,8 @@ def run_python(b: Block, cwd: Path) -> None:
 
 # --- every example runs --------------------------------------------------------------------------------------
 
-#: the pages whose examples take more than ~10 s together (a report, a gate, a rate search, a certificate)
-SLOW = {"README.md", "getting-started.md", "verify.md", "deployed.md", "reports.md", "api.md"}
+#: the files whose examples take more than ~10 s together with a cold compile cache
+SLOW = {"README.md", "getting-started.md", "deployed.md", "reports.md"}
 
 
 def _file_params():
@@ -203,7 +203,6 @@ def test_cli_reference_renders_every_subcommand_and_option():
 
 # --- the site builds with warnings as errors -----------------------------------------------------------------
 
-@pytest.mark.slow
 def test_site_builds_strict(tmp_path):
     """`mkdocs build --strict` (the documented command): no warning, links and anchors between pages checked."""
     for mod in ("mkdocs", "material", "mkdocstrings_handlers.python"):
