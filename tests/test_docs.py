@@ -216,3 +216,23 @@ def test_site_builds_strict(tmp_path):
     assert "symfunnel certify" in cli and "--wall-limit" in cli and "cli-reference" not in cli
     api = (tmp_path / "site" / "api" / "index.html").read_text(encoding="utf-8")
     assert 'id="symfunnel.api.verify"' in api
+
+
+def test_commands_quoted_in_the_text_use_real_options():
+    """Every `symfunnel CMD ... --option` quoted inline in README or a page names an option CMD has (the guide's
+    synopses cannot drift from the parser either)."""
+    from symfunnel.cli import build_parser
+    options = {name: {o for a in sp._actions for o in a.option_strings}
+               for name, sp, _ in _hook()._subparsers(build_parser())}
+    bad, seen = [], 0
+    for p in doc_files():
+        text = re.sub(r"^```.*?^```", "", p.read_text(encoding="utf-8"), flags=re.S | re.M)
+        for span in re.findall(r"`(symfunnel [^`]+)`", text.replace("\n", " ")):
+            words = span.split()
+            if len(words) < 2 or words[1] not in options:
+                continue
+            seen += 1
+            for flag in re.findall(r"(?<![\w-])(--?[a-zA-Z][\w-]*)", span):
+                if flag not in options[words[1]] and flag not in ("-h", "--help"):
+                    bad.append(f"{p.relative_to(REPO)}: `{span}`: {flag}")
+    assert seen >= 20 and bad == [], bad
