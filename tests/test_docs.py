@@ -121,7 +121,7 @@ def run_python(b: Block, cwd: Path) -> None:
 # --- every example runs --------------------------------------------------------------------------------------
 
 #: the files whose examples take more than ~10 s together with a cold compile cache
-SLOW = {"README.md", "getting-started.md", "deployed.md", "reports.md"}
+SLOW = {"README.md", "getting-started.md", "deployed.md", "reports.md", "sweep.md"}
 
 
 def _file_params():
