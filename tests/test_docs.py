@@ -209,7 +209,8 @@ def test_site_builds_strict(tmp_path):
         pytest.importorskip(mod, reason=f"{mod} not installed (pip install '.[docs]')")
     env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
     proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(REPO / "mkdocs.yml"),
-                           "-d", str(tmp_path / "site")], capture_output=True, text=True, timeout=300, env=env)
+                           "-d", str(tmp_path / "site")], capture_output=True, text=True, timeout=300, env=env,
+                          cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert "WARNING" not in proc.stderr, proc.stderr[-4000:]
     cli = (tmp_path / "site" / "cli" / "index.html").read_text(encoding="utf-8")
@@ -236,3 +237,34 @@ def test_commands_quoted_in_the_text_use_real_options():
                 if flag not in options[words[1]] and flag not in ("-h", "--help"):
                     bad.append(f"{p.relative_to(REPO)}: `{span}`: {flag}")
     assert seen >= 20 and bad == [], bad
+
+
+def _slug(heading: str) -> str:
+    """The anchor MkDocs (Python-Markdown's toc) gives a heading."""
+    import unicodedata
+    text = re.sub(r"[`*]", "", heading)
+    text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode("ascii")
+    return re.sub(r"[-\s]+", "-", re.sub(r"[^\w\s-]", "", text).strip().lower())
+
+
+def test_readme_links_reach_files_and_headings():
+    """README is not a page of the site, so its relative links are checked here: the file exists, the heading too."""
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    links = re.findall(r"\]\(([^)\s]+)\)", readme)
+    assert len(links) >= 10
+    for link in links:
+        if re.match(r"[a-z]+://", link):
+            continue
+        path, _, anchor = link.partition("#")
+        target = REPO / path if path else REPO / "README.md"
+        assert target.exists(), link
+        if anchor:
+            text = target.read_text(encoding="utf-8")
+            text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+            slugs = {_slug(h) for h in re.findall(r"^#+\s+(.*?)\s*$", text, re.M)}
+            assert anchor in slugs, (link, sorted(slugs))
+
+
+def test_slug_matches_the_site():
+    assert _slug("`[design]` and `[approximator]`") == "design-and-approximator"
+    assert _slug("`symfunnel bench`: each figure beside its baseline") == "symfunnel-bench-each-figure-beside-its-baseline"
