@@ -268,3 +268,28 @@ def test_readme_links_reach_files_and_headings():
 def test_slug_matches_the_site():
     assert _slug("`[design]` and `[approximator]`") == "design-and-approximator"
     assert _slug("`symfunnel bench`: each figure beside its baseline") == "symfunnel-bench-each-figure-beside-its-baseline"
+
+
+def test_dotted_names_in_the_docs_exist():
+    """Every `symfunnel.x.y` the pages and README name is a module or an attribute of one (the changelog, which names
+    former places on purpose, aside)."""
+    import importlib
+    missing, seen = [], 0
+    for p in doc_files():
+        if p.name == "changelog.md":
+            continue
+        for name in sorted(set(re.findall(r"\bsymfunnel(?:\.[A-Za-z_]\w*)+", p.read_text(encoding="utf-8")))):
+            seen += 1
+            parts = name.split(".")
+            obj, i = None, len(parts)
+            while i > 0:
+                try:
+                    obj = importlib.import_module(".".join(parts[:i]))
+                    break
+                except ModuleNotFoundError:
+                    i -= 1
+            for attr in parts[i:]:
+                obj = getattr(obj, attr, None)
+            if obj is None:
+                missing.append(f"{p.relative_to(REPO)}: {name}")
+    assert seen >= 20 and missing == [], missing
