@@ -293,3 +293,18 @@ def test_dotted_names_in_the_docs_exist():
             if obj is None:
                 missing.append(f"{p.relative_to(REPO)}: {name}")
     assert seen >= 20 and missing == [], missing
+
+
+def test_repository_paths_in_the_docs_exist():
+    """Every file of the repository the pages and README name (`symfunnel/...py`, `tests/...`, `derivations/...`)
+    exists (the changelog aside)."""
+    pattern = re.compile(r"\b(?:symfunnel|tests|derivations|benchmarks|docs)/[\w/.-]+\.(?:py|toml|md|urdf|json)\b")
+    missing, seen = [], 0
+    for p in doc_files():
+        if p.name == "changelog.md":
+            continue
+        for path in sorted(set(pattern.findall(p.read_text(encoding="utf-8")))):
+            seen += 1
+            if not (REPO / path).exists():
+                missing.append(f"{p.relative_to(REPO)}: {path}")
+    assert seen >= 10 and missing == [], missing
