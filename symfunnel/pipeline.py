@@ -220,7 +220,8 @@ class Run:
 
     @cached_property
     def mutation(self) -> dict:
-        """`verify --mutants`: the design's seeded errors through the same gate (see symfunnel.mutation)."""
+        """`verify --mutants`: the design's seeded errors through the same gate (`run_mutants`; the list is the
+        design variant's `mutants()`, e.g. `design.backstepping.MUTANTS`)."""
         return self._timed("mutants", lambda: run_mutants(self.scenario, samples=min(self.options.samples, 2000),
                                                           seed=self.options.seed, progress=self.progress),
                            "testing the verifier on the design's mutants")

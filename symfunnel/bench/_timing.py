@@ -50,7 +50,7 @@ def best_ns(fn: Callable[[], object], min_time: float = 0.2, repeats: int = 5) -
 
 @functools.lru_cache(maxsize=None)
 def bench_cflags() -> tuple[str, ...]:
-    """The strict flags (README, "Generated code") with -O3 -march=native where the compiler takes them, which
+    """The strict flags (docs/exports.md, "Controller code") with -O3 -march=native where the compiler takes them, which
     lets it vectorise the reservoir's loops; otherwise the strict flags alone."""
     from ..core.ccompile import find_compiler
     from ..emit.c import STRICT_CFLAGS

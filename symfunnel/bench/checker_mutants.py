@@ -189,7 +189,7 @@ MUTANTS: tuple[CheckerMutant, ...] = (
 
 #: files and folders of the repository the copies need (the tests read docs/, derivations/ and README.md)
 _COPY_IGNORE = (".git", ".venv", "venv", ".pytest_cache", "__pycache__", "*.egg-info", "reports", ".mypy_cache",
-                "*.so", "*.o")
+                "*.so", "*.o", "site")
 
 
 class MutantError(RuntimeError):

@@ -1,7 +1,7 @@
 """Generated code for the controller: C (CasADi's CodeGenerator) and numpy-only Python (from the SX tape).
 
 Both languages get the same functions, in the same order, all built with `Design.function` from the one SX graph
-(CSE on), and described in `manifest.json` (README, "Generated code"):
+(CSE on), and described in `manifest.json` (docs/exports.md, "Controller code"):
 
 ==============  ======================================  ===========================================
 function        inputs                                  outputs

@@ -38,7 +38,7 @@ CODEGEN_OPTIONS = {
     "verbose": False,
 }
 
-#: The flags the generated C must compile warning-free with (README, "Generated code").
+#: The flags the generated C must compile warning-free with (docs/exports.md, "Controller code").
 STRICT_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2")
 
 _ALLOC = re.compile(r"\b(malloc|calloc|realloc|free|alloca)\s*\(")
