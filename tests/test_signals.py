@@ -219,7 +219,7 @@ def test_run_killable_returns_results_and_exceptions_and_stops_at_its_limit():
     import casadi as ca
 
     from symfunnel.core import deadline
-    from symfunnel.core.lifecycle import run_killable
+    from symfunnel.core.worker import run_killable
 
     x = ca.SX.sym("x", 2)
     J = run_killable(lambda: ca.Function("J", [x], [ca.jacobian(ca.vertcat(x[0] * x[1], ca.sin(x[0])), x)]))
@@ -241,7 +241,7 @@ def test_run_killable_returns_results_and_exceptions_and_stops_at_its_limit():
 def test_run_killable_leaves_no_worker_behind():
     prog = textwrap.dedent("""
         import os, sys, time
-        from symfunnel.core.lifecycle import run_killable
+        from symfunnel.core.worker import run_killable
         def child():
             print(os.getpid(), flush=True)
             time.sleep(60)

@@ -15,8 +15,8 @@ The policy (docs/architecture.md, "Signals and long calls"):
   registered child processes, removes the registered temporary files, prints the one line and exits with
   128 + signal (1 for the limit).
 - Heavy calls that no signal can interrupt (a large CasADi Jacobian, code generation of a huge graph, IPOPT) run
-  in a forked worker, `run_killable(fn, *args, wall_limit=S)`, which the caller kills at a signal or a deadline, so
-  the Python API's `wall_limit=` bounds them too.
+  in a forked worker, `worker.run_killable(fn, *args, wall_limit=S)`, which the caller kills at a signal or a
+  deadline, so the Python API's `wall_limit=` bounds them too.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
-import pickle
 import select
 import shutil
 import signal
@@ -35,8 +34,8 @@ import warnings
 
 from . import deadline
 
-__all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt", "run_killable",
-           "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
+__all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt",
+           "become_worker", "in_worker", "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
            "exit_code", "die_with_parent", "quiet_c_output", "user_stderr", "signals_deferred", "committing", "late_signal", "too_late", "finished", "GRACE"]
 
 #: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
@@ -409,91 +408,6 @@ def _one_line(message, category, filename, lineno, file=None, line=None):
     print(f"symfunnel: warning: {text}", file=user_stderr() if file is None else file, flush=True)
 
 
-# --- the killable worker ----------------------------------------------------------------------------------
-
-class WorkerDied(RuntimeError):
-    """The forked worker ended without an answer (killed by the system, e.g. out of memory)."""
-
-
-def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = None, **kwargs):
-    """`fn(*args, **kwargs)` in a forked child process the caller can kill: its result, or its exception raised.
-
-    The caller waits in Python, so a signal, the command's deadline or `wall_limit` (seconds, WallLimitReached
-    naming `what`) stops the wait at once and kills the child. The result comes back pickled (a casadi.Function
-    whole; bare SX comes back with symbols of its own, so return a Function or data); the arguments are not
-    pickled (the child is a fork). Without fork, or inside a worker, the call runs
-    in this process.
-    """
-    if not hasattr(os, "fork") or _state["worker"]:
-        return fn(*args, **kwargs)
-    started = time.monotonic()
-    limit = None if wall_limit is None else started + float(wall_limit)
-    with contextlib.suppress(Exception):
-        sys.stdout.flush()
-        sys.stderr.flush()
-    rfd, wfd = os.pipe()
-    with signals_deferred():                                # the child is registered before any signal can land
-        pid = os.fork()
-        if pid:
-            register_child(pid)
-    if pid == 0:                                            # the worker
-        code = 0
-        try:
-            os.close(rfd)
-            _worker_setup()
-            try:
-                result = ("ok", fn(*args, **kwargs))
-            except BaseException as exc:  # noqa: BLE001 - every outcome goes back to the parent
-                result = ("err", exc)
-            data = _dumps(result)
-            view = memoryview(data)
-            while view:
-                n = os.write(wfd, view)
-                view = view[n:]
-        except BaseException:  # noqa: BLE001 - the parent sees the missing answer
-            code = 1
-        finally:
-            os._exit(code)
-    os.close(wfd)
-    chunks: list[bytes] = []
-    status = None
-    try:
-        with deadline.step(what) if what else contextlib.nullcontext():
-            while True:
-                check()
-                deadline.check()
-                wait = 0.2
-                if limit is not None:
-                    left = limit - time.monotonic()
-                    if left <= 0:
-                        raise deadline.WallLimitReached(float(wall_limit), what or deadline.current_step(),
-                                                        time.monotonic() - started)
-                    wait = min(wait, left)
-                ready, _, _ = select.select([rfd], [], [], max(wait, 0.0))
-                if ready:
-                    block = os.read(rfd, 1 << 20)
-                    if not block:
-                        break
-                    chunks.append(block)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.kill(pid, signal.SIGKILL)
-        raise
-    finally:
-        os.close(rfd)
-        with contextlib.suppress(ChildProcessError):
-            _, status = os.waitpid(pid, 0)
-        unregister_child(pid)
-    if not chunks:
-        raise WorkerDied(f"the worker process for {what or getattr(fn, '__name__', 'a call')} ended without an "
-                         f"answer (exit status {status}; out of memory?)")
-    with deadline.step(what) if what else contextlib.nullcontext():
-        kind, value = _loads(b"".join(chunks))    # unpickling a large graph is part of the step (0.3 s at 343k nodes)
-    if kind == "err":
-        raise value
-    return value
-
-
 def user_stderr():
     """Where the lines meant for the user (progress, warnings, the closing line) go: sys.stderr, or the terminal's
     stderr while `quiet_c_output` captures everything else."""
@@ -557,7 +471,9 @@ def quiet_c_output(what: str):
                           f"{out['first']}", RuntimeWarning, stacklevel=3)
 
 
-def _worker_setup() -> None:
+def become_worker() -> None:
+    """In a forked worker: signals are the parent's to decide (it kills the worker when it stops), the parent's
+    children, temporaries and timers are not ours."""
     _state["worker"] = True
     _state["deferred"] = 0
     die_with_parent()
@@ -571,26 +487,6 @@ def _worker_setup() -> None:
     _temporaries.clear()
 
 
-def _dumps(result) -> bytes:
-    try:
-        import casadi
-        ctx = casadi.global_pickle_context()
-    except (ImportError, AttributeError):
-        ctx = contextlib.nullcontext()
-    try:
-        with ctx:
-            return pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
-    except Exception as exc:  # noqa: BLE001 - an unpicklable result or exception: say what it was
-        kind, value = result
-        text = f"{type(value).__name__}: {value}" if kind == "err" else f"a {type(value).__name__}"
-        return pickle.dumps(("err", RuntimeError(f"the worker's answer ({text}) could not be returned: {exc}")))
-
-
-def _loads(data: bytes):
-    try:
-        import casadi
-        ctx = casadi.global_unpickle_context()
-    except (ImportError, AttributeError):
-        ctx = contextlib.nullcontext()
-    with ctx:
-        return pickle.loads(data)
+def in_worker() -> bool:
+    """Whether this process is a forked worker of `worker.run_killable`."""
+    return bool(_state["worker"])

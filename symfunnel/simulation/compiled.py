@@ -29,7 +29,7 @@ from ..core.errors import InputError
 #: 0.48 s, bit-identical trajectories) at about half its compile time (arm7's closed loop 6 s against 12 s)
 COMPILE_FLAGS = ["-Og", "-shared", "-fPIC"]
 APPROX_ESN_JACOBIAN = True
-#: a closed loop with more SX nodes than this builds its functions in a killable worker (core.lifecycle.run_killable)
+#: a closed loop with more SX nodes than this builds its functions in a killable worker (core.worker.run_killable)
 FORK_ABOVE_NODES = 100000
 #: graph digest (see compile_closed_loop) -> (ode, outputs, margins, library, output maps per thread, (outputs_many,
 #: margins_many)) loaded in this process; the maps (evaluate_outputs on the VM) are per thread because their numpy
@@ -281,7 +281,7 @@ def _compile_closed_loop(cl: ClosedLoop, progress, jit: bool, approx_jacobian: b
             " ".join(COMPILE_FLAGS).encode(), ca.__version__.encode(), Path(__file__).read_bytes()])).digest()
         return dae, outputs, margins, identity
 
-    from ..core.lifecycle import run_killable
+    from ..core.worker import run_killable
     # building and hashing the functions of a large graph are long CasADi calls no signal interrupts: in a worker
     # process the limit can kill, when the graph is large enough for it to matter
     big = int(ca.n_nodes(cl.xdot_p)) > FORK_ABOVE_NODES

@@ -682,10 +682,11 @@ def _gradient_sound() -> tuple[bool, str]:
 
 def _gradient_fits(gp, z0, d: int, budget: float, say) -> tuple[bool, str]:
     """Whether MIN_IPOPT_ITERATIONS IPOPT iterations (about d + 2 forward solves each) fit `budget` seconds: one
-    forward solve is timed in a forked worker (`core.lifecycle.run_killable`) that is killed at its share of the
+    forward solve is timed in a forked worker (`core.worker.run_killable`) that is killed at its share of the
     budget."""
     from ..core import deadline as DL
-    from ..core.lifecycle import reraise_interrupt, run_killable
+    from ..core.lifecycle import reraise_interrupt
+    from ..core.worker import run_killable
     share = budget / (MIN_IPOPT_ITERATIONS * (d + 2))
     say(f"timing one forward solve of the sensitivity problem (at most {share:.1f} s, the share that "
         f"{MIN_IPOPT_ITERATIONS} IPOPT iterations may have)")
@@ -729,7 +730,7 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
         # IPOPT gets the time left but what the full simulation of its result needs
         try:
             # in a forked worker: IPOPT inside one C call hears no signal and no limit, the waiting parent does
-            from ..core.lifecycle import run_killable
+            from ..core.worker import run_killable
             from ..core import deadline as _deadline
             try:
                 r = run_killable(gp.solve, np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0),
