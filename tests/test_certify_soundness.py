@@ -1,0 +1,112 @@
+"""Soundness of the certificates on hostile input: a refutation only at a finite violating value the design
+attains (slopes the dead zone has, states the loop reaches), checked against independent formulas."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import casadi as ca
+import numpy as np
+
+import symfunnel as sf
+from symfunnel.certificates import run_certificates
+from symfunnel.certificates.region import parameter_box, slope_ranges
+from symfunnel.core.toml_write import dumps
+from symfunnel.sx.search import prove_positive_definite
+
+
+def write(tmp_path, raw: dict, name="s.toml") -> str:
+    p = tmp_path / name
+    p.write_text(dumps(raw), encoding="utf-8")
+    return str(p)
+
+
+def _paper_with(tmp_path, left, right="(u - b_r)"):
+    raw = copy.deepcopy(sf.load_scenario("paper").raw)
+    raw["plant"]["dead_zone"]["left"] = left
+    raw["plant"]["dead_zone"]["right"] = right
+    return write(tmp_path, raw, "dz.toml")
+
+
+def _input_gain(path):
+    sc = sf.load_scenario(path)
+    return run_certificates(sc, sf.derive(sc), t_final=sc.simulation.t_final,
+                            only=("certify.input_gain",)).certificates[0]
+
+
+# --- a refutation needs a finite violating value ------------------------------------------------------------
+
+def test_nan_eigenvalue_is_no_refutation():
+    """S(x) = sqrt(x) + 1 on [-1, 1] is NaN on x < 0: no finite counterexample exists (old code: refuted, nan)."""
+    x = ca.SX.sym("x", 1)
+    S = ca.Function("S", [x], [ca.reshape(ca.sqrt(x) + 1, 1, 1)])
+    r = prove_positive_definite(S, np.array([-1.0]), np.array([1.0]), np.array([0]), max_boxes=200)
+    assert r.status == "undecided"
+    assert r.upper is None or np.isfinite(r.upper)
+
+
+def test_nan_confirmation_is_no_refutation():
+    """A confirm that gives NaN (the independent evaluation failed) never turns a box into a counterexample."""
+    x = ca.SX.sym("x", 1)
+    S = ca.Function("S", [x], [ca.reshape(x, 1, 1)])          # genuinely indefinite on x < 0
+    r = prove_positive_definite(S, np.array([-1.0]), np.array([1.0]), np.array([0]), max_boxes=50,
+                                confirm=lambda xx: math.nan)
+    assert r.status != "refuted"
+    r = prove_positive_definite(S, np.array([-1.0]), np.array([1.0]), np.array([0]), max_boxes=50,
+                                confirm=lambda xx: float(xx[0]))
+    assert r.status == "refuted" and r.upper <= 0 and np.isfinite(r.upper)
+
+
+# --- dead-zone slopes: endpoint-tight, refutations at attained slopes --------------------------------------
+
+def test_cubic_dead_zone_slope_box_is_the_true_range(tmp_path):
+    """left = (u - b_l) + 0.0008 (u - b_l)^3 on [b_l - 10, b_l]: slope 1 + 0.0024 (u - b_l)^2 in [1, 1.24]
+    exactly; the box encloses it within 1e-6 (old: arb's midpoint-radius [0.92, 1.24]), and the attained ends are
+    the formula's values at the reported u."""
+    sc = sf.load_scenario(_paper_with(tmp_path, "(u - b_l) + 0.0008*(u - b_l)^3"))
+    r = slope_ranges(sc, parameter_box(sc))
+    bl = -1.5                                          # the paper's b_l
+    assert np.all(r["lo"] <= 1.0) and np.all(r["lo"] >= 1.0 - 1e-6)
+    assert np.all(r["hi"] >= 1.24) and np.all(r["hi"] <= 1.24 + 1e-6)
+    for j in range(sc.n):
+        for side in ("lo", "hi"):
+            w = r["where"][j][side]
+            true = 1.0 if w["branch"] == "right" else 1 + 0.0024 * (w["u"] - bl) ** 2
+            assert abs(true * w["scale"] - w["slope"]) <= 1e-12
+        assert r["lo_seen"][j] >= r["lo"][j] and r["hi_seen"][j] <= r["hi"][j]
+        assert abs(r["lo_seen"][j] - 1.0) < 1e-5 and abs(r["hi_seen"][j] - 1.24) < 1e-5
+
+
+def test_cubic_dead_zone_is_not_refuted_at_slopes_it_never_has(tmp_path):
+    """left = (u - b_l) + 0.0004 (u - b_l)^3 (slopes [1, 1.12]), right slope 1: sym(M^-1 D M) >= 0.2 at the
+    paper's worst q (numpy below), so input_gain is proven; the inflated box [0.96, 1.12] refuted it."""
+    path = _paper_with(tmp_path, "(u - b_l) + 0.0004*(u - b_l)^3")
+    c = _input_gain(path)
+    assert c.status == "proven" and 0.15 < c.lower <= 0.21
+    # independent: lambda_min over a q2 grid and the 4 slope vertices of [1, 1.12]^2 (model = plant here)
+    d = sf.derive(sf.load_scenario(path))
+    fM = d.function("M", ["q"])
+    lam = []
+    for q2 in np.linspace(-0.49, 0.49, 99):
+        M = np.asarray(fM([0.0, q2]), float)
+        for D in ([1, 1], [1, 1.12], [1.12, 1], [1.12, 1.12]):
+            G = np.linalg.solve(M, np.diag(D) @ M)
+            lam.append(np.linalg.eigvalsh(0.5 * (G + G.T))[0])
+    assert c.lower <= min(lam) + 1e-9 and min(lam) > 0.19
+
+
+def test_cubic_dead_zone_refutation_is_at_attained_slopes(tmp_path):
+    """With 0.0008 (slopes [1, 1.24]) the gain is indefinite for real (slopes 1.24 and 1 on the two joints, both
+    attained): the counterexample's slopes are the formula's at actual u and numpy reproduces lambda_min < 0."""
+    path = _paper_with(tmp_path, "(u - b_l) + 0.0008*(u - b_l)^3")
+    c = _input_gain(path)
+    assert c.status == "refuted"
+    ce = c.counterexample
+    for s, w in zip(ce["slopes"], ce["slopes_attained_at"]):
+        true = 1.0 if w["branch"] == "right" else 1 + 0.0024 * (w["u"] + 1.5) ** 2
+        assert abs(s - true * w["scale"]) <= 1e-12 and 1.0 - 1e-12 <= s <= 1.24 + 1e-12
+    d = sf.derive(sf.load_scenario(path))
+    M = np.asarray(d.function("M", ["q"])(ce["q"]), float)
+    G = np.linalg.solve(M, np.diag(ce["slopes"]) @ M)
+    assert np.linalg.eigvalsh(0.5 * (G + G.T))[0] < 0
