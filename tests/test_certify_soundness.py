@@ -110,3 +110,65 @@ def test_cubic_dead_zone_refutation_is_at_attained_slopes(tmp_path):
     M = np.asarray(d.function("M", ["q"])(ce["q"]), float)
     G = np.linalg.solve(M, np.diag(ce["slopes"]) @ M)
     assert np.linalg.eigvalsh(0.5 * (G + G.T))[0] < 0
+
+
+# --- saturation: refuted only on states the loop reaches --------------------------------------------------
+
+def _paper_tau_max(tmp_path, tau_max):
+    raw = copy.deepcopy(sf.load_scenario("paper").raw)
+    raw.setdefault("implementation", {})["tau_max"] = tau_max
+    return write(tmp_path, raw, "tau.toml")
+
+
+def test_saturation_at_the_initial_state_refutes(tmp_path):
+    """tau_max = 50 on the paper: |tau_1(0, x0)| = 501.6 (the design's tau at q0, dq0, W_hat(0), x_esn(0), which
+    is on every trajectory): refuted with the initial state as counterexample (old: undecided)."""
+    sc = sf.load_scenario(_paper_tau_max(tmp_path, 50.0))
+    d = sf.derive(sc)
+    c = run_certificates(sc, d, t_final=sc.simulation.t_final, only=("certify.bounds",)).certificates[0]
+    assert c.status == "refuted" and c.counterexample["initial_state"] is True
+    assert c.counterexample["t"] == 0.0 and c.counterexample["q"] == list(map(float, sc.q0))
+    # the design's tau Function of its own inputs at t = 0 (the initial weights and reservoir state)
+    init = d.variant.initial_states()
+    qd, dqd, ddqd = (np.asarray(v, float).ravel() for v in d.reference(0.0))
+    tau = np.asarray(d.function("tau")(*[{"t": 0.0, "q": sc.q0, "dq": sc.dq0, "qd": qd, "dqd": dqd, "ddqd": ddqd,
+                                            **init}[k] for k in d.inputs_of("tau")]), float).ravel()
+    assert np.max(np.abs(tau)) > 50 and abs(abs(tau[0]) - 501.5964766) < 1e-3
+    assert np.allclose(c.counterexample["tau"], tau, rtol=1e-12, atol=0)
+    # above the initial torque no initial-state refutation
+    sc2 = sf.load_scenario(_paper_tau_max(tmp_path, 600.0))
+    c2 = run_certificates(sc2, sf.derive(sc2), t_final=sc2.simulation.t_final,
+                          only=("certify.bounds",)).certificates[0]
+    assert not (c2.counterexample or {}).get("initial_state")
+
+
+def test_saturation_witness_lies_in_the_proven_ball(tmp_path):
+    """With a proven invariance certificate (m = 0.5, ||W_hat - W*|| <= 0.2; given here), a saturating witness is a
+    counterexample only inside that ball (the search runs on its bounding box): the counterexample's W_hat is
+    within 0.2 of W* and the design's ordinary tau reproduces |tau| >= tau_max there (old: a box corner)."""
+    from symfunnel.certificates.bounds import certify_bounds
+    from symfunnel.certificates.problem import Budget, Context
+    from symfunnel.certificates.result import Certificate
+    sc0 = sf.load_scenario("paper")
+    d0 = sf.derive(sc0)
+    W = np.zeros((d0.n_regressor, d0.n))
+    r = 0.2
+
+    def run(path):
+        sc = sf.load_scenario(path)
+        d = sf.derive(sc)
+        ctx = Context(sc, d, 2.0, parameter_box(sc), W, None)
+        ctx.results["certify.invariance"] = Certificate("certify.invariance", "proven", "given",
+                                                        extra={"m": 0.5, "w_hat_radius": r})
+        return certify_bounds(ctx, Budget(2e6)), d
+    base, _ = run(_paper_tau_max(tmp_path, 1e9))
+    c, d = run(_paper_tau_max(tmp_path, float(0.5 * base.upper)))
+    assert c.status == "refuted"
+    ce = c.counterexample
+    assert np.linalg.norm(np.asarray(ce["w_hat"], float) - W) <= r
+    assert max(abs(v) for v in ce["e_over_F"]["e1"] + ce["e_over_F"]["e2"]) <= 0.5 + 1e-12
+    qd, dqd, ddqd = (np.asarray(v, float).ravel() for v in d.reference(ce["t"]))
+    vals = {"t": ce["t"], "q": ce["q"], "dq": ce["dq"], "qd": qd, "dqd": dqd, "ddqd": ddqd,
+            **{k: np.asarray(ce[k], float) for k, _ in d.states}}
+    tau = np.asarray(d.function("tau")(*[vals[k] for k in d.inputs_of("tau")]), float).ravel()
+    assert np.max(np.abs(tau)) >= 0.5 * base.upper

@@ -102,7 +102,7 @@ def certify_invariance(ctx: Context, budget: Budget) -> Certificate:
         zc = z_limit(T, u)
         c_max = 0.5 * zc * zc
         row = {"m": m, "c_max": c_max}
-        if V0_lo >= c_max * (1 + _SAFE):
+        if np.isfinite(V0_lo) and V0_lo >= c_max * (1 + _SAFE):     # a refutation needs a finite value
             row.update(refuted=True, reason="V(0)", V0=V0_lo)
             rows.append(row)
             continue
