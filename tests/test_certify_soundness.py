@@ -8,6 +8,7 @@ import math
 
 import casadi as ca
 import numpy as np
+import pytest
 
 import symfunnel as sf
 from symfunnel.certificates import run_certificates
@@ -172,3 +173,81 @@ def test_saturation_witness_lies_in_the_proven_ball(tmp_path):
             **{k: np.asarray(ce[k], float) for k, _ in d.states}}
     tau = np.asarray(d.function("tau")(*[vals[k] for k in d.inputs_of("tau")]), float).ravel()
     assert np.max(np.abs(tau)) >= 0.5 * base.upper
+
+
+# --- regularity proven at load, not sampled --------------------------------------------------------------
+
+NONE = "tests/data/certify_none.toml"
+
+
+def _none_with(tmp_path, reference=None, funnel_e1=None, name="r.toml"):
+    from pathlib import Path
+    raw = copy.deepcopy(sf.load_scenario(str(Path(__file__).resolve().parent.parent / NONE)).raw)
+    if reference is not None:
+        raw["reference"]["q"] = reference
+    if funnel_e1 is not None:
+        raw["funnel"]["e1"] = {"F": funnel_e1}
+    return write(tmp_path, raw, name)
+
+
+@pytest.mark.parametrize("reference, funnel, key, why", [
+    (["0.3*sin(t) + 0.2*sign(t - 1)", "0.2*cos(t)"], None, "reference.q[0]", "argument of sign"),
+    (["0.3*abs(sin(2*t))", "0.2*cos(t)"], None, "reference.q[0]", "argument of abs"),
+    (["0.2*cos(t)", "min(t, 1)"], None, "reference.q[1]", "argument of min"),
+    (["sqrt((t - 1)^2)", "0.2*cos(t)"], None, "reference.q[0]", "argument of abs"),
+    (None, "0.1 - 0.099*sign(t - 1)", "funnel.e1.F", "argument of sign"),
+    (None, "(0.2*exp(-t) + 0.01)*(1 - exp(-((t - 1.00321)/1e-6)^2))", "funnel.e1.F", "not proven positive"),
+])
+def test_kinks_jumps_and_dips_are_refused_at_load_with_the_key(tmp_path, capsys, reference, funnel, key, why):
+    """The issue's examples (q_d or F switching inside [0, T], and the funnel that touches 0 between grid points)
+    pass the old loader; now `symfunnel certify` exits 2 with one line naming the key and why."""
+    from symfunnel.cli import main
+    from symfunnel.core.errors import InputError
+    path = _none_with(tmp_path, reference, funnel)
+    with pytest.raises(InputError) as ei:
+        sf.load_scenario(path)
+    assert ei.value.key == key and why in str(ei.value)
+    capsys.readouterr()
+    assert main(["certify", path, "--json"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and key in err and "Traceback" not in err
+
+
+def test_the_pinch_funnel_really_touches_zero():
+    """Independent of the loader: the pinch F is exactly 0 at t = 1.00321 (mpmath) and positive on the old grid."""
+    import mpmath
+    F = lambda t: (0.2 * mpmath.exp(-t) + 0.01) * (1 - mpmath.exp(-((t - mpmath.mpf("1.00321")) / mpmath.mpf("1e-6")) ** 2))
+    assert F(mpmath.mpf("1.00321")) == 0
+    grid = np.linspace(0.0, 5.0, 2001)
+    assert min(float(F(mpmath.mpf(float(t)))) for t in grid) > 0.009
+
+
+def test_smooth_uses_of_abs_and_max_are_accepted_and_audit_runs(tmp_path, capsys):
+    """abs and max of arguments that never reach their switch on [0, T] are smooth: accepted, and the audit's
+    sympy derivatives (whose sign / Heaviside would carry DiracDelta) run and pass."""
+    from symfunnel.cli import main
+    path = _none_with(tmp_path, ["0.3*abs(2 + sin(2*t)) - 0.6", "0.2*cos(t)"],
+                      "0.2*exp(-t) + 0.05 + 0.01*max(sin(t), -2)")
+    sc = sf.load_scenario(path)
+    assert sc.reference[0].text.startswith("0.3*abs")
+    capsys.readouterr()
+    assert main(["audit", path]) == 0
+    assert "reference.derivatives" in capsys.readouterr().out
+
+
+def test_prove_on_horizon_against_known_roots():
+    """prove_on_horizon: t - c (c drawn uniformly in (0, T)) fails 'nonzero' on a box containing c; exp(-t) + 1e-3
+    is proven positive; 1/(t - c) fails 'finite' near c; floor(t/2) fails 'same_floor' at t = 2 and 4."""
+    from symfunnel.sx.regularity import prove_on_horizon
+    t = ca.SX.sym("t")
+    rng = np.random.default_rng(3)
+    for c in rng.uniform(0.1, 4.9, 8):
+        f = ca.Function("g", [t], [ca.vertcat(t - c, ca.exp(-t) + 1e-3, 1 / (t - c))])
+        fails = prove_on_horizon(f, ["nonzero", "positive", "finite"], 5.0)
+        assert [x.output for x in fails] == [0, 2]
+        for x in fails:
+            assert x.t_lo <= c <= x.t_hi and x.t_hi - x.t_lo < 1e-6
+    f = ca.Function("g", [t], [(t + 0.5) / 2])
+    (x,) = prove_on_horizon(f, ["same_floor"], 5.0)
+    assert x.t_lo <= 1.5 <= x.t_hi
+    assert prove_on_horizon(f, ["same_floor"], 1.4) == []
