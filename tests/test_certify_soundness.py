@@ -251,3 +251,46 @@ def test_prove_on_horizon_against_known_roots():
     (x,) = prove_on_horizon(f, ["same_floor"], 5.0)
     assert x.t_lo <= 1.5 <= x.t_hi
     assert prove_on_horizon(f, ["same_floor"], 1.4) == []
+
+
+# --- the run-time self-check ------------------------------------------------------------------------------
+
+def _cheap_none(only):
+    from pathlib import Path
+    sc = sf.load_scenario(str(Path(__file__).resolve().parent.parent / NONE))
+    return run_certificates(sc, sf.derive(sc), t_final=2.0, only=only,
+                            work={"certify.bounds": 2e6, "certify.invariance": 2e6})
+
+
+def _unsound_exp(monkeypatch, which):
+    """The batched backend's exp rule made unsound: collapsed onto its upper end [exp(hi), exp(hi)] (too narrow:
+    misses every value below the top of a box), or halved (wrong at points too)."""
+    from symfunnel.sx import batch
+    good = batch._RULES["EXP"]
+
+    def narrow(al, ah):
+        lo, hi, bad = good(al, ah)
+        return (hi, hi, bad) if which == "narrow" else (0.5 * lo, 0.5 * hi, bad)
+    monkeypatch.setitem(batch._RULES, "EXP", narrow)
+
+
+@pytest.mark.parametrize("only, which", [(("certify.bounds",), "narrow"), (("certify.invariance",), "halved")])
+def test_an_unsound_interval_rule_stops_certify_with_an_internal_error(monkeypatch, only, which):
+    """With exp's rule too narrow (the funnels are exponentials, so every signal goes through it), the enclosures
+    miss values the ordinary Functions attain at the searches' own witnesses: EnclosureViolation, no verdict.
+    The same run with the sound rule gives a verdict."""
+    from symfunnel.certificates.selfcheck import EnclosureViolation
+    assert _cheap_none(only).certificates[0].status in ("proven", "refuted", "undecided")
+    _unsound_exp(monkeypatch, which)
+    with pytest.raises(EnclosureViolation, match="self-check failed"):
+        _cheap_none(only)
+
+
+def test_the_self_check_compares_with_a_tolerance_of_round_off_only():
+    from symfunnel.certificates.selfcheck import EnclosureViolation, check_contains
+    check_contains("x", 1.0, 2.0, 2.0 + 1e-12)
+    check_contains("x", 1.0, None, math.nan)
+    with pytest.raises(EnclosureViolation):
+        check_contains("x", 1.0, 2.0, 2.0 + 1e-6)
+    with pytest.raises(EnclosureViolation):
+        check_contains("x", 1.0, None, 0.999)

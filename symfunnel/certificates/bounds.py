@@ -27,6 +27,7 @@ import numpy as np
 from .problem import Budget, Context, RegionProblem, controller_state_boxes, improve, unknown_exprs
 from ..sx.search import extrema
 from .result import Certificate
+from .selfcheck import check_contains
 
 CID = "certify.bounds"
 #: the margin m of the region when no invariance certificate gives one: |e| <= 0.95 F
@@ -154,6 +155,14 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
         e[side + "_seen"] = sgn * best
         e["converged"] = e.get("converged", True) and ex.converged
         witness[(k, j, side)] = x
+    # self-check: each enclosure contains the double value (plain CasADi evaluation of the region Function) at each
+    # of its own witnesses
+    keys = list(witness)
+    vals = F.eval_points(np.array([witness[key] for key in keys]))
+    for (k, j, side), v in zip(keys, vals):
+        e = encl[k][j]
+        pos = F.out_off[F.out_names.index(k)] + list(F.out_nz[F.out_names.index(k)]).index(j)
+        check_contains(f"{k}[{j + 1}] on the bounds region", e["lo"], e["hi"], v[pos], witness[(k, j, side)])
     moved = []
     if ball is not None:
         # the search ran on the ball's bounding box: each torque witness is moved radially into the ball (the set

@@ -23,6 +23,7 @@ import numpy as np
 from .problem import Budget, Context, check_rules
 from .region import input_gain_function, inertia_functions, joint_box, slope_ranges
 from .result import Certificate
+from .selfcheck import check_contains
 from ..sx.search import prove_positive_definite
 
 CID = "certify.input_gain"
@@ -150,6 +151,10 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
                                upper=lam, counterexample=ce, region=region, boxes=boxes,
                                undecided_fraction=r.undecided_fraction, seconds=time.monotonic() - t0,
                                method=_method(vertices), extra={"vertices": len(problems)})
+        if r.lower is not None and r.argmin is not None:        # self-check: the bound holds at its own witness
+            xx = r.argmin
+            check_contains("lambda_min(sym(M_p^-1 D M))", r.lower, None,
+                           confirm(xx[:n], xx[n:n + npar], vert if vert is not None else xx[n + npar:]), xx)
         lowers.append(r.lower)
         uppers.append(r.upper)
         fractions.append(r.undecided_fraction)
