@@ -294,3 +294,16 @@ def test_the_self_check_compares_with_a_tolerance_of_round_off_only():
         check_contains("x", 1.0, 2.0, 2.0 + 1e-6)
     with pytest.raises(EnclosureViolation):
         check_contains("x", 1.0, None, 0.999)
+
+
+def test_a_longer_certify_horizon_is_proven_regular_too(tmp_path, capsys):
+    """sign(t - 7) never switches on the file's [0, 5] (loads), but certify --t-final 8 would certify across the
+    jump: exit 2 naming the key (the regularity is proven again over the longer horizon)."""
+    from symfunnel.cli import main
+    path = _none_with(tmp_path, ["0.3*sin(t) + 0.2*sign(t - 7)", "0.2*cos(t)"])
+    sf.load_scenario(path)
+    capsys.readouterr()
+    assert main(["certify", path, "--t-final", "8", "--only", "input_gain", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "reference.q[0]" in err and "sign" in err and len(err.strip().splitlines()) == 1
+    assert main(["certify", path, "--t-final", "6", "--only", "input_gain", "-q"]) == 0
