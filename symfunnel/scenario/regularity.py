@@ -71,10 +71,18 @@ def _switch_rows(exprs: list[ca.SX], t: ca.SX, suffix: str = "") -> list:
     return rows
 
 
+#: (what, expression text, horizon) already proven regular in this process (a campaign re-loads the same funnels
+#: and reference for every run; the proof depends on nothing else)
+_PROVEN: set = set()
+
+
 def check_funnel_regular(shape, t_final: float, *, file: str, key: str) -> None:
     """InputError naming `key` unless F_i > 0, F_i and dF_i/dt finite and no kink or jump of F_i on [0, T]."""
     t = ca.SX.sym("t")
     F = ca.SX(shape.sx(t))
+    memo = ("F", str(F), float(t_final))
+    if memo in _PROVEN:
+        return
     dF = ca.jacobian(F, t)
     n = F.numel()
     rows = []
@@ -84,6 +92,7 @@ def check_funnel_regular(shape, t_final: float, *, file: str, key: str) -> None:
         rows += _switch_rows([F[j], dF[j]], t, joint)
     got = _prove(rows, t, t_final)
     if got is None:
+        _PROVEN.add(memo)
         return
     what, fail = got
     T = float(t_final)
@@ -105,6 +114,9 @@ def check_reference_regular(reference: list, t_final: float, *, file: str) -> No
     t = ca.SX.sym("t")
     T = float(t_final)
     for i, e in enumerate(reference):
+        memo = ("q", e.text, T)
+        if memo in _PROVEN:
+            continue
         q = ca.SX(e.to_casadi({"t": t}))
         dq = ca.jacobian(q, t)
         ddq = ca.jacobian(dq, t)
@@ -112,6 +124,7 @@ def check_reference_regular(reference: list, t_final: float, *, file: str) -> No
         rows += _switch_rows([q, dq, ddq], t)
         got = _prove(rows, t, T)
         if got is None:
+            _PROVEN.add(memo)
             continue
         what, fail = got
         raise InputError(f"'{e.text}' is not twice continuously differentiable on [0, {T:g}]: {what} near "
