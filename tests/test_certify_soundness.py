@@ -307,3 +307,17 @@ def test_a_longer_certify_horizon_is_proven_regular_too(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "reference.q[0]" in err and "sign" in err and len(err.strip().splitlines()) == 1
     assert main(["certify", path, "--t-final", "6", "--only", "input_gain", "-q"]) == 0
+
+
+def test_the_self_check_is_an_internal_error_of_the_command(monkeypatch, capsys):
+    """`symfunnel certify` with an unsound rule: exit 3 (internal error) with one line naming the self-check, and
+    no verdict on stdout."""
+    from pathlib import Path
+
+    from symfunnel.cli import main
+    _unsound_exp(monkeypatch, "halved")
+    path = str(Path(__file__).resolve().parent.parent / NONE)
+    code = main(["certify", path, "--only", "bounds", "--t-final", "1", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 3 and "self-check failed" in err and "internal error" in err
+    assert '"status"' not in out
