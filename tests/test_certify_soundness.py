@@ -294,6 +294,10 @@ def test_the_self_check_compares_with_a_tolerance_of_round_off_only():
         check_contains("x", 1.0, 2.0, 2.0 + 1e-6)
     with pytest.raises(EnclosureViolation):
         check_contains("x", 1.0, None, 0.999)
+    # the point evaluation's own width (a cancelling signal's round-off) widens the allowance, nothing else
+    check_contains("x", 1.0, 2.0, 2.5, slack=0.6)
+    with pytest.raises(EnclosureViolation):
+        check_contains("x", 1.0, 2.0, 2.5, slack=0.4)
 
 
 def test_a_longer_certify_horizon_is_proven_regular_too(tmp_path, capsys):

@@ -158,11 +158,14 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     # self-check: each enclosure contains the double value (plain CasADi evaluation of the region Function) at each
     # of its own witnesses
     keys = list(witness)
-    vals = F.eval_points(np.array([witness[key] for key in keys]))
-    for (k, j, side), v in zip(keys, vals):
+    Xw = np.array([witness[key] for key in keys])
+    vals = F.eval_points(Xw)
+    PL, PH, _ = F.natural.eval_batch(Xw, Xw)           # the tape at the point: the double value's round-off scale
+    for i, ((k, j, side), v) in enumerate(zip(keys, vals)):
         e = encl[k][j]
         pos = F.out_off[F.out_names.index(k)] + list(F.out_nz[F.out_names.index(k)]).index(j)
-        check_contains(f"{k}[{j + 1}] on the bounds region", e["lo"], e["hi"], v[pos], witness[(k, j, side)])
+        check_contains(f"{k}[{j + 1}] on the bounds region", e["lo"], e["hi"], v[pos], witness[(k, j, side)],
+                       slack=PH[i, pos] - PL[i, pos])
     moved = []
     if ball is not None:
         # the search ran on the ball's bounding box: each torque witness is moved radially into the ball (the set

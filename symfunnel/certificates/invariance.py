@@ -132,7 +132,7 @@ def certify_invariance(ctx: Context, budget: Budget) -> Certificate:
         for r_, pt in ((2 * i, x), (2 * i + 1, xj)):        # self-check: each point enclosure holds its value
             for name_, pos in (("rho", pos_rho), ("delta", pos_delta)):
                 check_contains(f"{name_} at a witness of m = {row['m']:g}", float(L[r_, pos]), float(H[r_, pos]),
-                               D[r_, pos], pt)
+                               D[r_, pos], pt, slack=float(H[r_, pos] - L[r_, pos]))
         delta_w = float(L[2 * i, pos_delta])
         rho_w = float(min(H[2 * i + 1, pos_rho], H[2 * i, pos_rho]))
         c_max = row["c_max"]
@@ -232,8 +232,8 @@ def _initial_V(ctx, V) -> tuple[float, float, str]:
     note = "the scenario's initial state" if np.all(lo == hi) else "the [[uncertainty]] box of the initial state"
     if np.all(lo == hi):
         L, H, _ = F.eval_batch(lo[None, :], hi[None, :])
-        check_contains("V(0)", float(L[0, 0]), float(H[0, 0]),
-                       float(f(*[box[k][0] for k in names])), None)      # the ordinary Function at x0
+        check_contains("V(0)", float(L[0, 0]), float(H[0, 0]), float(f(*[box[k][0] for k in names])), None,
+                       slack=float(H[0, 0] - L[0, 0]))      # the ordinary Function at x0
         return float(L[0, 0]), float(H[0, 0]), note
     split = np.flatnonzero(lo < hi)
     top = extremum(F, lo, hi, split, 0, -1.0, max_boxes=2000, rel_tol=1e-3)
@@ -253,7 +253,8 @@ def _prove_at(ctx, prob, m, c_max, V0_hi, base_states, Ws, gamma, budget, pos_rh
                   initial=prob.initial_boxes(lo, hi))
     boxes = ex.boxes
     rho = float(ex.bound)
-    check_contains(f"rho at m = {m:g}", rho, None, F.eval_points(ex.argbest[None, :])[0, pos_rho], ex.argbest)
+    check_contains(f"rho at m = {m:g}", rho, None, F.eval_points(ex.argbest[None, :])[0, pos_rho], ex.argbest,
+                   slack=_point_width(F, ex.argbest, pos_rho))
     out = {"rho": rho, "proven": False}
     if not rho > 0:
         budget.boxes -= boxes
@@ -272,7 +273,7 @@ def _prove_at(ctx, prob, m, c_max, V0_hi, base_states, Ws, gamma, budget, pos_rh
         boxes += ex.boxes
         delta = -float(ex.bound)
         check_contains(f"delta at m = {m:g}", None, delta, F.eval_points(ex.argbest[None, :])[0, pos_delta],
-                       ex.argbest)
+                       ex.argbest, slack=_point_width(F, ex.argbest, pos_delta))
         if not np.isfinite(delta):
             break
         need = max(V0_hi, math.nextafter(delta / rho, math.inf))
@@ -290,6 +291,12 @@ def _prove_at(ctx, prob, m, c_max, V0_hi, base_states, Ws, gamma, budget, pos_rh
         c = min(need * 1.05, c_max)
     budget.boxes -= boxes
     return {**out, "boxes": boxes}
+
+
+def _point_width(F, x: np.ndarray, pos: int) -> float:
+    """Width of the interval evaluation at the point x (the scale of the double value's round-off there)."""
+    L, H, _ = F.natural.eval_batch(x[None, :], x[None, :])
+    return float(H[0, pos] - L[0, pos])
 
 
 def _summary(rows) -> list[dict]:

@@ -22,12 +22,15 @@ class EnclosureViolation(RuntimeError):
     """An enclosure that does not contain a value attained inside its own region: an unsound interval rule."""
 
 
-def check_contains(what: str, lo: float | None, hi: float | None, value: float, where=None) -> None:
-    """Raise EnclosureViolation unless lo <= value <= hi (within REL_TOL); a non-finite value attains nothing."""
+def check_contains(what: str, lo: float | None, hi: float | None, value: float, where=None,
+                   slack: float = 0.0) -> None:
+    """Raise EnclosureViolation unless lo <= value <= hi (within REL_TOL, plus `slack`: the width of the interval
+    evaluation at the witness point itself, which bounds the double value's own round-off where a signal cancels);
+    a non-finite value attains nothing."""
     v = float(value)
     if not math.isfinite(v):
         return
-    tol = REL_TOL * max(1.0, abs(v))
+    tol = REL_TOL * max(1.0, abs(v)) + (float(slack) if math.isfinite(float(slack)) else math.inf)
     below = lo is not None and math.isfinite(float(lo)) and v < float(lo) - tol
     above = hi is not None and math.isfinite(float(hi)) and v > float(hi) + tol
     if below or above:
