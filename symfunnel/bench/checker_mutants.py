@@ -59,6 +59,10 @@ V, T, AU, LY, BS = ("symfunnel/checks/verify.py", "symfunnel/checks/theory.py", 
 CO, IM, LO, ST = ("symfunnel/checks/consistency.py", "symfunnel/checks/implementation.py",
                   "symfunnel/deployed/loop.py", "symfunnel/emit/step.py")
 RA, CA, FU = "symfunnel/deployed/rate.py", "symfunnel/campaigns/campaign.py", "symfunnel/family/funnels.py"
+BA, SE, RE, PR = ("symfunnel/sx/batch.py", "symfunnel/sx/search.py", "symfunnel/certificates/region.py",
+                  "symfunnel/certificates/problem.py")
+IN, IG, BO, SC = ("symfunnel/certificates/invariance.py", "symfunnel/certificates/input_gain.py",
+                  "symfunnel/certificates/bounds.py", "symfunnel/certificates/selfcheck.py")
 
 MUTANTS: tuple[CheckerMutant, ...] = (
     # --- funnel containment (checks/verify.py)
@@ -185,6 +189,47 @@ MUTANTS: tuple[CheckerMutant, ...] = (
        "failed runs counted in the breach probability's denominator"),
     _m("row_breach_wrong_funnel", CA, '        if b["funnel"] == "e1":\n', '        if b["funnel"] != "e1":\n', "index",
        "a located breach's margin written to the other funnel's column"),
+    # --- the certificates' machinery (sx/, certificates/): each rule's ends, the widening, the eigenvalue bound,
+    # the regions, the level sets, the refutations' conditions and the self-check
+    _m("widening_removed", BA, "TRANSCENDENTAL_ULPS = 8", "TRANSCENDENTAL_ULPS = 0", "tolerance",
+       "transcendental results not widened for libm's error (only one ulp outward)"),
+    _m("exp_lower_end_unrounded", BA, "return np.maximum(_wdn(np.exp(al)), 0.0), _wup(np.exp(ah)), None",
+       "return np.maximum(np.exp(al), 0.0), _wup(np.exp(ah)), None", "clamp",
+       "exp's lower end taken from libm as is (neither widened nor rounded down)"),
+    _m("sin_extrema_swapped", BA, "_periodic(np.sin, al, ah, 0.5 * math.pi, -0.5 * math.pi)",
+       "_periodic(np.sin, al, ah, -0.5 * math.pi, 0.5 * math.pi)", "sign",
+       "sin's interior maximum and minimum looked for at each other's phase"),
+    _m("cosh_upper_end_from_lower", BA, "return np.maximum(_wdn(np.cosh(lo)), 1.0), _wup(np.cosh(hi)), None",
+       "return np.maximum(_wdn(np.cosh(lo)), 1.0), _wup(np.cosh(lo)), None", "index",
+       "cosh's upper end evaluated at the smaller |x|"),
+    _m("gershgorin_without_off_diagonal", SE, "off = np.nextafter(A.sum(axis=2) * grow, _INF)",
+       "off = np.nextafter(0.0 * A.sum(axis=2) * grow, _INF)", "constant",
+       "the eigenvalue bound's discs without their off-diagonal radii"),
+    _m("gershgorin_den_without_q_discs", SE,
+       "den = np.nextafter((np.diagonal(QH, axis1=1, axis2=2) + AQ.sum(axis=2)) * grow, _INF)",
+       "den = np.nextafter(np.diagonal(QH, axis1=1, axis2=2) * grow, _INF)", "constant",
+       "the bound's denominator without Q = L L^T's off-diagonal discs"),
+    _m("pd_refutes_at_nan", SE, "if np.isfinite(lam) and lam <= 0:", "if not lam > 0:", "comparison",
+       "a NaN lambda_min counted as a refutation"),
+    _m("joint_box_half_tube", RE, "float(np.nextafter(a - F1[j], -np.inf)), float(np.nextafter(b + F1[j], np.inf))",
+       "float(np.nextafter(a - 0.5 * F1[j], -np.inf)), float(np.nextafter(b + 0.5 * F1[j], np.inf))", "constant",
+       "the input gain's joint box from half the e1 funnel"),
+    _m("slope_span_halved", RE, "SLOPE_SPAN = 10.0", "SLOPE_SPAN = 5.0", "clamp",
+       "the dead zone's slopes enclosed over half the torque span"),
+    _m("region_half_width", PR, '"s1": (-np.ones(n), np.ones(n)), "s2": (-np.ones(n), np.ones(n)),',
+       '"s1": (-0.5 * np.ones(n), 0.5 * np.ones(n)), "s2": (-0.5 * np.ones(n), 0.5 * np.ones(n)),', "clamp",
+       "the funnel region R_m built half as wide as it declares"),
+    _m("level_without_half", IN, "c_max = 0.5 * zc * zc", "c_max = zc * zc", "constant",
+       "the level a margin allows without the 1/2 of V = z^2/2"),
+    _m("input_gain_low_vertices_only", IG, "(dl[j], dh[j]) if j in wide_d else (dl[j],)",
+       "(dl[j],) if j in wide_d else (dl[j],)", "index", "only the slope box's lower vertex searched"),
+    _m("slopes_not_attained", IG, "return np.where(s_ <= 0.5 * (dl + dh), seen_lo, seen_hi)", "return s_",
+       "index", "a refutation re-checked at the rigorous hull's slopes, not at slopes the dead zone attains"),
+    _m("saturation_witness_outside_ball", BO, "    if dist <= r:\n        return point, None",
+       "    if dist <= 10 * r:\n        return point, None", "tolerance",
+       "a saturation witness accepted outside the proven W_hat ball"),
+    _m("selfcheck_disabled", SC, "    if below or above:", "    if False:", "comparison",
+       "the certificates' self-check never fires"),
 )
 
 #: files and folders of the repository the copies need (the tests read docs/, derivations/ and README.md)

@@ -38,6 +38,7 @@ def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_in
     from .invariance import certify_invariance
     say = progress or (lambda s: None)
     t0 = time.monotonic()
+    _regular_on(scenario, float(t_final))
     expiry = None if wall_limit is None else t0 + float(wall_limit)
     wanted = [c for c in _ORDER if only is None or c in only]
     ctx = Context(scenario, design, float(t_final), parameter_box(scenario),
@@ -60,3 +61,17 @@ def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_in
         say(f"{cid}: {done[cid].status} ({done[cid].seconds:.1f} s, {done[cid].boxes} boxes)")
     certs = [done[c] for c in CERTIFICATES if c in done]
     return Certification(scenario.name, certs, seconds=time.monotonic() - t0, wall_limit=wall_limit)
+
+
+def _regular_on(scenario, t_final: float) -> None:
+    """The loader proved q_d in C^2 and F_i > 0 in C^1 over the scenario's own horizon; a longer one (--t-final) is
+    proven here before any certificate relies on it (InputError naming the key otherwise)."""
+    from ..scenario.regularity import check_funnel_regular, check_reference_regular
+    camp = scenario.campaign
+    loaded = max(scenario.simulation.t_final, (camp.sweep.t_final or 0.0) if camp is not None else 0.0)
+    if t_final <= loaded:
+        return
+    check_reference_regular(scenario.reference, t_final, file=scenario.file)
+    for key, shape in scenario.funnels.items():
+        check_funnel_regular(shape, t_final, file=scenario.file,
+                             key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))

@@ -11,8 +11,9 @@ Per signal and joint, `sx.branch.rigorous_range` (best-first on each bound, mean
 rigorous [lo, hi] and the attained [lo_seen, hi_seen]; the torque's extremes are improved by a local search over
 every input (states included) and re-evaluated by the ordinary CasADi Function of the design. With `tau_max`:
 proven when the rigorous max|tau_j| < tau_max_j on every joint (saturation provably inactive on the region), refuted
-when an attained |tau_j| >= tau_max_j on the invariance certificate's region (the state is the counterexample: the
-loop provably stays in that region), undecided in between -- and undecided when such a state lies in the stand-in
+when |tau_j(0, x0)| >= tau_max_j at the initial state (on every trajectory) or when an attained |tau_j| >= tau_max_j
+inside the set the invariance certificate proves (R_m with the W_hat *ball*, not its bounding box: a box witness is
+moved into the ball and re-evaluated; the state is the counterexample), undecided in between -- and undecided when such a state lies in the stand-in
 region R_BOUNDS_MARGIN, which the loop is not shown to stay in (the state is kept as `witness`).
 """
 
@@ -26,6 +27,7 @@ import numpy as np
 from .problem import Budget, Context, RegionProblem, controller_state_boxes, improve, unknown_exprs
 from ..sx.search import extrema
 from .result import Certificate
+from .selfcheck import check_contains
 
 CID = "certify.bounds"
 #: the margin m of the region when no invariance certificate gives one: |e| <= 0.95 F
@@ -50,6 +52,39 @@ def w_hat_box(ctx: Context) -> tuple[tuple[np.ndarray, np.ndarray] | None, str]:
                                       "each side (a box from one run: the enclosures hold for every W_hat in it)")
 
 
+def initial_saturation(ctx: Context, tau_max: np.ndarray) -> dict | None:
+    """The initial state's counterexample when |tau_j(0, x0)| >= tau_max_j (by the design's ordinary CasADi Function
+    at t = 0, the scenario's q0, dq0 and the controller's initial states: a state on every trajectory), else None.
+    Under an initial-state [[uncertainty]] box the scenario's own q0/dq0 is used only when it lies in the box."""
+    d, sc = ctx.design, ctx.scenario
+    q0, dq0 = np.asarray(sc.q0, float), np.asarray(sc.dq0, float)
+    for v, box in ((q0, ctx.params.q0), (dq0, ctx.params.dq0)):
+        if box is not None and not (np.all(box[0] <= v) and np.all(v <= box[1])):
+            return None
+    names = [k for k, _ in d.states]
+    f = d.function("tau", ["t", "q", "dq", "qd", "dqd", "ddqd", *names])
+    init = d.variant.initial_states()
+    qd, dqd, ddqd = (np.asarray(v, float).ravel() for v in d.reference(0.0))
+    tau = np.asarray(f(0.0, q0, dq0, qd, dqd, ddqd, *[init[k] for k in names]), float).ravel()
+    over = np.flatnonzero(np.isfinite(tau) & (np.abs(tau) >= tau_max))
+    if not over.size:
+        return None
+    return {"t": 0.0, "q": q0.tolist(), "dq": dq0.tolist(), "initial_state": True, "tau": tau.tolist(),
+            "joint": int(over[0])}
+
+
+def _into_ball(point: dict, W: np.ndarray, r: float) -> tuple[dict, float | None]:
+    """The region point with W_hat moved radially into the ball ||W_hat - W*||_F <= r (the set the invariance
+    certificate proves; the search ran on its bounding box), and the distance it was moved from (None: inside)."""
+    Wh = np.asarray(point["w_hat"], float).reshape(W.shape)
+    dist = float(np.linalg.norm(Wh - W))
+    if dist <= r:
+        return point, None
+    out = dict(point)
+    out["w_hat"] = (W + (Wh - W) * (r / dist) * (1 - 1e-12)).reshape(np.shape(point["w_hat"]))
+    return out, dist
+
+
 def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     """certify.bounds on the scenario's region."""
     t0 = time.monotonic()
@@ -63,6 +98,20 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
         m, m_source = BOUNDS_MARGIN, "BOUNDS_MARGIN (no invariance certificate gives one)"
     states = {}
     w_source = None
+    tau_max = None
+    if sc.implementation is not None and sc.implementation.tau_max is not None:
+        tau_max = np.broadcast_to(np.asarray(sc.implementation.tau_max, float), (n,))
+        ce0 = initial_saturation(ctx, tau_max)
+        if ce0 is not None:          # decided without a search: the initial state is on every trajectory
+            j = ce0.pop("joint")
+            return Certificate(CID, "refuted", f"|tau_{j + 1}| = {abs(ce0['tau'][j]):.6g} >= tau_max = "
+                               f"{tau_max[j]:g} at the initial state (t = 0, on every trajectory): saturation is "
+                               "active", counterexample=ce0, undecided_fraction=0.0, lower=abs(ce0["tau"][j]),
+                               method="the design's tau at the initial state (ordinary CasADi Function)",
+                               extra={"tau_max": tau_max.tolist()}, seconds=time.monotonic() - t0)
+    ball = None         # (W*, r): the proven W_hat ball (the box searched is its bounding box)
+    if invariant and d.n_regressor and "w_hat_radius" in inv.extra and ctx.W_star is not None:
+        ball = (np.asarray(ctx.W_star, float), float(inv.extra["w_hat_radius"]))
     if d.n_regressor:
         wb, w_source = w_hat_box(ctx)
         if wb is None or ctx.W_star is None:
@@ -106,13 +155,34 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
         e[side + "_seen"] = sgn * best
         e["converged"] = e.get("converged", True) and ex.converged
         witness[(k, j, side)] = x
+    # self-check: each enclosure contains the double value (plain CasADi evaluation of the region Function) at each
+    # of its own witnesses
+    keys = list(witness)
+    Xw = np.array([witness[key] for key in keys])
+    vals = F.eval_points(Xw)
+    PL, PH, _ = F.natural.eval_batch(Xw, Xw)           # the tape at the point: the double value's round-off scale
+    for i, ((k, j, side), v) in enumerate(zip(keys, vals)):
+        e = encl[k][j]
+        pos = F.out_off[F.out_names.index(k)] + list(F.out_nz[F.out_names.index(k)]).index(j)
+        check_contains(f"{k}[{j + 1}] on the bounds region", e["lo"], e["hi"], v[pos], witness[(k, j, side)],
+                       slack=PH[i, pos] - PL[i, pos])
+    moved = []
+    if ball is not None:
+        # the search ran on the ball's bounding box: each torque witness is moved radially into the ball (the set
+        # the invariance certificate proves) and its attained value is the ordinary Function's there
+        for j in range(n):
+            for side in ("lo", "hi"):
+                point, dist = _into_ball(prob.point(witness[("tau", j, side)]), *ball)
+                if dist is None:
+                    continue
+                v = float(prob.ordinary_values(point)["tau"][j])
+                witness[("tau", j, side)] = prob.F.flatten_point(point)
+                encl["tau"][j][side + "_seen"] = v
+                moved.append(f"tau_{j + 1} {side} (||W_hat - W*|| = {dist:.4g} > {ball[1]:.4g})")
     finite = all(np.isfinite(e["lo"]) and np.isfinite(e["hi"]) for v in encl.values() for e in v)
     tau = encl["tau"]
     abs_hi = [max(abs(e["lo"]), abs(e["hi"])) for e in tau]
     abs_seen = [max(abs(e["lo_seen"]), abs(e["hi_seen"])) for e in tau]
-    tau_max = None
-    if sc.implementation is not None and sc.implementation.tau_max is not None:
-        tau_max = np.broadcast_to(np.asarray(sc.implementation.tau_max, float), (n,))
     region_info = {"t": [0.0, float(ctx.t_final)], "margin": m, "margin_source": m_source,
                    "e1": f"|e1| <= (1 - {m:g}) F1(t)", "e2": f"|e2| <= (1 - {m:g}) F2(t)",
                    "parameters": ctx.params.describe()}
@@ -125,6 +195,8 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     extra = {"enclosures": encl, "tau_max": None if tau_max is None else tau_max.tolist(),
              "eps": "enclosed" if with_eps else "not enclosed: the ESN's eps depends on the reservoir state x_esn",
              "max_abs_tau": {"lower": abs_seen, "upper": abs_hi}}
+    if moved:
+        extra["witnesses_moved_into_the_ball"] = moved
     text = "; ".join(f"{k}: " + ", ".join(f"[{e['lo']:.4g}, {e['hi']:.4g}]" for e in v) for k, v in encl.items())
     head = f"on R_{m:g} ({m_source}) x the parameter box x the state boxes: {text}"
     common = dict(region=region_info, boxes=boxes, seconds=time.monotonic() - t0,
@@ -136,6 +208,10 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
                 side = "hi" if abs(tau[j]["hi_seen"]) >= abs(tau[j]["lo_seen"]) else "lo"
                 point = prob.point(witness[("tau", j, side)])
                 vals = prob.ordinary_values(point)["tau"]
+                if not np.all(np.isfinite(vals)):
+                    extra["witness_note"] = (f"the witness of |tau_{j + 1}| evaluates to {vals[j]!r} in double: "
+                                             "a refutation needs a finite value")
+                    continue
                 if abs(vals[j]) >= tau_max[j]:
                     ce = prob.counterexample(point)
                     ce["tau"] = vals.tolist()

@@ -14,14 +14,16 @@ reproduce lambda_min <= 0 there with numpy's eigenvalues.
 from __future__ import annotations
 
 import itertools
+import math
 import time
 
 import casadi as ca
 import numpy as np
 
 from .problem import Budget, Context, check_rules
-from .region import input_gain_function, inertia_functions, joint_box, slope_box
+from .region import input_gain_function, inertia_functions, joint_box, slope_ranges
 from .result import Certificate
+from .selfcheck import check_contains
 from ..sx.search import prove_positive_definite
 
 CID = "certify.input_gain"
@@ -54,7 +56,15 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
     d, sc = ctx.design, ctx.scenario
     n = d.n
     P = ctx.params
-    dl, dh, constant = slope_box(sc, P)
+    sr = slope_ranges(sc, P)
+    dl, dh, constant = sr["lo"], sr["hi"], sr["constant"]
+    seen_lo, seen_hi = sr["lo_seen"], sr["hi_seen"]
+
+    def attained(slopes) -> np.ndarray:
+        """The slopes the dead zone attains nearest the box's: each joint's slope moved to the attained end of its
+        side (the rigorous hull may be wider than what any u gives; a refutation is re-checked where it is real)."""
+        s_ = np.asarray(slopes, float)
+        return np.where(s_ <= 0.5 * (dl + dh), seen_lo, seen_hi)
     ql, qh, jinfo = joint_box(d, ctx.t_final)
     S = input_gain_function(d)
     check_rules(S, "signal input_gain (sym(M_p^-1 D M))", sc.file)
@@ -64,7 +74,11 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
     def confirm(q, p, slopes) -> float:
         M = np.asarray(fM(q), float)
         Mp = np.asarray(fMp(q, p), float)
+        if not (np.all(np.isfinite(M)) and np.all(np.isfinite(Mp))):
+            return math.nan                  # numpy's eigvalsh of a NaN matrix returns numbers: no verdict on them
         G = np.linalg.solve(Mp, np.diag(slopes) @ M)
+        if not np.all(np.isfinite(G)):
+            return math.nan
         return float(np.linalg.eigvalsh(0.5 * (G + G.T))[0])
 
     wide_d = [j for j in range(n) if dl[j] < dh[j]]
@@ -72,7 +86,7 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
         if 2 ** len(wide_d) <= VERTEX_LIMIT else None
     region = {"q": [ql.tolist(), qh.tolist()], "q_source": "hull of the e1 funnel tube over [0, T]" +
               (" within the joint limits" if jinfo["limits"] else ""), "parameters": P.describe(),
-              "slopes": [dl.tolist(), dh.tolist()],
+              "slopes": [dl.tolist(), dh.tolist()], "slopes_attained": [seen_lo.tolist(), seen_hi.tolist()],
               "slopes_source": "hull of both branches' slopes" + (" (constant)" if constant else
                                                                    f" over {SLOPE_NOTE}")}
     x = ca.SX.sym("x", n + npar + (0 if vertices is not None else n))
@@ -94,7 +108,7 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
     problems.sort(key=mid_lambda)
     from ..sx.tape import count_ops
     budget.set_tape((count_ops(problems[0][1])["operations"] + 2 * n ** 3) * 4)
-    boxes, lowers, uppers, fractions, first = 0, [], [], [], []
+    boxes, lowers, uppers, fractions, first, nan_note = 0, [], [], [], [], []
     for i, (vert, Sx, lo_, hi_) in enumerate(problems):
         xs = ca.SX.sym("x", lo_.size)
         dep = set(ca.jacobian_sparsity(ca.vec(Sx(xs)), xs).get_triplet()[1])
@@ -102,7 +116,7 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
 
         def conf(xx, vert=vert):
             slopes = vert if vert is not None else xx[n + npar:]
-            return confirm(xx[:n], xx[n:n + npar], slopes)
+            return confirm(xx[:n], xx[n:n + npar], attained(slopes))
         left = len(problems) - i
         xp, lp = _probe(Sx, lo_, hi_)
         if lp <= 0 and conf(xp) <= 0:       # refuted by a sample, reproduced independently: no search needed
@@ -114,11 +128,21 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
         boxes += r.boxes
         if r.status == "refuted":
             xx = r.argmin
-            slopes = vert if vert is not None else xx[n + npar:]
+            slopes = attained(vert if vert is not None else xx[n + npar:])
             lam = confirm(xx[:n], xx[n:n + npar], slopes)
+            if not (np.isfinite(lam) and lam <= 0):       # a refutation needs a finite violating value
+                lowers.append(None)
+                uppers.append(None)
+                fractions.append(1.0)
+                first.append(None)
+                nan_note.append(f"a candidate counterexample at q = {np.round(xx[:n], 6).tolist()} has "
+                                f"lambda_min = {lam:.6g} at the attained slopes (not a finite violation)")
+                continue
             ce = {"t": None, "q": xx[:n].tolist(), "dq": None,
                   "parameters": {k: float(v) for k, v, a, b in zip(P.names, xx[n:n + npar], P.lo, P.hi) if a < b},
-                  "slopes": np.asarray(slopes, float).tolist(), "lambda_min": lam}
+                  "slopes": np.asarray(slopes, float).tolist(), "lambda_min": lam,
+                  "slopes_attained_at": [sr["where"][j].get("lo" if slopes[j] == seen_lo[j] else "hi")
+                                         for j in range(n)]}
             return Certificate(CID, "refuted", f"sym(M_p^-1 D M) is not positive definite: lambda_min = {lam:.6g} "
                                f"at q = {np.round(xx[:n], 6).tolist()}, slopes {np.asarray(slopes).tolist()} "
                                f"(re-evaluated with the ordinary CasADi Functions of M and M_p"
@@ -127,11 +151,16 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
                                upper=lam, counterexample=ce, region=region, boxes=boxes,
                                undecided_fraction=r.undecided_fraction, seconds=time.monotonic() - t0,
                                method=_method(vertices), extra={"vertices": len(problems)})
+        if r.lower is not None and r.argmin is not None:        # self-check: the bound holds at its own witness
+            xx = r.argmin
+            check_contains("lambda_min(sym(M_p^-1 D M))", r.lower, None,
+                           confirm(xx[:n], xx[n:n + npar], vert if vert is not None else xx[n + npar:]), xx)
         lowers.append(r.lower)
         uppers.append(r.upper)
         fractions.append(r.undecided_fraction)
         first.append(r.first_proof)
     upper = min(u for u in uppers if u is not None) if any(u is not None for u in uppers) else None
+    upper = upper if upper is None or np.isfinite(upper) else None
     extra = {"vertices": len(problems), "first_proof": [None if f is None else {"boxes": f[0], "seconds": f[1]}
                                                         for f in first]}
     if all(lw is not None for lw in lowers):
@@ -141,8 +170,10 @@ def certify_input_gain(ctx: Context, budget: Budget) -> Certificate:
                            region=region, boxes=boxes, seconds=time.monotonic() - t0, method=_method(vertices),
                            extra=extra)
     frac = float(max(fractions))
+    why = ("; " + "; ".join(nan_note)) if nan_note else ""
     return Certificate(CID, "undecided", f"no counterexample, but {frac:.3g} of the (q, p) volume of the worst slope "
-                       f"vertex is not proven within the budget (smallest lambda_min found {upper:.6g})",
+                       f"vertex is not proven within the budget (smallest lambda_min found "
+                       f"{'none' if upper is None else f'{upper:.6g}'}){why}",
                        upper=upper, region=region, boxes=boxes, undecided_fraction=frac,
                        seconds=time.monotonic() - t0, method=_method(vertices), extra=extra)
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes, improve, unknown_exprs
 from .result import Certificate
+from .selfcheck import check_contains
 from ..sx.search import extremum
 
 CID = "certify.invariance"
@@ -102,7 +103,7 @@ def certify_invariance(ctx: Context, budget: Budget) -> Certificate:
         zc = z_limit(T, u)
         c_max = 0.5 * zc * zc
         row = {"m": m, "c_max": c_max}
-        if V0_lo >= c_max * (1 + _SAFE):
+        if np.isfinite(V0_lo) and V0_lo >= c_max * (1 + _SAFE):     # a refutation needs a finite value
             row.update(refuted=True, reason="V(0)", V0=V0_lo)
             rows.append(row)
             continue
@@ -126,7 +127,12 @@ def certify_invariance(ctx: Context, budget: Budget) -> Certificate:
     if pending:
         P = np.array([v for _, x, xj in pending for v in (x, xj)])
         L, H, _ = F.natural.eval_batch(P, P)
-    for i, (row, x, _) in enumerate(pending):
+        D = F.eval_points(P)                   # the same Function in double (plain CasADi), for the self-check
+    for i, (row, x, xj) in enumerate(pending):
+        for r_, pt in ((2 * i, x), (2 * i + 1, xj)):        # self-check: each point enclosure holds its value
+            for name_, pos in (("rho", pos_rho), ("delta", pos_delta)):
+                check_contains(f"{name_} at a witness of m = {row['m']:g}", float(L[r_, pos]), float(H[r_, pos]),
+                               D[r_, pos], pt, slack=float(H[r_, pos] - L[r_, pos]))
         delta_w = float(L[2 * i, pos_delta])
         rho_w = float(min(H[2 * i + 1, pos_rho], H[2 * i, pos_rho]))
         c_max = row["c_max"]
@@ -226,6 +232,8 @@ def _initial_V(ctx, V) -> tuple[float, float, str]:
     note = "the scenario's initial state" if np.all(lo == hi) else "the [[uncertainty]] box of the initial state"
     if np.all(lo == hi):
         L, H, _ = F.eval_batch(lo[None, :], hi[None, :])
+        check_contains("V(0)", float(L[0, 0]), float(H[0, 0]), float(f(*[box[k][0] for k in names])), None,
+                       slack=float(H[0, 0] - L[0, 0]))      # the ordinary Function at x0
         return float(L[0, 0]), float(H[0, 0]), note
     split = np.flatnonzero(lo < hi)
     top = extremum(F, lo, hi, split, 0, -1.0, max_boxes=2000, rel_tol=1e-3)
@@ -245,6 +253,8 @@ def _prove_at(ctx, prob, m, c_max, V0_hi, base_states, Ws, gamma, budget, pos_rh
                   initial=prob.initial_boxes(lo, hi))
     boxes = ex.boxes
     rho = float(ex.bound)
+    check_contains(f"rho at m = {m:g}", rho, None, F.eval_points(ex.argbest[None, :])[0, pos_rho], ex.argbest,
+                   slack=_point_width(F, ex.argbest, pos_rho))
     out = {"rho": rho, "proven": False}
     if not rho > 0:
         budget.boxes -= boxes
@@ -262,6 +272,8 @@ def _prove_at(ctx, prob, m, c_max, V0_hi, base_states, Ws, gamma, budget, pos_rh
                       rel_tol=1e-2, abs_tol=1e-2 * c_max * rho, initial=prob.initial_boxes(lo, hi))
         boxes += ex.boxes
         delta = -float(ex.bound)
+        check_contains(f"delta at m = {m:g}", None, delta, F.eval_points(ex.argbest[None, :])[0, pos_delta],
+                       ex.argbest, slack=_point_width(F, ex.argbest, pos_delta))
         if not np.isfinite(delta):
             break
         need = max(V0_hi, math.nextafter(delta / rho, math.inf))
@@ -279,6 +291,12 @@ def _prove_at(ctx, prob, m, c_max, V0_hi, base_states, Ws, gamma, budget, pos_rh
         c = min(need * 1.05, c_max)
     budget.boxes -= boxes
     return {**out, "boxes": boxes}
+
+
+def _point_width(F, x: np.ndarray, pos: int) -> float:
+    """Width of the interval evaluation at the point x (the scale of the double value's round-off there)."""
+    L, H, _ = F.natural.eval_batch(x[None, :], x[None, :])
+    return float(H[0, pos] - L[0, pos])
 
 
 def _summary(rows) -> list[dict]:

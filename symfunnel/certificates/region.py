@@ -3,9 +3,10 @@
 - Parameters: the plant's quantities in the layout of `plant.equations.plant_parameters`, each a point (its
   scenario value) or, for an `[[uncertainty]]` key, a box: uniform [low, high], normal mean +- 5 std, choice its
   hull. A per-joint quantity drawn once for every joint gets the same box on each joint (a superset).
-- Dead-zone slopes: per joint the hull of both branches' slopes d(branch)/du, interval-evaluated over
+- Dead-zone slopes: per joint the hull of both branches' slopes d(branch)/du, enclosed by branch and bound over
   u in [b_r, b_r + SLOPE_SPAN] (right) and [b_l - SLOPE_SPAN, b_l] (left) with the breakpoints' and scales' boxes
-  (exact for the linear branches of the shipped scenarios: their slope is a constant).
+  (exact for the linear branches of the shipped scenarios: their slope is a constant), and the slopes attained
+  there (at actual u) that a refutation is re-checked at.
 - Joints (input gain): the box hull of the e1 funnel tube {q_d(t) + e : t in [0, T], |e| <= F1(t)}, from rigorous
   ranges of q_d and F1 over [0, T], intersected with the model's joint limits where it has them (URDF).
 - The funnel region R_m (bounds, invariance): t in [0, T], e1 = s1 (1 - m) F1(t), e2 = s2 (1 - m) F2(t) with
@@ -81,13 +82,30 @@ def parameter_box(scenario) -> ParameterBox:
 
 def slope_box(scenario, pbox: ParameterBox, backend: str = "arb") -> tuple[np.ndarray, np.ndarray, bool]:
     """Per joint (lo, hi) of the dead zone's branch slopes, and whether every slope is a constant of u."""
+    r = slope_ranges(scenario, pbox, backend)
+    return r["lo"], r["hi"], r["constant"]
+
+
+def slope_ranges(scenario, pbox: ParameterBox, backend: str = "arb") -> dict:
+    """Per joint the dead zone's slope hull: rigorous (lo, hi) and the attained (lo_seen, hi_seen) with the u, the
+    branch and the scale where each is attained.
+
+    Each branch's derivative d(branch)/du is enclosed over its domain by best-first branch and bound in the
+    mean-value form (endpoint-tight for a monotone derivative, never a midpoint-radius inflation of the whole
+    domain), times the scale's box with outward rounding. The attained slopes are the derivative's double values
+    at actual points u (times a scale endpoint): a refutation is re-checked there, never at a slope the dead zone
+    does not have."""
     n = scenario.n
     dz = scenario.plant.dead_zone
     if dz is None:
-        return np.ones(n), np.ones(n), True
+        one = np.ones(n)
+        return {"lo": one, "hi": one.copy(), "lo_seen": one.copy(), "hi_seen": one.copy(), "constant": True,
+                "where": [None] * n}
     u, bl, br = ca.SX.sym("u"), ca.SX.sym("b_l"), ca.SX.sym("b_r")
     env = {"u": u, "b_l": bl, "b_r": br}
     lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+    lo_seen, hi_seen = np.full(n, np.inf), np.full(n, -np.inf)
+    where: list = [dict() for _ in range(n)]
     constant = True
 
     def box(key, j):
@@ -97,23 +115,36 @@ def slope_box(scenario, pbox: ParameterBox, backend: str = "arb") -> tuple[np.nd
         e = ca.SX(expr.to_casadi(env))
         de = ca.jacobian(e, u)
         constant = constant and not ca.depends_on(de, u)
-        F = IntervalFunction(ca.Function("slope", [u, bl, br], [de], ["u", "b_l", "b_r"], ["d"]), backend)
+        f = ca.Function("slope", [u, bl, br], [de], ["u", "b_l", "b_r"], ["d"])
+        F = IntervalFunction(f, backend, form="mean_value")
         for j in range(n):
             bl_box, br_box = box("plant.dead_zone.b_l", j), box("plant.dead_zone.b_r", j)
             scale = box(f"plant.dead_zone.{side}_scale", j)
             ub = (br_box[0], br_box[1] + SLOPE_SPAN) if side == "right" else (bl_box[0] - SLOPE_SPAN, bl_box[1])
-            enc = F.eval([ub, bl_box, br_box])[0]
-            a, b = float(np.ravel(enc.lo)[0]), float(np.ravel(enc.hi)[0])
+            rr = rigorous_range(F, {"u": ub, "b_l": bl_box, "b_r": br_box}, tol=1e-9, rel_tol=1e-6,
+                                max_boxes=4000)
+            a, b = float(rr.lo), float(rr.hi)
             if not (np.isfinite(a) and np.isfinite(b)):
                 raise InputError(f"has no finite slope bound for joint {j + 1}", file=scenario.file,
                                  key=f"plant.dead_zone.{side}", expected="a branch with a bounded slope")
-            cands = [_product(a, scale[0], -1), _product(a, scale[1], -1), _product(b, scale[0], -1),
-                     _product(b, scale[1], -1)]
+            cands = [_product(x, y, -1) for x in (a, b) for y in scale]
             lo[j] = min(lo[j], min(cands))
-            cands = [_product(a, scale[0], 1), _product(a, scale[1], 1), _product(b, scale[0], 1),
-                     _product(b, scale[1], 1)]
+            cands = [_product(x, y, 1) for x in (a, b) for y in scale]
             hi[j] = max(hi[j], max(cands))
-    return lo, hi, constant
+            # attained: the derivative's double value at an actual u, times a scale endpoint
+            for val, pt in ((float(rr.lo_seen), rr.argmin), (float(rr.hi_seen), rr.argmax)):
+                if not np.isfinite(val):
+                    continue
+                for sc_ in scale:
+                    v = val * float(sc_)
+                    info = {"branch": side, "u": float(np.ravel(pt["u"])[0]), "scale": float(sc_), "slope": v}
+                    if v < lo_seen[j]:
+                        lo_seen[j] = v
+                        where[j]["lo"] = info
+                    if v > hi_seen[j]:
+                        hi_seen[j] = v
+                        where[j]["hi"] = info
+    return {"lo": lo, "hi": hi, "lo_seen": lo_seen, "hi_seen": hi_seen, "constant": constant, "where": where}
 
 
 def _product(a: float, b: float, direction: int) -> float:

@@ -64,7 +64,7 @@ class FunnelSpec:
 
 
 @FUNNEL_SHAPES.register("expression", "F(t) = any expression in `t` and the model's parameters (key `F`: one "
-                         "string, or one per joint); checked F > 0 on [0, t_final] at load")
+                         "string, or one per joint); F > 0 and C^1 on [0, t_final] proven at load")
 class ExpressionFunnel:
     """F(t) given as expressions of the scenario language, one per joint; no monotonicity assumed anywhere."""
 

@@ -147,6 +147,14 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
     campaign = parse_campaign(raw, file=file, n=n, model=model, plant=plant)
     if campaign is not None and campaign.sweep.t_final is not None:
         V.check_horizon(campaign.sweep.t_final, sim.dt, key="sweep.t_final", file=file)
+    # regularity proven by interval arithmetic over the longest horizon the scenario runs (after the grid checks,
+    # which name a time for the common mistakes)
+    from .regularity import check_funnel_regular, check_reference_regular
+    horizon = max(sim.t_final, (campaign.sweep.t_final or 0.0) if campaign is not None else 0.0)
+    check_reference_regular(reference, horizon, file=file)
+    for key, shape in funnels.items():
+        check_funnel_regular(shape, horizon, file=file,
+                             key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))
     impl = None
     if "implementation" in raw:
         from .implementation import parse_implementation

@@ -317,9 +317,9 @@ def prove_positive_definite(S: ca.Function, lo: np.ndarray, hi: np.ndarray, spli
             w[good], V[good] = np.linalg.eigh(Sm[good])
         for r in np.flatnonzero(~(w[:, 0] > 0)):
             lam = confirm(M[r]) if confirm is not None else float(w[r, 0])
-            if not lam > 0:
+            if np.isfinite(lam) and lam <= 0:       # a refutation needs a finite violating value (NaN: no verdict)
                 return M[r], lam
-        i = int(np.nanargmin(w[:, 0]))
+        i = int(np.nanargmin(w[:, 0])) if np.any(np.isfinite(w[:, 0])) else 0
         if w[i, 0] < seen:
             seen, argmin = float(w[i, 0]), M[i]
         Lf = V.reshape(K, nn)              # L = V^T; its column-major nonzeros are V's entries row by row

@@ -1,0 +1,42 @@
+"""The shipped scenarios' certificate outcomes, pinned: a proof that silently becomes undecided (or a refutation
+that disappears) after a change of the interval machinery, the regions or the budgets fails here. Each row is what
+`symfunnel certify SCENARIO` gives at the full budget (measured on the 2-core machine: 7-14 s per scenario)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import symfunnel as sf
+
+ROOT = Path(__file__).resolve().parent.parent
+
+PINNED = {
+    "paper": {"certify.input_gain": "refuted", "certify.bounds": "proven", "certify.invariance": "refuted"},
+    "arm7": {"certify.input_gain": "refuted", "certify.bounds": "proven", "certify.invariance": "refuted"},
+    "tests/data/certify_none.toml": {"certify.input_gain": "proven", "certify.bounds": "proven",
+                                     "certify.invariance": "proven"},
+    "derivations/paper_small_dead_zone.toml": {"certify.input_gain": "proven", "certify.bounds": "proven",
+                                               "certify.invariance": "refuted"},
+    "derivations/ppc_log_rbf.toml": {"certify.input_gain": "proven", "certify.bounds": "undecided",
+                                     "certify.invariance": "refuted"},
+    "derivations/arm7_mujoco_heavy.toml": {"certify.input_gain": "refuted", "certify.bounds": "proven",
+                                           "certify.invariance": "refuted"},
+    "derivations/sim_breach.toml": {"certify.input_gain": "refuted", "certify.bounds": "proven",
+                                    "certify.invariance": "refuted"},
+    "derivations/sim_fast_sine.toml": {"certify.input_gain": "refuted", "certify.bounds": "proven",
+                                       "certify.invariance": "refuted"},
+    "derivations/sim_offset_cosine.toml": {"certify.input_gain": "refuted", "certify.bounds": "proven",
+                                           "certify.invariance": "refuted"},
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(PINNED))
+def test_shipped_certificate_outcomes_are_pinned(name):
+    path = str(ROOT / name) if (ROOT / name).exists() else name
+    cert = sf.certify(path).certification
+    got = {c.id: c.status for c in cert.certificates if c.id in PINNED[name]}
+    assert got == PINNED[name], {k: (c.status, c.detail[:200]) for k in PINNED[name]
+                                 for c in [cert.by_id(k)] if c is not None and c.status != PINNED[name][k]}
