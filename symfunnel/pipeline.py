@@ -179,7 +179,7 @@ class Run:
             "running verify's checks")
         if o.certify:
             v.certification = self.certification
-            v.checks.extend(v.certification.checks())
+            v.checks.extend(v.certification.checks(self.scenario))
             apply_expectations(self.scenario, v.checks)
         return v
 

@@ -113,7 +113,8 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     tau_max = None
     if sc.implementation is not None and sc.implementation.tau_max is not None:
         tau_max = np.broadcast_to(np.asarray(sc.implementation.tau_max, float), (n,))
-    region_info = {"t": [0.0, float(ctx.t_final)], "margin": m, "margin_source": m_source,
+    region_info = {"kind": "proven_invariant" if invariant else "stand_in",   # whether the loop stays in it
+                   "t": [0.0, float(ctx.t_final)], "margin": m, "margin_source": m_source,
                    "e1": f"|e1| <= (1 - {m:g}) F1(t)", "e2": f"|e2| <= (1 - {m:g}) F2(t)",
                    "parameters": ctx.params.describe()}
     for name, (lo_, hi_) in states.items():

@@ -49,8 +49,10 @@ def run(args) -> int:
             mark = c.status.upper()
             if ck.expected == "fail":
                 mark += " (expected)" if c.status == "refuted" else " (UNEXPECTED: declared to be refuted)"
-            elif c.status == "refuted":
+            elif ck.unexpected:
                 mark += " (UNEXPECTED)"
+            elif ck.status == "warn" and c.status != "undecided":
+                mark += " (finding: warn)"      # a finding about an argument, or a bound on a stand-in region
             print(f"  {mark:<12} {c.id}  ({c.boxes} boxes, {c.seconds:.1f} s)")
             print(f"      {c.detail}")
             if ck.reason:
