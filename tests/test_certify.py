@@ -482,7 +482,7 @@ def test_certify_paper_json_contract_and_gate(capsys):
     code, out = _json(capsys, ["certify", "paper", "--json", "-q"])
     assert code == 0 and out["scenario"] == "paper" and out["status"] == "pass"
     ids = [c["id"] for c in out["certificates"]]
-    assert ids == ["certify.input_gain", "certify.bounds", "certify.invariance"]
+    assert ids == ["certify.input_gain", "certify.bounds", "certify.invariance", "certify.containment"]
     for c in out["certificates"]:
         assert set(c) >= {"id", "status", "lower", "upper", "counterexample", "region", "boxes",
                           "undecided_fraction", "seconds", "detail"}
@@ -491,6 +491,11 @@ def test_certify_paper_json_contract_and_gate(capsys):
     assert by["certify.input_gain"]["status"] == "refuted" and by["certify.input_gain"]["expected"] == "fail"
     ce = by["certify.input_gain"]["counterexample"]
     assert {"t", "q", "dq", "slopes"} <= set(ce)
+    # the paper's design: its sigma-modification bounds W_hat only by sup ||Gamma Phi mu2 z2|| / (gamma sigma), far
+    # too large for the e2 faces -- undecided (a warning), saying which inequality fails
+    cont = by["certify.containment"]
+    assert cont["status"] == "undecided" and cont["check"] == "warn" and cont["face"].startswith("e2")
+    assert "W_hat" in cont["detail"] and cont["horizon"] == "finite"
 
 
 def test_certify_is_deterministic_and_the_wall_limit_only_leaves_things_undecided(capsys):
