@@ -57,6 +57,8 @@ M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.1, 0.2, 0.5)
 SCREEN = 192
 #: margins on which a proof is attempted (those surviving the screen, in grid order)
 PROOF_ATTEMPTS = 3
+#: boxes for the rigorous sup ||G||_F over S (the W_hat radius) per e2 margin
+W_BOXES = 256
 #: the W_hat radius is this factor above the rigorous sup ||G|| / kappa (strictly above: the face then points in)
 W_SAFETY = 1.01
 
@@ -114,18 +116,22 @@ class _Faces:
         self.n = d.n
         p = ca.SX.sym("p", len(ctx.params.names))
         exprs, self.info = face_expressions(d, p)
+        g2 = exprs.pop("G2", None)
         self.prob = RegionProblem(ctx, exprs, p, "containment")
         F = self.prob.F
         self.F = F
         self.pos = {k: F.out_off[F.out_names.index(k)] for k in exprs}
+        # ||G||^2 on its own (its mean-value Jacobian is not the faces' and costs as much as theirs)
+        self.gprob = None if g2 is None else RegionProblem(ctx, {"G2": g2}, p, "containment_w")
         self.si = {k: (F.in_off[F.in_names.index(k)], F.in_off[F.in_names.index(k) + 1]) for k in ("s1", "s2")}
 
-    def box(self, c1: float, c2: float, states: dict) -> tuple[np.ndarray, np.ndarray]:
-        """The flat box of S (m = 0, s_i in [-c_i, c_i])."""
-        reg = self.prob.region(0.0, states)
+    def box(self, c1: float, c2: float, states: dict, prob=None) -> tuple[np.ndarray, np.ndarray]:
+        """The flat box of S (m = 0, s_i in [-c_i, c_i]) in the layout of `prob` (default: the faces')."""
+        prob = prob or self.prob
+        reg = prob.region(0.0, states)
         reg["s1"] = (-c1 * np.ones(self.n), c1 * np.ones(self.n))
         reg["s2"] = (-c2 * np.ones(self.n), c2 * np.ones(self.n))
-        return self.prob.flat(reg)
+        return prob.flat(reg)
 
     def faces(self, lo: np.ndarray, hi: np.ndarray) -> list[dict]:
         """Every face of the box: e_i, joint j, side sigma, with its flat box and objective position."""
@@ -284,9 +290,9 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
         if d.n_regressor:
             if c2 not in w_of:
                 # ||G|| does not depend on e1's margin beyond the tube: take the widest e1 box of the grid
-                lo, hi = fc.box(1.0 - min(M1_GRID), c2, states)
-                split = fc.prob.split_indices(lo, hi)
-                ex = extremum(F, lo, hi, split, fc.pos["G2"], -1.0, max_boxes=max(256, share // 20), rel_tol=0.05)
+                lo, hi = fc.box(1.0 - min(M1_GRID), c2, states, fc.gprob)
+                split = fc.gprob.split_indices(lo, hi)
+                ex = extremum(fc.gprob.F, lo, hi, split, 0, -1.0, max_boxes=W_BOXES, rel_tol=0.2)
                 boxes += ex.boxes
                 g = math.sqrt(max(-ex.bound, 0.0)) if np.isfinite(ex.bound) else math.inf
                 w_of[c2] = W_SAFETY * g / kappa
