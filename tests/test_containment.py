@@ -65,11 +65,14 @@ def test_face_expressions_are_the_normal_components_of_the_plant(tmp_path):
         p = ca.SX.sym("p", len(names))
         exprs, info = face_expressions(d, p)
         assert info["cancelled"]["alpha2_dot in de2"] and info["cancelled"]["dqd in de1"]
+        assert info.get("estimate", False) == bool(d.n_regressor)      # tau sees W_hat only through W_hat^T Phi
         S, sym = d.signals, d.sym
         pl = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], S["tau"], 0.0, p=p)
         ins = [sym[k] for k in ("t", "q", "dq", "qd", "dqd", "ddqd")] + [sym[k] for k, _ in d.states] + [p]
         f = ca.Function("f", ins, [exprs["n1"], exprs["n2"], pl["ddq"], S["alpha2_dot"], S["e1"], S["e2"], S["F1"],
                                    S["F2"], S["dF1"], S["dF2"]])
+        names_s = [k for k, _ in d.states]
+        phi = ca.Function("phi", ins, [S["Phi"] if d.n_regressor else ca.SX(0, 1)])
         rng = np.random.default_rng(7)
         for _ in range(20):
             t = rng.uniform(0, 3)
@@ -78,8 +81,18 @@ def test_face_expressions_are_the_normal_components_of_the_plant(tmp_path):
             dq = dqd + rng.uniform(-0.1, 0.1, d.n)
             states = [rng.uniform(-0.3, 0.3, sh) for _, sh in d.states]
             pp = p0 * rng.uniform(0.95, 1.05, p0.size)
-            n1, n2, ddq, a2d, e1, e2, F1, F2, dF1, dF2 = (np.asarray(v, float).ravel() for v in
-                                                          f(t, q, dq, qd, dqd, ddqd, *states, pp))
+            vals = [np.asarray(v, float).ravel() for v in f(t, q, dq, qd, dqd, ddqd, *states, pp)]
+            _, _, ddq, a2d, e1, e2, F1, F2, dF1, dF2 = vals
+            n1, n2 = vals[0], vals[1]
+            if info.get("estimate"):
+                # the e2 face sees W_hat only through W_hat^T Phi, carried by W_hat's first row
+                k = names_s.index("w_hat")
+                W = states[k]
+                est = W.T @ np.asarray(phi(t, q, dq, qd, dqd, ddqd, *states, pp), float).ravel()
+                carried = [np.array(x) for x in states]
+                carried[k] = np.zeros_like(W)
+                carried[k][0, :] = est
+                n2 = np.asarray(f(t, q, dq, qd, dqd, ddqd, *carried, pp)[1], float).ravel()
             np.testing.assert_allclose(n1, (dq - dqd) - e1 / F1 * dF1, rtol=1e-9, atol=1e-9)
             np.testing.assert_allclose(n2, ddq - a2d - e2 / F2 * dF2, rtol=1e-8, atol=1e-8 * np.abs(a2d).max())
 

@@ -47,7 +47,7 @@ from .problem import Budget, Context, RegionProblem, controller_state_boxes
 from .region import structurally_zero, true_unknown
 from .result import Certificate
 from ..sx.rewrite import replace_nodes
-from ..sx.search import extremum
+from ..sx.search import extrema
 
 CID = "certify.containment"
 #: the margins tried, in this order (the first proven is reported): e1's, then e2's
@@ -57,6 +57,9 @@ M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.1, 0.2, 0.5)
 SCREEN = 192
 #: margins on which a proof is attempted (those surviving the screen, in grid order)
 PROOF_ATTEMPTS = 3
+#: a W_hat radius to assume instead of the sigma-modification's (None; for experiments: what a projection of W_hat
+#: onto a ball of this radius would let the faces prove)
+W_RADIUS = None
 #: boxes for the rigorous sup ||G||_F over S (the W_hat radius) per e2 margin
 W_BOXES = 256
 #: the W_hat radius is this factor above the rigorous sup ||G|| / kappa (strictly above: the face then points in)
@@ -104,6 +107,19 @@ def face_expressions(design, p: ca.SX) -> tuple[dict[str, ca.SX], dict]:
             G = Wd + kappa * W
             exprs["G2"] = ca.sumsqr(G)
         info["adaptation"] = {"kappa": kappa}
+        # The e2 faces see W_hat only through the estimate W_hat^T Phi (checked: once that node is a variable, n2
+        # does not depend on W_hat): |(W_hat^T Phi)_j| <= ||W_hat||_F ||Phi||, a box of half-width w sup ||Phi|| per
+        # joint instead of sum_i w |Phi_i| from W_hat's box (sqrt(N) times tighter). The variable is carried by
+        # W_hat's first row (the region function's inputs are the design's states); its other rows are unused.
+        est = ca.mtimes(W.T, S["Phi"])
+        row = ca.vec(W[0, :])
+        n2 = replace_nodes([exprs["n2"]], ca.vec(est), ca.SX.sym("west", design.n))[0]
+        if not ca.depends_on(n2, ca.vec(W)):
+            exprs["n2"] = replace_nodes([exprs["n2"]], ca.vec(est), row)[0]
+            exprs["P2"] = ca.sumsqr(S["Phi"])
+            info["estimate"] = True
+        else:
+            info["estimate"] = False
     return exprs, info
 
 
@@ -116,13 +132,13 @@ class _Faces:
         self.n = d.n
         p = ca.SX.sym("p", len(ctx.params.names))
         exprs, self.info = face_expressions(d, p)
-        g2 = exprs.pop("G2", None)
+        extra = {k: exprs.pop(k) for k in ("G2", "P2") if k in exprs}
         self.prob = RegionProblem(ctx, exprs, p, "containment")
         F = self.prob.F
         self.F = F
         self.pos = {k: F.out_off[F.out_names.index(k)] for k in exprs}
-        # ||G||^2 on its own (its mean-value Jacobian is not the faces' and costs as much as theirs)
-        self.gprob = None if g2 is None else RegionProblem(ctx, {"G2": g2}, p, "containment_w")
+        # ||G||^2 (and ||Phi||^2) on their own (their mean-value Jacobian is not the faces' and costs as much)
+        self.gprob = RegionProblem(ctx, extra, p, "containment_w") if "G2" in extra else None
         self.si = {k: (F.in_off[F.in_names.index(k)], F.in_off[F.in_names.index(k) + 1]) for k in ("s1", "s2")}
 
     def box(self, c1: float, c2: float, states: dict, prob=None) -> tuple[np.ndarray, np.ndarray]:
@@ -292,11 +308,16 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
                 # ||G|| does not depend on e1's margin beyond the tube: take the widest e1 box of the grid
                 lo, hi = fc.box(1.0 - min(M1_GRID), c2, states, fc.gprob)
                 split = fc.gprob.split_indices(lo, hi)
-                ex = extremum(fc.gprob.F, lo, hi, split, 0, -1.0, max_boxes=W_BOXES, rel_tol=0.2)
-                boxes += ex.boxes
-                g = math.sqrt(max(-ex.bound, 0.0)) if np.isfinite(ex.bound) else math.inf
-                w_of[c2] = W_SAFETY * g / kappa
-            w = w_of[c2]
+                GF = fc.gprob.F
+                objs = [(GF.out_off[GF.out_names.index(k)], -1.0) for k in GF.out_names]
+                exs = extrema(GF, lo, hi, split, objs, max_boxes=W_BOXES, rel_tol=0.2)
+                boxes += exs[0].boxes
+                sup = {k: (math.sqrt(max(-e.bound, 0.0)) if np.isfinite(e.bound) else math.inf)
+                       for k, e in zip(GF.out_names, exs)}
+                w_of[c2] = (W_SAFETY * sup["G2"] / kappa, sup.get("P2"))
+            w, phi_sup = w_of[c2]
+            if W_RADIUS is not None:            # a hypothetical ball (what a projection onto it would give)
+                w = W_RADIUS
             w0 = float(np.linalg.norm(np.asarray(init["w_hat"], float)))
             row["w"] = w
             if not math.isfinite(w):
@@ -305,7 +326,13 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
             if not w0 < w:
                 row["result"] = f"||W_hat(0)|| = {w0:.4g} is not inside the W_hat ball of radius {w:.4g}"
                 continue
-            states = controller_state_boxes(ctx, (-w * np.ones_like(init["w_hat"]), w * np.ones_like(init["w_hat"])))
+            W0 = np.zeros_like(np.asarray(init["w_hat"], float))
+            if fc.info.get("estimate"):        # W_hat's first row carries the estimate W_hat^T Phi
+                lo_w, hi_w = W0.copy(), W0.copy()
+                lo_w[0, :], hi_w[0, :] = -w * phi_sup, w * phi_sup
+            else:
+                lo_w, hi_w = W0 - w, W0 + w
+            states = controller_state_boxes(ctx, (lo_w, hi_w))
         lo, hi = fc.box(c1, c2, states)
         faces = fc.faces(lo, hi)
         bad = _screen(F, faces, rng)
