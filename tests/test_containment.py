@@ -197,3 +197,24 @@ def test_bounds_hold_on_the_proven_set_without_the_level_set_argument():
     assert bounds.region["e1"] == f"|e1| <= (1 - {m1:g}) F1(t)" and bounds.region["e2"] == f"|e2| <= (1 - {m2:g}) F2(t)"
     checks = {c.id: c for c in cert.checks(sc)}
     assert checks["certify.bounds"].status == "pass"
+
+
+@pytest.mark.parametrize("key, value", [
+    ("reference", ["0.3*sin(t) + 0.2*sign(t - 1)", "0.2*cos(t)"]),      # q_d jumps at t = 1
+    ("reference", ["0.3*abs(sin(2*t))", "0.2*cos(t)"]),                # dq_d jumps
+    ("funnel", "0.1 - 0.099*sign(t - 1)"),                             # F1 jumps
+    ("funnel", "(0.2*exp(-t) + 0.01)*(1 - exp(-((t - 1.00321)/1e-6)^2))"),   # F1 touches 0
+])
+def test_a_reference_or_funnel_without_the_regularity_is_never_proven(tmp_path, key, value):
+    """The issue's defects: each one gives a simulated breach or an empty funnel, so a 'proven' would be wrong."""
+    raw = copy.deepcopy(sf.load_scenario(NONE).raw)
+    raw["initial"]["q"] = [-0.2, 0.2] if key == "reference" else raw["initial"]["q"]
+    if key == "reference":
+        raw["reference"]["q"] = value
+    else:
+        raw["funnel"]["e1"] = {"F": value}
+    try:
+        c = _certify(_write(tmp_path, raw))
+    except sf.InputError:
+        return                                   # refused at load: fine too
+    assert c.status != "proven", c.detail

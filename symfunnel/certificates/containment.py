@@ -238,6 +238,37 @@ def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | Non
     return {"status": "proven", "boxes": boxes}
 
 
+#: operations of t that break the regularity the argument needs (q_d in C^2, F in C^1): jumps and kinks
+_IRREGULAR = {getattr(ca, k): k[3:].lower() for k in ("OP_SIGN", "OP_FABS", "OP_FMIN", "OP_FMAX", "OP_FLOOR",
+                                                    "OP_CEIL", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ",
+                                                    "OP_NE", "OP_NOT", "OP_AND", "OP_OR", "OP_FMOD",
+                                                    "OP_REMAINDER", "OP_COPYSIGN")}
+
+
+def regularity(ctx: Context) -> str | None:
+    """Why the argument cannot apply, or None: the reference and the funnels as SX of t must be free of jumps and
+    kinks (no sign, abs, min, max, floor, comparison... of t: the first-exit argument needs q_d in C^2 and F in C^1),
+    and each F_i_j must be > 0 on [0, T] (a rigorous lower bound by interval branch and bound)."""
+    from .region import scalar_range
+    d = ctx.design
+    t = d.sym["t"]
+    parts = {"reference.q": d.reference_t["qd"], "funnel.e1": d.signals["F1"], "funnel.e2": d.signals["F2"]}
+    for key, e in parts.items():
+        f = ca.Function("regularity", [t], [e])
+        ops = sorted({_IRREGULAR[f.instruction_id(k)] for k in range(f.n_instructions())
+                      if f.instruction_id(k) in _IRREGULAR})
+        if ops:
+            return (f"{key} uses {', '.join(ops)} of t: the argument needs q_d in C^2 and F in C^1 on [0, T], "
+                    "which a jump or kink breaks")
+    for key, name in (("funnel.e1", "F1"), ("funnel.e2", "F2")):
+        f = d.function(name, ["t"])
+        for j in range(d.n):
+            lo, _ = scalar_range(f, ctx.t_final, j)
+            if not lo > 0:
+                return f"{key}: F of joint {j + 1} is not proven > 0 on [0, {ctx.t_final:g}] (lower bound {lo:.3g})"
+    return None
+
+
 def _initial_ratios(ctx: Context) -> tuple[np.ndarray, np.ndarray, str]:
     """Rigorous upper bounds of |e1_j(0)| / F1_j(0) and |e2_j(0)| / F2_j(0) at the initial state (its box)."""
     from ..sx.batch import BatchIntervalFunction
@@ -274,6 +305,10 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
         return done("refuted", f"the simulated closed loop (the scenario's plant, integrator and smoothing width) "
                     f"leaves its funnels from its initial state: {breach.get('message', '')}", counterexample=breach, undecided_fraction=0.0,
                     extra={"margin": None, "w_bound": None, "horizon": "finite"})
+    why = regularity(ctx)
+    if why is not None:
+        return done("undecided", why, undecided_fraction=1.0,
+                    extra={"margin": None, "w_bound": None, "horizon": "finite", "face": None})
     fc = _Faces(ctx)
     F = fc.F
     budget.set_tape(fc.prob.work_per_box())
