@@ -413,8 +413,9 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
         return done("undecided", f"no margin proven; at m1 = {m1:g}, m2 = {m2:g} the face {res['face']} is left "
                     f"({res['fraction']:.3g} of it) within the budget", boxes=boxes,
                     undecided_fraction=float(res["fraction"]), extra=extra)
-    why = next((r.get("why") for r in tried if r.get("why")), None)
-    first = next((r for r in tried if "why" in r), tried[-1])
+    # the first margin pair whose failure says which inequality fails, else the first with a failing face
+    first = next((r for r in tried if r.get("why")), next((r for r in tried if "why" in r), tried[-1]))
+    why = first.get("why")
     extra.update(face=_face_of(first.get("result", "")))
     return done("undecided", "no margin of the grid gives an inward-pointing flow on every face (a failed "
                 f"certificate, not a counterexample: the simulated loop keeps its funnels); e.g. at m1 = "
@@ -449,7 +450,8 @@ def _why(fc: _Faces, bad: dict, w: float | None) -> str:
     x0[F.in_off[i]:F.in_off[i + 1]] = 0.0
     v0 = float(f["sign"] * F.eval_points(x0[None, :])[0, f["pos"]])
     if v0 < 0:
-        return (f"with W_hat = 0 the face {f['name']} points inward there (sign n = {v0:.4g}); the W_hat ball of "
-                f"radius w = {w:.4g} (sup ||G||_F / kappa over S) moves it by {bad['value'] - v0:.4g}: the inequality "
-                f"|W_hat^T Phi| < k2-term fails by a factor {(bad['value'] - v0) / -v0:.3g}")
+        return (f"with W_hat = 0 the face {f['name']} points inward there (sign n = {v0:.4g}); the estimate "
+                f"W_hat^T Phi over the W_hat ball of radius w = {w:.4g} (sup ||G||_F / kappa over S) moves it by "
+                f"{bad['value'] - v0:.4g}: the inequality |W_hat^T Phi| < {-v0:.4g} (the face's inward margin) fails "
+                f"by a factor {(bad['value'] - v0) / -v0:.3g}")
     return f"the face {f['name']} points outward even with W_hat = 0 (sign n = {v0:.4g})"
