@@ -218,3 +218,16 @@ def test_a_reference_or_funnel_without_the_regularity_is_never_proven(tmp_path, 
     except sf.InputError:
         return                                   # refused at load: fine too
     assert c.status != "proven", c.detail
+
+
+def test_a_term_is_dropped_only_where_it_provably_cancels():
+    """CasADi differentiates sign as 0: (A + x + sign(A)) - A has a zero Jacobian in A but depends on A."""
+    from symfunnel.certificates.containment import _drop_cancelled
+    x, a = ca.SX.sym("x"), ca.SX.sym("a", 2)
+    e, ok = _drop_cancelled((a[0] + 3 * x) - a[0], a)
+    assert ok and not ca.depends_on(e, a)
+    f = ca.Function("f", [x], [e])
+    assert float(f(2.0)) == 6.0
+    for bad in ((a[0] + x + ca.sign(a[0])) - a[0], x * ca.floor(a[1]), ca.if_else(a[0] > 0, x, 2 * x)):
+        e, ok = _drop_cancelled(bad, a)
+        assert not ok and ca.depends_on(e, a)

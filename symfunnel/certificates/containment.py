@@ -57,9 +57,6 @@ M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.1, 0.2, 0.5)
 SCREEN = 192
 #: margins on which a proof is attempted (those surviving the screen, in grid order)
 PROOF_ATTEMPTS = 3
-#: a W_hat radius to assume instead of the sigma-modification's (None; for experiments: what a projection of W_hat
-#: onto a ball of this radius would let the faces prove)
-W_RADIUS = None
 #: boxes for the rigorous sup ||G||_F over S (the W_hat radius) per e2 margin
 W_BOXES = 256
 #: the W_hat radius is this factor above the rigorous sup ||G|| / kappa (strictly above: the face then points in)
@@ -73,11 +70,35 @@ def _drop_cancelled(expr: ca.SX, nodes: ca.SX, restore: tuple[ca.SX, ca.SX] | No
     alpha2 + (dq - alpha2) is not simplified to dq before the cancellation is seen)."""
     A = ca.SX.sym("A", nodes.numel())
     e = replace_nodes([expr], ca.vec(nodes), A)[0]
-    ok = structurally_zero(ca.jacobian(e, A))
+    # CasADi differentiates sign, floor, comparisons as 0: the Jacobian shows independence only where A enters
+    # through none of them
+    ok = _enters_smoothly(e, A) and structurally_zero(ca.jacobian(e, A))
     e = ca.substitute(e, A, ca.DM.zeros(A.numel())) if ok else expr
     if restore is not None:
         e = ca.substitute(e, restore[0], restore[1])
     return e, ok
+
+
+def _enters_smoothly(e: ca.SX, A: ca.SX) -> bool:
+    """Whether no operation CasADi differentiates as 0 although it is not constant (sign, floor, a comparison,
+    min/max, abs...) takes an argument that depends on the symbols A, in the graph of e (a pass over its tape)."""
+    rest = [v for v in ca.symvar(e) if not ca.depends_on(v, A)]
+    f = ca.Function("dependency", [A, ca.vertcat(*rest) if rest else ca.SX(0, 1)], [e])
+    dep: dict[int, bool] = {}
+    for k in range(f.n_instructions()):
+        op = f.instruction_id(k)
+        ins, outs = f.instruction_input(k), f.instruction_output(k)
+        if op == ca.OP_INPUT:
+            d = ins[0] == 0
+        elif op == ca.OP_OUTPUT:
+            continue
+        else:
+            d = any(dep.get(i, False) for i in ins) if op != ca.OP_CONST else False
+        if d and op in _IRREGULAR:
+            return False
+        for o in outs:
+            dep[o] = d
+    return True
 
 
 def face_expressions(design, p: ca.SX) -> tuple[dict[str, ca.SX], dict]:
@@ -351,8 +372,6 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
                        for k, e in zip(GF.out_names, exs)}
                 w_of[c2] = (W_SAFETY * sup["G2"] / kappa, sup.get("P2"))
             w, phi_sup = w_of[c2]
-            if W_RADIUS is not None:            # a hypothetical ball (what a projection onto it would give)
-                w = W_RADIUS
             w0 = float(np.linalg.norm(np.asarray(init["w_hat"], float)))
             row["w"] = w
             if not math.isfinite(w):
