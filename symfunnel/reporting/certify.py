@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..checks.gate import verdict
-from .text import fmt
+from .text import detail_html, fmt
 
 _SUMMARY = {"certify.input_gain": "input gain sym(M_p^-1 D M) > 0", "certify.bounds": "bounds of mu2, tau (and eps)",
             "certify.invariance": "forward invariance of the funnels (Lyapunov level set)",
@@ -85,4 +85,5 @@ def guarantees(cert, checks: dict, all_checks) -> dict:
     for ck in all_checks:
         if ck.status == "fail" and not ck.id.startswith(("certify.", "claim.")):
             refuted.append(f"{ck.id} ({ck.method or 'check'}): {ck.detail}")
-    return {"proven": proven, "refuted": refuted, "open": open_}
+    # a check's detail may hold sympy matrices: shown as tables, as everywhere else in the report
+    return {k: [detail_html(x) for x in v] for k, v in (("proven", proven), ("refuted", refuted), ("open", open_))}
