@@ -59,7 +59,8 @@ def guarantees(cert, checks: dict, all_checks) -> dict:
     bound on the proven set, the input gain), what is refuted and by what, and what is open -- one sentence each,
     from the certificates and verify's failed checks (a failure of the simulated run is a refutation too)."""
     proven, refuted, open_ = [], [], []
-    for c in cert.certificates:
+    first = ("certify.containment", "certify.bounds", "certify.input_gain")      # the guarantee, then its numbers
+    for c in sorted(cert.certificates, key=lambda c: first.index(c.id) if c.id in first else len(first)):
         ck = checks.get(c.id)
         name = f"{_SUMMARY.get(c.id, c.id)} ({c.id})"
         if c.status == "refuted":
