@@ -179,7 +179,7 @@ class Run:
             "running verify's checks")
         if o.certify:
             v.certification = self.certification
-            v.checks.extend(v.certification.checks())
+            v.checks.extend(v.certification.checks(self.scenario))
             apply_expectations(self.scenario, v.checks)
         return v
 
@@ -201,6 +201,16 @@ class Run:
                 wh = self.closed_loop.unpack(res.x).get("w_hat")
                 if wh is not None and len(wh):
                     wr = (np.min(wh, axis=0), np.max(wh, axis=0))
+        breach = None
+        if only is None or "certify.containment" in only:      # a real breach from x0 refutes containment
+            res = self.simulation
+            if res.status in ("breach", "initial_outside"):
+                b = res.breach or {}
+                breach = {"t": float(b.get("time", res.t[-1] if len(res.t) else 0.0)),
+                          "q": np.asarray(res.signals["q"][-1]).tolist() if len(res.t) else None,
+                          "dq": np.asarray(res.signals["dq"][-1]).tolist() if len(res.t) else None,
+                          **{k: b[k] for k in ("funnel", "joint", "abs_error", "boundary") if k in b},
+                          "message": res.message}
         key = _certification_key(self.scenario, self.t_final, only, o.mutant, o.certify_work)
         if o.certify_wall_limit is None and key in _CERTIFICATIONS:
             return _CERTIFICATIONS[key]
@@ -211,7 +221,8 @@ class Run:
         self._say("certificates: interval branch and bound on the design's graph")
         cert = self._timed("certify", lambda: run_certificates(
             self.scenario, design, t_final=self.t_final, W_star=W, w_star_info=info, w_hat_range=wr, only=only,
-            wall_limit=wall, work=scaled_work(o.certify_work), progress=self.progress), "proving the certificates")
+            wall_limit=wall, work=scaled_work(o.certify_work), progress=self.progress, breach=breach),
+            "proving the certificates")
         if o.certify_wall_limit is None:
             _CERTIFICATIONS[key] = cert
             while len(_CERTIFICATIONS) > 8:

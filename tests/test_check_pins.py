@@ -23,6 +23,7 @@ from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
 
 from . import test_certify  # noqa: F401 - registers its pins (certify.*)
+from . import test_containment  # noqa: F401 - registers its pins (certify.containment)
 from . import test_mujoco  # noqa: F401 - registers its pins (plant.engine_agreement)
 from . import test_twins  # noqa: F401 - registers its pins (funnel.consistency, reference.derivatives)
 from .conftest import MINIMAL_2LINK

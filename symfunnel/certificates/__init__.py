@@ -24,16 +24,19 @@ __all__ = ["run_certificates", "CERTIFICATES", "DEFAULT_WORK", "Certificate", "C
 CERTIFICATES = CERTIFY_CHECKS
 #: the deterministic work budget of each certificate, in tape operations x boxes (a certificate with a 600-operation
 #: tape gets ~80,000 boxes; a wall-clock limit can only stop a search earlier)
-DEFAULT_WORK = {"certify.input_gain": 4e7, "certify.bounds": 5e7, "certify.invariance": 5e7}
-#: the order they are computed in (bounds uses a proven invariance certificate's margin and W_hat ball)
-_ORDER = ("certify.input_gain", "certify.invariance", "certify.bounds")
+DEFAULT_WORK = {"certify.input_gain": 4e7, "certify.bounds": 5e7, "certify.invariance": 5e7,
+                "certify.containment": 5e7}
+#: the order they are computed in (bounds uses the set a containment or invariance certificate proves)
+_ORDER = ("certify.input_gain", "certify.invariance", "certify.containment", "certify.bounds")
 
 
 def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_info=None, w_hat_range=None,
                      only=None, wall_limit: float | None = None, work: dict | None = None,
-                     progress=None) -> Certification:
-    """Every certificate (or those in `only`) of one scenario; `wall_limit` seconds for all of them together."""
+                     progress=None, breach: dict | None = None) -> Certification:
+    """Every certificate (or those in `only`) of one scenario; `wall_limit` seconds for all of them together;
+    `breach`: the simulated run's funnel breach from the initial state, if it has one (refutes containment)."""
     from .bounds import certify_bounds
+    from .containment import certify_containment
     from .input_gain import certify_input_gain
     from .invariance import certify_invariance
     say = progress or (lambda s: None)
@@ -43,10 +46,10 @@ def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_in
     wanted = [c for c in _ORDER if only is None or c in only]
     ctx = Context(scenario, design, float(t_final), parameter_box(scenario),
                   None if W_star is None else np.asarray(W_star, float), w_hat_range,
-                  w_star_info=dict(w_star_info or {}))
+                  w_star_info=dict(w_star_info or {}), breach=breach)
     budgets = dict(DEFAULT_WORK, **(work or {}))
     fns = {"certify.input_gain": certify_input_gain, "certify.invariance": certify_invariance,
-           "certify.bounds": certify_bounds}
+           "certify.bounds": certify_bounds, "certify.containment": certify_containment}
     done = {}
     for i, cid in enumerate(wanted):
         left = len(wanted) - i

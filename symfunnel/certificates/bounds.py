@@ -38,7 +38,13 @@ RANGE_REL_TOL = 1e-2
 
 def w_hat_box(ctx: Context) -> tuple[tuple[np.ndarray, np.ndarray] | None, str]:
     """The W_hat box of the bounds region and where it comes from."""
+    from .containment import proven_set
+    S = proven_set(ctx)
     inv = ctx.results.get("certify.invariance")
+    if S is not None and S["w"] is not None and not (inv is not None and inv.status == "proven"):
+        w = float(S["w"])
+        W = np.zeros_like(np.asarray(ctx.design.variant.initial_states()["w_hat"], float))
+        return (W - w, W + w), f"the containment certificate's ball ||W_hat||_F <= {w:.4g} (proven for the closed loop)"
     if inv is not None and inv.status == "proven" and "w_hat_radius" in inv.extra:
         r = float(inv.extra["w_hat_radius"])
         W = np.asarray(ctx.W_star, float)
@@ -90,9 +96,14 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     t0 = time.monotonic()
     d, sc = ctx.design, ctx.scenario
     n = d.n
+    from .containment import proven_set
     inv = ctx.results.get("certify.invariance")
-    invariant = inv is not None and inv.status == "proven"      # R_m holds every trajectory of the closed loop
-    if invariant:
+    # the smaller proven set: the invariance certificate's R_m when proven, else the containment certificate's S
+    S = None if (inv is not None and inv.status == "proven") else proven_set(ctx)
+    invariant = S is not None or (inv is not None and inv.status == "proven")   # the loop stays in the region
+    if S is not None:
+        m, m_source = min(S["m1"], S["m2"]), "the set certify.containment proves invariant"
+    elif invariant:
         m, m_source = float(inv.extra["m"]), "the margin the invariance certificate proves"
     else:
         m, m_source = BOUNDS_MARGIN, "BOUNDS_MARGIN (no invariance certificate gives one)"
@@ -109,8 +120,10 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
                                "active", counterexample=ce0, undecided_fraction=0.0, lower=abs(ce0["tau"][j]),
                                method="the design's tau at the initial state (ordinary CasADi Function)",
                                extra={"tau_max": tau_max.tolist()}, seconds=time.monotonic() - t0)
-    ball = None         # (W*, r): the proven W_hat ball (the box searched is its bounding box)
-    if invariant and d.n_regressor and "w_hat_radius" in inv.extra and ctx.W_star is not None:
+    ball = None         # (centre, r): the proven W_hat ball (the box searched is its bounding box)
+    if S is not None and S["w"] is not None and d.n_regressor:
+        ball = (np.zeros_like(np.asarray(d.variant.initial_states()["w_hat"], float)), float(S["w"]))
+    elif invariant and d.n_regressor and "w_hat_radius" in inv.extra and ctx.W_star is not None:
         ball = (np.asarray(ctx.W_star, float), float(inv.extra["w_hat_radius"]))
     if d.n_regressor:
         wb, w_source = w_hat_box(ctx)
@@ -130,6 +143,10 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     prob = RegionProblem(ctx, exprs, p, "bounds")
     budget.set_tape(prob.work_per_box())
     region = prob.region(m, states)
+    if S is not None:                   # S: |e_i| <= (1 - m_i) F_i, one margin per funnel (m = 0, s_i scaled)
+        region = prob.region(0.0, states)
+        for key, mi in (("s1", S["m1"]), ("s2", S["m2"])):
+            region[key] = (-(1 - mi) * np.ones(n), (1 - mi) * np.ones(n))
     F = prob.F
     lo, hi = prob.flat(region)
     split = prob.split_indices(lo, hi)
@@ -183,8 +200,10 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     tau = encl["tau"]
     abs_hi = [max(abs(e["lo"]), abs(e["hi"])) for e in tau]
     abs_seen = [max(abs(e["lo_seen"]), abs(e["hi_seen"])) for e in tau]
-    region_info = {"t": [0.0, float(ctx.t_final)], "margin": m, "margin_source": m_source,
-                   "e1": f"|e1| <= (1 - {m:g}) F1(t)", "e2": f"|e2| <= (1 - {m:g}) F2(t)",
+    region_info = {"kind": "proven_invariant" if invariant else "stand_in",   # whether the loop stays in it
+                   "t": [0.0, float(ctx.t_final)], "margin": m, "margin_source": m_source,
+                   "e1": f"|e1| <= (1 - {S['m1'] if S else m:g}) F1(t)",
+                   "e2": f"|e2| <= (1 - {S['m2'] if S else m:g}) F2(t)",
                    "parameters": ctx.params.describe()}
     for name, (lo_, hi_) in states.items():
         region_info[name] = {"lo": float(np.min(lo_)), "hi": float(np.max(hi_)), "shape": list(np.shape(lo_))}
@@ -198,7 +217,7 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     if moved:
         extra["witnesses_moved_into_the_ball"] = moved
     text = "; ".join(f"{k}: " + ", ".join(f"[{e['lo']:.4g}, {e['hi']:.4g}]" for e in v) for k, v in encl.items())
-    head = f"on R_{m:g} ({m_source}) x the parameter box x the state boxes: {text}"
+    head = f"on {'S' if S is not None else f'R_{m:g}'} ({m_source}) x the parameter box x the state boxes: {text}"
     common = dict(region=region_info, boxes=boxes, seconds=time.monotonic() - t0,
                   method="interval range search (best-first, mean-value form in t, s, p; states as boxes)",
                   extra=extra, lower=float(max(abs_seen)), upper=float(max(abs_hi)))

@@ -56,6 +56,7 @@ class Context:
     w_star_info: dict = field(default_factory=dict)
     backend: str = "arb"
     results: dict = field(default_factory=dict)   # certificates computed so far (invariance feeds bounds)
+    breach: dict | None = None                    # the simulated run's breach from the initial state, if any
 
 
 def check_rules(f: ca.Function, what: str, file: str, wrt=None):

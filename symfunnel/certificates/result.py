@@ -4,7 +4,15 @@
      "undecided_fraction", "seconds", "detail", ...extra keys}
 
 A certificate enters verify's gate as a check: proven -> pass, refuted -> fail (the counterexample as `where`),
-undecided -> warn (what is left in `detail`).
+undecided -> warn (what is left in `detail`). One fact, one severity -- two certificates are findings about an
+argument rather than guarantees of the design, and are shown as `warn` unless the scenario declares them:
+
+- `certify.invariance` refuted says the *Lyapunov level-set argument* is vacuous for this design (like
+  `lyapunov.guarantee`), not that the design breaches its funnels: warn, unless an `[[expect]]` entry names
+  `certify.invariance` (status "pass": the scenario requires the argument to close, so a refutation fails the gate;
+  status "fail": a declared finding, shown as FINDING (expected)).
+- `certify.bounds` proven on a stand-in region (`region.kind == "stand_in"`: a region the closed loop is not shown
+  to stay in) is information about that region, never a PASS: warn.
 """
 
 from __future__ import annotations
@@ -60,6 +68,26 @@ class Certificate:
                            where=self.counterexample, evidence=ev)
 
 
+#: certificates whose refutation is a finding about an argument (warn), unless the scenario declares them
+FINDING_WHEN_REFUTED = ("certify.invariance",)
+
+
+def finding_policy(cert: Certificate, check: CheckResult, declared: set[str]) -> CheckResult:
+    """One fact, one severity: a refuted `certify.invariance` (the Lyapunov level-set argument is vacuous) is a
+    warning unless the scenario declares it in `[[expect]]`; a bound on a stand-in region is a warning, never a
+    pass. Returns the check (changed in place)."""
+    if cert.id in FINDING_WHEN_REFUTED and cert.status == "refuted" and cert.id not in declared:
+        check.status = "warn"
+        check.detail = ("finding about the Lyapunov level-set argument, not a breach of the design (declare "
+                        f"[[expect]] check = \"{cert.id}\" to require it): " + check.detail)
+    kind = cert.region.get("kind") if isinstance(cert.region, dict) else None
+    if cert.id == "certify.bounds" and cert.status == "proven" and kind == "stand_in":
+        check.status = "warn"
+        check.detail = ("information, not a guarantee: enclosures on a stand-in region the closed loop is not "
+                        "shown to stay in: " + check.detail)
+    return check
+
+
 @dataclass
 class Certification:
     """Every certificate computed for one scenario (the `certify` stage of the pipeline)."""
@@ -70,8 +98,10 @@ class Certification:
     wall_limit: float | None = None
 
     def checks(self, scenario=None) -> list[CheckResult]:
-        """The certificates as checks, with the scenario's expectations applied when it is given."""
-        out = [c.to_check() for c in self.certificates]
+        """The certificates as checks (findings about an argument demoted to warn unless the scenario declares
+        them), with the scenario's expectations applied when it is given."""
+        declared = {e.check for e in scenario.expectations} if scenario is not None else set()
+        out = [finding_policy(c, c.to_check(), declared) for c in self.certificates]
         if scenario is not None:
             from ..checks.gate import apply_expectations
             apply_expectations(scenario, out)
@@ -91,6 +121,7 @@ class Certification:
             out["unexpected"] = [c.id for c in checks if c.unexpected]
             for cj, ck in zip(out["certificates"], checks):
                 cj["expected"] = ck.expected
+                cj["check"] = ck.status         # the status verify shows (findings and stand-in bounds: warn)
                 if ck.reason:
                     cj["reason"] = ck.reason
         return json_safe({"scenario": out.pop("scenario"), **({"status": out.pop("status")} if "status" in out

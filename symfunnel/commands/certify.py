@@ -49,8 +49,12 @@ def run(args) -> int:
             mark = c.status.upper()
             if ck.expected == "fail":
                 mark += " (expected)" if c.status == "refuted" else " (UNEXPECTED: declared to be refuted)"
-            elif c.status == "refuted":
+            elif ck.unexpected:
                 mark += " (UNEXPECTED)"
+            elif ck.status == "warn" and c.status == "refuted":
+                mark += " (finding: warn)"      # a finding about an argument (the Lyapunov level set)
+            elif ck.status == "warn" and c.status == "proven":
+                mark += " (stand-in region: warn)"      # a bound on a region the loop is not shown to stay in
             print(f"  {mark:<12} {c.id}  ({c.boxes} boxes, {c.seconds:.1f} s)")
             print(f"      {c.detail}")
             if ck.reason:

@@ -113,6 +113,15 @@ def scenario_two_link(name: str, out: Path) -> str:
     return f'''# A scenario written by `symfunnel init`: a planar 2-link arm under gravity. Every key is described in
 # docs/scenario.md. Units are SI: lengths in m, masses in kg, angles in rad, time in s, torques in N m.
 # Try: symfunnel derive {_toml_text(str(out))}; symfunnel audit ...; symfunnel simulate ...
+# What `symfunnel verify` checks: the model (symmetry, Property 1), the funnels at t = 0, a simulated run (both
+# funnels kept, Lyapunov decay, bounded signals) and the interval certificates (input gain, containment, bounds).
+# It exits 1 only on an outcome this file does not declare; warnings (an undecided certificate, a vacuous Lyapunov
+# level-set argument) never fail it. To declare a finding you expect, e.g. a refuted input-gain assumption:
+#   [[expect]]
+#   check = "certify.input_gain"
+#   status = "fail"
+#   reason = "why this design is expected to fail it"
+# status = "pass" instead makes a check required (certify.invariance: the Lyapunov argument must close).
 name = "{name}"
 title = "Funnel control of a planar 2-link arm (symfunnel init)"
 
@@ -226,6 +235,15 @@ def scenario_from_urdf(urdf: str, out: Path, name: str, joints: list[str] | None
 # Coordinates, in the URDF's depth-first joint order:
 {joint_lines}
 # Try: symfunnel derive {_toml_text(str(out))}; symfunnel audit ...; symfunnel simulate ...
+# What `symfunnel verify` checks: the model (symmetry, Property 1), the funnels at t = 0, a simulated run (both
+# funnels kept, Lyapunov decay, bounded signals) and the interval certificates (input gain, containment, bounds).
+# It exits 1 only on an outcome this file does not declare; warnings (an undecided certificate, a vacuous Lyapunov
+# level-set argument) never fail it. To declare a finding you expect, e.g. a refuted input-gain assumption:
+#   [[expect]]
+#   check = "certify.input_gain"
+#   status = "fail"
+#   reason = "why this design is expected to fail it"
+# status = "pass" instead makes a check required (certify.invariance: the Lyapunov argument must close).
 name = "{name}"
 title = "Funnel control of the {n}-joint robot {_toml_text(Path(urdf).name)} (symfunnel init)"
 

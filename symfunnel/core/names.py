@@ -77,7 +77,7 @@ VERIFY_CHECKS = ("simulation.completed", "design.identity.vdot", "lyapunov.rho_p
 
 
 #: ids of the certificates (`symfunnel certify`; verify shows them as checks)
-CERTIFY_CHECKS = ("certify.input_gain", "certify.bounds", "certify.invariance")
+CERTIFY_CHECKS = ("certify.input_gain", "certify.bounds", "certify.invariance", "certify.containment")
 
 
 def check_ids(n: int) -> list[str]:

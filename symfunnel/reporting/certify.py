@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..checks.gate import verdict
-from .text import fmt
+from .text import detail_html, fmt
 
 _SUMMARY = {"certify.input_gain": "input gain sym(M_p^-1 D M) > 0", "certify.bounds": "bounds of mu2, tau (and eps)",
-            "certify.invariance": "forward invariance of the funnels (barrier closure)"}
+            "certify.invariance": "forward invariance of the funnels (Lyapunov level set)",
+            "certify.containment": "the funnels kept with a margin (Nagumo on the faces)"}
 
 
 def _short(x) -> str:
@@ -49,4 +50,41 @@ def certify_section(run, progress=None) -> dict:
                      **dict(zip(("label", "css"), verdict(ck) if ck else (c.status.upper(), "skip")))})
         lines[c.status].append(f"{_SUMMARY.get(c.id, c.id)} ({c.id})")
     overview = {k: "; ".join(v) if v else "nothing" for k, v in lines.items()}
-    return {"available": True, "rows": rows, "overview": overview, "seconds": f"{cert.seconds:.1f}"}
+    return {"available": True, "rows": rows, "overview": overview, "seconds": f"{cert.seconds:.1f}",
+            "guarantees": guarantees(cert, checks, v.checks)}
+
+
+def guarantees(cert, checks: dict, all_checks) -> dict:
+    """What the report opens with: what is proven for this design (the funnels kept with a margin, the torque
+    bound on the proven set, the input gain), what is refuted and by what, and what is open -- one sentence each,
+    from the certificates and verify's failed checks (a failure of the simulated run is a refutation too)."""
+    proven, refuted, open_ = [], [], []
+    first = ("certify.containment", "certify.bounds", "certify.input_gain")      # the guarantee, then its numbers
+    for c in sorted(cert.certificates, key=lambda c: first.index(c.id) if c.id in first else len(first)):
+        ck = checks.get(c.id)
+        name = f"{_SUMMARY.get(c.id, c.id)} ({c.id})"
+        if c.status == "refuted":
+            by = f" -- at {_short(c.counterexample)}" if c.counterexample else ""
+            if ck is not None and ck.status == "warn":
+                open_.append(f"{name}: refuted as an argument, not as a property of the design: {c.detail}")
+            else:
+                refuted.append(f"{name}: {c.detail}{by}")
+        elif c.status == "undecided":
+            open_.append(f"{name}: undecided -- {c.detail}")
+        elif ck is not None and ck.status == "warn":
+            open_.append(f"{name}: holds only on a stand-in region, not on a set the loop is shown to stay in: "
+                         f"{c.detail}")
+        elif c.id == "certify.containment":
+            mg = c.extra.get("margin", {})
+            proven.append(f"the funnels are kept: |e1| <= (1 - {fmt(mg.get('e1'))}) F1 and |e2| <= "
+                          f"(1 - {fmt(mg.get('e2'))}) F2 for every plant of the parameter box "
+                          f"(horizon {c.extra.get('horizon')}) -- {c.detail}")
+        elif c.id == "certify.bounds":
+            proven.append(f"on the proven set: max |tau| <= {fmt(c.upper)} (attained {fmt(c.lower)}) -- {c.detail}")
+        else:
+            proven.append(f"{name}: {c.detail}")
+    for ck in all_checks:
+        if ck.status == "fail" and not ck.id.startswith(("certify.", "claim.")):
+            refuted.append(f"{ck.id} ({ck.method or 'check'}): {ck.detail}")
+    # a check's detail may hold sympy matrices: shown as tables, as everywhere else in the report
+    return {k: [detail_html(x) for x in v] for k, v in (("proven", proven), ("refuted", refuted), ("open", open_))}

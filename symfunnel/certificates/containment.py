@@ -1,0 +1,476 @@
+"""`certify.containment`: the funnels are kept with a margin, proven by Nagumo's condition on the faces of a
+box-shaped set, for the closed loop as it is -- without the Lyapunov level set.
+
+The set, for margins m1, m2 and a radius w (c_i = 1 - m_i):
+
+    S = {|e1_j| <= c1 F1_j(t), |e2_j| <= c2 F2_j(t), ||W_hat||_F <= w, |x_esn| <= 1/leak},  t in [0, T].
+
+S is a finite intersection of sets {h <= 0} with h smooth in (t, x). If on every part of its boundary the active
+constraint strictly decreases along the closed loop -- every plant of the parameter box, the dead zone's exact
+branches (the interval evaluation of the plant's own graph: a box on which tau's sign is decided uses that branch,
+so corners of the e2 funnel are split on tau rather than bounded by the slope hull), Coulomb friction's Filippov
+values ([-1, 1] at dq = 0) -- then no trajectory that starts in S can leave it before T (at a first exit time some h
+would reach 0 from below with dh/dt < 0). The faces:
+
+- e_i face, joint j, side sigma = +-1 (s_i_j = sigma c_i fixed, every other coordinate free in S): the outward
+  normal component sigma F_i d/dt(e_i_j / F_i_j) = sigma (de_i_j - (e_i_j / F_i_j) dF_i_j) < 0, with de1 = dq - dq_d
+  and de2 = ddq_plant - alpha2_dot along the true plant (ddq_plant = the design's nominal ddq + f_true,
+  `region.true_unknown`). Terms that cancel by a graph identity (alpha2_dot in ddq - alpha2_dot, dq_d in
+  alpha2 - dq_d) are dropped when the Jacobian in them is structurally zero (`_drop_cancelled`), so interval
+  arithmetic does not subtract two huge equal enclosures.
+- W_hat face: when the adaptive law is W_hat_dot = G(x) - kappa W_hat with G independent of W_hat and kappa > 0
+  (sigma-modification, Jacobian -kappa I checked on the graph), d/dt ||W_hat||^2/2 <= ||W_hat|| (||G|| - kappa
+  ||W_hat||) < 0 on ||W_hat|| = w for any w > sup_S ||G||_F / kappa: w is that rigorous bound (times 1.01).
+  On the e2 faces W_hat ranges over the box [-w, w] (a superset of the ball).
+- x_esn face: the tanh reservoir's box is invariant (a theorem, checked along the run by `bounded.x_esn`).
+
+Each face is one dimension lower than S (one normalised coordinate fixed); a batched interval branch and bound
+(mean-value form in t, s, p; controller states as boxes, never split) proves sigma n < 0 on it or finds a point
+where the flow points outward (a failed certificate at that margin, not a counterexample of the loop). The initial
+state must lie in S (interval evaluation of e_i(0)/F_i(0), ||W_hat(0)||, x_esn(0)). Margins are tried in a fixed
+order (M_GRID) within a deterministic budget; a cheap screen of sampled face points discards margins first.
+
+Outcomes: proven (m1, m2, w, the horizon [0, T] -- "finite" --, the parameter box); refuted only by a real breach
+of the simulated closed loop from its initial state; undecided otherwise (the face left and the fraction of it).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+
+import casadi as ca
+import numpy as np
+
+from .problem import Budget, Context, RegionProblem, controller_state_boxes
+from .region import structurally_zero, true_unknown
+from .result import Certificate
+from ..sx.rewrite import replace_nodes
+from ..sx.search import extrema
+
+CID = "certify.containment"
+#: the margins tried, in this order (the first proven is reported): e1's, then e2's
+M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
+M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.1, 0.2, 0.5)
+#: sampled points per face in the screen that discards a margin before any branch and bound
+SCREEN = 192
+#: margins on which a proof is attempted (those surviving the screen, in grid order)
+PROOF_ATTEMPTS = 3
+#: boxes for the rigorous sup ||G||_F over S (the W_hat radius) per e2 margin
+W_BOXES = 256
+#: the W_hat radius is this factor above the rigorous sup ||G|| / kappa (strictly above: the face then points in)
+W_SAFETY = 1.01
+
+
+def _drop_cancelled(expr: ca.SX, nodes: ca.SX, restore: tuple[ca.SX, ca.SX] | None = None) -> tuple[ca.SX, bool]:
+    """`expr` with the nodes set to 0 when it provably does not depend on them: the nodes are replaced by fresh
+    symbols A and the Jacobian of expr in A must be structurally zero (a graph identity, no numbers). `restore`
+    (symbol, node): a placeholder symbol of `expr` replaced by its node afterwards (e.g. e2, kept opaque so that
+    alpha2 + (dq - alpha2) is not simplified to dq before the cancellation is seen)."""
+    A = ca.SX.sym("A", nodes.numel())
+    e = replace_nodes([expr], ca.vec(nodes), A)[0]
+    # CasADi differentiates sign, floor, comparisons as 0: the Jacobian shows independence only where A enters
+    # through none of them
+    ok = _enters_smoothly(e, A) and structurally_zero(ca.jacobian(e, A))
+    e = ca.substitute(e, A, ca.DM.zeros(A.numel())) if ok else expr
+    if restore is not None:
+        e = ca.substitute(e, restore[0], restore[1])
+    return e, ok
+
+
+def _enters_smoothly(e: ca.SX, A: ca.SX) -> bool:
+    """Whether no operation CasADi differentiates as 0 although it is not constant (sign, floor, a comparison,
+    min/max, abs...) takes an argument that depends on the symbols A, in the graph of e (a pass over its tape)."""
+    rest = [v for v in ca.symvar(e) if not ca.depends_on(v, A)]
+    f = ca.Function("dependency", [A, ca.vertcat(*rest) if rest else ca.SX(0, 1)], [e])
+    dep: dict[int, bool] = {}
+    for k in range(f.n_instructions()):
+        op = f.instruction_id(k)
+        ins, outs = f.instruction_input(k), f.instruction_output(k)
+        if op == ca.OP_INPUT:
+            d = ins[0] == 0
+        elif op == ca.OP_OUTPUT:
+            continue
+        else:
+            d = any(dep.get(i, False) for i in ins) if op != ca.OP_CONST else False
+        if d and op in _IRREGULAR:
+            return False
+        for o in outs:
+            dep[o] = d
+    return True
+
+
+def face_expressions(design, p: ca.SX) -> tuple[dict[str, ca.SX], dict]:
+    """The normal components n1 = de1 - (e1/F1) dF1 and n2 = de2 - (e2/F2) dF2 along the true plant (parameters
+    p), and ||G||_F^2 of the adaptive law's forcing where the design has adaptive weights."""
+    S = design.signals
+    sym = design.sym
+    E2 = ca.SX.sym("E2", design.n)                 # e2 = dq - alpha2, as a placeholder (see _drop_cancelled)
+    n1 = S["alpha2"] + E2 - sym["dqd"] - S["e1"] / S["F1"] * S["dF1"]      # de1 = dq - dqd = alpha2 + e2 - dqd
+    n1, c1 = _drop_cancelled(n1, sym["dqd"], restore=(E2, S["e2"]))
+    nominal = S["ddq"] - S["alpha2_dot"] - S["e2"] / S["F2"] * S["dF2"]
+    nominal, c2 = _drop_cancelled(nominal, S["alpha2_dot"])
+    tu = true_unknown(design, p)
+    exprs = {"n1": n1, "n2": nominal + tu["f_true"]}
+    info = {"cancelled": {"dqd in de1": c1, "alpha2_dot in de2": c2}, "f_true": tu["form"], "adaptation": None}
+    if design.n_regressor:
+        W = sym["w_hat"]
+        Wd = S["w_hat_dot"]
+        J = ca.jacobian(ca.vec(Wd), ca.vec(W))
+        kappa = None
+        if not ca.depends_on(J, ca.vertcat(*[ca.vec(v) for v in sym.values()])) and J.is_constant():
+            Jd = np.asarray(ca.DM(J), float)
+            k = -Jd[0, 0]
+            if k > 0 and np.array_equal(Jd, -k * np.eye(Jd.shape[0])):
+                kappa = float(k)
+        if kappa is not None:
+            G = Wd + kappa * W
+            exprs["G2"] = ca.sumsqr(G)
+        info["adaptation"] = {"kappa": kappa}
+        # The e2 faces see W_hat only through the estimate W_hat^T Phi (checked: once that node is a variable, n2
+        # does not depend on W_hat): |(W_hat^T Phi)_j| <= ||W_hat||_F ||Phi||, a box of half-width w sup ||Phi|| per
+        # joint instead of sum_i w |Phi_i| from W_hat's box (sqrt(N) times tighter). The variable is carried by
+        # W_hat's first row (the region function's inputs are the design's states); its other rows are unused.
+        est = ca.mtimes(W.T, S["Phi"])
+        row = ca.vec(W[0, :])
+        n2 = replace_nodes([exprs["n2"]], ca.vec(est), ca.SX.sym("west", design.n))[0]
+        if not ca.depends_on(n2, ca.vec(W)):
+            exprs["n2"] = replace_nodes([exprs["n2"]], ca.vec(est), row)[0]
+            exprs["P2"] = ca.sumsqr(S["Phi"])
+            info["estimate"] = True
+        else:
+            info["estimate"] = False
+    return exprs, info
+
+
+class _Faces:
+    """The face problem of one scenario: one region function with outputs n1, n2 (and ||G||^2)."""
+
+    def __init__(self, ctx: Context):
+        d = ctx.design
+        self.ctx = ctx
+        self.n = d.n
+        p = ca.SX.sym("p", len(ctx.params.names))
+        exprs, self.info = face_expressions(d, p)
+        extra = {k: exprs.pop(k) for k in ("G2", "P2") if k in exprs}
+        self.prob = RegionProblem(ctx, exprs, p, "containment")
+        F = self.prob.F
+        self.F = F
+        self.pos = {k: F.out_off[F.out_names.index(k)] for k in exprs}
+        # ||G||^2 (and ||Phi||^2) on their own (their mean-value Jacobian is not the faces' and costs as much)
+        self.gprob = RegionProblem(ctx, extra, p, "containment_w") if "G2" in extra else None
+        self.si = {k: (F.in_off[F.in_names.index(k)], F.in_off[F.in_names.index(k) + 1]) for k in ("s1", "s2")}
+
+    def box(self, c1: float, c2: float, states: dict, prob=None) -> tuple[np.ndarray, np.ndarray]:
+        """The flat box of S (m = 0, s_i in [-c_i, c_i]) in the layout of `prob` (default: the faces')."""
+        prob = prob or self.prob
+        reg = prob.region(0.0, states)
+        reg["s1"] = (-c1 * np.ones(self.n), c1 * np.ones(self.n))
+        reg["s2"] = (-c2 * np.ones(self.n), c2 * np.ones(self.n))
+        return prob.flat(reg)
+
+    def faces(self, lo: np.ndarray, hi: np.ndarray) -> list[dict]:
+        """Every face of the box: e_i, joint j, side sigma, with its flat box and objective position."""
+        out = []
+        for i, key in ((1, "s1"), (2, "s2")):
+            a, _ = self.si[key]
+            for j in range(self.n):
+                for sg in (1.0, -1.0):
+                    flo, fhi = lo.copy(), hi.copy()
+                    v = hi[a + j] if sg > 0 else lo[a + j]
+                    flo[a + j] = fhi[a + j] = v
+                    out.append({"name": f"e{i} joint {j + 1} {'+' if sg > 0 else '-'}", "i": i, "j": j,
+                                "sign": sg, "lo": flo, "hi": fhi, "pos": self.pos[f"n{i}"] + j})
+        return out
+
+
+def _screen(F, faces: list[dict], rng) -> dict | None:
+    """The first sampled face point where the flow points outward (sign * n >= 0 or not finite), or None."""
+    for f in faces:
+        lo, hi = f["lo"], f["hi"]
+        X = lo + rng.random((SCREEN, lo.size)) * (hi - lo)
+        # the corners of the state boxes too: W_hat's extreme, the reservoir's
+        X[: SCREEN // 2] = np.where(rng.random((SCREEN // 2, lo.size)) < 0.5, lo, hi)
+        X[0] = 0.5 * lo + 0.5 * hi
+        V = f["sign"] * F.eval_points(X)[:, f["pos"]]
+        bad = ~(V < 0)
+        if bad.any():
+            k = int(np.argmax(np.where(np.isfinite(V), V, np.inf)))
+            return {"face": f, "x": X[k], "value": float(V[k])}
+    return None
+
+
+def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | None) -> dict:
+    """Batched branch and bound: sign * n < 0 on every face (proven), a point where it is >= 0 (failed), or the
+    budget ends with boxes left (undecided: the face with the largest fraction left)."""
+    t0 = time.monotonic()
+    queue = []
+    for k, f in enumerate(faces):
+        queue.append((f["lo"], f["hi"], k, 1.0))
+    boxes = 0
+    while queue:
+        if boxes >= max_boxes or (seconds is not None and time.monotonic() - t0 > seconds):
+            left = np.zeros(len(faces))
+            for _, _, k, vol in queue:
+                left[k] += vol
+            k = int(np.argmax(left))
+            return {"status": "undecided", "boxes": boxes, "face": faces[k]["name"], "fraction": float(left[k]),
+                    "fractions": {faces[i]["name"]: float(v) for i, v in enumerate(left) if v > 0}}
+        batch, queue = queue[:1024], queue[1024:]
+        LO = np.array([b[0] for b in batch])
+        HI = np.array([b[1] for b in batch])
+        L, H, _, J = F.eval_batch(LO, HI, with_jacobian=True)
+        boxes += len(batch)
+        pos = np.array([faces[b[2]]["pos"] for b in batch])
+        sg = np.array([faces[b[2]]["sign"] for b in batch])
+        r = np.arange(len(batch))
+        ub = np.where(sg > 0, H[r, pos], -L[r, pos])          # an upper bound of sign * n on the box
+        proven = ub < 0
+        mid = np.where(LO == HI, LO, 0.5 * LO + 0.5 * HI)
+        V = sg * F.eval_points(mid)[r, pos]
+        bad = ~(V < 0)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            return {"status": "failed", "boxes": boxes, "face": faces[batch[k][2]], "x": mid[k],
+                    "value": float(V[k])}
+        wpos = {int(j): i for i, j in enumerate(F.w_flat)}
+        for k in np.flatnonzero(~proven):
+            lo, hi, fk, vol = batch[k]
+            split = split_of[fk]
+            width = hi[split] - lo[split]
+            wi = [wpos.get(int(j), -1) for j in split]
+            sens = np.array([J[k][pos[k], w] * wd if w >= 0 else np.nan for w, wd in zip(wi, width)])
+            rel = width / np.where(faces[fk]["hi"][split] > faces[fk]["lo"][split],
+                                   faces[fk]["hi"][split] - faces[fk]["lo"][split], 1.0)
+            score = np.where(np.isfinite(sens) & (sens > 0), sens, 0.0)
+            s = int(np.argmax(score)) if np.any(score > 0) else int(np.argmax(rel))
+            v = int(split[s])
+            m = 0.5 * lo[v] + 0.5 * hi[v]
+            if not (lo[v] < m < hi[v]):
+                # too thin to split: stays open for good
+                return {"status": "undecided", "boxes": boxes, "face": faces[fk]["name"], "fraction": vol,
+                        "fractions": {faces[fk]["name"]: vol}}
+            h1, l2 = hi.copy(), lo.copy()
+            h1[v] = m
+            l2[v] = m
+            queue.append((lo, h1, fk, vol / 2))
+            queue.append((l2, hi, fk, vol / 2))
+    return {"status": "proven", "boxes": boxes}
+
+
+#: operations of t that break the regularity the argument needs (q_d in C^2, F in C^1): jumps and kinks
+_IRREGULAR = {getattr(ca, k): k[3:].lower() for k in ("OP_SIGN", "OP_FABS", "OP_FMIN", "OP_FMAX", "OP_FLOOR",
+                                                    "OP_CEIL", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ",
+                                                    "OP_NE", "OP_NOT", "OP_AND", "OP_OR", "OP_FMOD",
+                                                    "OP_REMAINDER", "OP_COPYSIGN")}
+
+
+def regularity(ctx: Context) -> str | None:
+    """Why the argument cannot apply, or None: the reference and the funnels as SX of t must be free of jumps and
+    kinks (no sign, abs, min, max, floor, comparison... of t: the first-exit argument needs q_d in C^2 and F in C^1),
+    and each F_i_j must be > 0 on [0, T] (a rigorous lower bound by interval branch and bound)."""
+    from .region import scalar_range
+    d = ctx.design
+    t = d.sym["t"]
+    parts = {"reference.q": d.reference_t["qd"], "funnel.e1": d.signals["F1"], "funnel.e2": d.signals["F2"]}
+    for key, e in parts.items():
+        f = ca.Function("regularity", [t], [e])
+        ops = sorted({_IRREGULAR[f.instruction_id(k)] for k in range(f.n_instructions())
+                      if f.instruction_id(k) in _IRREGULAR})
+        if ops:
+            return (f"{key} uses {', '.join(ops)} of t: the argument needs q_d in C^2 and F in C^1 on [0, T], "
+                    "which a jump or kink breaks")
+    for key, name in (("funnel.e1", "F1"), ("funnel.e2", "F2")):
+        f = d.function(name, ["t"])
+        for j in range(d.n):
+            lo, _ = scalar_range(f, ctx.t_final, j)
+            if not lo > 0:
+                return f"{key}: F of joint {j + 1} is not proven > 0 on [0, {ctx.t_final:g}] (lower bound {lo:.3g})"
+    return None
+
+
+def _initial_ratios(ctx: Context) -> tuple[np.ndarray, np.ndarray, str]:
+    """Rigorous upper bounds of |e1_j(0)| / F1_j(0) and |e2_j(0)| / F2_j(0) at the initial state (its box)."""
+    from ..sx.batch import BatchIntervalFunction
+    d, sc = ctx.design, ctx.scenario
+    S = d.signals
+    names = ["t", "q", "dq", "qd", "dqd", "ddqd"]
+    f = ca.Function("ratios0", [d.sym[k] for k in names], [ca.vertcat(S["e1"] / S["F1"], S["e2"] / S["F2"])],
+                    names, ["r"])
+    F = BatchIntervalFunction(f)
+    qd, dqd, ddqd = (np.asarray(v, float).ravel() for v in d.reference(0.0))
+    q0 = ctx.params.q0 or (np.asarray(sc.q0, float), np.asarray(sc.q0, float))
+    dq0 = ctx.params.dq0 or (np.asarray(sc.dq0, float), np.asarray(sc.dq0, float))
+    box = {"t": (0.0, 0.0), "q": q0, "dq": dq0, "qd": (qd, qd), "dqd": (dqd, dqd), "ddqd": (ddqd, ddqd)}
+    lo, hi = (np.asarray(v, float) for v in F.flatten_box({k: box[k] for k in names}))
+    L, H, _ = F.eval_batch(lo[None, :], hi[None, :])
+    a = np.maximum(np.abs(L[0]), np.abs(H[0]))
+    a = np.where(np.isfinite(a), a, np.inf)
+    note = "the scenario's initial state" if np.all(lo == hi) else "the [[uncertainty]] box of the initial state"
+    return a[:d.n], a[d.n:], note
+
+
+def certify_containment(ctx: Context, budget: Budget) -> Certificate:
+    """certify.containment over the margins M1_GRID x M2_GRID."""
+    t0 = time.monotonic()
+    d, sc = ctx.design, ctx.scenario
+    n = d.n
+
+    def done(status, detail, **kw):
+        kw.setdefault("method", "Nagumo's condition on the faces of S by batched interval branch and bound "
+                                "(mean-value form in t, s, p; states as boxes)")
+        return Certificate(CID, status, detail, seconds=time.monotonic() - t0, **kw)
+    breach = getattr(ctx, "breach", None)
+    if breach:
+        return done("refuted", f"the simulated closed loop (the scenario's plant, integrator and smoothing width) "
+                    f"leaves its funnels from its initial state: {breach.get('message', '')}", counterexample=breach, undecided_fraction=0.0,
+                    extra={"margin": None, "w_bound": None, "horizon": "finite"})
+    why = regularity(ctx)
+    if why is not None:
+        return done("undecided", why, undecided_fraction=1.0,
+                    extra={"margin": None, "w_bound": None, "horizon": "finite", "face": None})
+    fc = _Faces(ctx)
+    F = fc.F
+    budget.set_tape(fc.prob.work_per_box())
+    r1, r2, note = _initial_ratios(ctx)
+    init = d.variant.initial_states()
+    kappa = (fc.info["adaptation"] or {}).get("kappa")
+    if d.n_regressor and kappa is None:
+        return done("undecided", "the adaptive law is not W_hat_dot = G(x) - kappa W_hat with kappa > 0 "
+                    "(no sigma-modification to bound W_hat with): no W_hat face", undecided_fraction=1.0,
+                    extra={"margin": None, "w_bound": None, "horizon": "finite", "face": "W_hat"})
+    if "x_esn" in init and np.any(np.abs(np.asarray(init["x_esn"], float)) > 1.0 / float(sc.esn.leak)):
+        return done("undecided", "x_esn(0) lies outside the reservoir's invariant box |x| <= 1/leak",
+                    undecided_fraction=1.0, extra={"margin": None, "w_bound": None, "horizon": "finite",
+                                                   "face": "x_esn"})
+    rng = np.random.default_rng(45)
+    tried, attempts, boxes = [], 0, 0
+    last_undecided = None
+    share = budget.boxes
+    w_of: dict[float, float] = {}          # the W_hat radius per c2 (sup ||G|| over S depends on the e2 margin)
+    for m1, m2 in itertools.product(M1_GRID, M2_GRID):
+        c1, c2 = 1.0 - m1, 1.0 - m2
+        row = {"m1": m1, "m2": m2}
+        tried.append(row)
+        if not (np.all(r1 < c1) and np.all(r2 < c2)):
+            row["result"] = f"the initial state is not in S ({note}: |e/F| up to {max(r1.max(), r2.max()):.4g})"
+            continue
+        states = controller_state_boxes(ctx, (np.zeros_like(init["w_hat"]), np.zeros_like(init["w_hat"]))
+                                        if d.n_regressor else None)
+        w = None
+        if d.n_regressor:
+            if c2 not in w_of:
+                # ||G|| does not depend on e1's margin beyond the tube: take the widest e1 box of the grid
+                lo, hi = fc.box(1.0 - min(M1_GRID), c2, states, fc.gprob)
+                split = fc.gprob.split_indices(lo, hi)
+                GF = fc.gprob.F
+                objs = [(GF.out_off[GF.out_names.index(k)], -1.0) for k in GF.out_names]
+                exs = extrema(GF, lo, hi, split, objs, max_boxes=W_BOXES, rel_tol=0.2)
+                boxes += exs[0].boxes
+                sup = {k: (math.sqrt(max(-e.bound, 0.0)) if np.isfinite(e.bound) else math.inf)
+                       for k, e in zip(GF.out_names, exs)}
+                w_of[c2] = (W_SAFETY * sup["G2"] / kappa, sup.get("P2"))
+            w, phi_sup = w_of[c2]
+            w0 = float(np.linalg.norm(np.asarray(init["w_hat"], float)))
+            row["w"] = w
+            if not math.isfinite(w):
+                row["result"] = "no finite bound of ||G|| on S"
+                continue
+            if not w0 < w:
+                row["result"] = f"||W_hat(0)|| = {w0:.4g} is not inside the W_hat ball of radius {w:.4g}"
+                continue
+            W0 = np.zeros_like(np.asarray(init["w_hat"], float))
+            if fc.info.get("estimate"):        # W_hat's first row carries the estimate W_hat^T Phi
+                lo_w, hi_w = W0.copy(), W0.copy()
+                lo_w[0, :], hi_w[0, :] = -w * phi_sup, w * phi_sup
+            else:
+                lo_w, hi_w = W0 - w, W0 + w
+            states = controller_state_boxes(ctx, (lo_w, hi_w))
+        lo, hi = fc.box(c1, c2, states)
+        faces = fc.faces(lo, hi)
+        bad = _screen(F, faces, rng)
+        if bad is not None:
+            row["result"] = f"outward at a sampled point of face {bad['face']['name']} (sign n = {bad['value']:.4g})"
+            row["why"] = _why(fc, bad, w)
+            continue
+        if attempts >= PROOF_ATTEMPTS or budget.expired():
+            row["result"] = "not attempted (budget)"
+            continue
+        attempts += 1
+        split_of = [fc.prob.split_indices(f["lo"], f["hi"]) for f in faces]
+        left = max(256, (budget.boxes - boxes) // max(1, PROOF_ATTEMPTS - attempts + 1))
+        res = _decide(F, faces, split_of, left, budget.seconds(0.5))
+        boxes += res["boxes"]
+        if res["status"] == "failed":
+            row["result"] = (f"outward at a point of face {res['face']['name']} found by the search (sign n = "
+                             f"{res['value']:.4g})")
+            row["why"] = _why(fc, {"face": res["face"], "x": res["x"], "value": res["value"]}, w)
+            continue
+        if res["status"] == "undecided":
+            row["result"] = f"undecided: {res['fraction']:.3g} of face {res['face']} left"
+            last_undecided = (m1, m2, w, res)
+            continue
+        region = {"kind": "proven_invariant", "t": [0.0, float(ctx.t_final)],
+                  "e1": f"|e1| <= (1 - {m1:g}) F1(t)", "e2": f"|e2| <= (1 - {m2:g}) F2(t)",
+                  "margin": {"e1": m1, "e2": m2}, "parameters": ctx.params.describe(),
+                  "w_hat": None if w is None else {"ball": "||W_hat||_F <= w", "w": w},
+                  "x_esn": "|x_i| <= 1/leak" if "x_esn" in init else None}
+        detail = (f"the funnels are kept with margins m1 = {m1:g}, m2 = {m2:g} on [0, {ctx.t_final:g}] s for every "
+                  f"plant of the parameter box: S = {{|e1| <= {c1:g} F1, |e2| <= {c2:g} F2"
+                  + (f", ||W_hat||_F <= {w:.4g}" if w is not None else "") + "} is forward invariant "
+                  f"(every one of its {len(faces)} e-faces points inward, {res['boxes']} boxes) and contains "
+                  f"{note}")
+        return done("proven", detail, region=region, boxes=boxes, undecided_fraction=0.0,
+                    extra={"margin": {"e1": m1, "e2": m2}, "w_bound": w, "horizon": "finite", "tried": tried,
+                           "cancelled": fc.info["cancelled"], "f_true": fc.info["f_true"]})
+    extra = {"margin": None, "w_bound": None, "horizon": "finite", "tried": tried,
+             "cancelled": fc.info["cancelled"], "f_true": fc.info["f_true"]}
+    if last_undecided is not None:
+        m1, m2, w, res = last_undecided
+        extra.update(face=res["face"], margin={"e1": m1, "e2": m2}, w_bound=w, fractions=res["fractions"])
+        return done("undecided", f"no margin proven; at m1 = {m1:g}, m2 = {m2:g} the face {res['face']} is left "
+                    f"({res['fraction']:.3g} of it) within the budget", boxes=boxes,
+                    undecided_fraction=float(res["fraction"]), extra=extra)
+    # the first margin pair whose failure says which inequality fails, else the first with a failing face
+    first = next((r for r in tried if r.get("why")), next((r for r in tried if "why" in r), tried[-1]))
+    why = first.get("why")
+    extra.update(face=_face_of(first.get("result", "")))
+    return done("undecided", "no margin of the grid gives an inward-pointing flow on every face (a failed "
+                f"certificate, not a counterexample: the simulated loop keeps its funnels); e.g. at m1 = "
+                f"{first['m1']:g}, m2 = {first['m2']:g}: {first.get('result')}" + (f"; {why}" if why else ""),
+                boxes=boxes, undecided_fraction=1.0, extra=extra)
+
+
+def proven_set(ctx: Context) -> dict | None:
+    """The set S a proven containment certificate of this context shows invariant: {"m1", "m2", "w" (None without
+    adaptive weights)}, or None."""
+    c = ctx.results.get(CID)
+    if c is None or c.status != "proven":
+        return None
+    return {"m1": float(c.extra["margin"]["e1"]), "m2": float(c.extra["margin"]["e2"]), "w": c.extra.get("w_bound")}
+
+
+def _face_of(text: str) -> str | None:
+    """The face name in a row's result text."""
+    k = text.find("face ")
+    return text[k + 5:].split(" (")[0] if k >= 0 else None
+
+
+def _why(fc: _Faces, bad: dict, w: float | None) -> str:
+    """Which inequality fails at an outward point: with W_hat = 0 there, does the face hold? Then the W_hat ball's
+    radius is what breaks it (and by how much)."""
+    f = bad["face"]
+    if w is None or f["i"] != 2:
+        return ""
+    F = fc.F
+    i = F.in_names.index("w_hat")
+    x0 = bad["x"].copy()
+    x0[F.in_off[i]:F.in_off[i + 1]] = 0.0
+    v0 = float(f["sign"] * F.eval_points(x0[None, :])[0, f["pos"]])
+    if v0 < 0:
+        return (f"with W_hat = 0 the face {f['name']} points inward there (sign n = {v0:.4g}); the estimate "
+                f"W_hat^T Phi over the W_hat ball of radius w = {w:.4g} (sup ||G||_F / kappa over S) moves it by "
+                f"{bad['value'] - v0:.4g}: the inequality |W_hat^T Phi| < {-v0:.4g} (the face's inward margin) fails "
+                f"by a factor {(bad['value'] - v0) / -v0:.3g}")
+    return f"the face {f['name']} points outward even with W_hat = 0 (sign n = {v0:.4g})"
