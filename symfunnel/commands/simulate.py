@@ -95,6 +95,39 @@ def _fmt(v, spec=".4g") -> str:
     return str(v)
 
 
+def _unit(s: dict, key: str) -> str:
+    """The unit of a metric over the joints ('rad', or 'rad | m' when they differ)."""
+    seen = []
+    for u in ((s.get("metrics") or {}).get("units") or {}).get(key) or ["?"]:
+        if u not in seen:
+            seen.append(u)
+    return " | ".join(seen)
+
+
+#: the metrics' rows of the text tables: (label, key)
+METRIC_LABELS = (("e1 RMS after the transient", "e1_rms_after_transient"),
+                 ("max |e1| after the transient", "e1_max_after_transient"),
+                 ("overshoot of e1", "overshoot"), ("settling time of e1 (2 % band)", "settling_time"),
+                 ("peak |tau| after the initial decay", "peak_tau_after_t0"),
+                 ("control energy (integral of tau^2)", "control_energy"),
+                 ("chattering (total variation of tau per s)", "chattering"))
+
+
+def _metric_rows(s: dict) -> list[tuple[str, str]]:
+    """The metrics (`simulation.metrics`) as rows 'label [unit]', one value per joint."""
+    per = (s.get("metrics") or {}).get("per_joint") or []
+    if not per:
+        return []
+    rows = []
+    for label, key in METRIC_LABELS:
+        if key == "settling_time":
+            label = f"settling time of e1 ({100 * s['metrics'].get('settling_band_fraction', 0.02):g} % band)"
+        if key.endswith("after_transient") and s["metrics"].get("settle_time") is not None:
+            label += f" (t >= {s['metrics']['settle_time']:g} s)"
+        rows.append((f"{label} [{_unit(s, key)}]", _fmt([m.get(key) for m in per])))
+    return rows
+
+
 def _table(s: dict) -> None:
     print(f"simulation of scenario {s['scenario']}: {s['status']}")
     print(f"  {s['message']}")
@@ -102,9 +135,9 @@ def _table(s: dict) -> None:
         ("simulated time [s]", f"{_fmt(s['t_end'])} of {_fmt(s['t_final'])} ({s['points']} points)"),
         ("min funnel margin e1 (per joint)", _fmt(s["min_margin_e1"])),
         ("min funnel margin e2 (per joint)", _fmt(s["min_margin_e2"])),
-        ("max |e1| [rad]", _fmt(s["max_abs_e1"])),
-        ("max |tau| commanded", _fmt(s["max_abs_tau"])),
-        ("max |tau| applied (after dead zone)", _fmt(s["max_abs_tau_applied"])),
+        (f"max |e1| [{_unit(s, 'e1_max_after_transient')}]", _fmt(s["max_abs_e1"])),
+        (f"max |tau| commanded [{_unit(s, 'peak_tau')}]", _fmt(s["max_abs_tau"])),
+        (f"max |tau| applied (after dead zone) [{_unit(s, 'peak_tau')}]", _fmt(s["max_abs_tau_applied"])),
         ("RMS ESN error |W^T Phi - f_true|", _fmt(s["rms_esn_error"])),
         ("RMS f_true (scale)", _fmt(s["rms_f_true"])),
         ("integrator", f"{s['integrator']} ({s['code']} code), smoothing width {_fmt(s['smoothing_width'])}"),
@@ -114,6 +147,7 @@ def _table(s: dict) -> None:
         ("wall time [s]", f"{_fmt(s['wall_time'], '.3g')} (compile/load {_fmt(s['compile_time'], '.3g')}, "
                           f"real-time factor {_fmt(s['realtime_factor'], '.4g')})"),
     ]
+    rows += _metric_rows(s)
     if s.get("breach"):
         b = s["breach"]
         rows.append(("breach", f"t = {_fmt(b['time'])} s, funnel {b['funnel']}, joint {b['joint']}, "
@@ -157,7 +191,7 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
 
         import numpy as np
         buf = io.BytesIO()
-        np.savez_compressed(buf, t=res.t, q=res.q, dq=res.dq, tau=res.tau, margins=res.margins)
+        np.savez_compressed(buf, t=res.t, q=res.q, dq=res.dq, tau=res.tau, margins=res.margins, e1=res.e1)
         from ..core.lifecycle import committing
         with committing(0 if res.status == "ok" else 1):
             atomic_write(args.out, buf.getvalue())
@@ -172,8 +206,13 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
                 "plant_substeps", "wall_time", "realtime_factor"]
         if engine != "symfunnel":
             keys[7:7] = ["engine_timestep", "engine_mass_scale", "engine_only", "engine_warnings"]
-        for k in keys:
-            print(f"  {k:<20} {_fmt(summary.get(k))}")
+        tau_u = _unit(summary, "peak_tau")
+        units = {"max_abs_tau": tau_u, "tau_max": tau_u, "wall_time": "s", "engine_timestep": "s"}
+        rows = [(k + (f" [{units[k]}]" if k in units else ""), _fmt(summary.get(k))) for k in keys]
+        rows += _metric_rows(summary)
+        width = max(len(r[0]) for r in rows)
+        for k, v in rows:
+            print(f"  {k:<{width}} {v}")
     if res.status != "ok":
         print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)
         return 1

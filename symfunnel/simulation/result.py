@@ -34,6 +34,7 @@ class SimResult:
     n: int = 0
     gamma: float = 1.0
     convergence: dict | None = None
+    joint_types: list | None = None            # the model's joint types: the metrics' units
 
     @property
     def ok(self) -> bool:
@@ -115,9 +116,19 @@ class SimResult:
             "event_counts": self.stats.get("event_counts"),
             "between_points": self.between or None,
         }
+        out["metrics"] = self.metrics()
         if self.convergence is not None:
             out["convergence"] = self.convergence
         return json_safe(out)
+
+    def metrics(self) -> dict:
+        """Per joint, the metrics an engineer reads (`simulation.metrics`) on the output grid, with their units."""
+        from .metrics import metrics_block
+        n = max(self.n, 1)
+        e1 = self.signals.get("e1", np.zeros((0, n)))
+        tau = self.signals.get("tau", np.zeros((0, n)))
+        return metrics_block(self.t, e1, tau, float(self.stats.get("settle_time", 0.0)), self.joint_types or [],
+                             n=n)
 
     def margins(self) -> dict:
         """Whole-run and post-transient margin minima per joint, with their times and the settle time used
@@ -231,7 +242,7 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
         breach = {**breach, "hint": hint}
         message += f"; what to do: {hint}"
     res = SimResult(scenario=sc.name, t=t, x=X, signals=signals, status=status, message=message, breach=breach,
-                    stats=stats, n=cl.n, gamma=gamma)
+                    stats=stats, n=cl.n, gamma=gamma, joint_types=list(sc.model.joint_types or []))
     if status == "ok":
         res.message = ok_message(res)
     return res
