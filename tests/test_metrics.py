@@ -163,3 +163,24 @@ def test_bounded_tau_detail_carries_its_unit(paper_run):
     assert c.id == "bounded.tau"
     peak = c.evidence["max_abs"]
     assert f"max |tau| = {peak:.4g} N m at t = " in c.detail
+
+
+def test_report_metrics_table_has_units_and_the_json_numbers():
+    """The report's table: one unit column when the joints share it, each cell its own unit where they differ."""
+    from symfunnel.reporting.sections import metrics_table
+    from symfunnel.reporting.text import fmt
+    from symfunnel.simulation.metrics import metrics_block
+    t = np.linspace(0.0, 1.0, 101)
+    e1 = np.column_stack([np.exp(-5 * t), 0.5 * np.exp(-5 * t)])
+    tau = np.column_stack([np.cos(t), 2 * np.cos(t)])
+    block = metrics_block(t, e1, tau, 0.5, ["revolute", "prismatic"], n=2)
+    tab = metrics_table(block)
+    assert tab["joints"] == ["joint 1", "joint 2"]
+    rows = {name.split(" (")[0]: (unit, cells) for name, unit, cells in tab["rows"]}
+    unit, cells = rows["peak |tau|"]
+    assert unit == "per joint" and cells == [f"{fmt(1.0)} N m", f"{fmt(2.0)} N"]
+    unit, cells = rows["settling time of e1"]
+    assert unit == "s" and cells == [fmt(block["per_joint"][0]["settling_time"]),
+                                     fmt(block["per_joint"][1]["settling_time"])]
+    # exp(-5 t) enters 2 % of its peak at ln(50)/5
+    assert abs(block["per_joint"][0]["settling_time"] - math.log(50) / 5) <= 0.01

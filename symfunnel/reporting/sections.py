@@ -307,7 +307,35 @@ def simulation_section(v, progress, figures_dir=None) -> dict:
              (f"max |tau| / |D(tau)| per joint [{unit_label(units, 'tau')}]",
               f"{fmt(summ.get('max_abs_tau'))} / {fmt(summ.get('max_abs_tau_applied'))}"),
              ("rms ESN error / rms f_true", f"{fmt(summ.get('rms_esn_error'))} / {fmt(summ.get('rms_f_true'))}")]
-    return {"figures": figs, "stats": stats, "status": res.status, "breach": res.breach}
+    return {"figures": figs, "stats": stats, "status": res.status, "breach": res.breach,
+            "metrics": metrics_table(summ.get("metrics"))}
+
+
+#: the report's names of the metrics (`simulation.metrics`, docs/metrics.md)
+METRIC_NAMES = {"e1_rms_after_transient": "e1 RMS after the transient", "e1_max_after_transient":
+                "max |e1| after the transient", "overshoot": "overshoot of e1", "settling_time": "settling time of e1",
+                "peak_tau": "peak |tau| (whole run)", "peak_tau_after_t0": "peak |tau| after the initial decay",
+                "control_energy": "control energy \u222b tau\u00b2 dt",
+                "chattering": "chattering (total variation of tau per s)"}
+
+
+def metrics_table(block: dict | None) -> dict | None:
+    """The metrics block of a summary as a table: one row per metric with its unit, one column per joint (a cell
+    carries its own unit where the joints' differ)."""
+    if not block or not block.get("per_joint"):
+        return None
+    per, units = block["per_joint"], block.get("units") or {}
+    rows = []
+    for key, name in METRIC_NAMES.items():
+        us = units.get(key) or [""] * len(per)
+        same = len(set(us)) == 1
+        if key == "settling_time":
+            name += f" (band {100 * block.get('settling_band_fraction', 0.02):g} % of max |e1|)"
+        if key.endswith("after_transient"):
+            name += f" (t \u2265 {fmt(block.get('settle_time'))} s)"
+        cells = [fmt(m.get(key)) + ("" if same or m.get(key) is None else f" {u}") for m, u in zip(per, us)]
+        rows.append((name, us[0] if same else "per joint", cells))
+    return {"joints": [f"joint {j + 1}" for j in range(len(per))], "rows": rows}
 
 
 def decay_claim(sc) -> str | None:

@@ -131,3 +131,16 @@ def metrics_block(t, e1, tau, ts: float, joint_types, *, n: int, held: bool = Fa
     per = joint_metrics(t, e1, tau, ts, held=held) if np.size(t) else []
     return {"per_joint": per, "units": metric_units(joint_types, n), "settle_time": float(ts),
             "settling_band_fraction": SETTLING_BAND}
+
+
+#: the metrics a campaign keeps per run (results.parquet): each the largest over the joints
+CAMPAIGN_METRICS = ("e1_rms_after_transient", "peak_tau_after_t0", "control_energy", "chattering")
+
+
+def campaign_row(block: dict) -> dict:
+    """A run's CAMPAIGN_METRICS, each the largest over its joints (NaN where no joint has a value)."""
+    out = {}
+    for k in CAMPAIGN_METRICS:
+        vals = [m[k] for m in block.get("per_joint") or [] if m.get(k) is not None]
+        out[k] = float(max(vals)) if vals else float("nan")
+    return out
