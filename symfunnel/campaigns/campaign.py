@@ -413,7 +413,7 @@ class ResultStore:
     def clear(self) -> None:
         """Forget a previous sweep in this directory (a fresh start)."""
         shutil.rmtree(self.parts, ignore_errors=True)
-        for name in ("results.parquet", "summary.json", "worst.toml", "campaign.json"):
+        for name in ("results.parquet", "results.csv", "summary.json", "worst.toml", "campaign.json"):
             (self.out / name).unlink(missing_ok=True)
 
 
@@ -671,7 +671,8 @@ class SweepResult:
 
 def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume=False, progress=None,
           chunk_size=None, engine: str | None = None) -> SweepResult:
-    """Run a scenario's campaign; write results.parquet, summary.json and worst.toml into `out`.
+    """Run a scenario's campaign; write results.parquet (and the same as results.csv), summary.json and worst.toml
+    into `out`.
 
     On symfunnel's plant every run is the continuous-time closed loop (as before); on a physics engine (`engine`,
     default the scenario's `[plant] engine`) every run is the deployed controller's sampled loop on it, at the
@@ -764,6 +765,8 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
             client.close()
     table = store.merge()
     shutil.rmtree(store.parts, ignore_errors=True)
+    from .results_csv import write_results_csv
+    write_results_csv(table, out / "results.csv", scenario.model.joint_types, scenario.n)
     s = summarize(table, camp.columns)
     summary = {k: s[k] for k in ("runs", "breaches", "breach_probability", "ci95", "worst_run")}
     summary.update({"runs_per_second": ex["runs_per_second"], "workers": ex["workers"],

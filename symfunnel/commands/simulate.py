@@ -1,4 +1,4 @@
-"""`symfunnel simulate [SCENARIO] [--t-final T] [--out FILE.npz] [--json]`: the closed loop, with CasADi integrators."""
+"""`symfunnel simulate [SCENARIO] [--t-final T] [--out FILE.npz|.csv|.mat] [--json]`: the closed loop, with CasADi integrators."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ def register(sub, common) -> None:
                                          "controller, ESN, adaptation)")
     common(sp)
     sp.add_argument("--t-final", type=float, metavar="T", help="simulated time in s (default: the scenario's)")
-    sp.add_argument("--out", metavar="FILE.npz", help="write the whole trajectory (time first) to an .npz file")
+    sp.add_argument("--out", metavar="FILE", help="write the whole trajectory (time first) by the suffix: .npz, "
+                    ".csv (units in its # header) or .mat (MATLAB)")
     sp.add_argument("--json", action="store_true", help="print the JSON summary")
     from ..family.integrators import INTEGRATORS
     sp.add_argument("--integrator", choices=INTEGRATORS.names(),
@@ -45,9 +46,9 @@ def run(args) -> int:
     check_seconds(args.wall_limit, key="--wall-limit", allow_none=True)
     if args.width is not None and not (math.isfinite(args.width) and args.width >= 0):
         raise InputError(f"is {args.width:g}", key="--width", expected="a number >= 0")
-    if args.out and not args.out.endswith(".npz"):
-        raise InputError(f"is '{args.out}'", key="--out", expected="a file name ending in .npz")
     if args.out:
+        from ..simulation.export import check_suffix
+        check_suffix(args.out)
         from ..core.outputs import check_output_file
         check_output_file(args.out)
     say = _progress(args.quiet)
@@ -73,7 +74,7 @@ def run(args) -> int:
         from ..core.lifecycle import committing
         arrays = run.trajectory_arrays() if res.t.size else None
         with committing(0 if res.status == "ok" else 1):    # the command's one file: from here on it has succeeded
-            path = res.save_npz(args.out, arrays)
+            path = res.save(args.out, arrays)
         say(f"trajectory written to {path}")
     if args.json:
         print(_dump(summary))
@@ -170,7 +171,6 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
 
     On a physics engine without a rate (no --rate, no [implementation]): at twice the minimum rate on that engine."""
     from ._common import _dump
-    from ..core.io import atomic_write
     from ..deployed.loop import simulate_sampled
     from ..pipeline import Run
     design = Run(sc, progress=say).design
@@ -187,14 +187,9 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
     res = simulate_sampled(sc, design, rate_hz=rate, t_final=args.t_final, progress=say, engine=engine)
     summary = res.summary()
     if args.out:
-        import io
-
-        import numpy as np
-        buf = io.BytesIO()
-        np.savez_compressed(buf, t=res.t, q=res.q, dq=res.dq, tau=res.tau, margins=res.margins, e1=res.e1)
         from ..core.lifecycle import committing
         with committing(0 if res.status == "ok" else 1):
-            atomic_write(args.out, buf.getvalue())
+            res.save(args.out)
         say(f"trajectory written to {args.out}")
     if args.json:
         print(_dump(summary))

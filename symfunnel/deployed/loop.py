@@ -24,6 +24,7 @@ import ctypes
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -123,6 +124,16 @@ class SampledResult:
                 "wall_time": self.wall_time,
                 "realtime_factor": float(self.t[-1] / self.wall_time) if self.wall_time > 0 else None,
                 **self.stats, "metrics": self.metrics()}
+
+    def save(self, path) -> Path:
+        """Write t, q, dq, tau (held: one row less), the true margins and e1 at the samples by the file's suffix
+        (.npz, .csv, .mat; `simulation.export`), atomically."""
+        from ..simulation.export import write_trajectory
+        arrays = {"t": self.t, "q": self.q, "dq": self.dq, "tau": self.tau, "margins": self.margins, "e1": self.e1}
+        return write_trajectory(path, arrays, joint_types=self.joint_types or [], n=self.q.shape[1],
+                                meta={} if str(path).lower().endswith(".npz") else
+                                {"scenario": self.scenario, "rate_hz": self.rate_hz, "status": self.status,
+                                 "message": self.message})
 
     def metrics(self) -> dict:
         """Per joint, the metrics an engineer reads (`simulation.metrics`): the error at the samples, the held

@@ -150,24 +150,25 @@ class SimResult:
         import html
         return f"<p>simulation <b>{html.escape(self.status)}</b>: {html.escape(self.message)}</p>"
 
-    def save_npz(self, path, arrays: dict | None = None) -> Path:
+    def save(self, path, arrays: dict | None = None) -> Path:
         """Write the trajectory (time first; `arrays` adds e.g. V and W* of the Lyapunov stage) and the run's
-        metadata to an .npz file, atomically."""
-        from ..core.io import atomic_path
+        metadata, atomically, by the file's suffix: .npz, .csv (units in its header) or .mat (`simulation.export`)."""
+        from .export import write_trajectory
         data = {"t": self.t}
         for k, v in self.signals.items():
             data[k] = np.asarray(v)
         for k, v in (arrays or {}).items():
             data[k] = np.asarray(v)
-        data["status"] = np.array(self.status)
-        data["message"] = np.array(self.message)
-        data["smoothing_width"] = np.array(self.stats.get("smoothing_width", float("nan")))
-        data["integrator"] = np.array(self.stats.get("integrator", ""))
-        path = Path(path)
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **data)
-        return path
+        meta = {"scenario": self.scenario, "status": self.status, "message": self.message,
+                "smoothing_width": self.stats.get("smoothing_width", float("nan")),
+                "integrator": self.stats.get("integrator", "")}
+        if Path(path).suffix.lower() == ".npz":
+            meta.pop("scenario")            # the npz's keys as before
+        return write_trajectory(path, data, joint_types=self.joint_types or [], n=self.n, meta=meta)
+
+    def save_npz(self, path, arrays: dict | None = None) -> Path:
+        """`save` (kept under its first name: any of the suffixes works)."""
+        return self.save(path, arrays)
 
 
 
