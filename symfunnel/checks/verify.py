@@ -424,6 +424,8 @@ def verify(scenario, design, closed_loop, result, lyapunov: LyapunovTrajectory |
         checks = [c for c in checks if c.id != f"claim.{claim.name}"]
         checks.append(check_decay_claim(L, fz, claim))
     checks += check_bounded(result, design, L)
+    from .limits import check_limits                         # the URDF's position and velocity limits
+    checks += check_limits(scenario, design, result, t_final)
     engine = engine or getattr(scenario.plant, "engine", "symfunnel")
     if engine != "symfunnel":                                # the engine is the same robot before it is the plant
         from .engine import check_engine_agreement
