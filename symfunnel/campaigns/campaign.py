@@ -768,7 +768,11 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
     from .results_csv import write_results_csv
     write_results_csv(table, out / "results.csv", scenario.model.joint_types, scenario.n)
     s = summarize(table, camp.columns)
+    from .sensitivity import sensitivity
     summary = {k: s[k] for k in ("runs", "breaches", "breach_probability", "ci95", "worst_run")}
+    summary["sensitivity"] = sensitivity(table.to_pydict(), camp.columns)
+    from .results_csv import column_units
+    summary["units"] = column_units(list(table.column_names), scenario.model.joint_types, scenario.n)
     summary.update({"runs_per_second": ex["runs_per_second"], "workers": ex["workers"],
                     "steady_runs_per_second": ex["steady_runs_per_second"],
                     "scenario": scenario.name, "design": camp.sweep.design, "seed": camp.sweep.seed,
