@@ -115,6 +115,9 @@ def test_summary_has_the_ranking_and_the_page_shows_it(paper_campaign, capsys):
         idx = [abs(e["index"]) if e["index"] is not None else -1 for e in es]
         assert idx == sorted(idx, reverse=True)
     assert s["units"]["max_abs_tau"] == "N m"
+    # the runs' metrics columns are results, not uncertain quantities
+    from symfunnel.reporting.sweep import load_sweep, parameters
+    assert parameters(load_sweep(paper_campaign)[1]) == ["plant.mass_scale", "plant.viscous"]
     capsys.readouterr()
     assert main(["report", "--sweep", str(paper_campaign), "-q"]) == 0
     page = (paper_campaign / "sweep.html").read_text()
