@@ -111,6 +111,8 @@ def run(args) -> int:
                                                       if r.gate.get("unexpected") else ""))
         if r.binding:
             print(f"  binding: {', '.join(r.binding)}")
+        for e in r.at_bounds:
+            print(f"  at a bound: {e['key']} = {e['value']:.4g}, its {e['bound']} bound (was {e['before']:.4g})")
         for n in r.notes:
             print(f"  note: {n}")
         if args.out is not None:

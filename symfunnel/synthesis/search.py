@@ -334,12 +334,14 @@ class TuneResult:
     tuned_text: str = ""
     rechecks: int = 0
     comparison: dict = field(default_factory=dict)
+    at_bounds: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         """The `--json` output of the contract (plus details)."""
         from ..core.io import json_safe
         return json_safe({"status": self.status, "method": self.method, "why": self.why,
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
+                          "at_bounds": self.at_bounds,
                           "wall_s": self.wall_s, "evaluations": self.evaluations, "rechecks": self.rechecks,
                           "constraints": self.constraints,
                           "uncertainty_samples": self.samples, "confidence_eps_0.05": self.confidence,
@@ -557,6 +559,12 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         if not math.isclose(x, ux, rel_tol=1e-12):
             changes.append({"key": v.name, "before": ux, "after": x})
     _record_deviations(tuned, changes, spec, b, ev, status)
+    from .active import at_bounds
+    bounds_hit = at_bounds(vars_, b.xs)
+    for e in bounds_hit:
+        notes.append(f"{e['key']} ended at its {e['bound']} bound {e['bound_value']:.4g} (was {e['before']:.4g}): "
+                     "the search wanted to go further; check the design's tracking and torque, or widen "
+                     "[tune.bounds] if that is intended")
     name = spec.objective
     return TuneResult(
         status=status, method=method, why=why,
@@ -568,7 +576,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
         gate=gate_info, tuned_raw=tuned, notes=notes,
         tuned_text=tuned_toml(scenario, tuned, sorted({v.key for v in vars_})), rechecks=ev.rechecks,
-        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
+        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)}, at_bounds=bounds_hit)
 
 
 def tuned_toml(scenario, tuned: dict, keys: list[str]) -> str:

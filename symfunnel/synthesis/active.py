@@ -1,0 +1,26 @@
+"""Which tuned parameters ended at a bound of `[tune.bounds]`: an active bound is a finding `tune` states (the search
+was stopped by the bound, not by the constraints or the objective: on the paper k1 went from 5 to its lower bound
+0.1, and the tracking error grew with it)."""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["AT_BOUND", "at_bounds"]
+
+#: a value this close to a bound on the search's log scale (a share of log(hi/lo)) is at that bound
+AT_BOUND = 1e-3
+
+
+def at_bounds(vars_, xs) -> list[dict]:
+    """The coordinates (`synthesis.search.Variable`) whose value ended at a bound of [tune.bounds] (an active
+    bound: the search was stopped by it, not by the constraints or the objective), with the bound and the user's
+    value."""
+    out = []
+    for v, x in zip(vars_, xs):
+        z = math.log(x / v.lo) / math.log(v.hi / v.lo) if v.hi > v.lo and x > 0 else 0.5
+        side = "lower" if z <= AT_BOUND else "upper" if z >= 1 - AT_BOUND else None
+        if side is not None:
+            out.append({"key": v.name, "value": float(x), "bound": side,
+                        "bound_value": float(v.lo if side == "lower" else v.hi), "before": float(v.user_x())})
+    return out
