@@ -31,3 +31,46 @@ def test_json_has_the_active_bounds():
                    evaluations=0, constraints={}, samples=0, confidence=None, gate={}, tuned_raw={}, notes=[],
                    at_bounds=at_bounds([_var()], [0.1]))
     assert r.to_json()["at_bounds"][0]["bound"] == "lower"
+
+
+def test_degradations_flag_tracking_and_chattering_beyond_twice():
+    from symfunnel.synthesis.active import degradations
+    before = {"e1_rms_after_transient": 1e-4, "chattering": 10.0}
+    assert degradations(before, {"e1_rms_after_transient": 1.9e-4, "chattering": 19.0}) == []
+    notes = degradations(before, {"e1_rms_after_transient": 2.6e-2, "chattering": 25.0})
+    assert len(notes) == 2 and "grew 260x" in notes[0] and "tracking" in notes[0] and "grew 2.5x" in notes[1]
+    assert degradations({"chattering": 0.0}, {"chattering": 5.0}) == []      # no ratio to an idle torque
+
+
+def test_report_tuning_rows_show_the_margin_tune_ranks_by_labelled(tmp_path):
+    """The report's original/tuned table: the post-transient margin (tune's measure, labelled so) beside the
+    whole-run one, and the e1 RMS and chattering; each against numpy on the two runs' own signals."""
+    import copy
+
+    import numpy as np
+
+    from symfunnel.core.toml_write import dumps
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.reporting.sections import tuning_section
+    from symfunnel.reporting.text import fmt
+    from symfunnel.scenario import load_scenario
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["simulation"]["t_final"] = 1.0
+    raw["controller"]["k2"] = 4.0
+    raw["deviations"] = list(raw.get("deviations") or []) + [
+        {"key": "controller.k2", "paper": "", "value": "10.0 -> 4.0", "reason": "symfunnel tune (ok): test"}]
+    f = tmp_path / "tuned.toml"
+    f.write_text(dumps(raw), encoding="utf-8")
+    run = Run(load_scenario(f), RunOptions(t_final=1.0))
+    sec = tuning_section(run, lambda s: None)
+    rows = {k.split(" (")[0]: (a, b) for k, a, b in sec["rows"]}
+    sim = run.simulation
+    ts = sim.margins()["settle_time"]
+    keep = sim.t >= ts - 1e-12
+    assert rows["min margin e1 after the transient"][1] == fmt(float(np.min(sim.signals["m1"][keep])))
+    assert rows["min margin e2, whole run"][1] == fmt(float(np.min(sim.signals["m2"])))
+    e1 = sim.signals["e1"][keep]
+    rms = np.sqrt(np.sum(0.5 * (e1[1:] ** 2 + e1[:-1] ** 2) * np.diff(sim.t[keep])[:, None], axis=0)
+                  / (sim.t[keep][-1] - sim.t[keep][0]))
+    assert rows["e1 RMS after the transient [rad]"][1] == fmt(float(np.max(rms)))
+    assert "as in tune's table" in next(k for k, _, _ in sec["rows"] if k.startswith("min margin e1 after"))

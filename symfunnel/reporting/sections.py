@@ -429,10 +429,27 @@ def tuning_section(run, progress, figures_dir=None) -> dict:
     except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
         return {"available": True, "error": f"{type(exc).__name__}: {exc}"}
     o, t = cmp_["original"], cmp_["tuned"]
+    units = joint_units(sc.model.joint_types, sc.n)
+    tu, eu = unit_label(units, "tau"), unit_label(units, "e1")
+
+    def post(side, key):                 # the margin tune's table shows: the minimum after the transient
+        vals = [v for v in side["simulation"].margins()[f"min_margin_{key}_after_transient"] if v is not None]
+        return fmt(min(vals)) if vals else None
+
+    def metric(side, key):               # docs/metrics.md, the largest over the joints
+        vals = [m[key] for m in side["simulation"].metrics()["per_joint"] if m.get(key) is not None]
+        return fmt(max(vals)) if vals else None
+
+    ts = fmt(t["simulation"].margins()["settle_time"])
     rows = [("status of the continuous-time run", o["status"], t["status"]),
-            ("peak |tau| [N m]", fmt(o["peak_torque"]), fmt(t["peak_torque"])),
-            ("min margin e1", fmt(o["min_margin_e1"]), fmt(t["min_margin_e1"])),
-            ("min margin e2", fmt(o["min_margin_e2"]), fmt(t["min_margin_e2"]))]
+            (f"peak |tau| [{tu}]", fmt(o["peak_torque"]), fmt(t["peak_torque"])),
+            (f"min margin e1 after the transient (t \u2265 {ts} s; as in tune's table)", post(o, "e1"), post(t, "e1")),
+            (f"min margin e2 after the transient (t \u2265 {ts} s; as in tune's table)", post(o, "e2"), post(t, "e2")),
+            ("min margin e1, whole run", fmt(o["min_margin_e1"]), fmt(t["min_margin_e1"])),
+            ("min margin e2, whole run", fmt(o["min_margin_e2"]), fmt(t["min_margin_e2"])),
+            (f"e1 RMS after the transient [{eu}] (largest joint)", metric(o, "e1_rms_after_transient"),
+             metric(t, "e1_rms_after_transient")),
+            (f"chattering [{tu}/s] (largest joint)", metric(o, "chattering"), metric(t, "chattering"))]
     if "min_rate_hz" in t:
         rows.append(("minimum sample rate [Hz]", fmt(o["min_rate_hz"]), fmt(t["min_rate_hz"])))
     if "breach_probability" in t:

@@ -262,7 +262,7 @@ class Evaluator:
         e1 = res.q[:k + 1] - qd
         ok = np.all(np.isfinite(e1), axis=1)
         h = 1.0 / res.rate_hz
-        figs = {"peak_torque": peak, "ise": float(np.sum(e1[ok] ** 2) * h)}
+        figs = {"peak_torque": peak, "ise": float(np.sum(e1[ok] ** 2) * h), **_tracking(res)}
         return g, figs
 
     def _continuous(self, sc, design) -> tuple[dict, dict]:
@@ -285,7 +285,7 @@ class Evaluator:
             g["saturation"] = 1.0 - use
         e1 = np.asarray(s["e1"]).reshape(len(res.t), -1) if res.t.size else np.zeros((1, 1))
         ise = float(np.trapezoid(np.sum(e1 ** 2, axis=1), res.t)) if res.t.size > 1 else math.inf
-        return g, {"peak_torque": peak, "ise": ise}
+        return g, {"peak_torque": peak, "ise": ise, **_tracking(res)}
 
     def evaluate(self, vars_: list[Variable], xs) -> Candidate:
         """Simulate one candidate (a candidate the scenario's validation rejects gets the constraint `valid` < 0)."""
@@ -559,8 +559,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         if not math.isclose(x, ux, rel_tol=1e-12):
             changes.append({"key": v.name, "before": ux, "after": x})
     _record_deviations(tuned, changes, spec, b, ev, status)
-    from .active import at_bounds
+    from .active import at_bounds, degradations
     bounds_hit = at_bounds(vars_, b.xs)
+    notes += degradations(before.figures, b.figures)
     for e in bounds_hit:
         notes.append(f"{e['key']} ended at its {e['bound']} bound {e['bound_value']:.4g} (was {e['before']:.4g}): "
                      "the search wanted to go further; check the design's tracking and torque, or widen "
@@ -755,6 +756,14 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
         f(r["z"], final=True)
 
 
+def _tracking(res) -> dict:
+    """A run's tracking and chattering (`simulation.metrics`, the largest over the joints): what tune shows beside
+    its objective, so that a design that trades tracking or smoothness for torque says so."""
+    from ..simulation.metrics import campaign_row
+    m = campaign_row(res.metrics())
+    return {"e1_rms_after_transient": m["e1_rms_after_transient"], "chattering": m["chattering"]}
+
+
 def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
     """One column of the original/tuned comparison: torque, margin, saturation, violations among the samples."""
     g = c.constraints
@@ -762,7 +771,9 @@ def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
     out = {"feasible": c.feasible, "reached_horizon": held, "peak_torque": c.figures.get("peak_torque"),
            "ise": c.figures.get("ise") if held else None,
            "min_margin": g["containment"] + spec.margin if held else None,
-           "saturation": g.get("saturation"), "min_rate_hz": c.figures.get("min_rate")}
+           "saturation": g.get("saturation"), "min_rate_hz": c.figures.get("min_rate"),
+           "e1_rms_after_transient": c.figures.get("e1_rms_after_transient") if held else None,
+           "chattering": c.figures.get("chattering") if held else None}
     if ev.samples:
         k = c.figures.get("sample_violations")
         out["sample_violations"] = k
