@@ -1,4 +1,4 @@
-"""`symfunnel simulate [SCENARIO] [--t-final T] [--out FILE.npz|.csv|.mat] [--json]`: the closed loop, with CasADi integrators."""
+"""`symfunnel simulate [SCENARIO] [--t-final T] [--out FILE.npz|.csv|.mat] [--json]`: the closed loop (CasADi)."""
 
 from __future__ import annotations
 

@@ -52,11 +52,6 @@ GATE_TRIES = 3
 #: share of --wall-limit the search may use; the rest is kept for the re-check after rounding and verify's gate
 #: (the gate of the paper takes 11 s of a 240 s limit here, a new design's first compile adds about 7 s)
 SEARCH_SHARE = 0.8
-#: the gradient path is chosen (method "auto") only when this many IPOPT iterations fit the search's time, each
-#: costing about d + 2 forward solves of the sensitivity problem (one timed forward solve decides, measured in a
-#: child process killed at its share of the time: on the paper one forward solve takes 17 s, so 8 iterations of 7
-#: solves would need about 950 s, and the derivative-free search is chosen)
-MIN_IPOPT_ITERATIONS = 8
 #: significant digits of the gains tune writes (re-checked after rounding; more digits when rounding breaks them)
 DIGITS = 4
 METHODS = ("auto", "gradient", "derivative-free")
@@ -285,7 +280,11 @@ class Evaluator:
             g["saturation"] = 1.0 - use
         e1 = np.asarray(s["e1"]).reshape(len(res.t), -1) if res.t.size else np.zeros((1, 1))
         ise = float(np.trapezoid(np.sum(e1 ** 2, axis=1), res.t)) if res.t.size > 1 else math.inf
-        return g, {"peak_torque": peak, "ise": ise, **_tracking(res)}
+        return g, {"peak_torque": peak, "ise": ise, **_tracking(res),
+                   # the run's size, by which `--method auto` sizes the sensitivity problem (synthesis.choice)
+                   # (a run that stopped early: its steps scaled to the horizon)
+                   "steps": (int(round(res.stats["steps"] * self.T / t_end)) if res.stats.get("steps") and t_end > 0
+                             else None), "states": int(res.x.shape[1])}
 
     def evaluate(self, vars_: list[Variable], xs) -> Candidate:
         """Simulate one candidate (a candidate the scenario's validation rejects gets the constraint `valid` < 0)."""
@@ -355,9 +354,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     The whole call keeps `wall_limit` seconds (the search stops at SEARCH_SHARE of it, an evaluation in progress
     is interrupted at the limit, IPOPT runs in a child process that is killed at the limit) and at most
     `max_evaluations` full-simulation evaluations of candidates. `method`: "auto" (the gradient path without
-    `[implementation]` when a timed forward solve says MIN_IPOPT_ITERATIONS iterations fit the time, else
-    derivative-free), "gradient" or "derivative-free". Gains are rounded to DIGITS significant digits and the
-    rounded design is re-checked.
+    `[implementation]` when the sensitivity problem's size says enough IPOPT iterations fit the search's share of
+    the limit, `synthesis.choice`, else derivative-free), "gradient" or "derivative-free". Gains are rounded to
+    DIGITS significant digits and the rounded design is re-checked.
     """
     from scipy.optimize import minimize
     from scipy.stats import qmc
@@ -448,7 +447,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     stopped = None
     if scenario.implementation is None and requested != "derivative-free":
         use, reason = _gradient_sound()
-        gp, timed = None, False
+        gp, sized = None, False
         if use:
             from .gradient import GradientProblem
             try:
@@ -459,10 +458,13 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 reraise_interrupt(exc)
                 use, reason = False, f"the sensitivity problem could not be built ({_last_line(exc)})"
         if use and requested == "auto":
-            use, reason = _gradient_fits(gp, z_user, len(vars_), search_end - time.perf_counter(), say)
-            timed = not use
+            from .choice import gradient_fits
+            use, reason = gradient_fits(before.figures.get("steps"), int(before.figures.get("states") or 0),
+                                        len(vars_), gp.nplants, SEARCH_SHARE * wall_limit)
+            sized = not use
+            say(f"method auto: {'IPOPT' if use else 'derivative-free'}: {reason}")
         if use:
-            method, why = GRADIENT_METHOD, GRADIENT_WHY
+            method, why = GRADIENT_METHOD, GRADIENT_WHY + (f"; method auto: {reason}" if requested == "auto" else "")
             say(f"method: {method} ({why})")
             failed = None
             try:
@@ -484,7 +486,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 say("falling back to the derivative-free search: " + why)
             elif failed:
                 why = f"{GRADIENT_WHY}; IPOPT stopped with an error ({failed}) after a design that holds"
-        elif timed:
+        elif sized:
             why = f"no [implementation], but the gradient path was not chosen: {reason}"
         else:
             why = f"{WHY_NO_GRADIENT} ({reason})"
@@ -687,35 +689,6 @@ def _gradient_sound() -> tuple[bool, str]:
     if not ipopt_available():
         return False, "casadi.has_nlpsol('ipopt') is false in the installed casadi"
     return True, ""
-
-
-def _gradient_fits(gp, z0, d: int, budget: float, say) -> tuple[bool, str]:
-    """Whether MIN_IPOPT_ITERATIONS IPOPT iterations (about d + 2 forward solves each) fit `budget` seconds: one
-    forward solve is timed in a forked worker (`core.lifecycle.run_killable`) that is killed at its share of the
-    budget."""
-    from ..core import deadline as DL
-    from ..core.lifecycle import reraise_interrupt, run_killable
-    share = budget / (MIN_IPOPT_ITERATIONS * (d + 2))
-    say(f"timing one forward solve of the sensitivity problem (at most {share:.1f} s, the share that "
-        f"{MIN_IPOPT_ITERATIONS} IPOPT iterations may have)")
-    try:
-        run_killable(_forward_size, gp, np.asarray(z0, float), wall_limit=max(share, 0.05),
-                     what="timing one forward solve of the sensitivity problem")
-    except DL.WallLimitReached:
-        if DL.expired_limit() is not None:            # a limit around tune: it ends the command
-            raise
-        return False, (f"one forward solve of the sensitivity problem takes more than {share:.1f} s, so "
-                       f"{MIN_IPOPT_ITERATIONS} IPOPT iterations of about {d + 2} solves each would not fit the "
-                       f"{budget:.0f} s the search has (measured; force it with --method gradient)")
-    except RuntimeError as exc:
-        reraise_interrupt(exc)
-        return False, f"the sensitivity problem does not evaluate at the user's design ({_last_line(exc)})"
-    return True, ""
-
-
-def _forward_size(gp, z0) -> int:
-    """One forward solve of the sensitivity problem (its constraint values' count: the result is small to send)."""
-    return int(np.asarray(gp.g(z0), float).size)
 
 
 def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
