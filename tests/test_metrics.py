@@ -155,6 +155,8 @@ def test_text_table_carries_units(capsys):
     assert "max |tau| commanded [N m]" in out
     assert "chattering (total variation of tau per s) [N m/s]" in out
     assert "e1 RMS after the transient" in out and "[rad]" in out
+    # f_true = ddq_plant - ddq_nom (simulation.closedloop): an acceleration
+    assert "RMS f_true (scale) [rad/s^2]" in out and "RMS ESN error |W^T Phi - f_true| [rad/s^2]" in out
 
 
 def test_bounded_tau_detail_carries_its_unit(paper_run):

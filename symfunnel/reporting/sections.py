@@ -306,7 +306,8 @@ def simulation_section(v, progress, figures_dir=None) -> dict:
               f"{fmt(summ.get('t_min_margin_e2_after_transient'))} s)"),
              (f"max |tau| / |D(tau)| per joint [{unit_label(units, 'tau')}]",
               f"{fmt(summ.get('max_abs_tau'))} / {fmt(summ.get('max_abs_tau_applied'))}"),
-             ("rms ESN error / rms f_true", f"{fmt(summ.get('rms_esn_error'))} / {fmt(summ.get('rms_f_true'))}")]
+             (f"rms ESN error / rms f_true [{unit_label(units, 'e1')}/s\u00b2]",
+              f"{fmt(summ.get('rms_esn_error'))} / {fmt(summ.get('rms_f_true'))}")]
     return {"figures": figs, "stats": stats, "status": res.status, "breach": res.breach,
             "metrics": metrics_table(summ.get("metrics"))}
 
