@@ -43,30 +43,61 @@ def _pearson_rows(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return np.where(den > 0, (xc * yc).sum(axis=-1) / np.where(den > 0, den, 1.0), np.nan)
 
 
+def _unit_rows(a: np.ndarray) -> np.ndarray:
+    """Each row (last axis) centred and scaled to unit norm (NaN for a row without spread): Pearson's r of two rows
+    is then their dot product."""
+    c = a - a.mean(axis=-1, keepdims=True)
+    nrm = np.sqrt((c * c).sum(axis=-1, keepdims=True))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(nrm > 0, c / np.where(nrm > 0, nrm, 1.0), np.nan)
+
+
 def spearman(x, y) -> tuple[float | None, list[float] | None, str]:
     """(rho, [lo, hi] at 95 %, how the interval was found) of the pairs with both values finite; None without
     spread or with fewer than 4 pairs."""
     x, y = np.asarray(x, float), np.asarray(y, float)
     ok = np.isfinite(x) & np.isfinite(y)
-    x, y = x[ok], y[ok]
-    N = x.size
-    if N < 4 or np.ptp(x) == 0 or np.ptp(y) == 0:
-        return None, None, "no spread" if N >= 4 else "fewer than 4 runs"
-    rho = float(_pearson_rows(_ranks(x), _ranks(y)))
-    if N > BOOTSTRAP_MAX_RUNS:
-        z, se = math.atanh(max(min(rho, 1 - 1e-15), -1 + 1e-15)), math.sqrt(1.06 / (N - 3))
-        return rho, [math.tanh(z - 1.959964 * se), math.tanh(z + 1.959964 * se)], "fisher_z"
-    rng = np.random.default_rng(SEED)
-    parts = []
-    for _ in range(BOOTSTRAP // CHUNK):
-        idx = rng.integers(0, N, size=(CHUNK, N))
-        parts.append(_pearson_rows(_ranks(x[idx]), _ranks(y[idx])))
-    r = np.concatenate(parts)
-    r = r[np.isfinite(r)]
-    if r.size < BOOTSTRAP // 2:
-        return rho, None, "bootstrap (too few resamples with spread)"
-    lo, hi = np.quantile(r, [0.025, 0.975])
-    return rho, [float(lo), float(hi)], f"bootstrap ({BOOTSTRAP} resamples, percentile)"
+    return _indices(x[ok][None, :], y[ok][None, :])[0][0]
+
+
+def _indices(X: np.ndarray, Y: np.ndarray) -> list[list[tuple]]:
+    """spearman of every row of X (columns, N) with every row of Y (targets, N), all values finite; the bootstrap
+    resamples are shared (one draw of runs for all pairs: each column and each target is ranked once per chunk)."""
+    k, N = X.shape
+    m = Y.shape[0]
+    out = [[(None, None, "fewer than 4 runs")] * m for _ in range(k)]
+    if N < 4:
+        return out
+    rho = _pearson_rows(_ranks(X)[:, None, :], _ranks(Y)[None, :, :])          # (k, m)
+    spread = (np.ptp(X, axis=1) > 0)[:, None] & (np.ptp(Y, axis=1) > 0)[None, :]
+    boot = None
+    if N <= BOOTSTRAP_MAX_RUNS and spread.any():
+        rng = np.random.default_rng(SEED)
+        parts = []
+        for _ in range(BOOTSTRAP // CHUNK):
+            idx = rng.integers(0, N, size=(CHUNK, N))
+            rx = _unit_rows(_ranks(X[:, idx]))           # (k, CHUNK, N), each resample's ranks standardised
+            ry = _unit_rows(_ranks(Y[:, idx]))           # (m, CHUNK, N)
+            parts.append(np.einsum("icn,jcn->ijc", rx, ry))                      # (k, m, CHUNK)
+        boot = np.concatenate(parts, axis=-1)
+    for i in range(k):
+        for j in range(m):
+            if not spread[i, j]:
+                out[i][j] = (None, None, "no spread")
+                continue
+            r = float(rho[i, j])
+            if boot is None:
+                z, se = math.atanh(max(min(r, 1 - 1e-15), -1 + 1e-15)), math.sqrt(1.06 / (N - 3))
+                out[i][j] = (r, [math.tanh(z - 1.959964 * se), math.tanh(z + 1.959964 * se)], "fisher_z")
+                continue
+            b = boot[i, j]
+            b = b[np.isfinite(b)]
+            if b.size < BOOTSTRAP // 2:
+                out[i][j] = (r, None, "bootstrap (too few resamples with spread)")
+                continue
+            lo, hi = np.quantile(b, [0.025, 0.975])
+            out[i][j] = (r, [float(lo), float(hi)], f"bootstrap ({BOOTSTRAP} resamples, percentile)")
+    return out
 
 
 def target_values(cols: dict, target: str) -> np.ndarray:
@@ -84,16 +115,28 @@ def sensitivity(cols: dict, columns: list[str]) -> list[dict]:
     """The ranking: per target, one entry per uncertain column {"key", "target", "index", "ci95", "method",
     "runs"}, by decreasing |index| (null last)."""
     status = np.asarray(cols["status"], dtype=object)
+    if not columns:
+        return []
     decided = (status == "ok") | (status == "breach")
+    X = np.array([np.asarray(cols[key], float) for key in columns], dtype=float).reshape(len(columns), status.size)
+    Ys = {t: np.where(decided, target_values(cols, t), np.nan) for t in TARGETS}
+    # the targets with the same runs (finite, decided) share one bootstrap draw
+    groups: dict[bytes, list[str]] = {}
+    for t, y in Ys.items():
+        groups.setdefault(np.isfinite(y).tobytes(), []).append(t)
+    res = {}
+    for ts in groups.values():
+        ok = np.isfinite(Ys[ts[0]]) & np.all(np.isfinite(X), axis=0)
+        got = _indices(X[:, ok], np.array([Ys[t][ok] for t in ts]))
+        for j, t in enumerate(ts):
+            for i, key in enumerate(columns):
+                res[(key, t)] = (*got[i][j], int(ok.sum()))
     out = []
     for target in TARGETS:
-        y = np.where(decided, target_values(cols, target), np.nan)
         entries = []
         for key in columns:
-            x = np.asarray(cols[key], float)
-            rho, ci, how = spearman(x, y)
-            entries.append({"key": key, "target": target, "index": rho, "ci95": ci, "method": how,
-                            "runs": int(np.sum(np.isfinite(x) & np.isfinite(y)))})
+            rho, ci, how, runs = res[(key, target)]
+            entries.append({"key": key, "target": target, "index": rho, "ci95": ci, "method": how, "runs": runs})
         entries.sort(key=lambda e: -abs(e["index"]) if e["index"] is not None else 1.0)
         for k, e in enumerate(entries):
             e["rank"] = k + 1
