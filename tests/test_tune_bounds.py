@@ -74,3 +74,58 @@ def test_report_tuning_rows_show_the_margin_tune_ranks_by_labelled(tmp_path):
                   / (sim.t[keep][-1] - sim.t[keep][0]))
     assert rows["e1 RMS after the transient [rad]"][1] == fmt(float(np.max(rms)))
     assert "as in tune's table" in next(k for k, _, _ in sec["rows"] if k.startswith("min margin e1 after"))
+
+
+def test_tracking_constraint_against_an_independent_run(tmp_path):
+    """[tune] tracking = 2: a candidate's constraint is 1 - rms / (2 rms0), rms its nominal e1 RMS after the
+    transient (max over joints) and rms0 the user's design's; both recomputed with numpy from plain runs."""
+    import copy
+
+    import numpy as np
+    import pytest
+
+    from symfunnel.core.toml_write import dumps
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.scenario import load_scenario
+    from symfunnel.synthesis.search import Evaluator, _with_tracking, variables
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["simulation"]["t_final"] = 2.0
+    raw["tune"] = {"parameters": ["controller.k1"], "objective": "peak_torque", "tracking": 2.0}
+    f = tmp_path / "t.toml"
+    f.write_text(dumps(raw), encoding="utf-8")
+    sc = load_scenario(f)
+    ev = Evaluator(sc, sc.tune)
+    vars_ = variables(sc, sc.tune)
+    before = _with_tracking(ev, sc.tune, ev.evaluate(vars_, [5.0]), lambda s: None)
+    assert before.constraints["tracking"] == pytest.approx(0.5)
+    c = ev.evaluate(vars_, [0.1])
+
+    def rms(k1):
+        r = copy.deepcopy(raw)
+        r["controller"]["k1"] = k1
+        g = tmp_path / f"k{k1}.toml"
+        g.write_text(dumps(r), encoding="utf-8")
+        sim = Run(load_scenario(g), RunOptions(t_final=2.0)).simulation
+        keep = sim.t >= sim.margins()["settle_time"] - 1e-12
+        t, e = sim.t[keep], sim.signals["e1"][keep]
+        ise = np.sum(0.5 * (e[1:] ** 2 + e[:-1] ** 2) * np.diff(t)[:, None], axis=0)
+        return float(np.max(np.sqrt(ise / (t[-1] - t[0]))))
+    r0, r1 = rms(5.0), rms(0.1)
+    assert ev.tracking_ref == pytest.approx(r0, rel=1e-9)
+    assert c.constraints["tracking"] == pytest.approx(1 - r1 / (2 * r0), rel=1e-9)
+    assert r1 > 2 * r0 and not c.feasible          # k1 = 0.1 tracks far worse: the constraint rejects it
+
+
+def test_tracking_below_one_is_bad_input(tmp_path, capsys):
+    import copy
+
+    from symfunnel.cli import main
+    from symfunnel.core.toml_write import dumps
+    from symfunnel.scenario import load_scenario
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["tune"] = {"tracking": 0.5}
+    f = tmp_path / "t.toml"
+    f.write_text(dumps(raw), encoding="utf-8")
+    assert main(["tune", str(f), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "tune.tracking" in err[0]

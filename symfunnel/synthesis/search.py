@@ -167,6 +167,7 @@ class Evaluator:
         self.samples = self._samples()
         self.count = 0
         self.rechecks = 0               # evaluations of rounded gains (not counted against --max-evals)
+        self.tracking_ref = None        # the user's design's e1 RMS after the transient ([tune] tracking)
 
     def _samples(self) -> list[dict]:
         """Scenario edits of the N uncertainty samples (none without [[uncertainty]])."""
@@ -226,6 +227,9 @@ class Evaluator:
                 violated += any(v < 0 for v in g.values())
         if self.samples:
             figs["sample_violations"] = violated
+        if self.tracking_ref:           # [tune] tracking: the nominal run's e1 RMS within that factor of the user's
+            rms = figs.get("e1_rms_after_transient", math.nan)
+            cons["tracking"] = (1.0 - rms / (self.spec.tracking * self.tracking_ref)) if math.isfinite(rms) else -1.0
         if self.spec.objective == "min_rate" and cons["containment"] >= 0:
             from ..deployed.rate import min_rate
             r = min_rate(sc, margin=self.spec.margin, design=design, t_final=self.T, rel_tol=0.1,
@@ -383,6 +387,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     from ..core import deadline as DL
     with _whole(m0, wall_limit, "evaluating the user's design"):
         before = ev.evaluate(vars_, user)
+    if spec.tracking is not None:
+        before = _with_tracking(ev, spec, before, say)
     say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
         + ", ".join(f"{k} {g:+.3g}" for k, g in before.constraints.items()))
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
@@ -727,6 +733,20 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
             continue
         say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
         f(r["z"], final=True)
+
+
+def _with_tracking(ev: Evaluator, spec: TuneSpec, before: Candidate, say) -> Candidate:
+    """Set the reference of [tune] tracking from the user's design (its nominal e1 RMS after the transient) and
+    give that design its own tracking constraint (1 - 1/factor); without a reference (the user's run does not reach
+    its settle time) the constraint is left out, said so."""
+    ref = before.figures.get("e1_rms_after_transient")
+    if ref is None or not math.isfinite(ref) or ref <= 0:
+        say("[tune] tracking: the user's design has no e1 RMS after the transient to compare with; left out")
+        return before
+    ev.tracking_ref = float(ref)
+    say(f"[tune] tracking: e1 RMS after the transient at most {spec.tracking:g} x {ref:.4g}")
+    return Candidate(before.xs, {**before.constraints, "tracking": 1.0 - 1.0 / spec.tracking}, before.figures,
+                     before.note, before.worst_run)
 
 
 def _tracking(res) -> dict:
