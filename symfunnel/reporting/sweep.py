@@ -240,16 +240,17 @@ TARGET_NAMES = {"min_margin_after_transient": "min margin after the transient", 
 
 
 def sensitivity_rows(summary: dict) -> list[tuple[str, ...]]:
-    """The ranking of summary.json as table rows: target, rank, quantity, Spearman rho, its 95 % interval."""
+    """The ranking of summary.json as table rows: target, rank, quantity, first-order index with its 95 % interval,
+    Spearman rho (the direction), whether the campaign shows that it matters (interval above 0)."""
     rows = []
     for e in summary.get("sensitivity") or []:
-        ci = e.get("ci95")
-        idx = e.get("index")
-        matters = ci is not None and (ci[0] > 0 or ci[1] < 0)
+        ci, idx, rho = e.get("ci95"), e.get("index"), e.get("spearman")
+        matters = ci is not None and ci[0] > 0
         rows.append((TARGET_NAMES.get(e["target"], e["target"]), str(e.get("rank", "")), e["key"],
-                     "-" if idx is None else f"{idx:+.3f}",
+                     "-" if idx is None else f"{idx:.3f}",
                      "-" if ci is None else f"[{ci[0]:+.3f}, {ci[1]:+.3f}]",
-                     "yes" if matters else "not shown (interval contains 0)" if ci is not None else "-"))
+                     "-" if rho is None else f"{rho:+.3f}",
+                     "yes" if matters else "not shown (interval reaches 0)" if ci is not None else "-"))
     return rows
 
 
@@ -282,10 +283,13 @@ def render_section(sec: dict) -> str:
     sens = sensitivity_rows(s)
     sens_html = ""
     if sens:
-        head = ("target", "rank", "uncertain quantity", "Spearman \u03c1", "95 % interval (bootstrap)", "matters")
-        sens_html = ("<h3>What matters</h3><p>Spearman's rank correlation of each uncertain quantity with the run's "
-                     "margin and peak torque over the decided runs; ranked by |\u03c1| per target. A quantity whose "
-                     "interval contains 0 is not shown to matter by this campaign.</p><table id='sensitivity'><tr>"
+        head = ("target", "rank", "uncertain quantity", "first-order index", "95 % interval (bootstrap)",
+                "Spearman \u03c1 (direction)", "matters")
+        sens_html = ("<h3>What matters</h3><p>The first-order index of each uncertain quantity: the share of the "
+                     "variance of the runs' margin (or peak torque) ranks that the quantity alone explains, whatever "
+                     "the shape of its effect; ranked by it per target, over the decided runs. Spearman's \u03c1 "
+                     "gives the direction of a monotone effect. A quantity whose interval reaches 0 is not shown to "
+                     "matter by this campaign.</p><table id='sensitivity'><tr>"
                      + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>"
                      + "".join("<tr>" + "".join(f"<td>{e(c)}</td>" for c in r) + "</tr>" for r in sens)
                      + "</table>")
