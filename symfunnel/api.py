@@ -122,11 +122,22 @@ def audit(scenario, design=None, *, wall_limit: float | None = None) -> Checks:
 
 @_bounded
 def simulate(scenario, *, t_final: float | None = None, integrator: str | None = None, width: float | None = None,
-             wall_limit: float | None = None, jit: bool = True, rate_hz: float | None = None) -> SimResult:
-    """`symfunnel simulate`: the closed-loop SimResult (`summary()`, `to_json()`, `save_npz()`); `integrator`
-    cvodes | rk | collocation, `width` the smoothing width of the plant's kinks, `jit=False` the CasADi VM."""
-    return run(scenario, t_final=t_final, integrator=integrator, width=width, wall_limit=wall_limit, jit=jit,
-               rate_hz=rate_hz).simulation
+             wall_limit: float | None = None, jit: bool = True, rate_hz: float | None = None,
+             out: str | Path | None = None) -> SimResult:
+    """`symfunnel simulate`: the closed-loop SimResult (`summary()`, `to_json()`, `save()`); `integrator`
+    cvodes | rk | collocation, `width` the smoothing width of the plant's kinks, `jit=False` the CasADi VM; `out`
+    writes the trajectory as `--out` does, by its suffix (.npz, .csv, .mat)."""
+    if out is not None:
+        from .core.outputs import check_output_file
+        from .simulation.export import check_suffix
+        check_suffix(str(out), key="out")
+        check_output_file(out, key="out")
+    r = run(scenario, t_final=t_final, integrator=integrator, width=width, wall_limit=wall_limit, jit=jit,
+            rate_hz=rate_hz)
+    res = r.simulation
+    if out is not None:
+        res.save(out, r.trajectory_arrays() if res.t.size else None)
+    return res
 
 
 @_bounded

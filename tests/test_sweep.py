@@ -64,7 +64,8 @@ def test_rows_identical_for_any_workers_and_parquet_reads_back(reference, tmp_pa
     assert t.column_names == ["run", "initial.q", "plant.mass_scale", "plant.dead_zone.b_r[1]",
                               "plant.dead_zone.b_r[2]", "status", "t_end", "min_margin_e1", "min_margin_e2",
                               "max_abs_tau", "min_margin_e1_after_transient", "min_margin_e2_after_transient",
-                              "settle_time"]
+                              "settle_time", "e1_rms_after_transient", "peak_tau_after_t0", "control_energy",
+                              "chattering"]
     assert str(t.schema.field("run").type) == "int64" and str(t.schema.field("status").type) == "string"
     _same(_rows(tmp_path / "w1" / "results.parquet"), ref)
     _same(t.to_pylist(), ref)

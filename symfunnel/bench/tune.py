@@ -6,7 +6,8 @@ limit; target <= 300 s). Baseline, measured in the same run: one `verify --rate 
 (`tune.tau_max = 200`: the gradient path forced, IPOPT with CVODES sensitivities), beside one continuous-time
 simulation of the printed design; target <= 60 s, with the CPU time of the process and its children beside.
 `tune.paper_max_evals_10_wall_s`: the built-in paper as a user first tunes it (`symfunnel tune --max-evals 10`,
-method auto, default 240 s limit: `within_limit`, `lowers_peak_torque`), beside one continuous-time simulation of it.
+method auto (IPOPT on the paper, chosen by the problem's size), default 240 s limit: `within_limit`,
+`lowers_peak_torque`), beside one continuous-time simulation of it.
 Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
 """
 

@@ -27,10 +27,12 @@ import numpy as np
 
 from ..core.errors import InputError
 from ..core.io import atomic_path, atomic_write, exclusive_lock, json_safe
+from ..simulation.metrics import CAMPAIGN_METRICS, campaign_row
 
 ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "timeout": "failed", "failed": "failed"}
 RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau",
-                  "min_margin_e1_after_transient", "min_margin_e2_after_transient", "settle_time"]
+                  "min_margin_e1_after_transient", "min_margin_e2_after_transient", "settle_time",
+                  *CAMPAIGN_METRICS]
 PARTS = ".results.parts"
 FLUSH_SECONDS = 10.0
 #: a campaign caps CVODES' step at this fraction of the output step unless the scenario sets simulation.max_step:
@@ -201,7 +203,8 @@ def row_of(result, run: int, columns: list[str], values) -> dict:
     row.update({c: float(v) for c, v in zip(columns, values)})
     row.update({"status": ROW_STATUS[result.status], "t_end": float(result.t[-1]) if result.t.size else 0.0,
                 "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau, **post,
-                "settle_time": float(mg["settle_time"])})
+                "settle_time": float(mg["settle_time"]),
+                **campaign_row(result.metrics() if hasattr(result, "metrics") else {})})
     return row
 
 
@@ -253,7 +256,8 @@ def sampled_row_of(result, run: int, columns: list[str], values) -> dict:
     row.update({c: float(v) for c, v in zip(columns, values)})
     row.update({"status": ROW_STATUS[result.status], "t_end": float(result.t[-1]) if result.t.size else 0.0,
                 "min_margin_e1": m1, "min_margin_e2": m2, "max_abs_tau": tau, **post,
-                "settle_time": float(result.stats.get("settle_time", math.nan))})
+                "settle_time": float(result.stats.get("settle_time", math.nan)),
+                **campaign_row(result.metrics())})
     return row
 
 
@@ -309,7 +313,8 @@ def _failed_row(rid, columns, values, exc) -> dict:
     row.update({c: float(v) for c, v in zip(columns, values)})
     row.update({"status": "failed", "t_end": 0.0, "min_margin_e1": math.nan, "min_margin_e2": math.nan,
                 "max_abs_tau": math.nan, "min_margin_e1_after_transient": math.nan,
-                "min_margin_e2_after_transient": math.nan, "settle_time": math.nan})
+                "min_margin_e2_after_transient": math.nan, "settle_time": math.nan,
+                **{k: math.nan for k in CAMPAIGN_METRICS}})
     return row
 
 
@@ -408,7 +413,7 @@ class ResultStore:
     def clear(self) -> None:
         """Forget a previous sweep in this directory (a fresh start)."""
         shutil.rmtree(self.parts, ignore_errors=True)
-        for name in ("results.parquet", "summary.json", "worst.toml", "campaign.json"):
+        for name in ("results.parquet", "results.csv", "summary.json", "worst.toml", "campaign.json"):
             (self.out / name).unlink(missing_ok=True)
 
 
@@ -624,7 +629,8 @@ def summarize(table, columns: list[str]) -> dict:
             "failed": failed, "worst": worst,
             "min_margin": _quantiles(whole), "min_margin_after_transient": _quantiles(post),
             "min_margin_e1_after_transient": _quantiles(p1), "min_margin_e2_after_transient": _quantiles(p2),
-            "max_abs_tau": _quantiles(np.array(d["max_abs_tau"], float))}
+            "max_abs_tau": _quantiles(np.array(d["max_abs_tau"], float)),
+            "metrics": {k: _quantiles(np.array(d[k], float)) for k in CAMPAIGN_METRICS if k in d}}
 
 
 def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
@@ -665,7 +671,8 @@ class SweepResult:
 
 def sweep(scenario, *, runs=None, workers=None, scheduler=None, out=None, resume=False, progress=None,
           chunk_size=None, engine: str | None = None) -> SweepResult:
-    """Run a scenario's campaign; write results.parquet, summary.json and worst.toml into `out`.
+    """Run a scenario's campaign; write results.parquet (and the same as results.csv), summary.json and worst.toml
+    into `out`.
 
     On symfunnel's plant every run is the continuous-time closed loop (as before); on a physics engine (`engine`,
     default the scenario's `[plant] engine`) every run is the deployed controller's sampled loop on it, at the
@@ -758,8 +765,14 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
             client.close()
     table = store.merge()
     shutil.rmtree(store.parts, ignore_errors=True)
+    from .results_csv import write_results_csv
+    write_results_csv(table, out / "results.csv", scenario.model.joint_types, scenario.n)
     s = summarize(table, camp.columns)
+    from .sensitivity import sensitivity
     summary = {k: s[k] for k in ("runs", "breaches", "breach_probability", "ci95", "worst_run")}
+    summary["sensitivity"] = sensitivity(table.to_pydict(), camp.columns)
+    from .results_csv import column_units
+    summary["units"] = column_units(list(table.column_names), scenario.model.joint_types, scenario.n)
     summary.update({"runs_per_second": ex["runs_per_second"], "workers": ex["workers"],
                     "steady_runs_per_second": ex["steady_runs_per_second"],
                     "scenario": scenario.name, "design": camp.sweep.design, "seed": camp.sweep.seed,
@@ -769,7 +782,8 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
                     "min_margin_after_transient": s["min_margin_after_transient"],
                     "min_margin_e1_after_transient": s["min_margin_e1_after_transient"],
                     "min_margin_e2_after_transient": s["min_margin_e2_after_transient"],
-                    "max_abs_tau": s["max_abs_tau"], "out": str(out), "engine": job.engine})
+                    "max_abs_tau": s["max_abs_tau"], "metrics": s["metrics"], "out": str(out),
+                    "engine": job.engine})
     if job.engine != "symfunnel":
         summary["rate_hz"] = float(job.raw["implementation"]["rate_hz"])
     if s["worst_run"] is not None:

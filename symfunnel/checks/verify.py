@@ -281,7 +281,10 @@ def check_bounded(res, design, L: LyapunovTrajectory | None) -> list[CheckResult
     if t.size == 0:
         return [CheckResult(f"bounded.{k}", "skip", "no trajectory", method="simulation")
                 for k in ("tau", "w_hat", "x_esn")]
-    # tau: finite, and not growing at the end of the horizon
+    # tau: finite, and not growing at the end of the horizon (its unit per joint: N m, or N for a prismatic one)
+    from ..core.names import joint_units
+    n_tau = np.asarray(s["tau"]).reshape(len(t), -1).shape[1]
+    tu = [u["tau"] for u in joint_units(getattr(res, "joint_types", None), n_tau)]
     tau = np.asarray(s["tau"])
     fin = bool(np.isfinite(tau).all())
     a = np.abs(tau)
@@ -307,8 +310,10 @@ def check_bounded(res, design, L: LyapunovTrajectory | None) -> list[CheckResult
               f"{1 + TAU_GROWTH_ALLOWANCE:g} x the peak before it (no growth at the end)")
     ok = fin and grow <= TAU_GROWTH_ALLOWANCE
     out.append(CheckResult("bounded.tau", "pass" if ok else "fail",
-                           f"max |tau| = {_g(peak)} at t = {t_peak:.4g} s, joint {j + 1}; last-quarter peak "
-                           f"{_g(late)} vs earlier peak {_g(early)}" + ("" if fin else "; NON-FINITE values"),
+                           f"max |tau| = {_g(peak)} {tu[j]} at t = {t_peak:.4g} s, joint {j + 1}; last-quarter "
+                           f"peak {_g(late)} vs earlier peak {_g(early)} "
+                           f"({tu[0] if len(set(tu)) == 1 else ' | '.join(dict.fromkeys(tu))})"
+                           + ("" if fin else "; NON-FINITE values"),
                            method=method, margin=float(TAU_GROWTH_ALLOWANCE - grow) if fin else None,
                            where={"t": t_peak, "joint": int(j + 1)},
                            evidence={"max_abs": peak, "late_peak": late, "early_peak": early}))
@@ -419,6 +424,8 @@ def verify(scenario, design, closed_loop, result, lyapunov: LyapunovTrajectory |
         checks = [c for c in checks if c.id != f"claim.{claim.name}"]
         checks.append(check_decay_claim(L, fz, claim))
     checks += check_bounded(result, design, L)
+    from .limits import check_limits                         # the URDF's position and velocity limits
+    checks += check_limits(scenario, design, result, t_final)
     engine = engine or getattr(scenario.plant, "engine", "symfunnel")
     if engine != "symfunnel":                                # the engine is the same robot before it is the plant
         from .engine import check_engine_agreement

@@ -11,6 +11,7 @@ def register(sub, common) -> None:
     """Add the `report` subcommand."""
     sp = sub.add_parser("report", help="everything in one self-contained HTML file (default reports/<scenario>.html)")
     common(sp)
+    sp.set_defaults(scenario=None)       # omitted: paper; with --sweep, omitted means "whichever campaign DIR holds"
     sp.add_argument("--out", metavar="PATH",
                     help="where to write the report (default: reports/<built-in name or file stem>.html)")
     sp.add_argument("--t-final", type=float, metavar="T", help="simulate to T seconds (default: the scenario's)")
@@ -40,8 +41,13 @@ def run(args) -> int:
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
     if args.sweep:
         from ..reporting.sweep import write_sweep_page
-        print(write_sweep_page(args.sweep, args.out))
+        name = None
+        if args.scenario is not None:   # `report arm7 --sweep DIR` of another scenario's campaign: refused
+            name = _load(args).name
+        print(write_sweep_page(args.sweep, args.out, scenario_name=name))
         return 0
+    if args.scenario is None:
+        args.scenario = "paper"
     figures = figures_dir(args.figures) if args.figures is not None else None
     sc = _load(args)
     check_output_file(args.out if args.out is not None else default_path(sc))

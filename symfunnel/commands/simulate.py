@@ -1,4 +1,4 @@
-"""`symfunnel simulate [SCENARIO] [--t-final T] [--out FILE.npz] [--json]`: the closed loop, with CasADi integrators."""
+"""`symfunnel simulate [SCENARIO] [--t-final T] [--out FILE.npz|.csv|.mat] [--json]`: the closed loop (CasADi)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ def register(sub, common) -> None:
                                          "controller, ESN, adaptation)")
     common(sp)
     sp.add_argument("--t-final", type=float, metavar="T", help="simulated time in s (default: the scenario's)")
-    sp.add_argument("--out", metavar="FILE.npz", help="write the whole trajectory (time first) to an .npz file")
+    sp.add_argument("--out", metavar="FILE", help="write the whole trajectory (time first) by the suffix: .npz, "
+                    ".csv (units in its # header) or .mat (MATLAB)")
     sp.add_argument("--json", action="store_true", help="print the JSON summary")
     from ..family.integrators import INTEGRATORS
     sp.add_argument("--integrator", choices=INTEGRATORS.names(),
@@ -45,9 +46,9 @@ def run(args) -> int:
     check_seconds(args.wall_limit, key="--wall-limit", allow_none=True)
     if args.width is not None and not (math.isfinite(args.width) and args.width >= 0):
         raise InputError(f"is {args.width:g}", key="--width", expected="a number >= 0")
-    if args.out and not args.out.endswith(".npz"):
-        raise InputError(f"is '{args.out}'", key="--out", expected="a file name ending in .npz")
     if args.out:
+        from ..simulation.export import check_suffix
+        check_suffix(args.out)
         from ..core.outputs import check_output_file
         check_output_file(args.out)
     say = _progress(args.quiet)
@@ -73,7 +74,7 @@ def run(args) -> int:
         from ..core.lifecycle import committing
         arrays = run.trajectory_arrays() if res.t.size else None
         with committing(0 if res.status == "ok" else 1):    # the command's one file: from here on it has succeeded
-            path = res.save_npz(args.out, arrays)
+            path = res.save(args.out, arrays)
         say(f"trajectory written to {path}")
     if args.json:
         print(_dump(summary))
@@ -95,6 +96,39 @@ def _fmt(v, spec=".4g") -> str:
     return str(v)
 
 
+def _unit(s: dict, key: str) -> str:
+    """The unit of a metric over the joints ('rad', or 'rad | m' when they differ)."""
+    seen = []
+    for u in ((s.get("metrics") or {}).get("units") or {}).get(key) or ["?"]:
+        if u not in seen:
+            seen.append(u)
+    return " | ".join(seen)
+
+
+#: the metrics' rows of the text tables: (label, key)
+METRIC_LABELS = (("e1 RMS after the transient", "e1_rms_after_transient"),
+                 ("max |e1| after the transient", "e1_max_after_transient"),
+                 ("overshoot of e1", "overshoot"), ("settling time of e1 (2 % band)", "settling_time"),
+                 ("peak |tau| after the initial decay", "peak_tau_after_t0"),
+                 ("control energy (integral of tau^2)", "control_energy"),
+                 ("chattering (total variation of tau per s)", "chattering"))
+
+
+def _metric_rows(s: dict) -> list[tuple[str, str]]:
+    """The metrics (`simulation.metrics`) as rows 'label [unit]', one value per joint."""
+    per = (s.get("metrics") or {}).get("per_joint") or []
+    if not per:
+        return []
+    rows = []
+    for label, key in METRIC_LABELS:
+        if key == "settling_time":
+            label = f"settling time of e1 ({100 * s['metrics'].get('settling_band_fraction', 0.02):g} % band)"
+        if key.endswith("after_transient") and s["metrics"].get("settle_time") is not None:
+            label += f" (t >= {s['metrics']['settle_time']:g} s)"
+        rows.append((f"{label} [{_unit(s, key)}]", _fmt([m.get(key) for m in per])))
+    return rows
+
+
 def _table(s: dict) -> None:
     print(f"simulation of scenario {s['scenario']}: {s['status']}")
     print(f"  {s['message']}")
@@ -102,11 +136,11 @@ def _table(s: dict) -> None:
         ("simulated time [s]", f"{_fmt(s['t_end'])} of {_fmt(s['t_final'])} ({s['points']} points)"),
         ("min funnel margin e1 (per joint)", _fmt(s["min_margin_e1"])),
         ("min funnel margin e2 (per joint)", _fmt(s["min_margin_e2"])),
-        ("max |e1| [rad]", _fmt(s["max_abs_e1"])),
-        ("max |tau| commanded", _fmt(s["max_abs_tau"])),
-        ("max |tau| applied (after dead zone)", _fmt(s["max_abs_tau_applied"])),
-        ("RMS ESN error |W^T Phi - f_true|", _fmt(s["rms_esn_error"])),
-        ("RMS f_true (scale)", _fmt(s["rms_f_true"])),
+        (f"max |e1| [{_unit(s, 'e1_max_after_transient')}]", _fmt(s["max_abs_e1"])),
+        (f"max |tau| commanded [{_unit(s, 'peak_tau')}]", _fmt(s["max_abs_tau"])),
+        (f"max |tau| applied (after dead zone) [{_unit(s, 'peak_tau')}]", _fmt(s["max_abs_tau_applied"])),
+        (f"RMS ESN error |W^T Phi - f_true| [{_unit(s, 'e1_max_after_transient')}/s^2]", _fmt(s["rms_esn_error"])),
+        (f"RMS f_true (scale) [{_unit(s, 'e1_max_after_transient')}/s^2]", _fmt(s["rms_f_true"])),
         ("integrator", f"{s['integrator']} ({s['code']} code), smoothing width {_fmt(s['smoothing_width'])}"),
         ("steps / RHS / Jacobian evaluations",
          f"{_fmt(s['steps'])} / {_fmt(s['rhs_evaluations'])} / {_fmt(s['jacobian_evaluations'])}"),
@@ -114,6 +148,7 @@ def _table(s: dict) -> None:
         ("wall time [s]", f"{_fmt(s['wall_time'], '.3g')} (compile/load {_fmt(s['compile_time'], '.3g')}, "
                           f"real-time factor {_fmt(s['realtime_factor'], '.4g')})"),
     ]
+    rows += _metric_rows(s)
     if s.get("breach"):
         b = s["breach"]
         rows.append(("breach", f"t = {_fmt(b['time'])} s, funnel {b['funnel']}, joint {b['joint']}, "
@@ -136,7 +171,6 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
 
     On a physics engine without a rate (no --rate, no [implementation]): at twice the minimum rate on that engine."""
     from ._common import _dump
-    from ..core.io import atomic_write
     from ..deployed.loop import simulate_sampled
     from ..pipeline import Run
     design = Run(sc, progress=say).design
@@ -153,14 +187,9 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
     res = simulate_sampled(sc, design, rate_hz=rate, t_final=args.t_final, progress=say, engine=engine)
     summary = res.summary()
     if args.out:
-        import io
-
-        import numpy as np
-        buf = io.BytesIO()
-        np.savez_compressed(buf, t=res.t, q=res.q, dq=res.dq, tau=res.tau, margins=res.margins)
         from ..core.lifecycle import committing
         with committing(0 if res.status == "ok" else 1):
-            atomic_write(args.out, buf.getvalue())
+            res.save(args.out)
         say(f"trajectory written to {args.out}")
     if args.json:
         print(_dump(summary))
@@ -172,8 +201,13 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
                 "plant_substeps", "wall_time", "realtime_factor"]
         if engine != "symfunnel":
             keys[7:7] = ["engine_timestep", "engine_mass_scale", "engine_only", "engine_warnings"]
-        for k in keys:
-            print(f"  {k:<20} {_fmt(summary.get(k))}")
+        tau_u = _unit(summary, "peak_tau")
+        units = {"max_abs_tau": tau_u, "tau_max": tau_u, "wall_time": "s", "engine_timestep": "s"}
+        rows = [(k + (f" [{units[k]}]" if k in units else ""), _fmt(summary.get(k))) for k in keys]
+        rows += _metric_rows(summary)
+        width = max(len(r[0]) for r in rows)
+        for k, v in rows:
+            print(f"  {k:<{width}} {v}")
     if res.status != "ok":
         print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)
         return 1

@@ -90,17 +90,23 @@ def run(args) -> int:
         for c in r.changes:
             print(f"  {c['key']}: {c['before']:.6g} -> {c['after']:.4g}")
         cmp_ = r.comparison
+        from ..core.names import joint_units, unit_label
+        units = joint_units(sc.model.joint_types, sc.n)
+        tu, eu = unit_label(units, "tau"), unit_label(units, "e1")
+        sq, per_s = (f"{eu}^2" if " " not in eu else f"({eu})^2"), (f"{tu}/s" if "|" not in tu else f"({tu})/s")
         if cmp_:
-            print(f"  {'':<22}{'original':>14}{'tuned':>14}")
+            print(f"  {'':<30}{'original':>14}{'tuned':>14}")
             for k, label in (("feasible", "feasible"), ("reached_horizon", "reached horizon"),
-                             ("peak_torque", "peak |tau| [N m]"), ("ise", "ISE e1 [rad^2 s]"),
-                             ("min_margin", "min funnel margin"), ("min_rate_hz", "min rate [Hz]"),
+                             ("peak_torque", f"peak |tau| [{tu}]"), ("ise", f"ISE e1 [{sq} s]"),
+                             ("e1_rms_after_transient", f"e1 RMS after transient [{eu}]"),
+                             ("chattering", f"chattering [{per_s}]"),
+                             ("min_margin", "min margin after transient"), ("min_rate_hz", "min rate [Hz]"),
                              ("sample_violations", "violating samples")):
                 a, b = cmp_["original"].get(k), cmp_["tuned"].get(k)
                 if a is None and b is None:
                     continue
                 cell = (lambda v: "-" if v is None else (str(v) if isinstance(v, (bool, int)) else f"{v:.4g}"))
-                print(f"  {label:<22}{cell(a):>14}{cell(b):>14}")
+                print(f"  {label:<30}{cell(a):>14}{cell(b):>14}")
         for k, g in r.constraints["values"].items():
             print(f"  constraint {k}: {g:+.4g} ({'holds' if g >= 0 else 'violated'}; worst on "
                   f"{r.constraints['worst_run'].get(k, 'nominal')})")
@@ -111,6 +117,8 @@ def run(args) -> int:
                                                       if r.gate.get("unexpected") else ""))
         if r.binding:
             print(f"  binding: {', '.join(r.binding)}")
+        for e in r.at_bounds:
+            print(f"  at a bound: {e['key']} = {e['value']:.4g}, its {e['bound']} bound (was {e['before']:.4g})")
         for n in r.notes:
             print(f"  note: {n}")
         if args.out is not None:

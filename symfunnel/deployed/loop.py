@@ -24,6 +24,7 @@ import ctypes
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -65,6 +66,8 @@ class SampledResult:
     wall_time: float
     stats: dict = field(default_factory=dict)
     between_margins: np.ndarray | None = None     # (K, 2n) per period the smallest true margins over its RK4 steps
+    e1: np.ndarray | None = None                  # (K+1, n) tracking error at the samples
+    joint_types: list | None = None               # the model's joint types: the metrics' units
 
     @property
     def ok(self) -> bool:
@@ -120,7 +123,26 @@ class SampledResult:
                 "saturated_fraction": self.saturated_fraction, "breach": self.breach,
                 "wall_time": self.wall_time,
                 "realtime_factor": float(self.t[-1] / self.wall_time) if self.wall_time > 0 else None,
-                **self.stats}
+                **self.stats, "metrics": self.metrics()}
+
+    def save(self, path) -> Path:
+        """Write t, q, dq, tau (held: one row less), the true margins and e1 at the samples by the file's suffix
+        (.npz, .csv, .mat; `simulation.export`), atomically."""
+        from ..simulation.export import write_trajectory
+        arrays = {"t": self.t, "q": self.q, "dq": self.dq, "tau": self.tau, "margins": self.margins, "e1": self.e1}
+        return write_trajectory(path, arrays, joint_types=self.joint_types or [], n=self.q.shape[1],
+                                meta={} if str(path).lower().endswith(".npz") else
+                                {"scenario": self.scenario, "rate_hz": self.rate_hz, "status": self.status,
+                                 "message": self.message})
+
+    def metrics(self) -> dict:
+        """Per joint, the metrics an engineer reads (`simulation.metrics`): the error at the samples, the held
+        torque (after delay and saturation) over its periods."""
+        from ..simulation.metrics import metrics_block
+        n = self.q.shape[1]
+        e1 = self.e1 if self.e1 is not None else np.full(self.q.shape, np.nan)
+        return metrics_block(self.t, e1, self.tau, float(self.stats.get("settle_time", 0.0)),
+                             self.joint_types or [], n=n, held=True)
 
 
     def _post_transient(self, n: int) -> dict:
@@ -435,8 +457,13 @@ def _result(sc, design, impl, h, k_end, X, TAU, status, message, wall, stats, MB
     from ..simulation.margins import settle_time
     ts, how = settle_time(design, float(horizon if horizon is not None else k_end * h), sc.simulation.settle_time)
     stats = {**stats, "settle_time": ts, "settle_source": how}
+    E1 = np.full(Q.shape, np.nan)
+    if good.any():
+        from ..simulation.between import error_function
+        E1[good[:Q.shape[0]]] = np.array(error_function(design).map(Q.shape[0])(
+            tt[None, :], np.nan_to_num(Q.T))).T[good[:Q.shape[0]]]
     return SampledResult(sc.name, impl.rate_hz, tt, Q, DQ, TAU, M, status, message, breach, impl.tau_max, wall,
-                         stats, between_margins=MB)
+                         stats, between_margins=MB, e1=E1, joint_types=list(sc.model.joint_types or []))
 
 
 def _breach_hint(sc, design, impl, controller, breach, tt, Q, DQ, TAU, k: int) -> str:

@@ -306,8 +306,37 @@ def simulation_section(v, progress, figures_dir=None) -> dict:
               f"{fmt(summ.get('t_min_margin_e2_after_transient'))} s)"),
              (f"max |tau| / |D(tau)| per joint [{unit_label(units, 'tau')}]",
               f"{fmt(summ.get('max_abs_tau'))} / {fmt(summ.get('max_abs_tau_applied'))}"),
-             ("rms ESN error / rms f_true", f"{fmt(summ.get('rms_esn_error'))} / {fmt(summ.get('rms_f_true'))}")]
-    return {"figures": figs, "stats": stats, "status": res.status, "breach": res.breach}
+             (f"rms ESN error / rms f_true [{unit_label(units, 'e1')}/s\u00b2]",
+              f"{fmt(summ.get('rms_esn_error'))} / {fmt(summ.get('rms_f_true'))}")]
+    return {"figures": figs, "stats": stats, "status": res.status, "breach": res.breach,
+            "metrics": metrics_table(summ.get("metrics"))}
+
+
+#: the report's names of the metrics (`simulation.metrics`, docs/metrics.md)
+METRIC_NAMES = {"e1_rms_after_transient": "e1 RMS after the transient", "e1_max_after_transient":
+                "max |e1| after the transient", "overshoot": "overshoot of e1", "settling_time": "settling time of e1",
+                "peak_tau": "peak |tau| (whole run)", "peak_tau_after_t0": "peak |tau| after the initial decay",
+                "control_energy": "control energy \u222b tau\u00b2 dt",
+                "chattering": "chattering (total variation of tau per s)"}
+
+
+def metrics_table(block: dict | None) -> dict | None:
+    """The metrics block of a summary as a table: one row per metric with its unit, one column per joint (a cell
+    carries its own unit where the joints' differ)."""
+    if not block or not block.get("per_joint"):
+        return None
+    per, units = block["per_joint"], block.get("units") or {}
+    rows = []
+    for key, name in METRIC_NAMES.items():
+        us = units.get(key) or [""] * len(per)
+        same = len(set(us)) == 1
+        if key == "settling_time":
+            name += f" (band {100 * block.get('settling_band_fraction', 0.02):g} % of max |e1|)"
+        if key.endswith("after_transient"):
+            name += f" (t \u2265 {fmt(block.get('settle_time'))} s)"
+        cells = [fmt(m.get(key)) + ("" if same or m.get(key) is None else f" {u}") for m, u in zip(per, us)]
+        rows.append((name, us[0] if same else "per joint", cells))
+    return {"joints": [f"joint {j + 1}" for j in range(len(per))], "rows": rows}
 
 
 def decay_claim(sc) -> str | None:
@@ -401,10 +430,27 @@ def tuning_section(run, progress, figures_dir=None) -> dict:
     except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
         return {"available": True, "error": f"{type(exc).__name__}: {exc}"}
     o, t = cmp_["original"], cmp_["tuned"]
+    units = joint_units(sc.model.joint_types, sc.n)
+    tu, eu = unit_label(units, "tau"), unit_label(units, "e1")
+
+    def post(side, key):                 # the margin tune's table shows: the minimum after the transient
+        vals = [v for v in side["simulation"].margins()[f"min_margin_{key}_after_transient"] if v is not None]
+        return fmt(min(vals)) if vals else None
+
+    def metric(side, key):               # docs/metrics.md, the largest over the joints
+        vals = [m[key] for m in side["simulation"].metrics()["per_joint"] if m.get(key) is not None]
+        return fmt(max(vals)) if vals else None
+
+    ts = fmt(t["simulation"].margins()["settle_time"])
     rows = [("status of the continuous-time run", o["status"], t["status"]),
-            ("peak |tau| [N m]", fmt(o["peak_torque"]), fmt(t["peak_torque"])),
-            ("min margin e1", fmt(o["min_margin_e1"]), fmt(t["min_margin_e1"])),
-            ("min margin e2", fmt(o["min_margin_e2"]), fmt(t["min_margin_e2"]))]
+            (f"peak |tau| [{tu}]", fmt(o["peak_torque"]), fmt(t["peak_torque"])),
+            (f"min margin e1 after the transient (t \u2265 {ts} s; as in tune's table)", post(o, "e1"), post(t, "e1")),
+            (f"min margin e2 after the transient (t \u2265 {ts} s; as in tune's table)", post(o, "e2"), post(t, "e2")),
+            ("min margin e1, whole run", fmt(o["min_margin_e1"]), fmt(t["min_margin_e1"])),
+            ("min margin e2, whole run", fmt(o["min_margin_e2"]), fmt(t["min_margin_e2"])),
+            (f"e1 RMS after the transient [{eu}] (largest joint)", metric(o, "e1_rms_after_transient"),
+             metric(t, "e1_rms_after_transient")),
+            (f"chattering [{tu}/s] (largest joint)", metric(o, "chattering"), metric(t, "chattering"))]
     if "min_rate_hz" in t:
         rows.append(("minimum sample rate [Hz]", fmt(o["min_rate_hz"]), fmt(t["min_rate_hz"])))
     if "breach_probability" in t:

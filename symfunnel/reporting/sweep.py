@@ -15,11 +15,14 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import InputError
+from ..simulation.metrics import CAMPAIGN_METRICS
 from .figures import _plt, _with_rc
 
 STATUS_COLORS = {"ok": "C0", "breach": "crimson", "failed": "0.5"}
 FIXED = ("run", "status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau", "min_margin_e1_after_transient",
          "min_margin_e2_after_transient", "settle_time")
+#: the results columns that are neither FIXED (present in every version) nor uncertain: the runs' metrics
+METRIC_COLUMNS = CAMPAIGN_METRICS
 
 
 def load_sweep(directory) -> tuple[dict, dict]:
@@ -78,7 +81,7 @@ def _check_summary(s, file: str) -> None:
 
 def parameters(cols: dict) -> list[str]:
     """The uncertain columns of a results table."""
-    return [k for k in cols if k not in FIXED]
+    return [k for k in cols if k not in FIXED and k not in METRIC_COLUMNS]
 
 
 def _post(cols: dict, key: str) -> np.ndarray:
@@ -91,24 +94,49 @@ def min_margin(cols: dict) -> np.ndarray:
     return np.fmin(_post(cols, "e1"), _post(cols, "e2"))
 
 
+def histogram_range(a: np.ndarray) -> tuple[float, float, int]:
+    """(lo, hi, runs outside) of a histogram that shows its data: the values' own range, or, when a few outliers
+    (deep breaches) would squeeze the rest into one bin, the 1st..99th percentile range; a single value gets a
+    narrow range around it (a visible bar, not a sliver at the edge of [value - 0.5, value + 0.5])."""
+    lo, hi = float(np.min(a)), float(np.max(a))
+    if hi > lo and a.size >= 20:
+        p1, p99 = (float(v) for v in np.quantile(a, [0.01, 0.99]))
+        if p99 > p1 and (p99 - p1) < 0.2 * (hi - lo):
+            return p1, p99, int(np.sum((a < p1) | (a > p99)))
+    if hi == lo:
+        w = max(abs(lo) * 1e-3, 1e-12)
+        return lo - w, hi + w, 0
+    return lo, hi, 0
+
+
 @_with_rc
-def margin_histograms(cols: dict) -> str:
-    """Histograms of the minimum margins of e1 and e2 over the runs, with the breach line at 0."""
+def margin_histograms(cols: dict, tau_unit: str = "N m") -> str:
+    """Histograms of the minimum margins of e1 and e2 and of the peak torque over the runs, each over its data's
+    own range (the breach line at 0 where it falls inside it)."""
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(9.0, 2.6), constrained_layout=True)
     post = {"e1": _post(cols, "e1"), "e2": _post(cols, "e2"), "max_abs_tau": cols["max_abs_tau"]}
     for ax, key, title in ((axes[0], "e1", "min margin e1 after the transient"),
                            (axes[1], "e2", "min margin e2 after the transient"),
-                           (axes[2], "max_abs_tau", "peak |tau| [N m]")):
+                           (axes[2], "max_abs_tau", f"peak |tau| [{tau_unit}]")):
         a = post[key][np.isfinite(post[key])]
-        if key != "max_abs_tau":
-            a = np.maximum(a, -1.0)       # deep breaches (down to -1e3) pile up at -1: the figure is about [0, 1]
+        label = "1 - |e|/F [1]" if key != "max_abs_tau" else f"max over joints and time [{tau_unit}]"
         if a.size:
-            ax.hist(a, bins=min(40, max(5, a.size // 5)), color="C0" if key != "max_abs_tau" else "C2")
-        if key != "max_abs_tau":
-            ax.axvline(0.0, color="crimson", lw=1, ls="--")
+            lo, hi, outside = histogram_range(a)
+            ax.hist(a, bins=min(40, max(5, a.size // 5)), range=(lo, hi),
+                    color="C0" if key != "max_abs_tau" else "C2")
+            ax.set_xlim(lo - 0.02 * (hi - lo), hi + 0.02 * (hi - lo))
+            if key != "max_abs_tau":
+                if lo <= 0.0 <= hi:
+                    ax.axvline(0.0, color="crimson", lw=1, ls="--")
+                elif lo > 0:
+                    label += "; breach (0) left of the range"
+            if outside:
+                label += f"; {outside} runs outside"
+        else:
+            ax.text(0.5, 0.5, "no finite value", ha="center", va="center", transform=ax.transAxes)
         ax.set_title(title, fontsize=9)
-        ax.set_xlabel("1 - |e|/F (clipped at -1)" if key != "max_abs_tau" else "max over joints and time")
+        ax.set_xlabel(label, fontsize=8)
     axes[0].set_ylabel("runs")
     fig.suptitle("Distributions over the campaign (breach: margin <= 0)", fontsize=10)
     return fig
@@ -195,12 +223,35 @@ def breach_region(cols: dict) -> str:
 
 
 def sweep_section(directory) -> dict:
-    """The campaign's summary, its worst run and the figures (SVG), for a report template."""
+    """The campaign's summary, its worst run, the sensitivity ranking and the figures (SVG), for a report template;
+    the breach-region figure only when the campaign has breaches."""
     summary, cols = load_sweep(directory)
+    tau_unit = ((summary.get("units") or {}).get("max_abs_tau")) or "N m"
+    figs = {"histograms": margin_histograms(cols, tau_unit), "margin_vs_parameters": margin_vs_parameters(cols)}
+    if np.any(cols["status"] == "breach"):
+        figs["breach_region"] = breach_region(cols)
     return {"available": True, "directory": str(directory), "summary": summary,
-            "parameters": parameters(cols),
-            "figures": {"histograms": margin_histograms(cols), "margin_vs_parameters": margin_vs_parameters(cols),
-                        "breach_region": breach_region(cols)}}
+            "parameters": parameters(cols), "figures": figs}
+
+
+#: how the sweep page names the sensitivity targets
+TARGET_NAMES = {"min_margin_after_transient": "min margin after the transient", "min_margin":
+                "min margin over the whole run", "max_abs_tau": "peak |tau|"}
+
+
+def sensitivity_rows(summary: dict) -> list[tuple[str, ...]]:
+    """The ranking of summary.json as table rows: target, rank, quantity, first-order index with its 95 % interval,
+    Spearman rho (the direction), whether the campaign shows that it matters (interval above 0)."""
+    rows = []
+    for e in summary.get("sensitivity") or []:
+        ci, idx, rho = e.get("ci95"), e.get("index"), e.get("spearman")
+        matters = ci is not None and ci[0] > 0
+        rows.append((TARGET_NAMES.get(e["target"], e["target"]), str(e.get("rank", "")), e["key"],
+                     "-" if idx is None else f"{idx:.3f}",
+                     "-" if ci is None else f"[{ci[0]:+.3f}, {ci[1]:+.3f}]",
+                     "-" if rho is None else f"{rho:+.3f}",
+                     "yes" if matters else "not shown (interval reaches 0)" if ci is not None else "-"))
+    return rows
 
 
 def render_section(sec: dict) -> str:
@@ -229,15 +280,47 @@ def render_section(sec: dict) -> str:
         if q:
             rows.append((f"{label}: p01 / median / p99", f"{q['p01']:.5g} / {q['median']:.5g} / {q['p99']:.5g}"))
     table = "".join(f"<tr><th>{e(str(k))}</th><td>{e(str(v))}</td></tr>" for k, v in rows)
+    sens = sensitivity_rows(s)
+    sens_html = ""
+    if sens:
+        head = ("target", "rank", "uncertain quantity", "first-order index", "95 % interval (bootstrap)",
+                "Spearman \u03c1 (direction)", "matters")
+        sens_html = ("<h3>What matters</h3><p>The first-order index of each uncertain quantity: the share of the "
+                     "variance of the runs' margin (or peak torque) ranks that the quantity alone explains, whatever "
+                     "the shape of its effect; ranked by it per target, over the decided runs. Spearman's \u03c1 "
+                     "gives the direction of a monotone effect. A quantity whose interval reaches 0 is not shown to "
+                     "matter by this campaign.</p><table id='sensitivity'><tr>"
+                     + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>"
+                     + "".join("<tr>" + "".join(f"<td>{e(c)}</td>" for c in r) + "</tr>" for r in sens)
+                     + "</table>")
     f = sec["figures"]
-    return (f"<section id='sweep'><h2>Robustness campaign</h2><table>{table}</table>"
-            f"<figure>{f['histograms']}</figure><figure>{f['margin_vs_parameters']}</figure>"
-            f"<figure>{f['breach_region']}</figure></section>")
+    figs = "".join(f"<figure>{f[k]}</figure>" for k in ("histograms", "margin_vs_parameters", "breach_region")
+                   if k in f)
+    if "breach_region" not in f:
+        figs += "<p>No run breached a funnel: no breach region to draw.</p>"
+    return (f"<section id='sweep'><h2>Robustness campaign</h2><table>{table}</table>{sens_html}{figs}</section>")
 
 
-def write_sweep_page(directory, out=None) -> Path:
-    """Write the section as a self-contained HTML page (default DIR/sweep.html), atomically; returns its path."""
+def check_campaign_of(directory, scenario_name: str) -> None:
+    """InputError (one line) when the sweep directory holds another scenario's campaign than `scenario_name`."""
+    summary_path = Path(directory) / "summary.json"
+    if not summary_path.is_file():
+        return                              # load_sweep says what is missing
+    from ..core.inputs import loads_json, read_text
+    s = loads_json(read_text(summary_path, expected="summary.json written by `symfunnel sweep`"),
+                   file=str(summary_path), expected="summary.json written by `symfunnel sweep`")
+    name = s.get("scenario") if isinstance(s, dict) else None
+    if name is not None and name != scenario_name:
+        raise InputError(f"is '{name}': the campaign of another scenario", file=str(summary_path), key="scenario",
+                         expected=f"a sweep of '{scenario_name}' (or no scenario argument)")
+
+
+def write_sweep_page(directory, out=None, scenario_name: str | None = None) -> Path:
+    """Write the section as a self-contained HTML page (default DIR/sweep.html), atomically; returns its path.
+    With `scenario_name`, refuse (InputError) a directory holding another scenario's campaign."""
     from ..core.io import atomic_write
+    if scenario_name is not None:
+        check_campaign_of(directory, scenario_name)
     sec = sweep_section(directory)
     title = html.escape(f"symfunnel sweep: {sec['summary'].get('scenario', '')}")
     page = (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{title}</title><style>"

@@ -29,7 +29,7 @@ TUNABLE = {
 #: the specification the user prescribes: never tuned
 SPECIFICATION = ("reference", "funnel.e1")
 OBJECTIVES = ("peak_torque", "ise", "min_rate")
-KEYS = ["parameters", "objective", "margin", "runs", "bounds", "per_joint", "tau_max"]
+KEYS = ["parameters", "objective", "margin", "runs", "bounds", "per_joint", "tau_max", "tracking"]
 DEFAULT_PARAMETERS = ["controller.k1", "controller.k2", "funnel.e2.phi0", "funnel.e2.phi_inf", "funnel.e2.a"]
 
 
@@ -44,6 +44,7 @@ class TuneSpec:
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     per_joint: bool = False
     tau_max: tuple[float, ...] | None = None     # the torque limit of a scenario without [implementation]
+    tracking: float | None = None                # e1 RMS after the transient at most this x the user's design's
 
     def bounds_of(self, key: str) -> tuple[float, float]:
         """The search bounds of a key (the table's, else the documented default)."""
@@ -119,7 +120,10 @@ def parse_tune(table: Any, *, file: str, has_implementation: bool, funnels: dict
                              expected="the torque limit in implementation.tau_max (the deployed controller's)")
         from .implementation import parse_tau_max
         tau_max = parse_tau_max(table, p, n=n, file=file, raw_model=raw_model or {}, base_dir=base_dir or ".")
-    return TuneSpec(keys, objective, margin, runs, bounds, per_joint, tau_max)
+    tracking = None
+    if "tracking" in table:
+        tracking = V.get_float(table, "tracking", None, file=file, prefix=p, minimum=1)
+    return TuneSpec(keys, objective, margin, runs, bounds, per_joint, tau_max, tracking)
 
 
 def current_value(scenario, key: str) -> list[float]:

@@ -56,6 +56,17 @@ def margin_function(design) -> ca.Function:
     return ca.Function("margins", [s["t"], s["q"], s["dq"]], [m])
 
 
+def error_function(design) -> ca.Function:
+    """(t, q) -> the tracking error e1 (n) with the scenario's reference (built once per design)."""
+    known = design.__dict__
+    if "_error_function" not in known:
+        s, S = design.sym, design.signals
+        e1 = ca.substitute([S["e1"]], [s["qd"], s["dqd"], s["ddqd"]],
+                           [design.reference_t[k] for k in ("qd", "dqd", "ddqd")])[0]
+        known["_error_function"] = ca.Function("tracking_error", [s["t"], s["q"]], [e1])
+    return known["_error_function"]
+
+
 class MarginScan:
     """The margins between consecutive samples at SCAN_POINTS - 1 times each, on the linearly interpolated q, dq:
     the funnels, the reference and alpha2 are exact functions of t there, so a dip they make between two samples

@@ -34,6 +34,7 @@ class SimResult:
     n: int = 0
     gamma: float = 1.0
     convergence: dict | None = None
+    joint_types: list | None = None            # the model's joint types: the metrics' units
 
     @property
     def ok(self) -> bool:
@@ -115,9 +116,19 @@ class SimResult:
             "event_counts": self.stats.get("event_counts"),
             "between_points": self.between or None,
         }
+        out["metrics"] = self.metrics()
         if self.convergence is not None:
             out["convergence"] = self.convergence
         return json_safe(out)
+
+    def metrics(self) -> dict:
+        """Per joint, the metrics an engineer reads (`simulation.metrics`) on the output grid, with their units."""
+        from .metrics import metrics_block
+        n = max(self.n, 1)
+        e1 = self.signals.get("e1", np.zeros((0, n)))
+        tau = self.signals.get("tau", np.zeros((0, n)))
+        return metrics_block(self.t, e1, tau, float(self.stats.get("settle_time", 0.0)), self.joint_types or [],
+                             n=n)
 
     def margins(self) -> dict:
         """Whole-run and post-transient margin minima per joint, with their times and the settle time used
@@ -139,24 +150,25 @@ class SimResult:
         import html
         return f"<p>simulation <b>{html.escape(self.status)}</b>: {html.escape(self.message)}</p>"
 
-    def save_npz(self, path, arrays: dict | None = None) -> Path:
+    def save(self, path, arrays: dict | None = None) -> Path:
         """Write the trajectory (time first; `arrays` adds e.g. V and W* of the Lyapunov stage) and the run's
-        metadata to an .npz file, atomically."""
-        from ..core.io import atomic_path
+        metadata, atomically, by the file's suffix: .npz, .csv (units in its header) or .mat (`simulation.export`)."""
+        from .export import write_trajectory
         data = {"t": self.t}
         for k, v in self.signals.items():
             data[k] = np.asarray(v)
         for k, v in (arrays or {}).items():
             data[k] = np.asarray(v)
-        data["status"] = np.array(self.status)
-        data["message"] = np.array(self.message)
-        data["smoothing_width"] = np.array(self.stats.get("smoothing_width", float("nan")))
-        data["integrator"] = np.array(self.stats.get("integrator", ""))
-        path = Path(path)
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **data)
-        return path
+        meta = {"scenario": self.scenario, "status": self.status, "message": self.message,
+                "smoothing_width": self.stats.get("smoothing_width", float("nan")),
+                "integrator": self.stats.get("integrator", "")}
+        if Path(path).suffix.lower() == ".npz":
+            meta.pop("scenario")            # the npz's keys as before
+        return write_trajectory(path, data, joint_types=self.joint_types or [], n=self.n, meta=meta)
+
+    def save_npz(self, path, arrays: dict | None = None) -> Path:
+        """`save` (kept under its first name: any of the suffixes works)."""
+        return self.save(path, arrays)
 
 
 
@@ -231,7 +243,7 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
         breach = {**breach, "hint": hint}
         message += f"; what to do: {hint}"
     res = SimResult(scenario=sc.name, t=t, x=X, signals=signals, status=status, message=message, breach=breach,
-                    stats=stats, n=cl.n, gamma=gamma)
+                    stats=stats, n=cl.n, gamma=gamma, joint_types=list(sc.model.joint_types or []))
     if status == "ok":
         res.message = ok_message(res)
     return res

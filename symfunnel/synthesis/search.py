@@ -52,11 +52,6 @@ GATE_TRIES = 3
 #: share of --wall-limit the search may use; the rest is kept for the re-check after rounding and verify's gate
 #: (the gate of the paper takes 11 s of a 240 s limit here, a new design's first compile adds about 7 s)
 SEARCH_SHARE = 0.8
-#: the gradient path is chosen (method "auto") only when this many IPOPT iterations fit the search's time, each
-#: costing about d + 2 forward solves of the sensitivity problem (one timed forward solve decides, measured in a
-#: child process killed at its share of the time: on the paper one forward solve takes 17 s, so 8 iterations of 7
-#: solves would need about 950 s, and the derivative-free search is chosen)
-MIN_IPOPT_ITERATIONS = 8
 #: significant digits of the gains tune writes (re-checked after rounding; more digits when rounding breaks them)
 DIGITS = 4
 METHODS = ("auto", "gradient", "derivative-free")
@@ -172,6 +167,7 @@ class Evaluator:
         self.samples = self._samples()
         self.count = 0
         self.rechecks = 0               # evaluations of rounded gains (not counted against --max-evals)
+        self.tracking_ref = None        # the user's design's e1 RMS after the transient ([tune] tracking)
 
     def _samples(self) -> list[dict]:
         """Scenario edits of the N uncertainty samples (none without [[uncertainty]])."""
@@ -231,6 +227,9 @@ class Evaluator:
                 violated += any(v < 0 for v in g.values())
         if self.samples:
             figs["sample_violations"] = violated
+        if self.tracking_ref:           # [tune] tracking: the nominal run's e1 RMS within that factor of the user's
+            rms = figs.get("e1_rms_after_transient", math.nan)
+            cons["tracking"] = (1.0 - rms / (self.spec.tracking * self.tracking_ref)) if math.isfinite(rms) else -1.0
         if self.spec.objective == "min_rate" and cons["containment"] >= 0:
             from ..deployed.rate import min_rate
             r = min_rate(sc, margin=self.spec.margin, design=design, t_final=self.T, rel_tol=0.1,
@@ -262,7 +261,7 @@ class Evaluator:
         e1 = res.q[:k + 1] - qd
         ok = np.all(np.isfinite(e1), axis=1)
         h = 1.0 / res.rate_hz
-        figs = {"peak_torque": peak, "ise": float(np.sum(e1[ok] ** 2) * h)}
+        figs = {"peak_torque": peak, "ise": float(np.sum(e1[ok] ** 2) * h), **_tracking(res)}
         return g, figs
 
     def _continuous(self, sc, design) -> tuple[dict, dict]:
@@ -285,7 +284,11 @@ class Evaluator:
             g["saturation"] = 1.0 - use
         e1 = np.asarray(s["e1"]).reshape(len(res.t), -1) if res.t.size else np.zeros((1, 1))
         ise = float(np.trapezoid(np.sum(e1 ** 2, axis=1), res.t)) if res.t.size > 1 else math.inf
-        return g, {"peak_torque": peak, "ise": ise}
+        return g, {"peak_torque": peak, "ise": ise, **_tracking(res),
+                   # the run's size, by which `--method auto` sizes the sensitivity problem (synthesis.choice)
+                   # (a run that stopped early: its steps scaled to the horizon)
+                   "steps": (int(round(res.stats["steps"] * self.T / t_end)) if res.stats.get("steps") and t_end > 0
+                             else None), "states": int(res.x.shape[1])}
 
     def evaluate(self, vars_: list[Variable], xs) -> Candidate:
         """Simulate one candidate (a candidate the scenario's validation rejects gets the constraint `valid` < 0)."""
@@ -334,12 +337,14 @@ class TuneResult:
     tuned_text: str = ""
     rechecks: int = 0
     comparison: dict = field(default_factory=dict)
+    at_bounds: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         """The `--json` output of the contract (plus details)."""
         from ..core.io import json_safe
         return json_safe({"status": self.status, "method": self.method, "why": self.why,
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
+                          "at_bounds": self.at_bounds,
                           "wall_s": self.wall_s, "evaluations": self.evaluations, "rechecks": self.rechecks,
                           "constraints": self.constraints,
                           "uncertainty_samples": self.samples, "confidence_eps_0.05": self.confidence,
@@ -353,9 +358,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     The whole call keeps `wall_limit` seconds (the search stops at SEARCH_SHARE of it, an evaluation in progress
     is interrupted at the limit, IPOPT runs in a child process that is killed at the limit) and at most
     `max_evaluations` full-simulation evaluations of candidates. `method`: "auto" (the gradient path without
-    `[implementation]` when a timed forward solve says MIN_IPOPT_ITERATIONS iterations fit the time, else
-    derivative-free), "gradient" or "derivative-free". Gains are rounded to DIGITS significant digits and the
-    rounded design is re-checked.
+    `[implementation]` when the sensitivity problem's size says enough IPOPT iterations fit the search's share of
+    the limit, `synthesis.choice`, else derivative-free), "gradient" or "derivative-free". Gains are rounded to
+    DIGITS significant digits and the rounded design is re-checked.
     """
     from scipy.optimize import minimize
     from scipy.stats import qmc
@@ -382,6 +387,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     from ..core import deadline as DL
     with _whole(m0, wall_limit, "evaluating the user's design"):
         before = ev.evaluate(vars_, user)
+    if spec.tracking is not None:
+        before = _with_tracking(ev, spec, before, say)
     say("the user's design: " + ("feasible" if before.feasible else "infeasible") + " "
         + ", ".join(f"{k} {g:+.3g}" for k, g in before.constraints.items()))
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
@@ -446,7 +453,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     stopped = None
     if scenario.implementation is None and requested != "derivative-free":
         use, reason = _gradient_sound()
-        gp, timed = None, False
+        gp, sized = None, False
         if use:
             from .gradient import GradientProblem
             try:
@@ -457,10 +464,13 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 reraise_interrupt(exc)
                 use, reason = False, f"the sensitivity problem could not be built ({_last_line(exc)})"
         if use and requested == "auto":
-            use, reason = _gradient_fits(gp, z_user, len(vars_), search_end - time.perf_counter(), say)
-            timed = not use
+            from .choice import gradient_fits
+            use, reason = gradient_fits(before.figures.get("steps"), int(before.figures.get("states") or 0),
+                                        len(vars_), gp.nplants, SEARCH_SHARE * wall_limit)
+            sized = not use
+            say(f"method auto: {'IPOPT' if use else 'derivative-free'}: {reason}")
         if use:
-            method, why = GRADIENT_METHOD, GRADIENT_WHY
+            method, why = GRADIENT_METHOD, GRADIENT_WHY + (f"; method auto: {reason}" if requested == "auto" else "")
             say(f"method: {method} ({why})")
             failed = None
             try:
@@ -482,7 +492,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                 say("falling back to the derivative-free search: " + why)
             elif failed:
                 why = f"{GRADIENT_WHY}; IPOPT stopped with an error ({failed}) after a design that holds"
-        elif timed:
+        elif sized:
             why = f"no [implementation], but the gradient path was not chosen: {reason}"
         else:
             why = f"{WHY_NO_GRADIENT} ({reason})"
@@ -557,6 +567,13 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         if not math.isclose(x, ux, rel_tol=1e-12):
             changes.append({"key": v.name, "before": ux, "after": x})
     _record_deviations(tuned, changes, spec, b, ev, status)
+    from .active import at_bounds, degradations
+    bounds_hit = at_bounds(vars_, b.xs)
+    notes += degradations(before.figures, b.figures)
+    for e in bounds_hit:
+        notes.append(f"{e['key']} ended at its {e['bound']} bound {e['bound_value']:.4g} (was {e['before']:.4g}): "
+                     "the search wanted to go further; check the design's tracking and torque, or widen "
+                     "[tune.bounds] if that is intended")
     name = spec.objective
     return TuneResult(
         status=status, method=method, why=why,
@@ -568,7 +585,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
         gate=gate_info, tuned_raw=tuned, notes=notes,
         tuned_text=tuned_toml(scenario, tuned, sorted({v.key for v in vars_})), rechecks=ev.rechecks,
-        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)})
+        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)}, at_bounds=bounds_hit)
 
 
 def tuned_toml(scenario, tuned: dict, keys: list[str]) -> str:
@@ -680,36 +697,6 @@ def _gradient_sound() -> tuple[bool, str]:
     return True, ""
 
 
-def _gradient_fits(gp, z0, d: int, budget: float, say) -> tuple[bool, str]:
-    """Whether MIN_IPOPT_ITERATIONS IPOPT iterations (about d + 2 forward solves each) fit `budget` seconds: one
-    forward solve is timed in a forked worker (`core.worker.run_killable`) that is killed at its share of the
-    budget."""
-    from ..core import deadline as DL
-    from ..core.lifecycle import reraise_interrupt
-    from ..core.worker import run_killable
-    share = budget / (MIN_IPOPT_ITERATIONS * (d + 2))
-    say(f"timing one forward solve of the sensitivity problem (at most {share:.1f} s, the share that "
-        f"{MIN_IPOPT_ITERATIONS} IPOPT iterations may have)")
-    try:
-        run_killable(_forward_size, gp, np.asarray(z0, float), wall_limit=max(share, 0.05),
-                     what="timing one forward solve of the sensitivity problem")
-    except DL.WallLimitReached:
-        if DL.expired_limit() is not None:            # a limit around tune: it ends the command
-            raise
-        return False, (f"one forward solve of the sensitivity problem takes more than {share:.1f} s, so "
-                       f"{MIN_IPOPT_ITERATIONS} IPOPT iterations of about {d + 2} solves each would not fit the "
-                       f"{budget:.0f} s the search has (measured; force it with --method gradient)")
-    except RuntimeError as exc:
-        reraise_interrupt(exc)
-        return False, f"the sensitivity problem does not evaluate at the user's design ({_last_line(exc)})"
-    return True, ""
-
-
-def _forward_size(gp, z0) -> int:
-    """One forward solve of the sensitivity problem (its constraint values' count: the result is small to send)."""
-    return int(np.asarray(gp.g(z0), float).size)
-
-
 def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
                      max_evaluations: int | None) -> None:
     """IPOPT from the user's values, then from Sobol points, while time remains; every result is judged by `f`
@@ -748,6 +735,28 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
         f(r["z"], final=True)
 
 
+def _with_tracking(ev: Evaluator, spec: TuneSpec, before: Candidate, say) -> Candidate:
+    """Set the reference of [tune] tracking from the user's design (its nominal e1 RMS after the transient) and
+    give that design its own tracking constraint (1 - 1/factor); without a reference (the user's run does not reach
+    its settle time) the constraint is left out, said so."""
+    ref = before.figures.get("e1_rms_after_transient")
+    if ref is None or not math.isfinite(ref) or ref <= 0:
+        say("[tune] tracking: the user's design has no e1 RMS after the transient to compare with; left out")
+        return before
+    ev.tracking_ref = float(ref)
+    say(f"[tune] tracking: e1 RMS after the transient at most {spec.tracking:g} x {ref:.4g}")
+    return Candidate(before.xs, {**before.constraints, "tracking": 1.0 - 1.0 / spec.tracking}, before.figures,
+                     before.note, before.worst_run)
+
+
+def _tracking(res) -> dict:
+    """A run's tracking and chattering (`simulation.metrics`, the largest over the joints): what tune shows beside
+    its objective, so that a design that trades tracking or smoothness for torque says so."""
+    from ..simulation.metrics import campaign_row
+    m = campaign_row(res.metrics())
+    return {"e1_rms_after_transient": m["e1_rms_after_transient"], "chattering": m["chattering"]}
+
+
 def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
     """One column of the original/tuned comparison: torque, margin, saturation, violations among the samples."""
     g = c.constraints
@@ -755,7 +764,9 @@ def _side(c: Candidate, spec: TuneSpec, ev: Evaluator) -> dict:
     out = {"feasible": c.feasible, "reached_horizon": held, "peak_torque": c.figures.get("peak_torque"),
            "ise": c.figures.get("ise") if held else None,
            "min_margin": g["containment"] + spec.margin if held else None,
-           "saturation": g.get("saturation"), "min_rate_hz": c.figures.get("min_rate")}
+           "saturation": g.get("saturation"), "min_rate_hz": c.figures.get("min_rate"),
+           "e1_rms_after_transient": c.figures.get("e1_rms_after_transient") if held else None,
+           "chattering": c.figures.get("chattering") if held else None}
     if ev.samples:
         k = c.figures.get("sample_violations")
         out["sample_violations"] = k
