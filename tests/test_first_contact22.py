@@ -184,7 +184,8 @@ def test_init_urdf_holds_mimic_joints_and_takes_joints(tmp_path, capsys):
 
 def test_tuned_file_keeps_comments_order_and_rounds(tmp_path):
     from symfunnel.scenario import load_scenario
-    from symfunnel.synthesis.search import round_sig, tuned_toml
+    from symfunnel.synthesis.records import tuned_toml
+    from symfunnel.synthesis.search import round_sig
     src = Path(load_scenario("paper").path).read_text(encoding="utf-8")
     (tmp_path / "p.toml").write_text(src, encoding="utf-8")
     sc = load_scenario(tmp_path / "p.toml")

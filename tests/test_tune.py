@@ -95,7 +95,7 @@ def test_infeasible_bounds_exit_1_with_the_binding_constraint(tmp_path, capsys):
 
 @needs_gcc
 def test_saturation_and_containment_constraints_match_an_independent_run(tmp_path):
-    from symfunnel.synthesis.search import Evaluator, variables
+    from symfunnel.synthesis.candidates import Evaluator, variables
     sc = load_scenario(write(tmp_path, paper_doc()))
     ev = Evaluator(sc, sc.tune)
     vs = variables(sc, sc.tune)
@@ -146,7 +146,7 @@ def test_min_rate_needs_an_implementation(tmp_path, capsys):
 
 
 def test_shared_and_per_joint_coordinates(tmp_path):
-    from symfunnel.synthesis.search import apply, variables
+    from symfunnel.synthesis.candidates import apply, variables
     raw = paper_doc(tune={"parameters": ["controller.k2", "adaptation.gamma"]})
     raw["controller"]["k2"] = [10.0, 4.0]
     sc = load_scenario(write(tmp_path, raw))
@@ -164,7 +164,7 @@ def test_shared_and_per_joint_coordinates(tmp_path):
 
 
 def test_scenario_approach_confidence():
-    from symfunnel.synthesis.search import scenario_confidence
+    from symfunnel.synthesis.candidates import scenario_confidence
     # the classical figure: 59 violation-free samples give P(violation) <= 5 % with 95 % confidence, 58 do not
     assert scenario_confidence(59) >= 0.95 > scenario_confidence(58)
     assert scenario_confidence(20, 0.1) == pytest.approx(1 - 0.9 ** 20)

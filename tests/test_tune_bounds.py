@@ -6,7 +6,8 @@ from __future__ import annotations
 import math
 
 from symfunnel.synthesis.active import AT_BOUND, at_bounds
-from symfunnel.synthesis.search import TuneResult, Variable
+from symfunnel.synthesis.candidates import Variable
+from symfunnel.synthesis.search import TuneResult
 
 
 def _var(key="controller.k1", lo=0.1, hi=100.0, base=(5.0, 5.0)):

@@ -32,7 +32,7 @@ def write(tmp_path, raw: dict, name: str = "s.toml"):
 
 def problem(tmp_path, t_final=0.5, grid=50, tune=None, tolerance=(1e-10, 1e-10), **kw):
     from symfunnel.synthesis.gradient import GradientProblem
-    from symfunnel.synthesis.search import variables
+    from symfunnel.synthesis.candidates import variables
     sc = load_scenario(write(tmp_path, paper_doc(t_final, tune or {"tau_max": 200.0})))
     vs = variables(sc, sc.tune)
     gp = GradientProblem(sc, sc.tune, vs, t_final=t_final, tau_max=sc.tune.tau_max, grid_points=grid,
@@ -166,7 +166,7 @@ def test_without_ipopt_the_search_falls_back_and_says_why(tmp_path, monkeypatch)
 
 def test_saturation_constraint_of_the_continuous_loop_matches_an_independent_run(tmp_path):
     from symfunnel.pipeline import Run
-    from symfunnel.synthesis.search import Evaluator, variables
+    from symfunnel.synthesis.candidates import Evaluator, variables
     sc = load_scenario(write(tmp_path, paper_doc(0.5, {"tau_max": [300.0, 100.0]})))
     c = Evaluator(sc, sc.tune).evaluate(variables(sc, sc.tune), [v.user_x() for v in variables(sc, sc.tune)])
     tau = np.abs(Run(sc).simulation.signals["tau"])
@@ -189,7 +189,8 @@ def test_bad_tune_tau_max_exits_2(tmp_path, capsys, tune, implementation, key, w
 
 
 def test_original_document_undoes_tune_records(tmp_path):
-    from symfunnel.synthesis.search import Candidate, Evaluator, _record_deviations, apply, original_document, variables
+    from symfunnel.synthesis.candidates import Candidate, Evaluator, apply, variables
+    from symfunnel.synthesis.records import _record_deviations, original_document
     raw = paper_doc(0.5, {"parameters": ["controller.k1", "controller.k2", "adaptation.gamma"], "per_joint": True})
     raw["controller"]["k2"] = [10.0, 4.0]
     sc = load_scenario(write(tmp_path, raw))

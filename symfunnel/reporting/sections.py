@@ -420,7 +420,7 @@ def implementation_section(run, progress) -> dict:
 def tuning_section(run, progress, figures_dir=None) -> dict:
     """Original against tuned design side by side, when the scenario carries `symfunnel tune`'s `[[deviations]]`
     records (the original is those records undone): torque, margins, minimum rate, breach probability, a figure."""
-    from ..synthesis.search import compare_designs, tune_records
+    from ..synthesis.records import compare_designs, tune_records
     sc = run.scenario
     if not tune_records(sc.raw):
         return {"available": False}

@@ -17,7 +17,7 @@ AT_BOUND = 1e-3
 
 
 def at_bounds(vars_, xs) -> list[dict]:
-    """The coordinates (`synthesis.search.Variable`) whose value ended at a bound of [tune.bounds] (an active
+    """The coordinates (`synthesis.candidates.Variable`) whose value ended at a bound of [tune.bounds] (an active
     bound: the search was stopped by it, not by the constraints or the objective), with the bound and the user's
     value."""
     out = []
@@ -31,7 +31,7 @@ def at_bounds(vars_, xs) -> list[dict]:
 
 
 def degradations(before: dict, after: dict, factor: float = DEGRADED) -> list[str]:
-    """Notes for the figures (`synthesis.search._tracking`) that grew by more than `factor` from the user's design
+    """Notes for the figures (`synthesis.candidates._tracking`) that grew by more than `factor` from the user's design
     to the tuned one: the e1 RMS after the transient and the chattering index (docs/metrics.md)."""
     out = []
     for key, what in (("e1_rms_after_transient", "the e1 RMS after the transient (tracking)"),

@@ -50,7 +50,7 @@ def ipopt_available() -> bool:
 
 
 def design_values(scenario, vars_, z: ca.SX) -> dict:
-    """The tunable keys as expressions of the log-scale coordinates z (each Variable of `synthesis.search.variables`)."""
+    """The tunable keys as expressions of the log-scale coordinates z (each Variable of `synthesis.candidates.variables`)."""
     from ..scenario.tune import TUNABLE
     n = scenario.n
     vals: dict[str, list] = {}
