@@ -1,0 +1,557 @@
+"""`certify.sampled`: the deployed controller's funnels over one sampling period, proven for a rate f = 1/h.
+
+The set S of states at a sampling instant t_k in [0, T]: |e1_j| <= (1 - m1) F1_j(t_k), |e2_j| <= (1 - m2) F2_j(t_k),
+x_esn in its invariant box |x_i| <= 1/leak, W_hat in a box (declared, or the simulated run's range widened), every
+parameter of the box (the dead zone's breakpoints and scales included). `SampledSet` is the seam: today S is declared
+(margins by option); a containment certificate can hand over its own S later.
+
+In the normalised errors sigma_i = e_i / F_i (the region coordinates s of `region.region_signals` at m = 0) the plant
+under the held torque u_k is the non-autonomous ODE
+
+    sigma_i' = (e_i' - sigma_i F_i') / F_i,   e1' = dq - dqd,   e2' = ddq_plant(t, q, dq, u_k, p) - alpha2_dot,
+
+written on the design's own graph (rewritten over the region, so F - |e| is never a cancellation). For a box K of
+sample states (t_k, sigma_k, p, controller states) and h:
+
+1. u_k: the enclosure of the C step's torque over K (`emit.step.step_core`'s tau: the design's torque, saturated at
+   tau_max; the step's projection onto the funnels is the identity on S since m >= 1 - CLIP);
+2. a-priori enclosure (first-order Picard): a box Sigma with K_sigma + [0, h] sigma'([t_k, t_k + h], Sigma, u_k, p)
+   inside Sigma encloses sigma(t) on the whole period;
+3. (a) Sigma within |sigma| <= 1 - M (the funnels with the rate's margin M between the samples) and (b) the next
+   sample sigma_k + h sigma'(...) within S's margins; W_hat's exponential-Euler update stays in its box (an affine
+   update: W+ = b W + phi A, b = 1 - phi c in [0, 1], so A's enclosure inside c times the box suffices, whatever h);
+   x_esn's update is the convex combination exp(-lambda h) x + (1 - exp(-lambda h)) tanh(.)/leak (emit.step's ETD
+   lemma), inside its box at every h.
+
+Boxes failing a check are bisected (t, sigma and the uncertain parameters; the controller states are never split);
+the interior of S passes in large boxes, the layer within one period's reach of its faces is refined. Proven at h
+is proven at every h' <= h (each condition is monotone in h on the same boxes), so bisection in h gives f_proven.
+A point of S whose degenerate box fails ends the search at that h early (the method cannot prove it there; that is
+not a refutation: only a sampled run that breaches refutes a rate).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from ..core.errors import InputError
+from ..emit.step import CLIP, etd_factor
+from ..plant.equations import plant_acceleration, plant_parameters
+from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
+from ..sx.interval import IntervalError
+from .problem import Budget, Context, controller_state_boxes
+from .region import region_signals
+from .result import Certificate
+
+CID = "certify.sampled"
+#: S's margins when none are given: twice the rate's margin M (the slack the theory bound needs), at least 0.1
+DEFAULT_SET_MARGIN = 0.1
+#: boxes evaluated per batch
+BATCH = 256
+#: Picard iterations before a box's a-priori enclosure counts as not found
+PICARD_ITERATIONS = 8
+#: a failing box thinner than this (relative to S) in every split variable ends the search at that h
+THIN = 1e-4
+#: random sample points screened (as degenerate boxes) before a branch and bound at one h
+SCREEN_POINTS = 128
+
+
+@dataclass
+class SampledSet:
+    """S: the states at a sampling instant the certificate starts from and returns to (the seam for a containment
+    certificate's set: `source` says where it comes from)."""
+
+    m1: float
+    m2: float
+    states: dict = field(default_factory=dict)        # controller-state boxes {name: (lo, hi)}
+    source: str = "declared"
+    notes: dict = field(default_factory=dict)
+
+    def describe(self, t_final: float) -> dict:
+        """The contract's region dict of S."""
+        return {"t": [0.0, float(t_final)], "margin": {"e1": self.m1, "e2": self.m2}, "source": self.source,
+                **self.notes}
+
+
+def declared_set(ctx: Context, m1: float, m2: float, w_box=None, w_source: str | None = None) -> SampledSet:
+    """S with margins (m1, m2), x_esn in its invariant box and W_hat in `w_box` (else the bounds certificate's box:
+    the run's range widened by its own width)."""
+    for k, m in (("e1", m1), ("e2", m2)):
+        if not (isinstance(m, (int, float)) and math.isfinite(m) and 1.0 - CLIP <= m < 1.0):
+            raise InputError(f"is {m!r}", file=ctx.scenario.file, key=f"--set-margin ({k})",
+                             expected=f"a margin in [{1 - CLIP:g}, 1) (the step projects at {CLIP:g} F)")
+    notes = {}
+    w = None
+    if ctx.design.n_regressor:
+        if w_box is None:
+            from .bounds import w_hat_box
+            w_box, w_source = w_hat_box(ctx)
+        w = w_box
+        notes["w_hat"] = w_source
+    if "x_esn" in dict(ctx.design.states):
+        notes["x_esn"] = "the reservoir's invariant box |x_i| <= 1/leak"
+    states = controller_state_boxes(ctx, w) if (w is not None or not ctx.design.n_regressor) else {}
+    return SampledSet(float(m1), float(m2), states, "declared", notes)
+
+
+def _check(f: ca.Function, file: str, what: str, wrt=None):
+    try:
+        return BatchCenteredForm(f, wrt) if wrt else BatchIntervalFunction(f)
+    except IntervalError as exc:
+        raise InputError(f"cannot be certified: {exc}", file=file, key=what,
+                         expected="signals built from operations with interval rules") from None
+
+
+class OnePeriod:
+    """The one-period map's interval pieces for one design and parameter box: the held torque over a box of sample
+    states, the normalised errors' rates under a held torque, and W_hat's update (see the module doc)."""
+
+    def __init__(self, ctx: Context, S: SampledSet, tau_max=None):
+        d, sc = ctx.design, ctx.scenario
+        n = d.n
+        self.ctx, self.S, self.n = ctx, S, n
+        P = ctx.params
+        self.wide = np.flatnonzero(P.lo < P.hi)
+        names, _ = plant_parameters(sc)
+        p = ca.SX.sym("p", len(names))
+        pu = ca.SX.sym("p", int(self.wide.size))
+        full = [ca.SX(float(v)) for v in P.nominal]
+        for i, j in enumerate(self.wide):
+            full[j] = pu[i]
+        Sg, sym = d.signals, d.sym
+        tau = Sg["tau"]
+        if tau_max is not None:
+            tm = ca.DM(np.broadcast_to(np.asarray(tau_max, float), (n,)).copy())
+            tau = ca.fmin(ca.fmax(tau, -tm), tm)
+        u = ca.SX.sym("u", n)
+        ddq = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], u, 0.0, p=p)["ddq"]
+        de1 = sym["dq"] - sym["dqd"]
+        de2 = ddq - Sg["alpha2_dot"]
+        rates = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
+                           (de2 - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
+        exprs = {"tau": tau, "rate": rates}
+        self.w_rate = None
+        if "w_hat" in sym:
+            W = sym["w_hat"]
+            wdot = Sg["w_hat_dot"]
+            J = ca.jacobian(ca.vec(wdot), ca.vec(W))
+            c = None
+            try:
+                Jd = np.asarray(ca.evalf(J), float)
+            except RuntimeError:        # W_hat's rate is not affine in W_hat with a constant Jacobian
+                Jd = None
+            if Jd is not None:
+                diag = np.diag(Jd)
+                if np.all(Jd - np.diag(diag) == 0) and np.all(diag == diag[0]) and diag[0] < 0:
+                    c = -float(diag[0])
+            if c is not None:
+                exprs["w_affine"] = ca.vec(ca.substitute(wdot, W, ca.SX.zeros(*W.shape)))
+                self.w_rate = c
+        exprs = dict(zip(exprs, ca.substitute(list(exprs.values()), [p], [ca.vertcat(*full)])))
+        ins, outs, onames, states, _ = region_signals(d, exprs)
+        self.state_names = [k for k, _ in d.states]
+        t, s1, s2, m = ins
+        opts = {"cse": True, "allow_duplicate_io_names": True}
+        o = dict(zip(onames, outs))
+        base = [t, s1, s2, m, pu]
+        bnames = ["t", "s1", "s2", "m", "p"]
+        self.tau_f = ca.Function("held_tau", base + states, [o["tau"]], bnames + self.state_names, ["tau"], opts)
+        self.tau = _check(self.tau_f, sc.file, "signal tau", ["t", "s1", "s2", "p"])
+        self.rate_f = ca.Function("sigma_rate", base + [u] + states, [o["rate"]],
+                                  bnames + ["u"] + self.state_names, ["rate"], opts)
+        self.rate = _check(self.rate_f, sc.file, "the normalised errors' rates", ["t", "s1", "s2", "p", "u"])
+        # the next sample to second order: sigma_k + h sigma'(t_k, sigma_k, u_k) (one function of the sample
+        # state, so its centered form keeps the correlation of sigma_k with its own rate) plus h^2/2 sigma'' over
+        # the period's enclosure, sigma'' = d sigma'/dt + d sigma'/d sigma sigma' (u held)
+        hs = ca.SX.sym("h")
+        sig = ca.vertcat(s1, s2)
+        nxt = sig + hs * ca.substitute(o["rate"], u, o["tau"])
+        self.next_f = ca.Function("next_sample", base + [hs] + states, [nxt], bnames + ["h"] + self.state_names,
+                                  ["next"], opts)
+        self.next = _check(self.next_f, sc.file, "the next sample", ["t", "s1", "s2", "p"])
+        acc = ca.jacobian(o["rate"], t) + ca.mtimes(ca.jacobian(o["rate"], sig), o["rate"])
+        self.acc_f = ca.Function("sigma_acc", base + [u] + states, [acc], bnames + ["u"] + self.state_names,
+                                 ["acc"], opts)
+        self.acc = _check(self.acc_f, sc.file, "the normalised errors' second derivative", None)
+        self.w_f = None
+        if self.w_rate is not None:
+            self.w_f = ca.Function("w_affine", base + states, [o["w_affine"]], bnames + self.state_names, ["A"],
+                                   opts)
+            self.w_aff = _check(self.w_f, sc.file, "signal w_hat_dot", None)
+        # flat layout: [t, s1 (n), s2 (n), m, p (np), states...]; the rate function has u (n) after p
+        self.np = int(self.wide.size)
+        self.i_p = 2 * n + 2
+        self.i_st = self.i_p + self.np
+        st_lo, st_hi = [], []
+        F = self.tau.natural
+        for k in self.state_names:
+            lo, hi = S.states[k]
+            i = F.in_names.index(k)
+            a, b = np.asarray(lo, float).reshape(-1, order="F"), np.asarray(hi, float).reshape(-1, order="F")
+            assert a.size == F.in_off[i + 1] - F.in_off[i]
+            st_lo.append(a)
+            st_hi.append(b)
+        self.st_lo = np.concatenate(st_lo) if st_lo else np.zeros(0)
+        self.st_hi = np.concatenate(st_hi) if st_hi else np.zeros(0)
+        self.dim = self.i_st                      # the split part: t, s1, s2, m, p (m is a point)
+        self.lim_S = np.concatenate([np.full(n, 1 - S.m1), np.full(n, 1 - S.m2)])
+
+    def box(self, t_final: float) -> tuple[np.ndarray, np.ndarray]:
+        """The flat box of S (without the controller states)."""
+        n = self.n
+        P = self.ctx.params
+        lo = np.concatenate([[0.0], -self.lim_S, [0.0], P.lo[self.wide]])
+        hi = np.concatenate([[float(t_final)], self.lim_S, [0.0], P.hi[self.wide]])
+        assert lo.size == self.dim and n >= 1
+        return lo, hi
+
+    def split_vars(self, lo, hi) -> np.ndarray:
+        """Flat indices bisected: t, s1, s2 and the uncertain parameters."""
+        return np.array([j for j in range(self.dim) if j != 2 * self.n + 1 and lo[j] < hi[j]], dtype=int)
+
+    def _full(self, LO, HI):
+        K = LO.shape[0]
+        return (np.concatenate([LO, np.repeat(self.st_lo[None, :], K, 0)], axis=1),
+                np.concatenate([HI, np.repeat(self.st_hi[None, :], K, 0)], axis=1))
+
+    def check(self, LO: np.ndarray, HI: np.ndarray, h: float, M: float) -> tuple[np.ndarray, dict]:
+        """Per box (rows of the flat split part), whether both funnels with margin M on the period and the return
+        to S are proven at period h; and the enclosures (sigma' box, a-priori Sigma) for the record."""
+        n = self.n
+        K = LO.shape[0]
+        FL, FH = self._full(LO, HI)
+        UL, UH, _ = self.tau.eval_batch(FL, FH)
+        ok = np.all(np.isfinite(UL) & np.isfinite(UH), axis=1)
+        sl = slice(1, 2 * n + 1)
+        kl, kh = LO[:, sl], HI[:, sl]
+        lim_M = 1.0 - M
+        # Picard: Sigma_{j+1} = K + [0, h] f(T, Sigma_j); valid once Sigma_{j+1} is inside Sigma_j
+        wl, wh = kl.copy(), kh.copy()
+        valid = np.zeros(K, dtype=bool)
+        DL = np.full((K, 2 * n), -np.inf)
+        DH = np.full((K, 2 * n), np.inf)
+        SL, SH = wl.copy(), wh.copy()
+        tl, th = LO[:, 0], _up(HI[:, 0] + h)
+        for it in range(PICARD_ITERATIONS):
+            live = ok & ~valid
+            if not live.any():
+                break
+            idx = np.flatnonzero(live)
+            RL, RH = self._rate_in(FL[idx], FH[idx], tl[idx], th[idx], wl[idx], wh[idx], UL[idx], UH[idx])
+            fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
+            nl = _dn(kl[idx] + h * np.minimum(RL, 0.0))
+            nh = _up(kh[idx] + h * np.maximum(RH, 0.0))
+            inside = fin & np.all((nl >= wl[idx]) & (nh <= wh[idx]), axis=1)
+            good = idx[inside]
+            valid[good] = True
+            DL[good], DH[good] = RL[inside], RH[inside]
+            SL[good], SH[good] = wl[good], wh[good]
+            bad = idx[~fin]
+            ok[bad] = False
+            grow = idx[fin & ~inside]
+            g = np.flatnonzero(fin & ~inside)
+            # inflate: the new bounds, widened by a tenth of their width and an absolute 1e-9
+            w = nh[g] - nl[g]
+            wl[grow] = _dn(np.minimum(wl[grow], nl[g] - 0.1 * w - 1e-9))
+            wh[grow] = _up(np.maximum(wh[grow], nh[g] + 0.1 * w + 1e-9))
+            # an enclosure that leaves the funnels with margin M cannot pass (a): stop inflating it
+            out = np.any((wl[grow] < -lim_M) | (wh[grow] > lim_M), axis=1)
+            ok[grow[out]] = False
+        ok &= valid
+        # (a) the funnels with margin M over the whole period
+        ok &= np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
+        # (b) the next sample in S: first order K + h D, and where that fails the second-order form
+        el = _dn(kl + h * DL)
+        eh = _up(kh + h * DH)
+        first = np.all((el >= -self.lim_S) & (eh <= self.lim_S), axis=1)
+        need = np.flatnonzero(ok & ~first)
+        if need.size:
+            i = need
+            NL, NH, _ = self.next.eval_batch(*self._with_h(FL[i], FH[i], h))
+            AL, AH = self._acc_in(FL[i], FH[i], tl[i], th[i], SL[i], SH[i], UL[i], UH[i])
+            r = _up(0.5 * h * h)
+            el2 = _dn(NL + _dn(r * np.minimum(AL, 0.0)))
+            eh2 = _up(NH + _up(r * np.maximum(AH, 0.0)))
+            second = np.all(np.isfinite(el2) & np.isfinite(eh2) & (el2 >= -self.lim_S) & (eh2 <= self.lim_S), axis=1)
+            first[i] = second
+        ok &= first
+        if self.w_f is not None and ok.any():
+            idx = np.flatnonzero(ok)
+            AL, AH, _ = self.w_aff.eval_batch(FL[idx], FH[idx])
+            c = self.w_rate
+            wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
+            good = np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
+            ok[idx[~good]] = False
+        return ok, {"DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH}
+
+    def _with_h(self, FL, FH, h):
+        i = self.i_st
+        col = np.full((FL.shape[0], 1), float(h))
+        return (np.concatenate([FL[:, :i], col, FL[:, i:]], axis=1), np.concatenate([FH[:, :i], col, FH[:, i:]], axis=1))
+
+    def _acc_in(self, FL, FH, tl, th, sl, sh, UL, UH):
+        """sigma'' over the period's enclosure (the same inputs as `_rate_in`)."""
+        n = self.n
+        RLo = np.concatenate([tl[:, None], sl, FL[:, 2 * n + 1:self.i_st], UL, FL[:, self.i_st:]], axis=1)
+        RHi = np.concatenate([th[:, None], sh, FH[:, 2 * n + 1:self.i_st], UH, FH[:, self.i_st:]], axis=1)
+        L, H, _ = self.acc.eval_batch(RLo, RHi)
+        return L, H
+
+    def _rate_in(self, FL, FH, tl, th, sl, sh, UL, UH):
+        """sigma' over (time [tl, th], sigma box, the parameters, u box, the states)."""
+        n = self.n
+        RLo = np.concatenate([tl[:, None], sl, FL[:, 2 * n + 1:self.i_st], UL, FL[:, self.i_st:]], axis=1)
+        RHi = np.concatenate([th[:, None], sh, FH[:, 2 * n + 1:self.i_st], UH, FH[:, self.i_st:]], axis=1)
+        L, H, _ = self.rate.eval_batch(RLo, RHi)
+        return L, H
+
+
+def _dn(x):
+    return np.nextafter(x, -np.inf)
+
+
+def _up(x):
+    return np.nextafter(x, np.inf)
+
+
+def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes: int, expiry=None,
+                 rng_seed: int = 20241205) -> dict:
+    """Branch and bound over S at period h: {"proven": bool, "boxes", "left": undecided volume fraction, "reason"}."""
+    lo, hi = op.box(t_final)
+    split = op.split_vars(lo, hi)
+    scale = np.where(hi - lo > 0, hi - lo, 1.0)
+    # screen: points of S (random, and on its faces) as degenerate boxes
+    rng = np.random.default_rng(rng_seed)
+    X = lo + rng.random((SCREEN_POINTS, lo.size)) * (hi - lo)
+    sl = slice(1, 2 * op.n + 1)
+    X[: SCREEN_POINTS // 2, sl] = np.where(rng.random((SCREEN_POINTS // 2, 2 * op.n)) < 0.5, lo[sl], hi[sl])
+    okp, _ = op.check(X, X, h, M)
+    if not okp.all():
+        x = X[int(np.argmin(okp))]
+        return {"proven": False, "boxes": SCREEN_POINTS, "left": 1.0, "reason": "point", "point": x}
+    # breadth-first: the oldest (largest) boxes first, so what is left shrinks evenly over S
+    LO, HI, V = lo[None, :].copy(), hi[None, :].copy(), np.array([1.0])
+    boxes = 0
+    while LO.shape[0]:
+        take = min(BATCH, LO.shape[0])
+        cur_lo, cur_hi, cur_v = LO[:take], HI[:take], V[:take]
+        LO, HI, V = LO[take:], HI[take:], V[take:]
+        ok, _ = op.check(cur_lo, cur_hi, h, M)
+        boxes += take
+        bad = ~ok
+        if not bad.any():
+            continue
+        BL, BH, BV = cur_lo[bad], cur_hi[bad], cur_v[bad]
+        rel = (BH[:, split] - BL[:, split]) / scale[split]
+        left = float(BV.sum() + V.sum())
+        if np.any(np.max(rel, axis=1) < THIN):
+            return {"proven": False, "boxes": boxes, "left": left, "reason": "thin"}
+        if boxes >= max_boxes or (expiry is not None and time.monotonic() >= expiry):
+            return {"proven": False, "boxes": boxes, "left": left,
+                    "reason": "boxes" if boxes >= max_boxes else "seconds"}
+        k = split[np.argmax(rel, axis=1)]
+        r = np.arange(BL.shape[0])
+        mid = 0.5 * BL[r, k] + 0.5 * BH[r, k]
+        h1 = BH.copy()
+        h1[r, k] = mid
+        l2 = BL.copy()
+        l2[r, k] = mid
+        LO = np.concatenate([LO, BL, l2])
+        HI = np.concatenate([HI, h1, BH])
+        V = np.concatenate([V, BV / 2, BV / 2])
+    return {"proven": True, "boxes": boxes, "left": 0.0, "reason": None}
+
+
+# --- the rate: bisection in h ------------------------------------------------------------------------------
+
+#: the highest rate tried (the simulated search's ceiling)
+MAX_RATE_HZ = 1e6
+#: the bracket [not proven, proven] ends below this ratio
+RATE_REL_TOL = 0.1
+#: boxes per period h tried (a deterministic budget; --wall-limit can only end a search earlier)
+BOXES_PER_RATE = 40000
+
+
+def initial_in_set(ctx: Context, S: SampledSet) -> tuple[bool, list]:
+    """Whether the scenario's initial state (t = 0) lies in S, and its normalised errors e/F."""
+    d, sc = ctx.design, ctx.scenario
+    qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(0.0))
+    F1, F2 = (np.asarray(v, float).ravel() for v in d.function("funnel_bounds", ["t"], ["F1", "F2"])(0.0))
+    q0, dq0 = np.asarray(sc.q0, float), np.asarray(sc.dq0, float)
+    a2 = np.asarray(d.function("alpha2", ["t", "q", "qd", "dqd"])(0.0, q0, qd, dqd), float).ravel()
+    sig = np.concatenate([(q0 - qd) / F1, (dq0 - a2) / F2])
+    inside = bool(np.all(np.abs(sig[:d.n]) <= 1 - S.m1) and np.all(np.abs(sig[d.n:]) <= 1 - S.m2))
+    if ctx.params.q0 is not None or ctx.params.dq0 is not None:
+        inside = False              # an initial-state box: not checked here (the detail says so)
+    return inside, sig.tolist()
+
+
+def theory_rate(op: OnePeriod, S: SampledSet, M: float, t_final: float, max_boxes: int = 3000) -> dict:
+    """The sampled-data funnel literature's intersample reach-time bound with rigorous constants: from a sample
+    state in S (margins m_i) the normalised error sigma_i needs at least (m_i - M) / L_i to reach the margin M, where
+    L_i = sup |sigma_i'| over the funnel set |sigma| <= 1 - M, the parameter box and every torque the step outputs on
+    S; h_theory = min_i (m_i - M) / L_i. Null when some m_i <= M or an L_i has no finite bound."""
+    from ..sx.search import extrema
+    n = op.n
+    gaps = np.concatenate([np.full(n, S.m1 - M), np.full(n, S.m2 - M)])
+    if np.any(gaps <= 0):
+        return {"rate_hz": None, "reason": f"S's margins ({S.m1:g}, {S.m2:g}) leave no gap above the rate's margin "
+                                           f"M = {M:g}"}
+    lo, hi = op.box(t_final)
+    FL, FH = op._full(lo[None, :], hi[None, :])
+    split = op.split_vars(lo, hi)
+    F = op.tau
+    objs = [(j, s) for j in range(n) for s in (1.0, -1.0)]
+    ex = extrema(F, FL[0], FH[0], split, objs, max_boxes=max_boxes, rel_tol=0.05)
+    ulo = np.array([ex[2 * j].bound for j in range(n)])
+    uhi = np.array([-ex[2 * j + 1].bound for j in range(n)])
+    if not (np.all(np.isfinite(ulo)) and np.all(np.isfinite(uhi))):
+        return {"rate_hz": None, "reason": "the step's torque over S has no finite enclosure"}
+    lim = 1.0 - M
+    # the rate function over [0, T] x |sigma| <= 1 - M x p x U x states
+    P = op.ctx.params
+    rl = np.concatenate([[0.0], np.full(2 * n, -lim), [0.0], P.lo[op.wide], ulo, op.st_lo])
+    rh = np.concatenate([[float(t_final)], np.full(2 * n, lim), [0.0], P.hi[op.wide], uhi, op.st_hi])
+    rsplit = np.array([j for j in range(rl.size) if j != 2 * n + 1 and j < op.i_st + n and rl[j] < rh[j]], dtype=int)
+    objs = [(i, s) for i in range(2 * n) for s in (1.0, -1.0)]
+    er = extrema(op.rate, rl, rh, rsplit, objs, max_boxes=max_boxes, rel_tol=0.05)
+    L = np.array([max(-er[2 * i].bound, -er[2 * i + 1].bound) for i in range(2 * n)])
+    if not np.all(np.isfinite(L)):
+        return {"rate_hz": None, "reason": "sup |sigma'| over the funnel set has no finite bound within the budget"}
+    with np.errstate(divide="ignore"):
+        hs = np.where(L > 0, gaps / L, np.inf)
+    h = float(np.min(hs))
+    return {"rate_hz": None if not np.isfinite(h) or h <= 0 else float(np.nextafter(1.0 / h, np.inf)),
+            "L": L.tolist(), "gaps": gaps.tolist(), "tau_range": [ulo.tolist(), uhi.tolist()],
+            "binding": int(np.argmin(hs)), "converged": bool(all(e.converged for e in er))}
+
+
+def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=(0.5, 0.5), tau_max=None,
+                    start_hz: float | None = None, S: SampledSet | None = None, theory: bool = True,
+                    progress=None) -> Certificate:
+    """certify.sampled: the lowest rate (within RATE_REL_TOL) at which one period from S provably keeps the
+    funnels with margin `margin` and returns to S; undecided with what is left otherwise."""
+    t0 = time.monotonic()
+    say = progress or (lambda s: None)
+    sc, d = ctx.scenario, ctx.design
+    T = float(ctx.t_final)
+    S = S or declared_set(ctx, float(set_margin[0]), float(set_margin[1]))
+    region = S.describe(T)
+    region["parameters"] = ctx.params.describe()
+    base = {"rate_margin": margin, "set": region}
+    impl = getattr(sc, "implementation", None)
+    if impl is not None and (impl.delay_samples or impl.noise_q or impl.noise_dq or impl.encoder_resolution):
+        return Certificate(CID, "undecided", "the scenario's [implementation] has a delay, measurement noise or "
+                           "quantisation, which the one-period proof does not model", region=region,
+                           undecided_fraction=1.0, seconds=time.monotonic() - t0, method=_METHOD,
+                           extra={**base, "proven_rate_hz": None})
+    if d.n_regressor and "w_hat" not in S.states:
+        return Certificate(CID, "undecided", "no W_hat box (no simulated run to take it from)", region=region,
+                           undecided_fraction=1.0, seconds=time.monotonic() - t0, method=_METHOD,
+                           extra={**base, "proven_rate_hz": None})
+    op = OnePeriod(ctx, S, tau_max)
+    if "w_hat" in S.states and op.w_rate is None:
+        return Certificate(CID, "undecided", "W_hat's update is not affine in W_hat with a constant diagonal "
+                           "decay, so its box is not shown to be kept", region=region, undecided_fraction=1.0,
+                           seconds=time.monotonic() - t0, method=_METHOD, extra={**base, "proven_rate_hz": None})
+    inside, sig0 = initial_in_set(ctx, S)
+    tried: list[dict] = []
+    max_boxes = int(min(BOXES_PER_RATE, max(1000, budget.work // 2000)))
+
+    def attempt(f: float) -> bool:
+        if budget.expired():
+            tried.append({"rate_hz": f, "proven": False, "reason": "seconds", "boxes": 0, "left": 1.0})
+            return False
+        r = prove_period(op, 1.0 / f, margin, T, max_boxes=max_boxes, expiry=budget.expiry)
+        tried.append({"rate_hz": f, "proven": r["proven"], "reason": r["reason"], "boxes": r["boxes"],
+                      "left": r["left"]})
+        say(f"certify.sampled: {f:.6g} Hz {'proven' if r['proven'] else 'not proven (' + str(r['reason']) + ')'}"
+            f" ({r['boxes']} boxes)")
+        return r["proven"]
+
+    f = float(start_hz or (impl.rate_hz if impl is not None else 1000.0))
+    lo = hi = None
+    if attempt(f):
+        hi = f
+        while lo is None and hi / 4 >= 1.0:
+            if attempt(hi / 4):
+                hi = hi / 4
+            else:
+                lo = hi / 4
+    else:
+        lo = f
+        while hi is None and lo < MAX_RATE_HZ and not budget.expired():
+            g = min(lo * 4, MAX_RATE_HZ)
+            if attempt(g):
+                hi = g
+            else:
+                lo = g
+    while hi is not None and lo is not None and hi / lo > 1 + RATE_REL_TOL and not budget.expired():
+        mid = math.sqrt(lo * hi)
+        if attempt(mid):
+            hi = mid
+        else:
+            lo = mid
+    th = theory_rate(op, S, margin, T) if theory else {"rate_hz": None, "reason": "not computed"}
+    boxes = sum(r["boxes"] for r in tried)
+    extra = {**base, "proven_rate_hz": hi, "not_proven_below_hz": lo, "tried": tried, "initial_in_set": inside,
+             "initial_e_over_F": sig0, "theory": th}
+    secs = time.monotonic() - t0
+    if hi is not None and inside:
+        return Certificate(CID, "proven", f"at every rate >= {hi:.6g} Hz one period from any state of S (margins "
+                           f"e1 {S.m1:g}, e2 {S.m2:g}) keeps both funnels with margin {margin:g} and returns to S, "
+                           f"for every parameter of the box; the initial state is in S, so the sampled loop keeps "
+                           f"the funnels on [0, {T:g}] s", lower=hi, upper=lo, region=region, boxes=boxes,
+                           seconds=secs, method=_METHOD, extra=extra)
+    if hi is not None:
+        return Certificate(CID, "undecided", f"one period from S is proven at rates >= {hi:.6g} Hz, but the initial "
+                           f"state (e/F = {np.round(sig0, 4).tolist()}) is not shown to lie in S", lower=hi,
+                           upper=lo, region=region, boxes=boxes, seconds=secs, method=_METHOD,
+                           undecided_fraction=1.0, extra=extra)
+    last = tried[-1] if tried else {"left": 1.0, "reason": None}
+    return Certificate(CID, "undecided", f"no rate up to {lo:.6g} Hz proven (the last attempt ended on "
+                       f"'{last['reason']}' with {last['left']:.3g} of S left)", upper=lo, region=region,
+                       boxes=boxes, undecided_fraction=float(last["left"]), seconds=secs, method=_METHOD,
+                       extra=extra)
+
+
+_METHOD = ("one-period validated enclosure (first-order Picard a-priori box, second-order Taylor form of the next "
+           "sample) by batched interval branch and bound over S; bisection in the period")
+
+
+def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=(0.5, 0.5),
+                    f_sim: float | None = None, w_hat_range=None, wall_limit: float | None = None,
+                    work: float = 5e7, progress=None) -> dict:
+    """`rate --certify`'s additions: {"proven_rate_hz", "theory_rate_hz", "ratio" (proven / simulated),
+    "certificate", "sampled_run_at_proven"} -- the last a sampled run of the generated C step at f_proven from the
+    scenario's initial state, which a proof must never contradict (a breach there would refute the certificate)."""
+    from ..deployed.loop import simulate_sampled
+    from .region import parameter_box
+    ctx = Context(scenario, design, float(t_final), parameter_box(scenario), None, w_hat_range)
+    expiry = None if wall_limit is None else time.monotonic() + float(wall_limit)
+    impl = getattr(scenario, "implementation", None)
+    tau_max = impl.tau_max if impl is not None else None
+    cert = certify_sampled(ctx, Budget(float(work), expiry), margin=margin, set_margin=set_margin, tau_max=tau_max,
+                           start_hz=f_sim, progress=progress)
+    fp = cert.extra.get("proven_rate_hz") if cert.status == "proven" else None
+    check = None
+    if fp is not None:
+        res = simulate_sampled(scenario, design, rate_hz=fp, t_final=t_final)
+        check = {"rate_hz": fp, "status": res.status, "min_margin": res.min_margin, "holds": bool(
+            res.ok and res.min_margin >= margin)}
+        if not check["holds"]:
+            cert = Certificate(CID, "refuted", f"the sampled run of the C step at the rate the enclosure proves "
+                               f"({fp:.6g} Hz) does not keep margin {margin:g} (min margin {res.min_margin:.4g}): "
+                               "the proof's model and the deployed loop disagree", counterexample=check,
+                               region=cert.region, boxes=cert.boxes, seconds=cert.seconds, method=cert.method,
+                               extra=cert.extra)
+            fp = None
+    th = cert.extra.get("theory", {}).get("rate_hz")
+    return {"proven_rate_hz": fp, "theory_rate_hz": th,
+            "ratio": (fp / f_sim) if (fp is not None and f_sim) else None,
+            "certificate": cert.to_json(), "sampled_run_at_proven": check}
