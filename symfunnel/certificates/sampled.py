@@ -45,7 +45,7 @@ from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
 from .problem import Budget, Context, controller_state_boxes
-from .region import region_signals
+from .region import region_signals, structurally_zero, true_unknown
 from .result import Certificate
 
 CID = "certify.sampled"
@@ -55,6 +55,8 @@ DEFAULT_SET_MARGIN = 0.1
 BATCH = 256
 #: Picard iterations before a box's a-priori enclosure counts as not found
 PICARD_ITERATIONS = 8
+#: the sensitivity's split variable is used while its relative width is at least the widest's / HINT_RATIO
+HINT_RATIO = 4.0
 #: a failing box thinner than this (relative to S) in every split variable ends the search at that h
 THIN = 1e-4
 #: random sample points screened (as degenerate boxes) before a branch and bound at one h
@@ -99,6 +101,28 @@ def declared_set(ctx: Context, m1: float, m2: float, w_box=None, w_source: str |
     return SampledSet(float(m1), float(m2), states, "declared", notes)
 
 
+def _nominal_de2(design) -> ca.SX:
+    """de2 = (v - W_hat^T Phi) - alpha2_dot of the nominal loop without the alpha2_dot - alpha2_dot cancellation
+    interval arithmetic cannot see: when v = alpha2_dot + g with g free of alpha2_dot (v affine in alpha2_dot with
+    the identity as coefficient, checked on the graph: alpha2_dot's nodes replaced by a symbol A, dv/dA = I),
+    de2 = g - W_hat^T Phi = v(A = 0) - W_hat^T Phi; else (a mutant that scales alpha2_dot) the design's de2."""
+    from ..sx.rewrite import replace_nodes
+    S = design.signals
+    n = design.n
+    A = ca.SX.sym("A", n)
+    vA = replace_nodes([S["v"]], S["alpha2_dot"], A)[0]
+    try:
+        J = np.asarray(ca.evalf(ca.jacobian(vA, A)), float)
+    except RuntimeError:
+        return S["de2"]
+    if not np.array_equal(J, np.eye(n)):
+        return S["de2"]
+    est = ca.mtimes(design.sym["w_hat"].T, S["Phi"]) if "w_hat" in design.sym else ca.SX.zeros(n)
+    if not structurally_zero(S["ddq"] - (S["v"] - est)):
+        return S["de2"]
+    return ca.substitute(vA, A, ca.SX.zeros(n)) - est
+
+
 def _check(f: ca.Function, file: str, what: str, wrt=None):
     try:
         return BatchCenteredForm(f, wrt) if wrt else BatchIntervalFunction(f)
@@ -134,7 +158,16 @@ class OnePeriod:
         de2 = ddq - Sg["alpha2_dot"]
         rates = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
                            (de2 - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
-        exprs = {"tau": tau, "rate": rates}
+        # the rates at the sample itself, under the step's own torque: there the plant's acceleration minus
+        # alpha2_dot is f_true + de2 (f_true in the inverse-dynamics residual form where the design's torque is the
+        # model's inverse dynamics: no M_p^-1 tau - alpha2_dot cancellation); with saturation the direct form
+        if tau_max is None:
+            de2_k = true_unknown(d, p)["f_true"] + _nominal_de2(d)
+        else:
+            de2_k = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], tau, 0.0, p=p)["ddq"] - Sg["alpha2_dot"]
+        rates_k = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
+                             (de2_k - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
+        exprs = {"tau": tau, "rate": rates, "rate_k": rates_k}
         self.w_rate = None
         if "w_hat" in sym:
             W = sym["w_hat"]
@@ -170,7 +203,7 @@ class OnePeriod:
         # the period's enclosure, sigma'' = d sigma'/dt + d sigma'/d sigma sigma' (u held)
         hs = ca.SX.sym("h")
         sig = ca.vertcat(s1, s2)
-        nxt = sig + hs * ca.substitute(o["rate"], u, o["tau"])
+        nxt = sig + hs * o["rate_k"]
         self.next_f = ca.Function("next_sample", base + [hs] + states, [nxt], bnames + ["h"] + self.state_names,
                                   ["next"], opts)
         self.next = _check(self.next_f, sc.file, "the next sample", ["t", "s1", "s2", "p"])
@@ -227,6 +260,7 @@ class OnePeriod:
         FL, FH = self._full(LO, HI)
         UL, UH, _ = self.tau.eval_batch(FL, FH)
         ok = np.all(np.isfinite(UL) & np.isfinite(UH), axis=1)
+        hint = np.full(K, -1, dtype=int)
         sl = slice(1, 2 * n + 1)
         kl, kh = LO[:, sl], HI[:, sl]
         lim_M = 1.0 - M
@@ -272,13 +306,14 @@ class OnePeriod:
         need = np.flatnonzero(ok & ~first)
         if need.size:
             i = need
-            NL, NH, _ = self.next.eval_batch(*self._with_h(FL[i], FH[i], h))
+            NL, NH, _, J = self.next.eval_batch(*self._with_h(FL[i], FH[i], h), with_jacobian=True)
             AL, AH = self._acc_in(FL[i], FH[i], tl[i], th[i], SL[i], SH[i], UL[i], UH[i])
             r = _up(0.5 * h * h)
             el2 = _dn(NL + _dn(r * np.minimum(AL, 0.0)))
             eh2 = _up(NH + _up(r * np.maximum(AH, 0.0)))
             second = np.all(np.isfinite(el2) & np.isfinite(eh2) & (el2 >= -self.lim_S) & (eh2 <= self.lim_S), axis=1)
             first[i] = second
+            hint[i] = self._hint(LO[i], HI[i], el2, eh2, J)
         ok &= first
         if self.w_f is not None and ok.any():
             idx = np.flatnonzero(ok)
@@ -287,7 +322,26 @@ class OnePeriod:
             wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
             good = np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
             ok[idx[~good]] = False
-        return ok, {"DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH}
+        return ok, {"DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
+
+    def _hint(self, LO, HI, el2, eh2, J) -> np.ndarray:
+        """Per box, the split variable for the next sample's most violated component: the largest
+        |d next_i / d x_j| x width_j among the other variables (the own sigma_i's term is the contraction itself,
+        not an overestimation: it weighs a tenth); -1 where the Jacobian is not finite."""
+        n2 = 2 * self.n
+        viol = np.maximum(eh2 - self.lim_S, -self.lim_S - el2)
+        viol = np.where(np.isfinite(viol), viol, np.inf)
+        comp = np.argmax(viol, axis=1)
+        wf = self.next.w_flat
+        width = HI[:, wf] - LO[:, wf]
+        rows = np.arange(LO.shape[0])
+        c = J[rows, comp, :] * width
+        for k, j in enumerate(wf):
+            if 1 <= j <= n2:
+                c[:, k] = np.where(comp == j - 1, 0.1 * c[:, k], c[:, k])
+        c = np.where(np.isfinite(c) & (width > 0), c, -1.0)
+        best = np.argmax(c, axis=1)
+        return np.where(c[rows, best] > 0, wf[best], -1)
 
     def _with_h(self, FL, FH, h):
         i = self.i_st
@@ -341,7 +395,7 @@ def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes
         take = min(BATCH, LO.shape[0])
         cur_lo, cur_hi, cur_v = LO[:take], HI[:take], V[:take]
         LO, HI, V = LO[take:], HI[take:], V[take:]
-        ok, _ = op.check(cur_lo, cur_hi, h, M)
+        ok, info = op.check(cur_lo, cur_hi, h, M)
         boxes += take
         bad = ~ok
         if not bad.any():
@@ -355,6 +409,11 @@ def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes
             return {"proven": False, "boxes": boxes, "left": left,
                     "reason": "boxes" if boxes >= max_boxes else "seconds"}
         k = split[np.argmax(rel, axis=1)]
+        # the sensitivity's choice, unless that variable is already much thinner (relative to S) than the widest
+        hint = info["hint"][bad]
+        r = np.arange(BL.shape[0])
+        hrel = (BH[r, np.maximum(hint, 0)] - BL[r, np.maximum(hint, 0)]) / scale[np.maximum(hint, 0)]
+        k = np.where((hint >= 0) & (hrel * HINT_RATIO >= np.max(rel, axis=1)), hint, k)
         r = np.arange(BL.shape[0])
         mid = 0.5 * BL[r, k] + 0.5 * BH[r, k]
         h1 = BH.copy()
