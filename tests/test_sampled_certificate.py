@@ -137,3 +137,15 @@ def test_bad_set_margin_is_one_line_exit_2(args, key):
     r = _cli("rate", ONE, "--certify", *args)
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and key in r.stderr
+
+
+@pytest.mark.slow
+def test_certify_none_proven_rate_is_not_below_the_simulated_one():
+    """The two-joint model-based scenario (horizon 1 s): a proven rate, never below the simulated minimum rate for
+    the same margin, and the C step's sampled run holds at it."""
+    r = _cli("rate", DATA / "certify_none.toml", "--certify", "--t-final", "1", "--json", "-q")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["certificate"]["status"] == "proven"
+    assert out["proven_rate_hz"] >= out["min_rate_hz"]
+    assert out["sampled_run_at_proven"]["holds"] is True
