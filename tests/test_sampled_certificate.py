@@ -149,3 +149,16 @@ def test_certify_none_proven_rate_is_not_below_the_simulated_one():
     assert out["certificate"]["status"] == "proven"
     assert out["proven_rate_hz"] >= out["min_rate_hz"]
     assert out["sampled_run_at_proven"]["holds"] is True
+
+
+def test_continuity_is_claimed_only_without_a_state_switch(tmp_path):
+    """The second-order form of the next sample rests on sigma' being continuous along a period: claimed for the
+    model-based scenario (the funnel transformation's z is C^1, sympy), refused with Coulomb friction (sign(dq))."""
+    from symfunnel.certificates.sampled import OnePeriod, declared_set
+    ctx = _ctx(ONE)
+    assert OnePeriod(ctx, declared_set(ctx, 0.5, 0.5)).continuous
+    p = tmp_path / "coulomb.toml"
+    p.write_text(ONE.read_text().replace("coulomb = 0.0", "coulomb = 0.5"))
+    ctx = _ctx(p)
+    op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.5))
+    assert not op.continuous and "plant" in op.continuity

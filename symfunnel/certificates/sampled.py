@@ -25,7 +25,9 @@ sample states (t_k, sigma_k, p, controller states) and h:
 
 Boxes failing a check are bisected (t, sigma and the uncertain parameters; the controller states are never split);
 the interior of S passes in large boxes, the layer within one period's reach of its faces is refined. Proven at h
-is proven at every h' <= h (each condition is monotone in h on the same boxes), so bisection in h gives f_proven.
+is proven at every h' <= h: the a-priori box covers [t_k, t_k + h'], and (b)'s bound of sigma(t_k + s) for one sample
+state, x + s sigma'(x) + s^2/2 max(sigma''_hi, 0) (or x + s max(D_hi, 0)), is convex in s and inside S at s = 0 and
+s = h, so on all of [0, h]: the state stays in S during the whole period. So bisection in h gives f_proven.
 A point of S whose degenerate box fails ends the search at that h early (the method cannot prove it there; that is
 not a refutation: only a sampled run that breaches refutes a rate).
 """
@@ -123,6 +125,88 @@ def _nominal_de2(design) -> ca.SX:
     return ca.substitute(vA, A, ca.SX.zeros(n)) - est
 
 
+_SWITCHING = ("OP_SIGN", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ", "OP_NE", "OP_NOT", "OP_AND", "OP_OR",
+              "OP_FLOOR", "OP_CEIL")
+
+
+def _switching_on(inputs: list, wrt: list, outputs: list) -> int:
+    """How many discontinuous operations (sign, comparisons, branches, floor) of the graph of `outputs` have an
+    argument that depends on the symbols `wrt` (the other inputs are held constant)."""
+    f = ca.Function("g", inputs, outputs)
+    codes = {getattr(ca, k) for k in _SWITCHING if hasattr(ca, k)}
+    op_input, op_output, op_const = ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST
+    wrt_ids = set()
+    for i, x in enumerate(inputs):
+        for k in range(x.nnz()):
+            if any(ca.depends_on(x.nz[k], w) for w in wrt):
+                wrt_ids.add((i, k))
+    dep: dict[int, bool] = {}
+    count = 0
+    for k in range(f.n_instructions()):
+        op = f.instruction_id(k)
+        o = f.instruction_output(k)
+        if op == op_input:
+            i, nz = f.instruction_input(k)
+            dep[o[0]] = (i, nz) in wrt_ids
+        elif op == op_output or op == op_const:
+            if op == op_const:
+                dep[o[0]] = False
+        else:
+            d = any(dep.get(a, False) for a in f.instruction_input(k) if a >= 0)
+            if op in codes and d:
+                count += 1
+            dep[o[0]] = d
+    return count
+
+
+def _continuous_rates(design, inputs, state, plant_ddq) -> tuple[bool, str]:
+    """Whether sigma' is continuous along a period (so the next sample's second-order form may use the Lipschitz
+    mean-value argument where its interval evaluation flags a sign that may switch): the plant's acceleration has no
+    discontinuous operation depending on the state (t, q, dq) -- the held torque's dead zone is constant -- and the
+    design's alpha2, F and F' have none, and the transformation's z is C^1 at e = 0 (proven by sympy: the
+    derivative of each branch of |s| agrees at 0), so alpha2_dot's sign(e1) from the AD of |e1| multiplies a jump 0."""
+    S = design.signals
+    if _switching_on(inputs, state, [plant_ddq]):
+        return False, "the plant's acceleration switches with the state (Coulomb friction, a branch)"
+    sym = design.sym
+    ins = [sym[k] for k in ("t", "q", "qd", "dqd", "ddqd")]
+    if _switching_on(ins, ins, [S["alpha2"], S["F1"], S["F2"], S["dF1"], S["dF2"]]):
+        return False, "alpha2 or a funnel has a discontinuous operation"
+    if not _transform_c1(design.variant.transform.name):
+        return False, "the transformation's z is not shown C^1 at e = 0"
+    return True, "sigma' is continuous along a period (checked)"
+
+
+_C1: dict = {}
+
+
+def _transform_c1(name: str) -> bool:
+    """sympy: z(s) of the registered transformation (F = 1) has equal one-sided derivatives at s = 0."""
+    if name in _C1:
+        return _C1[name]
+    import sympy
+
+    from ..family.transforms import TRANSFORMS
+    from ..sx.proof import _Timeout, time_limit
+    from ..sx.tosympy import sx_to_sympy
+    T = TRANSFORMS.get(name)()
+    s = ca.SX.sym("s")
+    z = T.build(s, ca.SX(1))["z"]
+    ok = False
+    try:
+        with time_limit(10.0):
+            S = sympy.Symbol("s", real=True)
+            e = sx_to_sympy(z, [s], [[S]])[0]
+            P = sympy.Symbol("P", positive=True)
+            right = sympy.diff(e.subs(S, P), P)
+            left = sympy.diff(e.subs(S, -P), P)         # d/ds at -P is -d/dP of z(-P)
+            ok = bool(sympy.simplify(sympy.limit(right, P, 0, "+") + sympy.limit(left, P, 0, "+")) == 0)
+    except (_Timeout, RecursionError, NotImplementedError, TypeError, ValueError):
+        ok = False
+    _C1[name] = ok
+    return ok
+
+
 def _check(f: ca.Function, file: str, what: str, wrt=None):
     try:
         return BatchCenteredForm(f, wrt) if wrt else BatchIntervalFunction(f)
@@ -142,11 +226,14 @@ class OnePeriod:
         P = ctx.params
         self.wide = np.flatnonzero(P.lo < P.hi)
         names, _ = plant_parameters(sc)
-        p = ca.SX.sym("p", len(names))
         pu = ca.SX.sym("p", int(self.wide.size))
         full = [ca.SX(float(v)) for v in P.nominal]
         for i, j in enumerate(self.wide):
             full[j] = pu[i]
+        # the parameters enter as constants where they are points, so a term multiplied by a zero parameter (e.g.
+        # Coulomb friction's sign(dq) at coulomb = 0) folds away at construction instead of flagging a switch
+        p = ca.vertcat(*full)
+        assert p.numel() == len(names)
         Sg, sym = d.signals, d.sym
         tau = Sg["tau"]
         if tau_max is not None:
@@ -154,6 +241,8 @@ class OnePeriod:
             tau = ca.fmin(ca.fmax(tau, -tm), tm)
         u = ca.SX.sym("u", n)
         ddq = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], u, 0.0, p=p)["ddq"]
+        self.continuous, self.continuity = _continuous_rates(
+            d, [sym["t"], sym["q"], sym["dq"], u, pu], [sym["t"], sym["q"], sym["dq"]], ddq)
         de1 = sym["dq"] - sym["dqd"]
         de2 = ddq - Sg["alpha2_dot"]
         rates = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
@@ -185,7 +274,6 @@ class OnePeriod:
             if c is not None:
                 exprs["w_affine"] = ca.vec(ca.substitute(wdot, W, ca.SX.zeros(*W.shape)))
                 self.w_rate = c
-        exprs = dict(zip(exprs, ca.substitute(list(exprs.values()), [p], [ca.vertcat(*full)])))
         ins, outs, onames, states, _ = region_signals(d, exprs)
         self.state_names = [k for k, _ in d.states]
         t, s1, s2, m = ins
@@ -261,6 +349,7 @@ class OnePeriod:
         UL, UH, _ = self.tau.eval_batch(FL, FH)
         ok = np.all(np.isfinite(UL) & np.isfinite(UH), axis=1)
         hint = np.full(K, -1, dtype=int)
+        switched = np.ones(K, dtype=bool)         # a discontinuous operation (sign, if_else) may switch on the period
         sl = slice(1, 2 * n + 1)
         kl, kh = LO[:, sl], HI[:, sl]
         lim_M = 1.0 - M
@@ -276,7 +365,7 @@ class OnePeriod:
             if not live.any():
                 break
             idx = np.flatnonzero(live)
-            RL, RH = self._rate_in(FL[idx], FH[idx], tl[idx], th[idx], wl[idx], wh[idx], UL[idx], UH[idx])
+            RL, RH, RS = self._rate_in(FL[idx], FH[idx], tl[idx], th[idx], wl[idx], wh[idx], UL[idx], UH[idx])
             fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
             nl = _dn(kl[idx] + h * np.minimum(RL, 0.0))
             nh = _up(kh[idx] + h * np.maximum(RH, 0.0))
@@ -284,6 +373,7 @@ class OnePeriod:
             good = idx[inside]
             valid[good] = True
             DL[good], DH[good] = RL[inside], RH[inside]
+            switched[good] = RS[inside]
             SL[good], SH[good] = wl[good], wh[good]
             bad = idx[~fin]
             ok[bad] = False
@@ -303,7 +393,9 @@ class OnePeriod:
         el = _dn(kl + h * DL)
         eh = _up(kh + h * DH)
         first = np.all((el >= -self.lim_S) & (eh <= self.lim_S), axis=1)
-        need = np.flatnonzero(ok & ~first)
+        # the second-order form needs sigma' Lipschitz along the period: not where a discontinuity (Coulomb's sign,
+        # a branch) may switch inside the a-priori box (interval AD of |.|, min, max encloses Clarke's Jacobian)
+        need = np.flatnonzero(ok & ~first & (self.continuous | ~switched))
         if need.size:
             i = need
             NL, NH, _, J = self.next.eval_batch(*self._with_h(FL[i], FH[i], h), with_jacobian=True)
@@ -361,8 +453,8 @@ class OnePeriod:
         n = self.n
         RLo = np.concatenate([tl[:, None], sl, FL[:, 2 * n + 1:self.i_st], UL, FL[:, self.i_st:]], axis=1)
         RHi = np.concatenate([th[:, None], sh, FH[:, 2 * n + 1:self.i_st], UH, FH[:, self.i_st:]], axis=1)
-        L, H, _ = self.rate.eval_batch(RLo, RHi)
-        return L, H
+        L, H, sw = self.rate.eval_batch(RLo, RHi)
+        return L, H, np.asarray(sw, bool)
 
 
 def _dn(x):
