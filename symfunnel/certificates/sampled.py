@@ -59,6 +59,10 @@ BATCH = 256
 PICARD_ITERATIONS = 8
 #: the sensitivity's split variable is used while its relative width is at least the widest's / HINT_RATIO
 HINT_RATIO = 4.0
+#: why a box fails, by the first check it fails: no finite torque enclosure, no finite rate, no a-priori box within the
+#: funnels with margin M (the Picard iteration left them), (a) the funnels with margin M on the period, (b) the next
+#: sample outside S, W_hat's update outside its box
+WHY = ("", "torque", "rates", "enclosure", "funnel", "next sample", "w_hat")
 #: a failing box thinner than this (relative to S) in every split variable ends the search at that h
 THIN = 1e-4
 #: random sample points screened (as degenerate boxes) before a branch and bound at one h
@@ -348,6 +352,7 @@ class OnePeriod:
         FL, FH = self._full(LO, HI)
         UL, UH, _ = self.tau.eval_batch(FL, FH)
         ok = np.all(np.isfinite(UL) & np.isfinite(UH), axis=1)
+        why = np.where(ok, 0, WHY.index("torque"))           # the first check a box fails (WHY), 0 = none
         hint = np.full(K, -1, dtype=int)
         switched = np.ones(K, dtype=bool)         # a discontinuous operation (sign, if_else) may switch on the period
         sl = slice(1, 2 * n + 1)
@@ -376,6 +381,7 @@ class OnePeriod:
             switched[good] = RS[inside]
             SL[good], SH[good] = wl[good], wh[good]
             bad = idx[~fin]
+            why[bad[ok[bad]]] = WHY.index("rates")
             ok[bad] = False
             grow = idx[fin & ~inside]
             g = np.flatnonzero(fin & ~inside)
@@ -385,10 +391,14 @@ class OnePeriod:
             wh[grow] = _up(np.maximum(wh[grow], nh[g] + 0.1 * w + 1e-9))
             # an enclosure that leaves the funnels with margin M cannot pass (a): stop inflating it
             out = np.any((wl[grow] < -lim_M) | (wh[grow] > lim_M), axis=1)
+            why[grow[out][ok[grow[out]]]] = WHY.index("funnel")
             ok[grow[out]] = False
+        why[ok & ~valid] = WHY.index("enclosure")
         ok &= valid
         # (a) the funnels with margin M over the whole period
-        ok &= np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
+        a = np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
+        why[ok & ~a] = WHY.index("funnel")
+        ok &= a
         # (b) the next sample in S: first order K + h D, and where that fails the second-order form
         el = _dn(kl + h * DL)
         eh = _up(kh + h * DH)
@@ -406,6 +416,7 @@ class OnePeriod:
             second = np.all(np.isfinite(el2) & np.isfinite(eh2) & (el2 >= -self.lim_S) & (eh2 <= self.lim_S), axis=1)
             first[i] = second
             hint[i] = self._hint(LO[i], HI[i], el2, eh2, J)
+        why[ok & ~first] = WHY.index("next sample")
         ok &= first
         if self.w_f is not None and ok.any():
             idx = np.flatnonzero(ok)
@@ -413,8 +424,9 @@ class OnePeriod:
             c = self.w_rate
             wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
             good = np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
+            why[idx[~good]] = WHY.index("w_hat")
             ok[idx[~good]] = False
-        return ok, {"DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
+        return ok, {"why": why, "DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
 
     def _hint(self, LO, HI, el2, eh2, J) -> np.ndarray:
         """Per box, the split variable for the next sample's most violated component: the largest
@@ -476,10 +488,11 @@ def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes
     X = lo + rng.random((SCREEN_POINTS, lo.size)) * (hi - lo)
     sl = slice(1, 2 * op.n + 1)
     X[: SCREEN_POINTS // 2, sl] = np.where(rng.random((SCREEN_POINTS // 2, 2 * op.n)) < 0.5, lo[sl], hi[sl])
-    okp, _ = op.check(X, X, h, M)
+    okp, infop = op.check(X, X, h, M)
     if not okp.all():
-        x = X[int(np.argmin(okp))]
-        return {"proven": False, "boxes": SCREEN_POINTS, "left": 1.0, "reason": "point", "point": x}
+        k = int(np.argmin(okp))
+        return {"proven": False, "boxes": SCREEN_POINTS, "left": 1.0, "reason": "point", "point": X[k],
+                "failed": WHY[int(infop["why"][k])]}
     # breadth-first: the oldest (largest) boxes first, so what is left shrinks evenly over S
     LO, HI, V = lo[None, :].copy(), hi[None, :].copy(), np.array([1.0])
     boxes = 0
@@ -620,7 +633,7 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
             return False
         r = prove_period(op, 1.0 / f, margin, T, max_boxes=max_boxes, expiry=budget.expiry)
         tried.append({"rate_hz": f, "proven": r["proven"], "reason": r["reason"], "boxes": r["boxes"],
-                      "left": r["left"]})
+                      "left": r["left"], **({"failed": r["failed"]} if "failed" in r else {})})
         say(f"certify.sampled: {f:.6g} Hz {'proven' if r['proven'] else 'not proven (' + str(r['reason']) + ')'}"
             f" ({r['boxes']} boxes)")
         return r["proven"]
@@ -665,8 +678,9 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
                            upper=lo, region=region, boxes=boxes, seconds=secs, method=_METHOD,
                            undecided_fraction=1.0, extra=extra)
     last = tried[-1] if tried else {"left": 1.0, "reason": None}
+    why = f"; a point of S fails the check '{last['failed']}'" if last.get("failed") else ""
     return Certificate(CID, "undecided", f"no rate up to {lo:.6g} Hz proven (the last attempt ended on "
-                       f"'{last['reason']}' with {last['left']:.3g} of S left)", upper=lo, region=region,
+                       f"'{last['reason']}' with {last['left']:.3g} of S left{why})", upper=lo, region=region,
                        boxes=boxes, undecided_fraction=float(last["left"]), seconds=secs, method=_METHOD,
                        extra=extra)
 
