@@ -372,8 +372,8 @@ class OnePeriod:
             idx = np.flatnonzero(live)
             RL, RH, RS = self._rate_in(FL[idx], FH[idx], tl[idx], th[idx], wl[idx], wh[idx], UL[idx], UH[idx])
             fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
-            nl = _dn(kl[idx] + h * np.minimum(RL, 0.0))
-            nh = _up(kh[idx] + h * np.maximum(RH, 0.0))
+            nl = _dn(kl[idx] + _dn(h * np.minimum(RL, 0.0)))
+            nh = _up(kh[idx] + _up(h * np.maximum(RH, 0.0)))
             inside = fin & np.all((nl >= wl[idx]) & (nh <= wh[idx]), axis=1)
             good = idx[inside]
             valid[good] = True
@@ -400,8 +400,8 @@ class OnePeriod:
         why[ok & ~a] = WHY.index("funnel")
         ok &= a
         # (b) the next sample in S: first order K + h D, and where that fails the second-order form
-        el = _dn(kl + h * DL)
-        eh = _up(kh + h * DH)
+        el = _dn(kl + _dn(h * DL))
+        eh = _up(kh + _up(h * DH))
         first = np.all((el >= -self.lim_S) & (eh <= self.lim_S), axis=1)
         # the second-order form needs sigma' Lipschitz along the period: not where a discontinuity (Coulomb's sign,
         # a branch) may switch inside the a-priori box (interval AD of |.|, min, max encloses Clarke's Jacobian)
@@ -410,7 +410,7 @@ class OnePeriod:
             i = need
             NL, NH, _, J = self.next.eval_batch(*self._with_h(FL[i], FH[i], h), with_jacobian=True)
             AL, AH = self._acc_in(FL[i], FH[i], tl[i], th[i], SL[i], SH[i], UL[i], UH[i])
-            r = _up(0.5 * h * h)
+            r = _up(_up(h * h) * 0.5)
             el2 = _dn(NL + _dn(r * np.minimum(AL, 0.0)))
             eh2 = _up(NH + _up(r * np.maximum(AH, 0.0)))
             second = np.all(np.isfinite(el2) & np.isfinite(eh2) & (el2 >= -self.lim_S) & (eh2 <= self.lim_S), axis=1)
