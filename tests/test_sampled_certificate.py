@@ -162,3 +162,15 @@ def test_continuity_is_claimed_only_without_a_state_switch(tmp_path):
     ctx = _ctx(p)
     op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.5))
     assert not op.continuous and "plant" in op.continuity
+
+
+def test_certify_only_sampled_gives_the_certificate():
+    """`certify --only sampled` computes certify.sampled (and only it); a bad id names the known ones."""
+    r = _cli("certify", ONE, "--only", "sampled", "--json", "-q")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert [c["id"] for c in out["certificates"]] == ["certify.sampled"]
+    c = out["certificates"][0]
+    assert c["status"] == "proven" and c["lower"] > 0 and c["proven_rate_hz"] == c["lower"]
+    bad = _cli("certify", ONE, "--only", "nope")
+    assert bad.returncode == 2 and "certify.sampled" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
