@@ -439,7 +439,8 @@ class OnePeriod:
         wf = self.next.w_flat
         width = HI[:, wf] - LO[:, wf]
         rows = np.arange(LO.shape[0])
-        c = J[rows, comp, :] * width
+        with np.errstate(invalid="ignore"):          # an unbounded Jacobian entry times a zero width
+            c = J[rows, comp, :] * width
         for k, j in enumerate(wf):
             if 1 <= j <= n2:
                 c[:, k] = np.where(comp == j - 1, 0.1 * c[:, k], c[:, k])
