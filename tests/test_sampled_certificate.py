@@ -174,3 +174,22 @@ def test_certify_only_sampled_gives_the_certificate():
     assert c["status"] == "proven" and c["lower"] > 0 and c["proven_rate_hz"] == c["lower"]
     bad = _cli("certify", ONE, "--only", "nope")
     assert bad.returncode == 2 and "certify.sampled" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_w_hat_update_is_accepted_only_as_the_steps_convex_combination():
+    """W_hat's box is kept by W+ = (1 - phi c) W + phi A only when the rate's decay c is the step's Gamma sigma: the
+    paper-like design (Gamma 10, sigma 0.02) gives c = 0.2; the flip_sigma mutant (W_hat' = ... + sigma W_hat) is
+    refused, and its certificate is undecided."""
+    from symfunnel.certificates.problem import Budget
+    from symfunnel.certificates.sampled import OnePeriod, certify_sampled, declared_set
+    path = Path(__file__).parent.parent / "derivations" / "paper_small_dead_zone.toml"
+    ctx = _ctx(path, t_final=1.0)
+    nr, n = ctx.design.n_regressor, ctx.design.n
+    box = (-np.ones((nr, n)), np.ones((nr, n)))
+    op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.5, w_box=box, w_source="test"))
+    assert op.w_rate == pytest.approx(10.0 * 0.02, rel=1e-12)
+    ctx = _ctx(path, t_final=1.0, mutant="flip_sigma")
+    S = declared_set(ctx, 0.5, 0.5, w_box=box, w_source="test")
+    assert OnePeriod(ctx, S).w_rate is None
+    c = certify_sampled(ctx, Budget(1e6), S=S, theory=False)
+    assert c.status == "undecided" and "W_hat" in c.detail

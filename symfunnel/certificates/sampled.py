@@ -273,7 +273,11 @@ class OnePeriod:
                 Jd = None
             if Jd is not None:
                 diag = np.diag(Jd)
-                if np.all(Jd - np.diag(diag) == 0) and np.all(diag == diag[0]) and diag[0] < 0:
+                # the step's exponential-Euler weight decays at Gamma sigma: W+ = (1 - phi c) W + phi A is a convex
+                # combination only when the rate's own decay c is that one
+                lam = float(sc.gamma) * float(sc.sigma)
+                if np.all(Jd - np.diag(diag) == 0) and np.all(diag == diag[0]) and diag[0] < 0 \
+                        and abs(-float(diag[0]) - lam) <= 1e-12 * lam:
                     c = -float(diag[0])
             if c is not None:
                 exprs["w_affine"] = ca.vec(ca.substitute(wdot, W, ca.SX.zeros(*W.shape)))
