@@ -31,7 +31,7 @@ _NONE = Path(__file__).resolve().parent.parent.parent / "tests" / "data" / "cert
 
 def _sampled(rid: str, path: Path, progress) -> dict:
     """`rate --certify` on one scenario: the simulated search (baseline) and the proof (value), timed apart."""
-    from ..certificates.sampled import sampled_bracket
+    from ..certificates.sampled_rate import sampled_bracket
     from ..deployed.rate import min_rate
     from ..pipeline import Run
     r = Run.load(str(path))

@@ -19,7 +19,7 @@ def register(sub, common) -> None:
     sp.add_argument("--certify", action="store_true",
                     help="also prove a rate (certify.sampled: one sampling period from the set S, by interval "
                          "branch and bound) and evaluate the sampled-data funnel theory's bound; docs/certify.md")
-    sp.add_argument("--set-margin", type=float, nargs=2, default=(0.5, 0.5), metavar=("E1", "E2"),
+    sp.add_argument("--set-margin", type=float, nargs=2, default=None, metavar=("E1", "E2"),
                     help="with --certify: S's margins, |e_i| <= (1 - E_i) F_i at the samples (default 0.5 0.5)")
     from ._common import add_plant_option
     add_plant_option(sp)
@@ -41,7 +41,7 @@ def run(args) -> int:
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
     import time
     started = time.monotonic()
-    for k, v in zip(("e1", "e2"), args.set_margin):
+    for k, v in zip(("e1", "e2"), args.set_margin or ()):
         if not (math.isfinite(v) and 1e-3 <= v < 1):
             raise InputError(f"is {v:g} for {k}", key="--set-margin", expected="margins in [0.001, 1)")
     sc = _load(args)
@@ -81,7 +81,8 @@ def _certified(args, sc, run, r: dict, say, wall_limit) -> dict:
     """certify.sampled beside the simulated search: the contract's keys (docs/certify.md)."""
     import numpy as np
 
-    from ..certificates.sampled import sampled_bracket
+    from ..certificates.sampled import DEFAULT_SET_MARGIN
+    from ..certificates.sampled_rate import sampled_bracket
     design = run.design
     wr = None
     if design.n_regressor:                       # W_hat's box: the simulated run's range (widened by the certificate)
@@ -90,5 +91,5 @@ def _certified(args, sc, run, r: dict, say, wall_limit) -> dict:
         if wh is not None and len(wh):
             wr = (np.min(wh, axis=0), np.max(wh, axis=0))
     T = args.t_final if args.t_final is not None else sc.simulation.t_final
-    return sampled_bracket(sc, design, t_final=T, margin=args.margin, set_margin=tuple(args.set_margin),
+    return sampled_bracket(sc, design, t_final=T, margin=args.margin, set_margin=tuple(args.set_margin or DEFAULT_SET_MARGIN),
                            f_sim=r["min_rate_hz"], w_hat_range=wr, wall_limit=wall_limit, progress=say)
