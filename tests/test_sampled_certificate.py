@@ -194,3 +194,53 @@ def test_w_hat_update_is_accepted_only_as_the_steps_convex_combination():
     assert OnePeriod(ctx, S).w_rate is None
     c = certify_sampled(ctx, Budget(1e6), S=S, theory=False)
     assert c.status == "undecided" and "W_hat" in c.detail
+
+
+def test_one_period_enclosure_contains_the_integrated_plant():
+    """Soundness against a second implementation: from states of S drawn here, the plant integrated over one period
+    by scipy (tight tolerances) under the generated step's held torque stays inside the certificate's a-priori
+    enclosure of sigma = e / F at every output time, and its end inside the certificate's bound of the next sample."""
+    import casadi as ca
+    from scipy.integrate import solve_ivp
+
+    from symfunnel.certificates.sampled import OnePeriod, declared_set
+    from symfunnel.emit.step import step_function
+    from symfunnel.plant.equations import plant_acceleration, plant_parameters
+    ctx = _ctx(ONE)
+    d, sc = ctx.design, ctx.scenario
+    op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.5))
+    h = 1.0 / 3000.0
+    step = step_function(d, 3000.0)
+    q, dq, t, u = ca.SX.sym("q", 1), ca.SX.sym("dq", 1), ca.SX.sym("t"), ca.SX.sym("u", 1)
+    _, p0 = plant_parameters(sc)
+    acc = ca.Function("acc", [t, q, dq, u], [plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(p0))["ddq"]])
+    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
+    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+
+    def sigma(tt, x):
+        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
+        F1, F2 = (float(np.ravel(v)[0]) for v in F(tt))
+        return np.array([(x[0] - qd[0]) / F1, (x[1] - float(np.ravel(a2(tt, x[:1], qd, dqd))[0])) / F2])
+    rng = np.random.default_rng(11)
+    checked = 0
+    for _ in range(12):
+        tk, s1, s2 = rng.uniform(0, 2.0), rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5)
+        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tk))
+        F1, F2 = (float(np.ravel(v)[0]) for v in F(tk))
+        q0 = qd + s1 * F1
+        dq0 = np.asarray(a2(tk, q0, qd, dqd), float).ravel() + s2 * F2
+        tau = float(np.ravel(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0])[0])
+        X = np.array([[tk, s1, s2, 0.0]])
+        ok, info = op.check(X, X, h, 0.05)
+        if not np.all(np.isfinite(info["DL"])):
+            continue
+        sol = solve_ivp(lambda tt, x: [x[1], float(acc(tt, x[:1], x[1:], [tau]))], (tk, tk + h),
+                        [q0[0], dq0[0]], rtol=1e-11, atol=1e-13, dense_output=True)
+        for tt in np.linspace(tk, tk + h, 9):
+            sg = sigma(tt, sol.sol(tt))
+            assert np.all(sg >= info["SL"][0] - 1e-9) and np.all(sg <= info["SH"][0] + 1e-9), (tk, tt, sg)
+        end = sigma(tk + h, sol.sol(tk + h))
+        assert np.all(end >= np.array([s1, s2]) + h * info["DL"][0] - 1e-9)
+        assert np.all(end <= np.array([s1, s2]) + h * info["DH"][0] + 1e-9)
+        checked += 1
+    assert checked >= 10
