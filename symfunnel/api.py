@@ -190,14 +190,15 @@ class CertifyResult:
 def certify_ids(only) -> tuple[str, ...] | None:
     """Certificate ids from `only` (full ids or their last part, e.g. 'input_gain'); InputError for others."""
     from .core.errors import InputError
-    from .core.names import CERTIFY_CHECKS
+    from .core.names import CERTIFY_CHECKS, CERTIFY_ON_DEMAND
+    known = CERTIFY_CHECKS + CERTIFY_ON_DEMAND
     if only is None:
         return None
     out = []
     for k in ([only] if isinstance(only, str) else list(only)):
         cid = k if str(k).startswith("certify.") else f"certify.{k}"
-        if cid not in CERTIFY_CHECKS:
-            raise InputError(f"is '{k}'", key="--only", expected="one of " + ", ".join(CERTIFY_CHECKS))
+        if cid not in known:
+            raise InputError(f"is '{k}'", key="--only", expected="one of " + ", ".join(known))
         out.append(cid)
     return tuple(out)
 

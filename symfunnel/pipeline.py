@@ -193,7 +193,8 @@ class Run:
         design = self.design
         W = info = wr = None
         only = o.certify_only
-        if design.n_regressor and (only is None or set(only) & {"certify.bounds", "certify.invariance"}):
+        if design.n_regressor and (only is None or set(only) & {"certify.bounds", "certify.invariance",
+                                                                           "certify.sampled"}):
             res = self.simulation
             L = self.lyapunov
             if L is not None and res.status != "timeout":

@@ -9,6 +9,9 @@ the interval evaluator's throughput against the same function in floating point.
 - certify.paper_wall_s: the whole `symfunnel certify paper` (derive, simulate for W*, every certificate; target
   15 s); baseline `verify paper` without the certificates.
 - certify.arm7_wall_s: the whole `symfunnel certify arm7` (target 60 s on the 2-core machine); no baseline.
+- certify.sampled_none_s, certify.sampled_box_s: `rate --certify` on `tests/data/certify_none.toml` (proven) and
+  on `paper_small_dead_zone` (undecided: what is left in the detail): the proof's seconds; baseline the simulated
+  rate search; f_sim, f_proven, f_theory and the ratio beside it.
 - certify.tau_boxes_per_s: boxes per second of the batched interval evaluator on the paper's tau over the funnel
   region (natural form, batches of 256); baseline CasADi evaluating the same tape in double at mapped points
   (the overhead ratio of interval over floating point).
@@ -24,6 +27,32 @@ import numpy as np
 from ._result import result
 
 _SMALL = Path(__file__).resolve().parent.parent.parent / "derivations" / "paper_small_dead_zone.toml"
+_NONE = Path(__file__).resolve().parent.parent.parent / "tests" / "data" / "certify_none.toml"
+
+
+def _sampled(rid: str, path: Path, progress) -> dict:
+    """`rate --certify` on one scenario: the simulated search (baseline) and the proof (value), timed apart."""
+    from ..certificates.sampled_rate import sampled_bracket
+    from ..deployed.rate import min_rate
+    from ..pipeline import Run
+    r = Run.load(str(path))
+    progress(f"certify: the simulated rate search on {r.scenario.name}")
+    t0 = time.perf_counter()
+    sim = min_rate(r.scenario, r.design, t_final=r.t_final)
+    base = time.perf_counter() - t0
+    wr = None
+    if r.design.n_regressor:
+        wh = r.closed_loop.unpack(r.simulation.x).get("w_hat")
+        wr = (np.min(wh, axis=0), np.max(wh, axis=0))
+    progress(f"certify: certify.sampled on {r.scenario.name}")
+    t0 = time.perf_counter()
+    b = sampled_bracket(r.scenario, r.design, t_final=r.t_final, f_sim=sim["min_rate_hz"], w_hat_range=wr)
+    wall = time.perf_counter() - t0
+    c = b["certificate"]
+    return result(rid, wall, "s", "the simulated rate search", base, base / wall, status=c["status"],
+                  min_rate_hz=sim["min_rate_hz"], proven_rate_hz=b["proven_rate_hz"],
+                  theory_rate_hz=b["theory_rate_hz"], ratio_proven_simulated=b["ratio"], detail=c["detail"],
+                  boxes=c["boxes"])
 
 
 def _input_gain(name, progress):
@@ -110,6 +139,8 @@ def run(progress) -> list[dict]:
     out.append(result("certify.arm7_wall_s", wall, "s", None, None, None, target=60.0,
                       meets_target=bool(wall <= 60.0), statuses={c.id: c.status for c in cert.certificates},
                       seconds={c.id: c.seconds for c in cert.certificates}))
+    for rid, path in (("certify.sampled_none_s", _NONE), ("certify.sampled_box_s", _SMALL)):
+        out.append(_sampled(rid, path, progress))
     boxes, points, ops = _throughput(progress)
     out.append(result("certify.tau_boxes_per_s", boxes, "boxes/s", "CasADi double at mapped points (points/s)",
                       points, boxes / points, operations=ops, overhead=points / boxes))

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from ..core.names import CERTIFY_CHECKS
+from ..core.names import CERTIFY_CHECKS, CERTIFY_ON_DEMAND
 from .problem import Budget, Context
 from .region import parameter_box
 from .result import CHECK_STATUS, Certificate, Certification
@@ -25,9 +25,18 @@ CERTIFICATES = CERTIFY_CHECKS
 #: the deterministic work budget of each certificate, in tape operations x boxes (a certificate with a 600-operation
 #: tape gets ~80,000 boxes; a wall-clock limit can only stop a search earlier)
 DEFAULT_WORK = {"certify.input_gain": 4e7, "certify.bounds": 5e7, "certify.invariance": 5e7,
-                "certify.containment": 5e7}
+                "certify.containment": 5e7, "certify.sampled": 5e7}
 #: the order they are computed in (bounds uses the set a containment or invariance certificate proves)
 _ORDER = ("certify.input_gain", "certify.invariance", "certify.containment", "certify.bounds")
+
+
+def _sampled(ctx: Context, budget: Budget) -> Certificate:
+    """certify.sampled at the scenario's [implementation] (its tau_max; the bisection starts at its rate, else at
+    1 kHz), S declared with the default margins; `rate --certify` adds the simulated rate and the C step's run."""
+    from .sampled_rate import certify_sampled
+    impl = getattr(ctx.scenario, "implementation", None)
+    return certify_sampled(ctx, budget, tau_max=impl.tau_max if impl is not None else None,
+                           start_hz=impl.rate_hz if impl is not None else None)
 
 
 def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_info=None, w_hat_range=None,
@@ -43,13 +52,14 @@ def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_in
     t0 = time.monotonic()
     _regular_on(scenario, float(t_final))
     expiry = None if wall_limit is None else t0 + float(wall_limit)
-    wanted = [c for c in _ORDER if only is None or c in only]
+    wanted = [c for c in _ORDER if only is None or c in only] + [c for c in CERTIFY_ON_DEMAND if only and c in only]
     ctx = Context(scenario, design, float(t_final), parameter_box(scenario),
                   None if W_star is None else np.asarray(W_star, float), w_hat_range,
                   w_star_info=dict(w_star_info or {}), breach=breach)
     budgets = dict(DEFAULT_WORK, **(work or {}))
     fns = {"certify.input_gain": certify_input_gain, "certify.invariance": certify_invariance,
-           "certify.bounds": certify_bounds, "certify.containment": certify_containment}
+           "certify.bounds": certify_bounds, "certify.containment": certify_containment,
+           "certify.sampled": _sampled}
     done = {}
     for i, cid in enumerate(wanted):
         left = len(wanted) - i
@@ -62,7 +72,7 @@ def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_in
             done[cid] = fns[cid](ctx, Budget(float(budgets[cid]), share))
         ctx.results[cid] = done[cid]
         say(f"{cid}: {done[cid].status} ({done[cid].seconds:.1f} s, {done[cid].boxes} boxes)")
-    certs = [done[c] for c in CERTIFICATES if c in done]
+    certs = [done[c] for c in CERTIFICATES + CERTIFY_ON_DEMAND if c in done]
     return Certification(scenario.name, certs, seconds=time.monotonic() - t0, wall_limit=wall_limit)
 
 

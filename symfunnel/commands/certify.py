@@ -13,7 +13,8 @@ def register(sub, common) -> None:
     common(sp)
     sp.add_argument("--json", action="store_true", help="machine-readable output")
     sp.add_argument("--only", nargs="+", metavar="ID", help="certificates to compute: certify.input_gain, "
-                    "certify.bounds, certify.invariance (or input_gain, bounds, invariance)")
+                    "certify.bounds, certify.invariance (or input_gain, bounds, invariance); certify.sampled (a proven sample "
+                    "rate) only when named here")
     sp.add_argument("--wall-limit", type=float, metavar="S", dest="certify_wall_limit",
                     help="seconds for the whole command; reached, the searches end with 'undecided' and the "
                          "fraction left (never with a wrong verdict)")

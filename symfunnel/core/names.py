@@ -78,6 +78,8 @@ VERIFY_CHECKS = ("simulation.completed", "design.identity.vdot", "lyapunov.rho_p
 
 #: ids of the certificates (`symfunnel certify`; verify shows them as checks)
 CERTIFY_CHECKS = ("certify.input_gain", "certify.bounds", "certify.invariance", "certify.containment")
+#: certificates computed only when `certify --only` names them (certify.sampled: `rate --certify` gives its bracket)
+CERTIFY_ON_DEMAND = ("certify.sampled",)
 
 
 def check_ids(n: int) -> list[str]:

@@ -221,8 +221,11 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
                          tuple(f for f in SHARED_FLAGS if f != "-shared") + ("-c",), libs=(), on_build=on_build)
     built = compile_cached({"api.c": text[cut:], base + ".h": hdr, "core.o": obj.path.read_bytes()},
                            ["api.c", "core.o"], f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
-    nr, n = design.sym["w_hat"].shape
-    return StepLibrary(built.path, api["prefix"], design.n, int(design.sym["x_esn"].numel()), nr * n)
+    # the step API's states: the design's own, or the placeholders of a design without them (emit.step.step_states)
+    from ..emit.step import step_states
+    x_esn, w_hat = step_states(design)
+    nr, n = w_hat.shape
+    return StepLibrary(built.path, api["prefix"], design.n, int(x_esn.numel()), nr * n)
 
 
 def plant_substeps(scenario, h: float) -> int:

@@ -1,0 +1,537 @@
+"""`certify.sampled`: the deployed controller's funnels over one sampling period, proven for a rate f = 1/h.
+
+The set S of states at a sampling instant t_k in [0, T]: |e1_j| <= (1 - m1) F1_j(t_k), |e2_j| <= (1 - m2) F2_j(t_k),
+x_esn in its invariant box |x_i| <= 1/leak, W_hat in a box (declared, or the simulated run's range widened), every
+parameter of the box (the dead zone's breakpoints and scales included). `SampledSet` is the seam: today S is declared
+(margins by option); a containment certificate can hand over its own S later.
+
+In the normalised errors sigma_i = e_i / F_i (the region coordinates s of `region.region_signals` at m = 0) the plant
+under the held torque u_k is the non-autonomous ODE
+
+    sigma_i' = (e_i' - sigma_i F_i') / F_i,   e1' = dq - dqd,   e2' = ddq_plant(t, q, dq, u_k, p) - alpha2_dot,
+
+written on the design's own graph (rewritten over the region, so F - |e| is never a cancellation). For a box K of
+sample states (t_k, sigma_k, p, controller states) and h:
+
+1. u_k: the enclosure of the C step's torque over K (`emit.step.step_core`'s tau: the design's torque, saturated at
+   tau_max; the step's projection onto the funnels is the identity on S since m >= 1 - CLIP);
+2. a-priori enclosure (first-order Picard): a box Sigma with K_sigma + [0, h] sigma'([t_k, t_k + h], Sigma, u_k, p)
+   inside Sigma encloses sigma(t) on the whole period;
+3. (a) Sigma within |sigma| <= 1 - M (the funnels with the rate's margin M between the samples) and (b) the next
+   sample sigma_k + h sigma'(...) within S's margins; W_hat's exponential-Euler update stays in its box (an affine
+   update: W+ = b W + phi A, b = 1 - phi c in [0, 1], so A's enclosure inside c times the box suffices, whatever h);
+   x_esn's update is the convex combination exp(-lambda h) x + (1 - exp(-lambda h)) tanh(.)/leak (emit.step's ETD
+   lemma), inside its box at every h.
+
+`sampled_rate` bisects in h and brackets the result with the simulated rate and the theory bound.
+
+Boxes failing a check are bisected (t, sigma and the uncertain parameters; the controller states are never split);
+the interior of S passes in large boxes, the layer within one period's reach of its faces is refined. Proven at h
+is proven at every h' <= h: the a-priori box covers [t_k, t_k + h'], and (b)'s bound of sigma(t_k + s) for one sample
+state, x + s sigma'(x) + s^2/2 max(sigma''_hi, 0) (or x + s max(D_hi, 0)), is convex in s and inside S at s = 0 and
+s = h, so on all of [0, h]: the state stays in S during the whole period. So bisection in h gives f_proven.
+A point of S whose degenerate box fails ends the search at that h early (the method cannot prove it there; that is
+not a refutation: only a sampled run that breaches refutes a rate).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from ..core.errors import InputError
+from ..emit.step import CLIP
+from ..plant.equations import plant_acceleration, plant_parameters
+from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
+from ..sx.interval import IntervalError
+from .problem import Context, controller_state_boxes
+from .region import region_signals, structurally_zero, true_unknown
+
+CID = "certify.sampled"
+#: S's margins (e1, e2) when none are given
+DEFAULT_SET_MARGIN = (0.5, 0.5)
+#: boxes evaluated per batch
+BATCH = 256
+#: Picard iterations before a box's a-priori enclosure counts as not found
+PICARD_ITERATIONS = 8
+#: the sensitivity's split variable is used while its relative width is at least the widest's / HINT_RATIO
+HINT_RATIO = 4.0
+#: why a box fails, by the first check it fails: no finite torque enclosure, no finite rate, no a-priori box within the
+#: funnels with margin M (the Picard iteration left them), (a) the funnels with margin M on the period, (b) the next
+#: sample outside S, W_hat's update outside its box
+WHY = ("", "torque", "rates", "enclosure", "funnel", "next sample", "w_hat")
+#: a failing box thinner than this (relative to S) in every split variable ends the search at that h
+THIN = 1e-4
+#: random sample points screened (as degenerate boxes) before a branch and bound at one h
+SCREEN_POINTS = 128
+
+
+@dataclass
+class SampledSet:
+    """S: the states at a sampling instant the certificate starts from and returns to (the seam for a containment
+    certificate's set: `source` says where it comes from)."""
+
+    m1: float
+    m2: float
+    states: dict = field(default_factory=dict)        # controller-state boxes {name: (lo, hi)}
+    source: str = "declared"
+    notes: dict = field(default_factory=dict)
+
+    def describe(self, t_final: float) -> dict:
+        """The contract's region dict of S."""
+        return {"t": [0.0, float(t_final)], "margin": {"e1": self.m1, "e2": self.m2}, "source": self.source,
+                **self.notes}
+
+
+def declared_set(ctx: Context, m1: float, m2: float, w_box=None, w_source: str | None = None) -> SampledSet:
+    """S with margins (m1, m2), x_esn in its invariant box and W_hat in `w_box` (else the bounds certificate's box:
+    the run's range widened by its own width)."""
+    for k, m in (("e1", m1), ("e2", m2)):
+        if not (isinstance(m, (int, float)) and math.isfinite(m) and 1.0 - CLIP <= m < 1.0):
+            raise InputError(f"is {m!r}", file=ctx.scenario.file, key=f"--set-margin ({k})",
+                             expected=f"a margin in [{1 - CLIP:g}, 1) (the step projects at {CLIP:g} F)")
+    notes = {}
+    w = None
+    if ctx.design.n_regressor:
+        if w_box is None:
+            from .bounds import w_hat_box
+            w_box, w_source = w_hat_box(ctx)
+        w = w_box
+        notes["w_hat"] = w_source
+    if "x_esn" in dict(ctx.design.states):
+        notes["x_esn"] = "the reservoir's invariant box |x_i| <= 1/leak"
+    states = controller_state_boxes(ctx, w) if (w is not None or not ctx.design.n_regressor) else {}
+    return SampledSet(float(m1), float(m2), states, "declared", notes)
+
+
+def _nominal_de2(design) -> ca.SX:
+    """de2 = (v - W_hat^T Phi) - alpha2_dot of the nominal loop without the alpha2_dot - alpha2_dot cancellation
+    interval arithmetic cannot see: when v = alpha2_dot + g with g free of alpha2_dot (v affine in alpha2_dot with
+    the identity as coefficient, checked on the graph: alpha2_dot's nodes replaced by a symbol A, dv/dA = I),
+    de2 = g - W_hat^T Phi = v(A = 0) - W_hat^T Phi; else (a mutant that scales alpha2_dot) the design's de2."""
+    from ..sx.rewrite import replace_nodes
+    S = design.signals
+    n = design.n
+    A = ca.SX.sym("A", n)
+    vA = replace_nodes([S["v"]], S["alpha2_dot"], A)[0]
+    try:
+        J = np.asarray(ca.evalf(ca.jacobian(vA, A)), float)
+    except RuntimeError:
+        return S["de2"]
+    if not np.array_equal(J, np.eye(n)):
+        return S["de2"]
+    est = ca.mtimes(design.sym["w_hat"].T, S["Phi"]) if "w_hat" in design.sym else ca.SX.zeros(n)
+    if not structurally_zero(S["ddq"] - (S["v"] - est)):
+        return S["de2"]
+    return ca.substitute(vA, A, ca.SX.zeros(n)) - est
+
+
+_SWITCHING = ("OP_SIGN", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ", "OP_NE", "OP_NOT", "OP_AND", "OP_OR",
+              "OP_FLOOR", "OP_CEIL")
+
+
+def _switching_on(inputs: list, wrt: list, outputs: list) -> int:
+    """How many discontinuous operations (sign, comparisons, branches, floor) of the graph of `outputs` have an
+    argument that depends on the symbols `wrt` (the other inputs are held constant)."""
+    f = ca.Function("g", inputs, outputs)
+    codes = {getattr(ca, k) for k in _SWITCHING if hasattr(ca, k)}
+    op_input, op_output, op_const = ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST
+    wrt_ids = set()
+    for i, x in enumerate(inputs):
+        for k in range(x.nnz()):
+            if any(ca.depends_on(x.nz[k], w) for w in wrt):
+                wrt_ids.add((i, k))
+    dep: dict[int, bool] = {}
+    count = 0
+    for k in range(f.n_instructions()):
+        op = f.instruction_id(k)
+        o = f.instruction_output(k)
+        if op == op_input:
+            i, nz = f.instruction_input(k)
+            dep[o[0]] = (i, nz) in wrt_ids
+        elif op == op_output or op == op_const:
+            if op == op_const:
+                dep[o[0]] = False
+        else:
+            d = any(dep.get(a, False) for a in f.instruction_input(k) if a >= 0)
+            if op in codes and d:
+                count += 1
+            dep[o[0]] = d
+    return count
+
+
+def _continuous_rates(design, inputs, state, plant_ddq) -> tuple[bool, str]:
+    """Whether sigma' is continuous along a period (so the next sample's second-order form may use the Lipschitz
+    mean-value argument where its interval evaluation flags a sign that may switch): the plant's acceleration has no
+    discontinuous operation depending on the state (t, q, dq) -- the held torque's dead zone is constant -- and the
+    design's alpha2, F and F' have none, and the transformation's z is C^1 at e = 0 (proven by sympy: the
+    derivative of each branch of |s| agrees at 0), so alpha2_dot's sign(e1) from the AD of |e1| multiplies a jump 0."""
+    S = design.signals
+    if _switching_on(inputs, state, [plant_ddq]):
+        return False, "the plant's acceleration switches with the state (Coulomb friction, a branch)"
+    sym = design.sym
+    ins = [sym[k] for k in ("t", "q", "qd", "dqd", "ddqd")]
+    if _switching_on(ins, ins, [S["alpha2"], S["F1"], S["F2"], S["dF1"], S["dF2"]]):
+        return False, "alpha2 or a funnel has a discontinuous operation"
+    if not _transform_c1(design.variant.transform.name):
+        return False, "the transformation's z is not shown C^1 at e = 0"
+    return True, "sigma' is continuous along a period (checked)"
+
+
+_C1: dict = {}
+
+
+def _transform_c1(name: str) -> bool:
+    """sympy: z(s) of the registered transformation (F = 1) has equal one-sided derivatives at s = 0."""
+    if name in _C1:
+        return _C1[name]
+    import sympy
+
+    from ..family.transforms import TRANSFORMS
+    from ..sx.proof import _Timeout, time_limit
+    from ..sx.tosympy import sx_to_sympy
+    T = TRANSFORMS.get(name)()
+    s = ca.SX.sym("s")
+    z = T.build(s, ca.SX(1))["z"]
+    ok = False
+    try:
+        with time_limit(10.0):
+            S = sympy.Symbol("s", real=True)
+            e = sx_to_sympy(z, [s], [[S]])[0]
+            P = sympy.Symbol("P", positive=True)
+            right = sympy.diff(e.subs(S, P), P)
+            left = sympy.diff(e.subs(S, -P), P)         # d/ds at -P is -d/dP of z(-P)
+            ok = bool(sympy.simplify(sympy.limit(right, P, 0, "+") + sympy.limit(left, P, 0, "+")) == 0)
+    except (_Timeout, RecursionError, NotImplementedError, TypeError, ValueError):
+        ok = False
+    _C1[name] = ok
+    return ok
+
+
+def _check(f: ca.Function, file: str, what: str, wrt=None):
+    try:
+        return BatchCenteredForm(f, wrt) if wrt else BatchIntervalFunction(f)
+    except IntervalError as exc:
+        raise InputError(f"cannot be certified: {exc}", file=file, key=what,
+                         expected="signals built from operations with interval rules") from None
+
+
+class OnePeriod:
+    """The one-period map's interval pieces for one design and parameter box: the held torque over a box of sample
+    states, the normalised errors' rates under a held torque, and W_hat's update (see the module doc)."""
+
+    def __init__(self, ctx: Context, S: SampledSet, tau_max=None):
+        d, sc = ctx.design, ctx.scenario
+        n = d.n
+        self.ctx, self.S, self.n = ctx, S, n
+        P = ctx.params
+        self.wide = np.flatnonzero(P.lo < P.hi)
+        names, _ = plant_parameters(sc)
+        pu = ca.SX.sym("p", int(self.wide.size))
+        full = [ca.SX(float(v)) for v in P.nominal]
+        for i, j in enumerate(self.wide):
+            full[j] = pu[i]
+        # the parameters enter as constants where they are points, so a term multiplied by a zero parameter (e.g.
+        # Coulomb friction's sign(dq) at coulomb = 0) folds away at construction instead of flagging a switch
+        p = ca.vertcat(*full)
+        assert p.numel() == len(names)
+        Sg, sym = d.signals, d.sym
+        tau = Sg["tau"]
+        if tau_max is not None:
+            tm = ca.DM(np.broadcast_to(np.asarray(tau_max, float), (n,)).copy())
+            tau = ca.fmin(ca.fmax(tau, -tm), tm)
+        u = ca.SX.sym("u", n)
+        ddq = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], u, 0.0, p=p)["ddq"]
+        self.continuous, self.continuity = _continuous_rates(
+            d, [sym["t"], sym["q"], sym["dq"], u, pu], [sym["t"], sym["q"], sym["dq"]], ddq)
+        de1 = sym["dq"] - sym["dqd"]
+        de2 = ddq - Sg["alpha2_dot"]
+        rates = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
+                           (de2 - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
+        # the rates at the sample itself, under the step's own torque: there the plant's acceleration minus
+        # alpha2_dot is f_true + de2 (f_true in the inverse-dynamics residual form where the design's torque is the
+        # model's inverse dynamics: no M_p^-1 tau - alpha2_dot cancellation); with saturation the direct form
+        if tau_max is None:
+            de2_k = true_unknown(d, p)["f_true"] + _nominal_de2(d)
+        else:
+            de2_k = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], tau, 0.0, p=p)["ddq"] - Sg["alpha2_dot"]
+        rates_k = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
+                             (de2_k - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
+        exprs = {"tau": tau, "rate": rates, "rate_k": rates_k}
+        self.w_rate = None
+        if "w_hat" in sym:
+            W = sym["w_hat"]
+            wdot = Sg["w_hat_dot"]
+            J = ca.jacobian(ca.vec(wdot), ca.vec(W))
+            c = None
+            try:
+                Jd = np.asarray(ca.evalf(J), float)
+            except RuntimeError:        # W_hat's rate is not affine in W_hat with a constant Jacobian
+                Jd = None
+            if Jd is not None:
+                diag = np.diag(Jd)
+                # the step's exponential-Euler weight decays at Gamma sigma: W+ = (1 - phi c) W + phi A is a convex
+                # combination only when the rate's own decay c is that one
+                lam = float(sc.gamma) * float(sc.sigma)
+                if np.all(Jd - np.diag(diag) == 0) and np.all(diag == diag[0]) and diag[0] < 0 \
+                        and abs(-float(diag[0]) - lam) <= 1e-12 * lam:
+                    c = -float(diag[0])
+            if c is not None:
+                exprs["w_affine"] = ca.vec(ca.substitute(wdot, W, ca.SX.zeros(*W.shape)))
+                self.w_rate = c
+        ins, outs, onames, states, _ = region_signals(d, exprs)
+        self.state_names = [k for k, _ in d.states]
+        t, s1, s2, m = ins
+        opts = {"cse": True, "allow_duplicate_io_names": True}
+        o = dict(zip(onames, outs))
+        base = [t, s1, s2, m, pu]
+        bnames = ["t", "s1", "s2", "m", "p"]
+        self.tau_f = ca.Function("held_tau", base + states, [o["tau"]], bnames + self.state_names, ["tau"], opts)
+        self.tau = _check(self.tau_f, sc.file, "signal tau", ["t", "s1", "s2", "p"])
+        self.rate_f = ca.Function("sigma_rate", base + [u] + states, [o["rate"]],
+                                  bnames + ["u"] + self.state_names, ["rate"], opts)
+        self.rate = _check(self.rate_f, sc.file, "the normalised errors' rates", ["t", "s1", "s2", "p", "u"])
+        # the next sample to second order: sigma_k + h sigma'(t_k, sigma_k, u_k) (one function of the sample
+        # state, so its centered form keeps the correlation of sigma_k with its own rate) plus h^2/2 sigma'' over
+        # the period's enclosure, sigma'' = d sigma'/dt + d sigma'/d sigma sigma' (u held)
+        hs = ca.SX.sym("h")
+        sig = ca.vertcat(s1, s2)
+        nxt = sig + hs * o["rate_k"]
+        self.next_f = ca.Function("next_sample", base + [hs] + states, [nxt], bnames + ["h"] + self.state_names,
+                                  ["next"], opts)
+        self.next = _check(self.next_f, sc.file, "the next sample", ["t", "s1", "s2", "p"])
+        acc = ca.jacobian(o["rate"], t) + ca.mtimes(ca.jacobian(o["rate"], sig), o["rate"])
+        self.acc_f = ca.Function("sigma_acc", base + [u] + states, [acc], bnames + ["u"] + self.state_names,
+                                 ["acc"], opts)
+        self.acc = _check(self.acc_f, sc.file, "the normalised errors' second derivative", None)
+        self.w_f = None
+        if self.w_rate is not None:
+            self.w_f = ca.Function("w_affine", base + states, [o["w_affine"]], bnames + self.state_names, ["A"],
+                                   opts)
+            self.w_aff = _check(self.w_f, sc.file, "signal w_hat_dot", None)
+        # flat layout: [t, s1 (n), s2 (n), m, p (np), states...]; the rate function has u (n) after p
+        self.np = int(self.wide.size)
+        self.i_p = 2 * n + 2
+        self.i_st = self.i_p + self.np
+        st_lo, st_hi = [], []
+        F = self.tau.natural
+        for k in self.state_names:
+            lo, hi = S.states[k]
+            i = F.in_names.index(k)
+            a, b = np.asarray(lo, float).reshape(-1, order="F"), np.asarray(hi, float).reshape(-1, order="F")
+            assert a.size == F.in_off[i + 1] - F.in_off[i]
+            st_lo.append(a)
+            st_hi.append(b)
+        self.st_lo = np.concatenate(st_lo) if st_lo else np.zeros(0)
+        self.st_hi = np.concatenate(st_hi) if st_hi else np.zeros(0)
+        self.dim = self.i_st                      # the split part: t, s1, s2, m, p (m is a point)
+        self.lim_S = np.concatenate([np.full(n, 1 - S.m1), np.full(n, 1 - S.m2)])
+
+    def box(self, t_final: float) -> tuple[np.ndarray, np.ndarray]:
+        """The flat box of S (without the controller states)."""
+        n = self.n
+        P = self.ctx.params
+        lo = np.concatenate([[0.0], -self.lim_S, [0.0], P.lo[self.wide]])
+        hi = np.concatenate([[float(t_final)], self.lim_S, [0.0], P.hi[self.wide]])
+        assert lo.size == self.dim and n >= 1
+        return lo, hi
+
+    def split_vars(self, lo, hi) -> np.ndarray:
+        """Flat indices bisected: t, s1, s2 and the uncertain parameters."""
+        return np.array([j for j in range(self.dim) if j != 2 * self.n + 1 and lo[j] < hi[j]], dtype=int)
+
+    def _full(self, LO, HI):
+        K = LO.shape[0]
+        return (np.concatenate([LO, np.repeat(self.st_lo[None, :], K, 0)], axis=1),
+                np.concatenate([HI, np.repeat(self.st_hi[None, :], K, 0)], axis=1))
+
+    def check(self, LO: np.ndarray, HI: np.ndarray, h: float, M: float) -> tuple[np.ndarray, dict]:
+        """Per box (rows of the flat split part), whether both funnels with margin M on the period and the return
+        to S are proven at period h; and the enclosures (sigma' box, a-priori Sigma) for the record."""
+        n = self.n
+        K = LO.shape[0]
+        FL, FH = self._full(LO, HI)
+        UL, UH, _ = self.tau.eval_batch(FL, FH)
+        ok = np.all(np.isfinite(UL) & np.isfinite(UH), axis=1)
+        why = np.where(ok, 0, WHY.index("torque"))           # the first check a box fails (WHY), 0 = none
+        hint = np.full(K, -1, dtype=int)
+        switched = np.ones(K, dtype=bool)         # a discontinuous operation (sign, if_else) may switch on the period
+        sl = slice(1, 2 * n + 1)
+        kl, kh = LO[:, sl], HI[:, sl]
+        lim_M = 1.0 - M
+        # Picard: Sigma_{j+1} = K + [0, h] f(T, Sigma_j); valid once Sigma_{j+1} is inside Sigma_j
+        wl, wh = kl.copy(), kh.copy()
+        valid = np.zeros(K, dtype=bool)
+        DL = np.full((K, 2 * n), -np.inf)
+        DH = np.full((K, 2 * n), np.inf)
+        SL, SH = wl.copy(), wh.copy()
+        tl, th = LO[:, 0], _up(HI[:, 0] + h)
+        for it in range(PICARD_ITERATIONS):
+            live = ok & ~valid
+            if not live.any():
+                break
+            idx = np.flatnonzero(live)
+            RL, RH, RS = self._rate_in(FL[idx], FH[idx], tl[idx], th[idx], wl[idx], wh[idx], UL[idx], UH[idx])
+            fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
+            nl = _dn(kl[idx] + _dn(h * np.minimum(RL, 0.0)))
+            nh = _up(kh[idx] + _up(h * np.maximum(RH, 0.0)))
+            inside = fin & np.all((nl >= wl[idx]) & (nh <= wh[idx]), axis=1)
+            good = idx[inside]
+            valid[good] = True
+            DL[good], DH[good] = RL[inside], RH[inside]
+            switched[good] = RS[inside]
+            SL[good], SH[good] = wl[good], wh[good]
+            bad = idx[~fin]
+            why[bad[ok[bad]]] = WHY.index("rates")
+            ok[bad] = False
+            grow = idx[fin & ~inside]
+            g = np.flatnonzero(fin & ~inside)
+            # inflate: the new bounds, widened by a tenth of their width and an absolute 1e-9
+            w = nh[g] - nl[g]
+            wl[grow] = _dn(np.minimum(wl[grow], nl[g] - 0.1 * w - 1e-9))
+            wh[grow] = _up(np.maximum(wh[grow], nh[g] + 0.1 * w + 1e-9))
+            # an enclosure that leaves the funnels with margin M cannot pass (a): stop inflating it
+            out = np.any((wl[grow] < -lim_M) | (wh[grow] > lim_M), axis=1)
+            why[grow[out][ok[grow[out]]]] = WHY.index("funnel")
+            ok[grow[out]] = False
+        why[ok & ~valid] = WHY.index("enclosure")
+        ok &= valid
+        # (a) the funnels with margin M over the whole period
+        a = np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
+        why[ok & ~a] = WHY.index("funnel")
+        ok &= a
+        # (b) the next sample in S: first order K + h D, and where that fails the second-order form
+        el = _dn(kl + _dn(h * DL))
+        eh = _up(kh + _up(h * DH))
+        first = np.all((el >= -self.lim_S) & (eh <= self.lim_S), axis=1)
+        # the second-order form needs sigma' Lipschitz along the period: not where a discontinuity (Coulomb's sign,
+        # a branch) may switch inside the a-priori box (interval AD of |.|, min, max encloses Clarke's Jacobian)
+        need = np.flatnonzero(ok & ~first & (self.continuous | ~switched))
+        if need.size:
+            i = need
+            NL, NH, _, J = self.next.eval_batch(*self._with_h(FL[i], FH[i], h), with_jacobian=True)
+            AL, AH = self._acc_in(FL[i], FH[i], tl[i], th[i], SL[i], SH[i], UL[i], UH[i])
+            r = _up(_up(h * h) * 0.5)
+            el2 = _dn(NL + _dn(r * np.minimum(AL, 0.0)))
+            eh2 = _up(NH + _up(r * np.maximum(AH, 0.0)))
+            second = np.all(np.isfinite(el2) & np.isfinite(eh2) & (el2 >= -self.lim_S) & (eh2 <= self.lim_S), axis=1)
+            first[i] = second
+            hint[i] = self._hint(LO[i], HI[i], el2, eh2, J)
+        why[ok & ~first] = WHY.index("next sample")
+        ok &= first
+        if self.w_f is not None and ok.any():
+            idx = np.flatnonzero(ok)
+            AL, AH, _ = self.w_aff.eval_batch(FL[idx], FH[idx])
+            c = self.w_rate
+            wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
+            good = np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
+            why[idx[~good]] = WHY.index("w_hat")
+            ok[idx[~good]] = False
+        return ok, {"why": why, "DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
+
+    def _hint(self, LO, HI, el2, eh2, J) -> np.ndarray:
+        """Per box, the split variable for the next sample's most violated component: the largest
+        |d next_i / d x_j| x width_j among the other variables (the own sigma_i's term is the contraction itself,
+        not an overestimation: it weighs a tenth); -1 where the Jacobian is not finite."""
+        n2 = 2 * self.n
+        viol = np.maximum(eh2 - self.lim_S, -self.lim_S - el2)
+        viol = np.where(np.isfinite(viol), viol, np.inf)
+        comp = np.argmax(viol, axis=1)
+        wf = self.next.w_flat
+        width = HI[:, wf] - LO[:, wf]
+        rows = np.arange(LO.shape[0])
+        with np.errstate(invalid="ignore"):          # an unbounded Jacobian entry times a zero width
+            c = J[rows, comp, :] * width
+        for k, j in enumerate(wf):
+            if 1 <= j <= n2:
+                c[:, k] = np.where(comp == j - 1, 0.1 * c[:, k], c[:, k])
+        c = np.where(np.isfinite(c) & (width > 0), c, -1.0)
+        best = np.argmax(c, axis=1)
+        return np.where(c[rows, best] > 0, wf[best], -1)
+
+    def _with_h(self, FL, FH, h):
+        i = self.i_st
+        col = np.full((FL.shape[0], 1), float(h))
+        return (np.concatenate([FL[:, :i], col, FL[:, i:]], axis=1), np.concatenate([FH[:, :i], col, FH[:, i:]], axis=1))
+
+    def _acc_in(self, FL, FH, tl, th, sl, sh, UL, UH):
+        """sigma'' over the period's enclosure (the same inputs as `_rate_in`)."""
+        n = self.n
+        RLo = np.concatenate([tl[:, None], sl, FL[:, 2 * n + 1:self.i_st], UL, FL[:, self.i_st:]], axis=1)
+        RHi = np.concatenate([th[:, None], sh, FH[:, 2 * n + 1:self.i_st], UH, FH[:, self.i_st:]], axis=1)
+        L, H, _ = self.acc.eval_batch(RLo, RHi)
+        return L, H
+
+    def _rate_in(self, FL, FH, tl, th, sl, sh, UL, UH):
+        """sigma' over (time [tl, th], sigma box, the parameters, u box, the states)."""
+        n = self.n
+        RLo = np.concatenate([tl[:, None], sl, FL[:, 2 * n + 1:self.i_st], UL, FL[:, self.i_st:]], axis=1)
+        RHi = np.concatenate([th[:, None], sh, FH[:, 2 * n + 1:self.i_st], UH, FH[:, self.i_st:]], axis=1)
+        L, H, sw = self.rate.eval_batch(RLo, RHi)
+        return L, H, np.asarray(sw, bool)
+
+
+def _dn(x):
+    return np.nextafter(x, -np.inf)
+
+
+def _up(x):
+    return np.nextafter(x, np.inf)
+
+
+def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes: int, expiry=None,
+                 rng_seed: int = 20241205) -> dict:
+    """Branch and bound over S at period h: {"proven": bool, "boxes", "left": undecided volume fraction, "reason"}."""
+    lo, hi = op.box(t_final)
+    split = op.split_vars(lo, hi)
+    scale = np.where(hi - lo > 0, hi - lo, 1.0)
+    # screen: points of S (random, and on its faces) as degenerate boxes
+    rng = np.random.default_rng(rng_seed)
+    X = lo + rng.random((SCREEN_POINTS, lo.size)) * (hi - lo)
+    sl = slice(1, 2 * op.n + 1)
+    X[: SCREEN_POINTS // 2, sl] = np.where(rng.random((SCREEN_POINTS // 2, 2 * op.n)) < 0.5, lo[sl], hi[sl])
+    okp, infop = op.check(X, X, h, M)
+    if not okp.all():
+        k = int(np.argmin(okp))
+        return {"proven": False, "boxes": SCREEN_POINTS, "left": 1.0, "reason": "point", "point": X[k],
+                "failed": WHY[int(infop["why"][k])]}
+    # breadth-first: the oldest (largest) boxes first, so what is left shrinks evenly over S
+    LO, HI, V = lo[None, :].copy(), hi[None, :].copy(), np.array([1.0])
+    boxes = 0
+    while LO.shape[0]:
+        take = min(BATCH, LO.shape[0])
+        cur_lo, cur_hi, cur_v = LO[:take], HI[:take], V[:take]
+        LO, HI, V = LO[take:], HI[take:], V[take:]
+        ok, info = op.check(cur_lo, cur_hi, h, M)
+        boxes += take
+        bad = ~ok
+        if not bad.any():
+            continue
+        BL, BH, BV = cur_lo[bad], cur_hi[bad], cur_v[bad]
+        rel = (BH[:, split] - BL[:, split]) / scale[split]
+        left = float(BV.sum() + V.sum())
+        if np.any(np.max(rel, axis=1) < THIN):
+            return {"proven": False, "boxes": boxes, "left": left, "reason": "thin"}
+        if boxes >= max_boxes or (expiry is not None and time.monotonic() >= expiry):
+            return {"proven": False, "boxes": boxes, "left": left,
+                    "reason": "boxes" if boxes >= max_boxes else "seconds"}
+        k = split[np.argmax(rel, axis=1)]
+        # the sensitivity's choice, unless that variable is already much thinner (relative to S) than the widest
+        hint = info["hint"][bad]
+        r = np.arange(BL.shape[0])
+        hrel = (BH[r, np.maximum(hint, 0)] - BL[r, np.maximum(hint, 0)]) / scale[np.maximum(hint, 0)]
+        k = np.where((hint >= 0) & (hrel * HINT_RATIO >= np.max(rel, axis=1)), hint, k)
+        r = np.arange(BL.shape[0])
+        mid = 0.5 * BL[r, k] + 0.5 * BH[r, k]
+        h1 = BH.copy()
+        h1[r, k] = mid
+        l2 = BL.copy()
+        l2[r, k] = mid
+        LO = np.concatenate([LO, BL, l2])
+        HI = np.concatenate([HI, h1, BH])
+        V = np.concatenate([V, BV / 2, BV / 2])
+    return {"proven": True, "boxes": boxes, "left": 0.0, "reason": None}

@@ -1,0 +1,206 @@
+"""The proven sample rate: bisection in the period over `sampled.prove_period`, the theory's reach-time bound with
+rigorous constants, and `rate --certify`'s bracket with the simulated rate (docs/certify.md, certify.sampled).
+
+Proven at h is proven at every h' <= h (`sampled`'s module doc), so the lowest proven rate of the bisection,
+f_proven, is a rate above which the sampled loop provably keeps the funnels from S.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from .problem import Budget, Context
+from .result import Certificate
+from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, declared_set, prove_period
+
+
+#: the highest rate tried (the simulated search's ceiling)
+MAX_RATE_HZ = 1e6
+#: the bracket [not proven, proven] ends below this ratio
+RATE_REL_TOL = 0.1
+#: boxes per period h tried (a deterministic budget; --wall-limit can only end a search earlier)
+BOXES_PER_RATE = 40000
+
+
+def initial_in_set(ctx: Context, S: SampledSet) -> tuple[bool, list]:
+    """Whether the scenario's initial state (t = 0) lies in S, and its normalised errors e/F."""
+    d, sc = ctx.design, ctx.scenario
+    qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(0.0))
+    F1, F2 = (np.asarray(v, float).ravel() for v in d.function("funnel_bounds", ["t"], ["F1", "F2"])(0.0))
+    q0, dq0 = np.asarray(sc.q0, float), np.asarray(sc.dq0, float)
+    a2 = np.asarray(d.function("alpha2", ["t", "q", "qd", "dqd"])(0.0, q0, qd, dqd), float).ravel()
+    sig = np.concatenate([(q0 - qd) / F1, (dq0 - a2) / F2])
+    inside = bool(np.all(np.abs(sig[:d.n]) <= 1 - S.m1) and np.all(np.abs(sig[d.n:]) <= 1 - S.m2))
+    if ctx.params.q0 is not None or ctx.params.dq0 is not None:
+        inside = False              # an initial-state box: not checked here (the detail says so)
+    return inside, sig.tolist()
+
+
+def theory_rate(op: OnePeriod, S: SampledSet, M: float, t_final: float, max_boxes: int = 3000) -> dict:
+    """The sampled-data funnel literature's intersample reach-time bound with rigorous constants: from a sample
+    state in S (margins m_i) the normalised error sigma_i needs at least (m_i - M) / L_i to reach the margin M, where
+    L_i = sup |sigma_i'| over the funnel set |sigma| <= 1 - M, the parameter box and every torque the step outputs on
+    S; h_theory = min_i (m_i - M) / L_i. Null when some m_i <= M or an L_i has no finite bound."""
+    from ..sx.search import extrema
+    n = op.n
+    gaps = np.concatenate([np.full(n, S.m1 - M), np.full(n, S.m2 - M)])
+    if np.any(gaps <= 0):
+        return {"rate_hz": None, "reason": f"S's margins ({S.m1:g}, {S.m2:g}) leave no gap above the rate's margin "
+                                           f"M = {M:g}"}
+    lo, hi = op.box(t_final)
+    FL, FH = op._full(lo[None, :], hi[None, :])
+    split = op.split_vars(lo, hi)
+    F = op.tau
+    objs = [(j, s) for j in range(n) for s in (1.0, -1.0)]
+    ex = extrema(F, FL[0], FH[0], split, objs, max_boxes=max_boxes, rel_tol=0.05)
+    ulo = np.array([ex[2 * j].bound for j in range(n)])
+    uhi = np.array([-ex[2 * j + 1].bound for j in range(n)])
+    if not (np.all(np.isfinite(ulo)) and np.all(np.isfinite(uhi))):
+        return {"rate_hz": None, "reason": "the step's torque over S has no finite enclosure"}
+    lim = 1.0 - M
+    # the rate function over [0, T] x |sigma| <= 1 - M x p x U x states
+    P = op.ctx.params
+    rl = np.concatenate([[0.0], np.full(2 * n, -lim), [0.0], P.lo[op.wide], ulo, op.st_lo])
+    rh = np.concatenate([[float(t_final)], np.full(2 * n, lim), [0.0], P.hi[op.wide], uhi, op.st_hi])
+    rsplit = np.array([j for j in range(rl.size) if j != 2 * n + 1 and j < op.i_st + n and rl[j] < rh[j]], dtype=int)
+    objs = [(i, s) for i in range(2 * n) for s in (1.0, -1.0)]
+    er = extrema(op.rate, rl, rh, rsplit, objs, max_boxes=max_boxes, rel_tol=0.05)
+    L = np.array([max(-er[2 * i].bound, -er[2 * i + 1].bound) for i in range(2 * n)])
+    if not np.all(np.isfinite(L)):
+        return {"rate_hz": None, "reason": "sup |sigma'| over the funnel set has no finite bound within the budget"}
+    with np.errstate(divide="ignore"):
+        hs = np.where(L > 0, gaps / L, np.inf)
+    h = float(np.min(hs))
+    return {"rate_hz": None if not np.isfinite(h) or h <= 0 else float(np.nextafter(1.0 / h, np.inf)),
+            "L": L.tolist(), "gaps": gaps.tolist(), "tau_range": [ulo.tolist(), uhi.tolist()],
+            "binding": int(np.argmin(hs)), "converged": bool(all(e.converged for e in er))}
+
+
+def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=DEFAULT_SET_MARGIN, tau_max=None,
+                    start_hz: float | None = None, S: SampledSet | None = None, theory: bool = True,
+                    progress=None) -> Certificate:
+    """certify.sampled: the lowest rate (within RATE_REL_TOL) at which one period from S provably keeps the
+    funnels with margin `margin` and returns to S; undecided with what is left otherwise."""
+    t0 = time.monotonic()
+    say = progress or (lambda s: None)
+    sc, d = ctx.scenario, ctx.design
+    T = float(ctx.t_final)
+    S = S or declared_set(ctx, float(set_margin[0]), float(set_margin[1]))
+    region = S.describe(T)
+    region["parameters"] = ctx.params.describe()
+    base = {"rate_margin": margin, "set": region}
+    impl = getattr(sc, "implementation", None)
+    if impl is not None and (impl.delay_samples or impl.noise_q or impl.noise_dq or impl.encoder_resolution):
+        return Certificate(CID, "undecided", "the scenario's [implementation] has a delay, measurement noise or "
+                           "quantisation, which the one-period proof does not model", region=region,
+                           undecided_fraction=1.0, seconds=time.monotonic() - t0, method=_METHOD,
+                           extra={**base, "proven_rate_hz": None})
+    if d.n_regressor and "w_hat" not in S.states:
+        return Certificate(CID, "undecided", "no W_hat box (no simulated run to take it from)", region=region,
+                           undecided_fraction=1.0, seconds=time.monotonic() - t0, method=_METHOD,
+                           extra={**base, "proven_rate_hz": None})
+    op = OnePeriod(ctx, S, tau_max)
+    if "w_hat" in S.states and op.w_rate is None:
+        return Certificate(CID, "undecided", "W_hat's update is not affine in W_hat with a constant diagonal "
+                           "decay, so its box is not shown to be kept", region=region, undecided_fraction=1.0,
+                           seconds=time.monotonic() - t0, method=_METHOD, extra={**base, "proven_rate_hz": None})
+    inside, sig0 = initial_in_set(ctx, S)
+    tried: list[dict] = []
+    max_boxes = int(min(BOXES_PER_RATE, max(1000, budget.work // 2000)))
+
+    def attempt(f: float) -> bool:
+        if budget.expired():
+            tried.append({"rate_hz": f, "proven": False, "reason": "seconds", "boxes": 0, "left": 1.0})
+            return False
+        r = prove_period(op, 1.0 / f, margin, T, max_boxes=max_boxes, expiry=budget.expiry)
+        tried.append({"rate_hz": f, "proven": r["proven"], "reason": r["reason"], "boxes": r["boxes"],
+                      "left": r["left"], **({"failed": r["failed"]} if "failed" in r else {})})
+        say(f"certify.sampled: {f:.6g} Hz {'proven' if r['proven'] else 'not proven (' + str(r['reason']) + ')'}"
+            f" ({r['boxes']} boxes)")
+        return r["proven"]
+
+    f = float(start_hz or (impl.rate_hz if impl is not None else 1000.0))
+    lo = hi = None
+    if attempt(f):
+        hi = f
+        while lo is None and hi / 4 >= 1.0:
+            if attempt(hi / 4):
+                hi = hi / 4
+            else:
+                lo = hi / 4
+    else:
+        lo = f
+        while hi is None and lo < MAX_RATE_HZ and not budget.expired():
+            g = min(lo * 4, MAX_RATE_HZ)
+            if attempt(g):
+                hi = g
+            else:
+                lo = g
+    while hi is not None and lo is not None and hi / lo > 1 + RATE_REL_TOL and not budget.expired():
+        mid = math.sqrt(lo * hi)
+        if attempt(mid):
+            hi = mid
+        else:
+            lo = mid
+    th = theory_rate(op, S, margin, T) if theory else {"rate_hz": None, "reason": "not computed"}
+    boxes = sum(r["boxes"] for r in tried)
+    extra = {**base, "proven_rate_hz": hi, "not_proven_below_hz": lo, "tried": tried, "initial_in_set": inside,
+             "initial_e_over_F": sig0, "theory": th}
+    secs = time.monotonic() - t0
+    if hi is not None and inside:
+        return Certificate(CID, "proven", f"at every rate >= {hi:.6g} Hz one period from any state of S (margins "
+                           f"e1 {S.m1:g}, e2 {S.m2:g}) keeps both funnels with margin {margin:g} and returns to S, "
+                           f"for every parameter of the box; the initial state is in S, so the sampled loop keeps "
+                           f"the funnels on [0, {T:g}] s", lower=hi, upper=lo, region=region, boxes=boxes,
+                           seconds=secs, method=_METHOD, extra=extra)
+    if hi is not None:
+        return Certificate(CID, "undecided", f"one period from S is proven at rates >= {hi:.6g} Hz, but the initial "
+                           f"state (e/F = {np.round(sig0, 4).tolist()}) is not shown to lie in S", lower=hi,
+                           upper=lo, region=region, boxes=boxes, seconds=secs, method=_METHOD,
+                           undecided_fraction=1.0, extra=extra)
+    last = tried[-1] if tried else {"left": 1.0, "reason": None}
+    why = f"; a point of S fails the check '{last['failed']}'" if last.get("failed") else ""
+    return Certificate(CID, "undecided", f"no rate up to {lo:.6g} Hz proven (the last attempt ended on "
+                       f"'{last['reason']}' with {last['left']:.3g} of S left{why})", upper=lo, region=region,
+                       boxes=boxes, undecided_fraction=float(last["left"]), seconds=secs, method=_METHOD,
+                       extra=extra)
+
+
+_METHOD = ("one-period validated enclosure (first-order Picard a-priori box, second-order Taylor form of the next "
+           "sample) by batched interval branch and bound over S; bisection in the period")
+
+
+def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=DEFAULT_SET_MARGIN,
+                    f_sim: float | None = None, w_hat_range=None, wall_limit: float | None = None,
+                    work: float = 5e7, progress=None) -> dict:
+    """`rate --certify`'s additions: {"proven_rate_hz", "theory_rate_hz", "ratio" (proven / simulated),
+    "certificate", "sampled_run_at_proven"} -- the last a sampled run of the generated C step at f_proven from the
+    scenario's initial state, which a proof must never contradict (a breach there would refute the certificate)."""
+    from ..deployed.loop import simulate_sampled
+    from .region import parameter_box
+    ctx = Context(scenario, design, float(t_final), parameter_box(scenario), None, w_hat_range)
+    expiry = None if wall_limit is None else time.monotonic() + float(wall_limit)
+    impl = getattr(scenario, "implementation", None)
+    tau_max = impl.tau_max if impl is not None else None
+    cert = certify_sampled(ctx, Budget(float(work), expiry), margin=margin, set_margin=set_margin, tau_max=tau_max,
+                           start_hz=f_sim, progress=progress)
+    fp = cert.extra.get("proven_rate_hz") if cert.status == "proven" else None
+    check = None
+    if fp is not None:
+        res = simulate_sampled(scenario, design, rate_hz=fp, t_final=t_final)
+        check = {"rate_hz": fp, "status": res.status, "min_margin": res.min_margin, "holds": bool(
+            res.ok and res.min_margin >= margin)}
+        if not check["holds"]:
+            cert = Certificate(CID, "refuted", f"the sampled run of the C step at the rate the enclosure proves "
+                               f"({fp:.6g} Hz) does not keep margin {margin:g} (min margin {res.min_margin:.4g}): "
+                               "the proof's model and the deployed loop disagree", counterexample=check,
+                               region=cert.region, boxes=cert.boxes, seconds=cert.seconds, method=cert.method,
+                               extra=cert.extra)
+            fp = None
+    th = cert.extra.get("theory", {}).get("rate_hz")
+    return {"proven_rate_hz": fp, "theory_rate_hz": th,
+            "ratio": (fp / f_sim) if (fp is not None and f_sim) else None,
+            "certificate": cert.to_json(), "sampled_run_at_proven": check}
