@@ -372,12 +372,23 @@ def check_decay_claim(L: LyapunovTrajectory | None, fz: dict | None, claim) -> C
     if L is None:
         return CheckResult(f"claim.{claim.name}", "skip", "no trajectory to evaluate on", method="simulation")
     along = check_decay(L, "paper", claim)
-    if fz is None or along.status == "fail":
+    if along.status == "fail":
+        along.verdict = "refuted"
         return along
-    sampled = check_falsification(fz, "paper", claim)
-    if sampled.status == "fail":
-        sampled.detail = along.detail + "; but " + sampled.detail
-        return sampled
+    if along.status == "skip":
+        return along
+    if fz is not None:
+        sampled = check_falsification(fz, "paper", claim)
+        if sampled.status == "fail":
+            sampled.detail = along.detail + "; but " + sampled.detail
+            sampled.verdict = "refuted"
+            return sampled
+    # agreement at samples is no proof: the claim is neither proven nor refuted (warn, never pass)
+    n = int(along.evidence.get("points", 0)) + (int(fz["paper"]["evaluated"]) if fz is not None else 0)
+    along.status, along.verdict = "warn", "not proven"
+    along.detail = (f"not proven: held at {n} samples ({along.evidence.get('points', 0)} trajectory points"
+                    + (f", {fz['paper']['evaluated']} sampled states" if fz is not None else "")
+                    + f"), no proof; {along.detail}")
     return along
 
 
