@@ -36,3 +36,39 @@ def test_a_decay_claim_that_holds_at_the_samples_is_not_proven_and_a_refuted_one
     sc = _paper_variant(tmp_path, claims=[{"name": "dd", "rho": "0", "delta": "-1e12"}])
     c = {c.id: c for c in Run(sc, RunOptions(t_final=1.0, samples=2000)).verification.checks}["claim.dd"]
     assert (c.status, c.verdict) == ("fail", "refuted"), c.detail
+
+
+# --- 2. a smoothing width is bounded by the scales it smooths --------------------------------------
+
+def _variant(tmp_path, old: str, new: str, name="v.toml"):
+    from tests.conftest import PAPER
+    text = PAPER.read_text()
+    assert old in text, old
+    p = tmp_path / name
+    p.write_text(text.replace(old, new, 1))
+    return p
+
+
+def one_error(capsys, *needles):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("symfunnel: error: "), err
+    for n in needles:
+        assert n in err[0], err[0]
+    return err[0]
+
+
+@pytest.mark.parametrize("width, limit", [("1e6", "0.1"), ("0.5", "0.1"), ("0.11", "0.1")])
+def test_a_smoothing_width_that_smooths_the_plant_away_is_refused(tmp_path, capsys, width, limit):
+    """The paper's dead zone breaks at b_r = 1 N m (limit 0.5 from it) and the
+    friction's sign_w(dq) is off sign(dq) by 29 % for |dq| < w; 1e6 made verify pass a plant without its friction."""
+    from symfunnel.cli import main
+    p = _variant(tmp_path, "smoothing_width = 1e-3", f"smoothing_width = {width}")
+    assert main(["verify", str(p), "--t-final", "0.1", "-q"]) == 2
+    one_error(capsys, "simulation.smoothing_width", f"at most {limit}")
+
+
+def test_the_simulate_width_option_is_bounded_the_same_way(capsys):
+    from symfunnel.cli import main
+    assert main(["simulate", "paper", "--width", "1", "--t-final", "0.1", "-q"]) == 2
+    one_error(capsys, "--width", "at most 0.1")
+    assert main(["simulate", "paper", "--width", "0.05", "--t-final", "0.1", "-q"]) == 0
