@@ -72,3 +72,24 @@ def test_the_simulate_width_option_is_bounded_the_same_way(capsys):
     assert main(["simulate", "paper", "--width", "1", "--t-final", "0.1", "-q"]) == 2
     one_error(capsys, "--width", "at most 0.1")
     assert main(["simulate", "paper", "--width", "0.05", "--t-final", "0.1", "-q"]) == 0
+
+
+# --- 3. round-off over a round-off-sized scale is no violation when the proof says zero ---------------
+
+def test_an_identity_that_sympy_proves_passes_although_its_samples_are_round_off_over_a_tiny_scale(paper_design):
+    """X = sin(2 q1) - 2 sin(q1) cos(q1) is zero; in floating point it is ~1e-16 at some samples, and over a scale of
+    1e-16 that is a "relative violation" near 1 (the issue's 2.776e-17 relative 2). The proof decides: pass. A truly
+    nonzero X of the same size, cos(q1)^2 - sin(q1)^2 scaled by 1e-16, still fails."""
+    import casadi as ca
+    import numpy as np
+
+    from symfunnel.checks.audit import _identity_check
+    q1 = paper_design.scenario.model.q[0]
+    zero = ca.sin(2 * q1) - 2 * ca.sin(q1) * ca.cos(q1)
+    r = _identity_check("model.x", paper_design, zero, ca.SX(1e-16), "X = 0", np.random.default_rng(0), show="X")
+    assert r.evidence["max_rel"] > paper_design.scenario.audit.tolerance   # the samples alone would fail it
+    assert r.status == "pass" and "round-off" in r.detail, r.detail
+    wrong = 1e-16 * (ca.cos(q1) ** 2 - ca.sin(q1) ** 2)
+    r = _identity_check("model.x", paper_design, wrong, ca.SX(1e-16), "X = 0", np.random.default_rng(0), show="X")
+    assert r.status == "fail", r.detail
+
