@@ -93,3 +93,35 @@ def test_an_identity_that_sympy_proves_passes_although_its_samples_are_round_off
     r = _identity_check("model.x", paper_design, wrong, ca.SX(1e-16), "X = 0", np.random.default_rng(0), show="X")
     assert r.status == "fail", r.detail
 
+
+
+# --- 4. a torque still growing at the horizon's end is no pass -------------------------------------
+
+def test_a_torque_growing_at_the_horizons_end_warns_and_a_steady_one_passes():
+    """The last quarter's peak over the third quarter's (here both below the initial transient, which hid the
+    growth from the old rule): 1.2 x warns, 1.05 x passes, 1.2 x the whole run's earlier peak fails as before."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from symfunnel.checks.verify import check_bounded
+    t = np.linspace(0.0, 2.0, 100)
+    for late, status in ((1.2, "warn"), (1.05, "pass"), (12.0, "fail")):
+        tau = np.ones((100, 2))
+        tau[3, 0] = 10.0                      # the initial transient
+        tau[90, 1] = late
+        res = SimpleNamespace(t=t, signals={"tau": tau}, between=None)
+        c = check_bounded(res, None, None)[0]
+        assert c.id == "bounded.tau" and c.status == status, (late, c.detail)
+        if status == "warn":
+            assert "still growing at the horizon's end" in c.detail and c.evidence["third_quarter_peak"] == 1.0
+
+
+def test_an_exponential_disturbance_over_two_seconds_warns(tmp_path):
+    """0.05 e^{2t} over 2 s: the last quarter's |tau| peak is 1.9 x the third quarter's (the old rule: pass)."""
+    from symfunnel.checks.verify import check_bounded
+    p = _variant(tmp_path, 'disturbance = "0.5*sin(2*t)"', 'disturbance = "0.05*exp(2*t)"')
+    sc = load_scenario(p)
+    run = Run(sc, RunOptions(t_final=2.0))
+    c = check_bounded(run.simulation, run.design, None)[0]
+    assert c.status == "warn", c.detail
