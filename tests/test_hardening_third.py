@@ -125,3 +125,65 @@ def test_an_exponential_disturbance_over_two_seconds_warns(tmp_path):
     run = Run(sc, RunOptions(t_final=2.0))
     c = check_bounded(run.simulation, run.design, None)[0]
     assert c.status == "warn", c.detail
+
+
+# --- 17. the deployed path for every approximator ----------------------------------------------------
+
+def _no_approximator(tmp_path):
+    """ppc_log_rbf (a planar model MuJoCo can play) without its approximator."""
+    from tests.conftest import REPO
+    raw = copy.deepcopy(load_scenario(REPO / "derivations" / "ppc_log_rbf.toml").raw)
+    raw["approximator"] = {"type": "none"}
+    raw.pop("rbf", None)
+    raw.pop("deviations", None)
+    raw.pop("expect", None)
+    return from_dict(raw, file=str(tmp_path / "none.toml"), base_dir=tmp_path, default_name="none")
+
+
+@pytest.mark.parametrize("which", ["rbf", "none", "none_matrices"])
+def test_the_sampled_loop_runs_every_approximator_and_agrees_with_the_continuous_loop_at_a_high_rate(tmp_path,
+                                                                                                    which):
+    """The sampled loop around the compiled C step (KeyError 'x_esn' / 'w_hat' before) against the continuous-time
+    closed loop integrated by CVODES, a second implementation: at 20 kHz they agree to 1e-3 of the funnel width."""
+    import numpy as np
+
+    from symfunnel.deployed.loop import simulate_sampled
+    from tests.conftest import REPO
+    sc = {"rbf": lambda: load_scenario(REPO / "derivations" / "ppc_log_rbf.toml"),
+          "none": lambda: _no_approximator(tmp_path),
+          "none_matrices": lambda: load_scenario(REPO / "tests" / "data" / "certify_none.toml")}[which]()
+    run = Run(sc, RunOptions(t_final=1.0))
+    cont = run.simulation
+    samp = simulate_sampled(sc, run.design, rate_hz=20000.0, t_final=1.0)
+    assert samp.ok and samp.t[-1] == pytest.approx(1.0), samp.message
+    q_c = np.array([np.interp(samp.t, cont.t, cont.signals["q"][:, j]) for j in range(sc.n)]).T
+    F1 = np.array([np.interp(samp.t, cont.t, cont.signals["F1"][:, j]) for j in range(sc.n)]).T
+    assert np.max(np.abs(samp.q - q_c) / F1) < 1e-3
+
+
+def test_rate_and_verify_rate_run_without_an_echo_state_network(capsys):
+    from symfunnel.cli import main
+    from tests.conftest import REPO
+    none = str(REPO / "tests" / "data" / "certify_none.toml")
+    assert main(["rate", none, "-q", "--t-final", "1"]) == 0
+    assert "minimum sample rate" in capsys.readouterr().out
+    assert main(["verify", none, "--rate", "2000", "--t-final", "1", "-q", "--json"]) in (0, 1)
+    import json
+    checks = {c["id"]: c for c in json.loads(capsys.readouterr().out)["checks"]}
+    assert checks["implementation.containment"]["status"] == "pass", checks["implementation.containment"]
+
+
+@pytest.mark.slow
+def test_verify_rate_on_mujoco_runs_the_rbf_and_the_model_based_design(tmp_path, capsys):
+    pytest.importorskip("mujoco")
+    import json
+
+    from symfunnel.cli import main
+    from symfunnel.core.toml_write import dumps
+    from tests.conftest import REPO
+    none = tmp_path / "none.toml"
+    none.write_text(dumps(_no_approximator(tmp_path).raw), encoding="utf-8")
+    for path in (REPO / "derivations" / "ppc_log_rbf.toml", none):
+        code = main(["verify", str(path), "--rate", "2000", "--plant", "mujoco", "--t-final", "1", "-q", "--json"])
+        checks = {c["id"]: c for c in json.loads(capsys.readouterr().out)["checks"]}
+        assert code in (0, 1) and checks["implementation.containment"]["status"] == "pass", (path, checks)
