@@ -187,3 +187,39 @@ def test_verify_rate_on_mujoco_runs_the_rbf_and_the_model_based_design(tmp_path,
         code = main(["verify", str(path), "--rate", "2000", "--plant", "mujoco", "--t-final", "1", "-q", "--json"])
         checks = {c["id"]: c for c in json.loads(capsys.readouterr().out)["checks"]}
         assert code in (0, 1) and checks["implementation.containment"]["status"] == "pass", (path, checks)
+
+
+# --- 5. the deployed step is baked at a rate the user chose, and --check runs it -----------------------
+
+def test_codegen_c_refuses_without_a_rate_naming_the_minimum_rate_command(tmp_path, capsys):
+    from symfunnel.cli import main
+    assert main(["codegen", "paper", "--lang", "c", "--out", str(tmp_path / "c"), "-q"]) == 2
+    one_error(capsys, "--rate", "[implementation] rate_hz", "symfunnel rate paper")
+    assert not (tmp_path / "c").exists()
+
+
+def test_codegen_c_takes_the_scenarios_implementation_rate(tmp_path, capsys):
+    import json
+
+    from symfunnel.cli import main
+    p = _variant(tmp_path, "[simulation]", "[implementation]\nrate_hz = 3000.0\n\n[simulation]")
+    assert main(["codegen", str(p), "--lang", "c", "--out", str(tmp_path / "c"), "-q"]) == 0
+    capsys.readouterr()
+    step = json.loads((tmp_path / "c" / "manifest.json").read_text())["c_api"]["step"]
+    assert step["rate_hz"] == 3000.0
+
+
+def test_codegen_check_fails_when_the_sampled_loop_at_the_baked_rate_leaves_the_funnels(tmp_path, capsys):
+    """The paper's minimum rate is 1189 Hz (`symfunnel rate paper`): at 1000 Hz the deployed loop leaves funnel e2
+    (tau = -2.7e10), so the check fails though every function matches CasADi; at 2000 Hz it passes."""
+    import json
+
+    from symfunnel.cli import main
+    assert main(["codegen", "paper", "--lang", "c", "--rate", "1000", "--out", str(tmp_path / "a"), "--check",
+                 "--json"]) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out["check"]["passed"] is True          # every function matches CasADi: the loop is what fails
+    assert out["check"]["sampled_loop"]["status"] == "fail"
+    assert main(["codegen", "paper", "--lang", "c", "--rate", "2000", "--out", str(tmp_path / "b"), "--check",
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["check"]["sampled_loop"]["status"] == "pass"
