@@ -223,3 +223,103 @@ def test_codegen_check_fails_when_the_sampled_loop_at_the_baked_rate_leaves_the_
     assert main(["codegen", "paper", "--lang", "c", "--rate", "2000", "--out", str(tmp_path / "b"), "--check",
                  "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["check"]["sampled_loop"]["status"] == "pass"
+
+
+# --- 6. no input replaced; a file we did not write replaced only with --force --------------------------
+
+def _scenario_copy(tmp_path):
+    from tests.conftest import PAPER
+    p = tmp_path / "S.toml"
+    p.write_text(PAPER.read_text())
+    return p
+
+
+@pytest.mark.parametrize("argv", [
+    ["report", "{S}", "--out", "{S}"], ["report", "{S}", "--out", "{S}", "--force"],
+    ["derive", "{S}", "--latex", "{S}"], ["derive", "{S}", "--latex", "{S}", "--force"],
+    ["simulate", "{S}", "--out", "{S}.npz"], ["tune", "{S}", "--out", "{S}"],
+])
+def test_no_command_replaces_its_input(tmp_path, capsys, argv):
+    from symfunnel.cli import main
+    s = _scenario_copy(tmp_path)
+    before = s.read_bytes()
+    if argv[0] == "simulate":                      # --out must end in .npz: the input reached through a link
+        (tmp_path / "S.toml.npz").symlink_to(s)
+    code = main([a.replace("{S}", str(s)) for a in argv] + ["-q"])
+    assert code == 2
+    one_error(capsys, "input")
+    assert s.read_bytes() == before
+
+
+def test_an_existing_user_file_is_replaced_only_with_force_and_our_own_output_freely(tmp_path, capsys):
+    from symfunnel.cli import main
+    user = tmp_path / "user.tex"
+    user.write_text("my notes\n")
+    assert main(["derive", "paper", "--latex", str(user), "-q"]) == 2
+    one_error(capsys, "--latex", "not written by symfunnel", "--force")
+    assert user.read_text() == "my notes\n"
+    html = tmp_path / "user.html"
+    html.write_text("<html>mine</html>")
+    assert main(["report", "paper", "--out", str(html), "-q"]) == 2
+    one_error(capsys, "--out", "not written by symfunnel")
+    assert html.read_text() == "<html>mine</html>"
+    assert main(["derive", "paper", "--latex", str(user), "-q", "--force"]) == 0
+    assert user.read_text().startswith("% symfunnel derive --latex")
+    assert main(["derive", "paper", "--latex", str(user), "-q"]) == 0          # ours now: no --force needed
+    capsys.readouterr()
+
+
+def test_report_figures_refuses_a_users_figure_file_before_any_work(tmp_path, capsys):
+    import time
+
+    from symfunnel.cli import main
+    figs = tmp_path / "figs"
+    figs.mkdir()
+    (figs / "fig01-tracking.png").write_bytes(b"\x89PNG my own plot")
+    (figs / "notes.txt").write_text("unrelated: never touched")
+    t0 = time.monotonic()
+    assert main(["report", "paper", "--out", str(tmp_path / "r.html"), "--figures", str(figs), "-q"]) == 2
+    assert time.monotonic() - t0 < 5.0
+    one_error(capsys, "--figures", "fig01-tracking.png", "--force")
+    assert (figs / "fig01-tracking.png").read_bytes() == b"\x89PNG my own plot"
+
+
+def test_exported_figures_carry_the_mark_that_makes_them_ours(tmp_path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from symfunnel.core.outputs import written_by_symfunnel
+    from symfunnel.reporting.figures import export
+    fig = plt.figure()
+    fig.gca().plot([0, 1], [0, 1])
+    paths = export(fig, tmp_path, "fig01-x")
+    plt.close(fig)
+    assert [p.suffix for p in paths] == [".png", ".pdf"] and all(written_by_symfunnel(p) for p in paths)
+
+
+# --- 7. init --from copies next to the output, never above it, never onto another robot ------------------
+
+def test_init_from_copies_the_robot_beside_the_output_and_refuses_a_different_one(tmp_path, capsys):
+    from symfunnel.cli import main
+    from tests.conftest import REPO
+    (tmp_path / "robots").mkdir()
+    (tmp_path / "a" / "b").mkdir(parents=True)
+    (tmp_path / "robots" / "arm.urdf").write_text((REPO / "derivations" / "arm7.urdf").read_text())
+    text = (REPO / "derivations" / "arm7.toml").read_text()
+    import re
+    text = re.sub(r'(?m)^path = .*$', 'path = "../../robots/arm.urdf"', text, count=1)
+    (tmp_path / "a" / "b" / "scen.toml").write_text(text)
+    out = tmp_path / "out" / "new.toml"
+    assert main(["init", "--from", str(tmp_path / "a" / "b" / "scen.toml"), "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.urdf")) == \
+        ["out/arm.urdf", "robots/arm.urdf"]
+    from symfunnel.scenario import load_scenario
+    assert load_scenario(out).n == 7
+    d = tmp_path / "D"
+    d.mkdir()
+    (d / "arm7.urdf").write_text("<robot name='other'/>")
+    assert main(["init", "--from", "arm7", "--out", str(d / "new.toml")]) == 2
+    one_error(capsys, "arm7.urdf", "other content")
+    assert not (d / "new.toml").exists() and (d / "arm7.urdf").read_text() == "<robot name='other'/>"

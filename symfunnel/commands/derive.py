@@ -23,6 +23,8 @@ def register(sub, common) -> None:
     sp.add_argument("--eval", metavar="POINT.json", help="evaluate every signal at a point (or a list)")
     sp.add_argument("--latex", metavar="FILE", help="write the signals as LaTeX")
     sp.add_argument("--all", action="store_true", help="with --eval: also print Phi and the ESN/adaptation rates")
+    from ._common import add_force_option
+    add_force_option(sp)
     sp.set_defaults(func=cmd_derive)
 
 
@@ -44,6 +46,10 @@ def cmd_derive(args) -> int:
         from ..core.names import compress_names
         from ..pipeline import Run
         sc = _load(args)
+    if args.latex:
+        from ..core.outputs import check_replaceable
+        from ._common import scenario_inputs
+        check_replaceable(args.latex, key="--latex", inputs=scenario_inputs(sc), force=args.force)
     d = Run(sc).design                  # under its own step, DERIVING
     if args.eval:
         with deadline.step(EVALUATING):

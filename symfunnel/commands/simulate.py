@@ -55,6 +55,10 @@ def run(args) -> int:
         from ..scenario.implementation import check_rate
         check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
+    if args.out:
+        from ..core.outputs import check_not_input
+        from ._common import scenario_inputs
+        check_not_input(args.out, scenario_inputs(sc), key="--out")
     engine = _engine(args, sc)
     if args.rate is not None or sc.implementation is not None or engine != "symfunnel":
         return _sampled(args, sc, say, engine)

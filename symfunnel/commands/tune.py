@@ -69,6 +69,10 @@ def run(args) -> int:
     if args.out is not None and Path(args.out).is_dir():
         raise InputError("is a directory", file=args.out, key="--out", expected="a .toml file path")
     sc = _load(args)
+    if args.out is not None:
+        from ..core.outputs import check_not_input
+        from ._common import scenario_inputs
+        check_not_input(args.out, scenario_inputs(sc), key="--out")
     say = _progress(args.quiet or args.json)
     with _stdout_to_stderr():
         r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals,
