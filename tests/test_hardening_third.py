@@ -323,3 +323,25 @@ def test_init_from_copies_the_robot_beside_the_output_and_refuses_a_different_on
     assert main(["init", "--from", "arm7", "--out", str(d / "new.toml")]) == 2
     one_error(capsys, "arm7.urdf", "other content")
     assert not (d / "new.toml").exists() and (d / "arm7.urdf").read_text() == "<robot name='other'/>"
+
+
+# --- 14. internal errors: kinks in the reference, non-finite runs, prefixes ------------------------------
+
+@pytest.mark.parametrize("ref, status", [
+    ("max(0.3*sin(t), -1)", "pass"),            # never switches: smooth, its derivatives exact
+    ("abs(0.3*sin(t) + 1) - 1", "pass"),
+    ("sign(2 + sin(t))*0.3*sin(t)", "pass"),
+    ("sqrt((0.3*sin(t))^2)", "fail"),           # |0.3 sin t|: kinks at t = k pi, the FD of the controller's sees them
+])
+def test_a_reference_with_a_kink_function_is_audited_not_crashed(tmp_path, ref, status):
+    """sympy differentiates abs/sign/max/min to DiracDelta, which numpy cannot evaluate (NameError, exit 3)."""
+    import numpy as np
+
+    from symfunnel.checks.consistency import check_reference_derivatives
+    from symfunnel.design import derive
+    p = _variant(tmp_path, 'q = ["0.3*sin(t)", "0.3*sin(t)"]', f'q = ["{ref}", "0.3*sin(t)"]')
+    r = check_reference_derivatives(derive(load_scenario(p)), 20.0)
+    assert r.status == status, r.detail
+    if status == "pass":                         # and the declared derivatives agree with the AD ones exactly
+        rows = {c["comparison"]: c["max_relative"] for c in r.evidence["comparisons"]}
+        assert rows["ddq_d = d2/dt2 declared"] < 1e-9 and np.isfinite(rows["ddq_d = d2/dt2 declared"])

@@ -51,7 +51,9 @@ def _sympy_rows(exprs, t_sym, grid: np.ndarray, order: int) -> list[np.ndarray]:
         vals = np.array([np.broadcast_to(np.asarray(v, dtype=float), grid.shape) for v in f(grid)])
         out.append(vals)
         if k < order:
-            cur = [sympy.diff(e, t_sym) for e in cur]
+            # a kink (abs, sign, max, min) differentiates to DiracDelta, which numpy cannot evaluate: it is zero
+            # wherever the derivative exists, as CasADi's AD takes it; the kink's instants are the scenario's matter
+            cur = [sympy.diff(e, t_sym).replace(sympy.DiracDelta, lambda *a: sympy.S.Zero) for e in cur]
     return out
 
 
