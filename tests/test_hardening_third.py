@@ -345,3 +345,41 @@ def test_a_reference_with_a_kink_function_is_audited_not_crashed(tmp_path, ref, 
     if status == "pass":                         # and the declared derivatives agree with the AD ones exactly
         rows = {c["comparison"]: c["max_relative"] for c in r.evidence["comparisons"]}
         assert rows["ddq_d = d2/dt2 declared"] < 1e-9 and np.isfinite(rows["ddq_d = d2/dt2 declared"])
+
+
+def test_interval_and_round_off_tapes_of_an_overflowed_constant_evaluate():
+    """k1 = 1e308 makes k1*k1 the constant inf in the SX graph: the tapes printed it as the name `inf` (NameError)."""
+    import casadi as ca
+    import numpy as np
+
+    from symfunnel.sx.batch import BatchIntervalFunction
+    x = ca.SX.sym("x")
+    f = ca.Function("f", [x], [x + ca.SX(1e308) * ca.SX(1e308)])
+    assert float(f(1.0)) == np.inf
+    tape = BatchIntervalFunction(f)
+    lo, hi = (np.array([[0.0]]), np.array([[1.0]]))
+    L, H = tape.eval_batch(lo, hi)[:2]
+    assert np.isinf(H).all()
+    from symfunnel.sx.roundoff import RoundoffBound
+    vals, mags = RoundoffBound(f)([np.array([[0.5]])])
+    assert np.isinf(vals[0]).all()
+
+
+def test_a_falsification_where_every_sample_overflowed_fails_in_one_line():
+    """k1 = 1e308: V_dot is inf or NaN at every sampled state, so no margin exists (TypeError formatting None)."""
+    from symfunnel.checks.verify import check_falsification
+    r = {"violations": 0, "evaluated": 0, "fraction": 0.0, "worst_margin": None, "worst_relative": None,
+         "where": {"t": 0.5, "q": [0.1, 0.2], "dq": [0.0, 0.0], "e1": [0.0, 0.0]}, "V_dot": float("nan"),
+         "rhs": float("nan"), "V": float("nan")}
+    fz = {"samples": 1000, "fill": 0.98, "t_range": [0.0, 1.0], "w_scale": 1.0, "corrected": r, "paper": r}
+    c = check_falsification(fz, "corrected")
+    assert c.status == "fail" and "not finite at any of the 1000 sampled states" in c.detail
+    assert "\n" not in c.detail
+
+
+@pytest.mark.slow
+def test_verify_with_k1_1e308_ends_in_a_verdict_not_an_internal_error(tmp_path, capsys):
+    from symfunnel.cli import main
+    p = _variant(tmp_path, "k1 = 5.0", "k1 = 1e308")
+    assert main(["verify", str(p), "--t-final", "1", "-q"]) == 1
+    assert "internal error" not in capsys.readouterr().err

@@ -110,8 +110,8 @@ class Verification:
         return out
 
 
-def _g(x: float) -> str:
-    return f"{x:.4g}"
+def _g(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.4g}"
 
 
 # --- the checks ----------------------------------------------------------------------------------
@@ -262,6 +262,10 @@ def check_falsification(fz: dict, which: str, claim=None) -> CheckResult:
               f"box, W_hat within +-{fz['w_scale']:.3g})")
     ev = {k: v for k, v in r.items() if k != "where"}
     w = r["where"]
+    if not r["evaluated"]:          # every sampled state overflowed: nothing says the inequality holds
+        return CheckResult(cid, "fail", f"V_dot <= -rho V + delta ({which}): not finite at any of the "
+                           f"{fz['samples']} sampled states inside the funnels (the design's numbers overflow "
+                           "floating point)", method=method, evidence=ev)
     at = f"t = {w['t']:.4g}, q = [{', '.join(f'{v:.4g}' for v in w['q'])}], dq = [{', '.join(f'{v:.4g}' for v in w['dq'])}]"
     if r["violations"]:
         return CheckResult(cid, "fail", f"V_dot <= -rho V + delta ({which}) violated at {r['violations']} of "
