@@ -383,3 +383,45 @@ def test_verify_with_k1_1e308_ends_in_a_verdict_not_an_internal_error(tmp_path, 
     p = _variant(tmp_path, "k1 = 5.0", "k1 = 1e308")
     assert main(["verify", str(p), "--t-final", "1", "-q"]) == 1
     assert "internal error" not in capsys.readouterr().err
+
+
+# --- 14/15. prefixes CasADi rejects, and prefixes that redeclare the C library ---------------------------
+
+@pytest.mark.parametrize("prefix", ["_", "_x", "a__b", "init", "set", "sem_", "mbs", "xdr_"])
+def test_a_prefix_casadi_rejects_or_that_redeclares_a_c_library_name_is_input_error(prefix, tmp_path, capsys):
+    from symfunnel.cli import main
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(tmp_path / "o"), "--prefix", prefix,
+                 "-q"]) == 2
+    one_error(capsys, "--prefix")
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_c_library_names_a_prefix_may_not_make_are_the_systems(tmp_path):
+    """An independent derivation of the clash list: a program that includes the headers declaring them and defines
+    a typedef `initstate` fails to compile under gcc's default standard, while `mystate` compiles; and the header
+    glibc puts initstate/setstate in is the <stdlib.h> main.c includes."""
+    import shutil
+    import subprocess
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc")
+    for name, ok in (("initstate", False), ("setstate", False), ("mystate", True)):
+        src = tmp_path / f"{name}.c"
+        src.write_text(f"#include <stdlib.h>\ntypedef struct {{ int a; }} {name};\nint main(void) {{ return 0; }}\n")
+        r = subprocess.run(["gcc", "-fsyntax-only", str(src)], capture_output=True, text=True, timeout=60)
+        assert (r.returncode == 0) == ok, (name, r.stderr)
+
+
+def test_codegen_check_compiles_main_under_the_default_standard_too(monkeypatch, tmp_path):
+    """A name clash that -std=c99 hides (it hides POSIX's initstate) fails the check: main_program is built twice,
+    once without -std."""
+    from symfunnel.emit import check
+    seen = []
+    real = check.main_program
+
+    def spy(files, flags=None):
+        seen.append(tuple(flags or ()))
+        return real(files, flags)
+    monkeypatch.setattr(check, "main_program", spy)
+    from symfunnel.cli import main
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(tmp_path / "o"), "--check", "-q"]) == 0
+    assert any(not any(f.startswith("-std=") for f in fl) and fl for fl in seen), seen

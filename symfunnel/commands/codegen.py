@@ -51,8 +51,8 @@ def run(args) -> int:
         raise InputError("exists and is not a directory", key="--out", expected="a directory (created when missing)")
     if args.prefix is not None and not valid_prefix(args.prefix):
         raise InputError(f"is '{args.prefix}'", key="--prefix",
-                         expected="a C identifier prefix: a letter or '_' then letters, digits, '_' (at most 32; "
-                         "not '__' or '_' + capital)")
+                         expected="a C identifier prefix: a letter then letters, digits, single '_' (at most "
+                         "32) that names none of the C library's functions (as 'init' + 'state' would)")
     if args.rate is not None:
         check_rate(args.rate, file=None, key="--rate")
     if args.lang != "c":
