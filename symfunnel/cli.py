@@ -12,9 +12,18 @@ from .core.errors import InputError, SymfunnelError
 EXIT_INTERNAL = 3
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors as one line (what is wrong and where to read the usage), exit 2; argparse prints the
+    whole usage block first, several lines for one bad option."""
+
+    def error(self, message: str):
+        from .core.text import one_line
+        self.exit(2, f"symfunnel: error: {self.prog}: {one_line(message)} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
-    p = argparse.ArgumentParser(prog="symfunnel", description="Symbolic design and verification of funnel "
+    p = OneLineParser(prog="symfunnel", description="Symbolic design and verification of funnel "
                                 "controllers for robot manipulators (CasADi).")
     p.add_argument("--version", action="version", version="symfunnel " + _version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")

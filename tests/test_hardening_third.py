@@ -425,3 +425,25 @@ def test_codegen_check_compiles_main_under_the_default_standard_too(monkeypatch,
     from symfunnel.cli import main
     assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(tmp_path / "o"), "--check", "-q"]) == 0
     assert any(not any(f.startswith("-std=") for f in fl) and fl for fl in seen), seen
+
+
+# --- 16. messages: one line for a bad option, a byte-order mark is no error ----------------------------------
+
+@pytest.mark.parametrize("argv, needle", [
+    (["verify", "--samples", "abc"], "--samples"), (["rate", "--margin", "x"], "--margin"),
+    (["codegen"], "--lang"), (["nonsense"], "invalid choice"),
+])
+def test_a_bad_option_is_one_line_and_exit_2(argv, needle):
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-m", "symfunnel", *argv], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("symfunnel: error: ") and needle in lines[0], r.stderr
+
+
+def test_a_scenario_with_a_utf8_byte_order_mark_loads(tmp_path):
+    from tests.conftest import PAPER
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + PAPER.read_bytes())
+    assert load_scenario(p).raw == load_scenario(PAPER).raw
