@@ -86,16 +86,19 @@ def main(argv: list[str] | None = None) -> int:
     lifecycle.install()                 # first: a signal from here on ends in 130/143 and one line
     thresholds = gc.get_threshold()
     gc.set_threshold(*GC_THRESHOLDS)
+    code = None
     try:
         code = _run(argv, deadline, lifecycle)
     finally:
+        lifecycle.decided(code)         # a signal from here on (a second one, one during the unwinding) changes nothing
         gc.set_threshold(*thresholds)
         late = lifecycle.late_signal()
-        lifecycle.uninstall()
-    if argv is None:
-        # the process's own command line: its exit code is decided, and a signal during the interpreter's
-        # shutdown would only turn a finished command into a killed one (it is said, once)
-        lifecycle.finished(late)
+        if argv is None:
+            # the process's own command line: its exit code is decided, and a signal during the interpreter's
+            # shutdown would only turn a finished command into a killed one (it is said, once); set before the
+            # policy is uninstalled, so that no instant has the default handlers
+            lifecycle.finished(late)
+        lifecycle.uninstall(restore_signals=argv is not None)
     return code
 
 

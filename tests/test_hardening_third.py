@@ -447,3 +447,49 @@ def test_a_scenario_with_a_utf8_byte_order_mark_loads(tmp_path):
     p = tmp_path / "bom.toml"
     p.write_bytes(b"\xef\xbb\xbf" + PAPER.read_bytes())
     assert load_scenario(p).raw == load_scenario(PAPER).raw
+
+
+# --- 8. two signals 50 ms apart: 130/143 and one line ---------------------------------------------------
+
+SIGNAL_PLANS = [
+    ("verify", ["verify", "--t-final", "2000"], ("TERM", "TERM")),
+    ("certify", ["certify"], ("INT", "INT")),
+    ("report", ["report", "--t-final", "2000", "--out", "r.html"], ("TERM", "INT")),
+    ("verify", ["verify", "--t-final", "2000"], ("INT", "INT", "INT")),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, argv, sigs", SIGNAL_PLANS)
+def test_two_or_three_signals_50_ms_apart_end_in_one_line_and_the_first_signals_code(tmp_path, name, argv, sigs):
+    """Instants spread over start-up, work and unwinding (the second signal landed in the first one's unwinding,
+    in lifecycle.uninstall, or after the default handlers were back: exit 1, -2, -15 and a traceback)."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from tests.test_signals import _start
+    failures = []
+    for at in (0.8, 1.6, 2.6):
+        p = _start([*argv, "-q"], tmp_path, cache=tmp_path / "cache")
+        time.sleep(at)
+        if p.poll() is not None:
+            failures.append(f"{name} finished before {at} s")
+            continue
+        for k, s in enumerate(sigs):
+            if k:
+                time.sleep(0.05)
+            with __import__("contextlib").suppress(ProcessLookupError):
+                os.kill(p.pid, getattr(signal, "SIG" + s))
+        try:
+            _, err = p.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            _, err = p.communicate()
+        first = getattr(signal, "SIG" + sigs[0])
+        want = 130 if first == signal.SIGINT else 128 + int(first)
+        lines = err.strip().splitlines()
+        if p.returncode != want or len(lines) != 1 or "Traceback" in err:
+            failures.append(f"{name} {sigs} at {at} s: exit {p.returncode}, stderr {err[-400:]!r}")
+    assert failures == []

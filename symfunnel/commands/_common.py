@@ -47,7 +47,9 @@ def scenario_inputs(scenario) -> list:
     out = []
     if getattr(scenario, "path", None) is not None and Path(scenario.path).is_file():
         out.append(Path(scenario.path))
-    robot = ((scenario.raw or {}).get("model") or {}).get("path") if isinstance(scenario.raw, dict) else None
+    raw = getattr(scenario, "raw", None)
+    robot = (raw.get("model") or {}).get("path") if isinstance(raw, dict) and isinstance(raw.get("model"), dict) \
+        else None
     if isinstance(robot, str) and out:
         out.append(out[0].parent / robot)
     return out
