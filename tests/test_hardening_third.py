@@ -493,3 +493,42 @@ def test_two_or_three_signals_50_ms_apart_end_in_one_line_and_the_first_signals_
         if p.returncode != want or len(lines) != 1 or "Traceback" in err:
             failures.append(f"{name} {sigs} at {at} s: exit {p.returncode}, stderr {err[-400:]!r}")
     assert failures == []
+
+
+# --- 13. limits: estimated up front, capped like the others -------------------------------------------------
+
+@pytest.mark.parametrize("argv, key", [
+    (["simulate", "paper", "--rate", "1000000", "--t-final", "10000"], "--t-final at 1e+06 Hz"),
+    (["rate", "paper", "--t-final", "1e6"], "--t-final at 1000 Hz"),
+    (["certify", "paper", "--wall-limit", "1e300"], "--wall-limit"),
+])
+def test_runs_beyond_memory_and_limits_beyond_a_week_are_refused_at_once(capsys, argv, key):
+    """10^10 samples were a MemoryError (298 GiB) after the work began; the estimate (samples x values x 8 bytes
+    against 4 GiB) refuses them before any, naming the options."""
+    import time
+
+    from symfunnel.cli import main
+    t0 = time.monotonic()
+    assert main([*argv, "-q"]) == 2
+    assert time.monotonic() - t0 < 20
+    one_error(capsys, key)
+
+
+def test_the_memory_estimate_is_the_arrays_the_sampled_loop_allocates():
+    from symfunnel.core.errors import InputError
+    from symfunnel.core.validate import MAX_RUN_BYTES, check_run_memory
+    per = 10 * 2 + 2
+    check_run_memory(MAX_RUN_BYTES / (8 * per), per, key="k")          # exactly at the cap: accepted
+    with pytest.raises(InputError, match="GiB"):
+        check_run_memory(MAX_RUN_BYTES / (8 * per) * 1.001, per, key="k")
+
+
+def test_a_mujoco_timestep_below_the_substep_cap_is_refused(tmp_path, capsys):
+    pytest.importorskip("mujoco")
+    from symfunnel.cli import main
+    from tests.conftest import REPO
+    text = (REPO / "derivations" / "ppc_log_rbf.toml").read_text()
+    p = tmp_path / "m.toml"
+    p.write_text(text.replace("[plant]\n", "[plant.mujoco]\ntimestep = 1e-9\n\n[plant]\n", 1))
+    assert main(["verify", str(p), "--rate", "2000", "--plant", "mujoco", "--t-final", "1", "-q"]) == 2
+    one_error(capsys, "plant.mujoco.timestep", "100000")

@@ -309,6 +309,10 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     from ..core.validate import check_horizon
     check_horizon(T, h, key="--t-final" if t_final is not None else "simulation.t_final",
                   file=None if t_final is not None else sc.file, step_name="sample period 1/rate_hz")
+    from ..core.validate import check_run_memory    # q, dq, tau, margins, noise and what the summary copies
+    check_run_memory(T * impl.rate_hz, 10 * n + 2,
+                     key=("--t-final" if t_final is not None else "simulation.t_final")
+                     + f" at {impl.rate_hz:g} Hz", file=None if t_final is not None else sc.file)
     K = int(math.floor(T * impl.rate_hz + 1e-9))
     if controller is None:
         files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
