@@ -576,3 +576,32 @@ def test_a_signal_or_the_compile_timeout_during_a_first_compile_leaves_nothing_i
                                 SYMFUNNEL_COMPILE_TIMEOUT="0.05"))
     assert "took longer than 0.05 s" in r.stderr, r.stderr       # the compile was stopped (the VM ran instead)
     assert _compiler_leftovers(tmpdir) == [] and failures == [], failures
+
+
+# --- 9. derive --latex: a signal while the text is built stops the command ----------------------------------
+
+_HOOKED_DERIVE = """
+import os, signal, sys
+from symfunnel import cli
+from symfunnel.commands import derive
+real = derive._tex_text
+def hooked(s):                  # SIGTERM as the text's last paragraph is built: well within the watchdog's grace
+    if s == "x_esn_dot":
+        os.kill(os.getpid(), signal.SIGTERM)
+    return real(s)
+derive._tex_text = hooked
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_a_sigterm_while_derive_builds_its_latex_stops_it_and_writes_nothing(tmp_path):
+    """The LaTeX text was built inside the commit block: a SIGTERM 0.9-1.3 s in was 'too late', exit 0, file
+    written. Only the rename is the commit now."""
+    import subprocess
+    import sys
+    out = tmp_path / "x.tex"
+    r = subprocess.run([sys.executable, "-c", _HOOKED_DERIVE, "derive", "paper", "--latex", str(out), "-q"],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 143, r.stderr
+    assert r.stderr.strip().splitlines() == ["symfunnel: terminated by signal 15"]
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]

@@ -77,8 +77,7 @@ def cmd_derive(args) -> int:
         for k in names:
             info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
     if args.latex:
-        from ..core.lifecycle import committing
-        with deadline.step(WRITING), committing():      # the command's one file: from here on it has succeeded
+        with deadline.step(WRITING):
             _write_latex(d, names, args.latex)
     if args.json:
         print(_dump({"scenario": sc.name, "signals": info}))
@@ -134,7 +133,9 @@ def _write_latex(d, names, path) -> None:
              f"\\section*{{Signals of scenario \\texttt{{{name}}}}}",
              "Derived by symfunnel (CasADi SX, converted to sympy). Long expressions may run past the margin.",
              "", *body, "\\end{document}", ""]
-    atomic_write(path, "\n".join(lines))
+    from ..core.lifecycle import committing
+    with committing():          # the command's one file, written: from here on it has succeeded (the text is built
+        atomic_write(path, "\n".join(lines))    # before: a signal while building it stops the command)
 
 
 def _tex_text(s: str) -> str:
