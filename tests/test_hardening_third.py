@@ -605,3 +605,71 @@ def test_a_sigterm_while_derive_builds_its_latex_stops_it_and_writes_nothing(tmp
     assert r.returncode == 143, r.stderr
     assert r.stderr.strip().splitlines() == ["symfunnel: terminated by signal 15"]
     assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+# --- 10. a scheduler address that is no dask scheduler: one line, exit 2, within the probe's time ------------
+
+def _server(reply: bytes | None):
+    """A TCP server on 127.0.0.1 that accepts and sends `reply` (None: nothing, ever); (port, stop)."""
+    import socket
+    import threading
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    conns = []
+    stop = threading.Event()
+
+    def serve():
+        srv.settimeout(0.1)
+        while not stop.is_set():
+            try:
+                c, _ = srv.accept()
+            except OSError:
+                continue
+            conns.append(c)
+            if reply is not None:
+                c.sendall(reply)
+    threading.Thread(target=serve, daemon=True).start()
+
+    def close():
+        stop.set()
+        for c in conns:
+            c.close()
+        srv.close()
+    return srv.getsockname()[1], close
+
+
+@pytest.mark.parametrize("reply, needle", [
+    (None, "no handshake within"),
+    (b"\xff" * 64, "claims"),                                   # 2.82 EiB was allocated from such a length
+    (b"HTTP/1.1 200 OK\r\nContent-Length: 0\r\n\r\n", "dask"),
+])
+def test_a_scheduler_that_never_answers_or_sends_junk_is_refused_within_the_probe(capsys, reply, needle):
+    import time
+
+    from symfunnel.campaigns.campaign import connect
+    from symfunnel.core.errors import InputError
+    port, close = _server(reply)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(InputError) as exc:
+            connect(f"tcp://127.0.0.1:{port}", timeout=2.0)
+        took = time.monotonic() - t0
+    finally:
+        close()
+    assert took < 4.0 and exc.value.key == "--scheduler" and needle in str(exc.value), (took, str(exc.value))
+
+
+def test_the_probe_recognises_a_real_scheduler():
+    pytest.importorskip("distributed")
+    import asyncio
+
+    from distributed import Scheduler
+
+    from symfunnel.campaigns.probe import probe_scheduler
+
+    async def main():
+        async with Scheduler(host="127.0.0.1", port=0, dashboard_address=None) as s:
+            host, port = s.address.replace("tcp://", "").rsplit(":", 1)
+            return await asyncio.get_running_loop().run_in_executor(None, probe_scheduler, host, int(port), 10.0)
+    assert asyncio.run(main()) is None
