@@ -673,3 +673,48 @@ def test_the_probe_recognises_a_real_scheduler():
             host, port = s.address.replace("tcp://", "").rsplit(":", 1)
             return await asyncio.get_running_loop().run_in_executor(None, probe_scheduler, host, int(port), 10.0)
     assert asyncio.run(main()) is None
+
+
+# --- 16. URDF numbers and names: one line naming the URDF, or a scenario that loads -------------------------
+
+_TWO_BRANCHES = """<?xml version="1.0"?>
+<robot name="two_branches">
+  <link name="base"><inertial><mass value="3"/><inertia ixx="0.05" ixy="0" ixz="0" iyy="0.05" iyz="0" izz="0.05"/></inertial></link>
+  <link name="a1"><inertial><origin xyz="0.1 0 0"/><mass value="MASS"/><inertia ixx="0.002" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>
+  <link name="b1"><inertial><origin xyz="0 0.09 0"/><mass value="0.9"/><inertia ixx="0.003" ixy="0" ixz="0" iyy="0.001" iyz="0" izz="0.003"/></inertial></link>
+  <joint name="JB" type="revolute"><parent link="base"/><child link="b1"/><origin xyz="0 0.05 0.1"/><axis xyz="0 0 1"/><limit lower="LO" upper="HI" effort="20" velocity="5"/></joint>
+  <joint name="j_a1" type="revolute"><parent link="base"/><child link="a1"/><origin xyz="0.05 0 0.1"/><axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="20" velocity="5"/></joint>
+</robot>
+"""
+
+
+def _urdf(tmp_path, name="r.urdf", mass="1.2", lo="-2", hi="2", joint="j_b1"):
+    p = tmp_path / name
+    p.write_text(_TWO_BRANCHES.replace("MASS", mass).replace("LO", lo).replace("HI", hi).replace("JB", joint),
+                 encoding="utf-8")
+    return p
+
+
+@pytest.mark.parametrize("kw", [dict(name="r_\U0001f600.urdf"), dict(joint="j_\U0001f600"),
+                                dict(hi="1e300"), dict(lo="-1e308", hi="1e308")])
+def test_init_urdf_with_a_non_bmp_name_or_an_unlimited_range_writes_a_scenario_that_loads(tmp_path, capsys, kw):
+    """A character beyond the BMP was written as a JSON surrogate pair that TOML rejects (an error naming a deleted
+    temporary file); a limit of 1e300 overflowed the reference; +-1e308 leaked numpy's overflow warning."""
+    import warnings
+
+    from symfunnel.cli import main
+    u = _urdf(tmp_path, **kw)
+    out = tmp_path / "s.toml"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert main(["init", "--urdf", str(u), "--out", str(out), "-q"]) == 0
+    assert capsys.readouterr().err == ""
+    sc = load_scenario(out)
+    assert sc.n == 2
+
+
+def test_a_urdf_mass_of_1e300_is_refused_as_out_of_range_not_as_massless(tmp_path, capsys):
+    from symfunnel.cli import main
+    u = _urdf(tmp_path, mass="1e300")
+    assert main(["init", "--urdf", str(u), "--out", str(tmp_path / "s.toml"), "-q"]) == 2
+    one_error(capsys, "link[a1]/inertial/mass@value", "at most 1e+12")

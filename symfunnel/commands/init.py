@@ -249,7 +249,7 @@ def scenario_from_urdf(urdf: str, out: Path, name: str, joints: list[str] | None
     ref = [(f"{_fmt(h)} + " if round(h, 6) != 0 else "") + f"{_fmt(a)}*sin({_fmt(0.5 + 0.1 * (i % 5))}*t)"
            for i, (h, a) in enumerate(zip(home, amp))]
     phi0_e2 = _e2_funnel(Path(urdf).absolute().as_posix(), name, ref, q0, n, fixed)
-    fixed_line = (f"fixed_joints = {json.dumps(fixed)}   # held at 0: mimic joints and joints not controlled\n"
+    fixed_line = (f"fixed_joints = {_toml_value(fixed)}   # held at 0: mimic joints and joints not controlled\n"
                   if fixed else "")
     joint_lines = "\n".join(f"#   q{i + 1}: {s}" for i, s in enumerate(joints))
     ref_lines = ",\n     ".join(f'"{r}"' for r in ref)
@@ -265,7 +265,7 @@ title = "Funnel control of the {n}-joint robot {_toml_text(Path(urdf).name)} (sy
 
 [model]
 type = "urdf"
-path = {json.dumps(rel)}   # relative to this file
+path = {_toml_value(rel)}   # relative to this file
 gravity = [0.0, 0.0, -9.81]       # m/s^2, in the base frame
 {fixed_line}
 [reference]
@@ -310,6 +310,13 @@ dt = 0.01                         # s
 '''
 
 
+def _toml_value(v) -> str:
+    """A string or a list of strings as TOML (json.dumps escaped a character beyond the BMP as a surrogate pair,
+    which TOML rejects: a URDF path or joint name with an emoji broke init)."""
+    from ..core.toml_write import value
+    return value(v)
+
+
 def _toml_text(s: str) -> str:
     """`s` safe inside a TOML string or comment (quotes, backslashes and control characters replaced)."""
     return "".join(c if c.isprintable() and c not in '"\\' else "_" for c in s)
@@ -323,8 +330,8 @@ def _e2_funnel(urdf: str, name: str, ref: list[str], q0: list[float], n: int, fi
 
     from ..design import derive, evaluate
     from ..scenario import load_scenario
-    probe = (f'name = "{name}"\n[model]\ntype = "urdf"\npath = {json.dumps(urdf)}\n'
-             + (f'fixed_joints = {json.dumps(list(fixed))}\n' if fixed else '') +
+    probe = (f'name = "{name}"\n[model]\ntype = "urdf"\npath = {_toml_value(str(urdf))}\n'
+             + (f'fixed_joints = {_toml_value(list(fixed))}\n' if fixed else '') +
              f'[reference]\nq = [{", ".join(chr(34) + r + chr(34) for r in ref)}]\n'
              f'[initial]\nq = [{", ".join(_fmt(x) for x in q0)}]\n'
              '[funnel.e1]\nphi0 = 0.1\nphi_inf = 0.01\n[funnel.e2]\nphi0 = 1e6\n[esn]\nsize = 1\n')
