@@ -718,3 +718,20 @@ def test_a_urdf_mass_of_1e300_is_refused_as_out_of_range_not_as_massless(tmp_pat
     u = _urdf(tmp_path, mass="1e300")
     assert main(["init", "--urdf", str(u), "--out", str(tmp_path / "s.toml"), "-q"]) == 2
     one_error(capsys, "link[a1]/inertial/mass@value", "at most 1e+12")
+
+
+def test_an_initial_error_outside_e1_names_the_funnel_at_zero_and_the_initial_state_in_words(tmp_path):
+    """The hint told the user to change k1 or funnel.e2.phi_inf and to run tune (which never changes funnel e1), and
+    printed the raw status `initial_outside`. At t = 0 no gain acts: only F1(0) or the initial state can fix it."""
+    import subprocess
+    import sys
+    text = _variant(tmp_path, "[initial]\nq = [0.0, 0.0]", "[initial]\nq = [0.5, 0.0]").read_text()
+    p = tmp_path / "v.toml"
+    p.write_text(text)
+    r = subprocess.run([sys.executable, "-m", "symfunnel", "simulate", str(p), "--t-final", "1", "-q"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    err = r.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("symfunnel: the initial state is outside a funnel:"), err
+    assert "F1(0) > 0.5" in err[0] and "funnel.e1.phi0" in err[0] and "initial.q[0]" in err[0]
+    assert "k1" not in err[0] and "phi_inf" not in err[0] and "initial_outside" not in r.stdout + r.stderr

@@ -127,7 +127,8 @@ def check_completed(res) -> CheckResult:
     where = {"t": t_end}
     if res.breach:
         where = {"t": res.breach.get("time"), "funnel": res.breach.get("funnel"), "joint": res.breach.get("joint")}
-    return CheckResult("simulation.completed", "fail", f"{res.status}: {res.message}", method="simulation",
+    from ..simulation.hints import status_text
+    return CheckResult("simulation.completed", "fail", f"{status_text(res.status)}: {res.message}", method="simulation",
                        margin=(t_end - tf) if tf else None, where=where, evidence=ev)
 
 

@@ -84,7 +84,7 @@ def run(args) -> int:
     else:
         _table(summary)
     if res.status != "ok":
-        print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)
+        print(f"symfunnel: {status_text(res.status)}: {res.message}", file=sys.stderr)
         return 1
     return 0
 
@@ -100,7 +100,7 @@ def _fmt(v, spec=".4g") -> str:
 
 
 def _table(s: dict) -> None:
-    print(f"simulation of scenario {s['scenario']}: {s['status']}")
+    print(f"simulation of scenario {s['scenario']}: {status_text(s['status'])}")
     print(f"  {s['message']}")
     rows = [
         ("simulated time [s]", f"{_fmt(s['t_end'])} of {_fmt(s['t_final'])} ({s['points']} points)"),
@@ -179,6 +179,13 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
         for k in keys:
             print(f"  {k:<20} {_fmt(summary.get(k))}")
     if res.status != "ok":
-        print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)
+        print(f"symfunnel: {status_text(res.status)}: {res.message}", file=sys.stderr)
         return 1
     return 0
+
+
+def status_text(status: str) -> str:
+    """A run's status in words (simulation.hints.status_text, imported when needed: the CLI starts without it)."""
+    from ..simulation.hints import status_text as text
+    return text(status)
+
