@@ -735,3 +735,27 @@ def test_an_initial_error_outside_e1_names_the_funnel_at_zero_and_the_initial_st
     assert len(err) == 1 and err[0].startswith("symfunnel: the initial state is outside a funnel:"), err
     assert "F1(0) > 0.5" in err[0] and "funnel.e1.phi0" in err[0] and "initial.q[0]" in err[0]
     assert "k1" not in err[0] and "phi_inf" not in err[0] and "initial_outside" not in r.stdout + r.stderr
+
+
+@pytest.mark.slow
+def test_a_mujoco_sweep_with_implementation_runs_the_rbf_and_the_model_based_design(tmp_path):
+    """The sweep's engine runs compile the C step through step_library, which assumed a reservoir: every row of an
+    RBF or approximator-free campaign was 'failed' (KeyError 'x_esn' / 'w_hat')."""
+    pytest.importorskip("mujoco")
+    import pyarrow.parquet as pq
+
+    from symfunnel.cli import main
+    from symfunnel.core.toml_write import dumps
+    from tests.conftest import REPO
+    for name, raw in (("rbf", load_scenario(REPO / "derivations" / "ppc_log_rbf.toml").raw),
+                      ("none", _no_approximator(tmp_path).raw)):
+        raw = copy.deepcopy(raw)
+        raw["implementation"] = {"rate_hz": 2000.0}
+        raw["uncertainty"] = [{"key": "plant.mass_scale", "dist": "uniform", "low": 0.9, "high": 1.1}]
+        raw["sweep"] = {"runs": 2, "t_final": 0.3, "seed": 1}
+        p = tmp_path / f"{name}.toml"
+        p.write_text(dumps(raw), encoding="utf-8")
+        out = tmp_path / f"out-{name}"
+        assert main(["sweep", str(p), "--workers", "1", "--plant", "mujoco", "--out", str(out), "-q"]) == 0
+        rows = pq.read_table(str(out / "results.parquet")).to_pylist()
+        assert [r["status"] for r in rows] == ["ok", "ok"], (name, rows)
