@@ -84,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from .core import deadline, lifecycle
     lifecycle.install()                 # first: a signal from here on ends in 130/143 and one line
+    deadline.mark_command_start(process=argv is None)
     thresholds = gc.get_threshold()
     gc.set_threshold(*GC_THRESHOLDS)
     code = None

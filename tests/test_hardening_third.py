@@ -759,3 +759,51 @@ def test_a_mujoco_sweep_with_implementation_runs_the_rbf_and_the_model_based_des
         assert main(["sweep", str(p), "--workers", "1", "--plant", "mujoco", "--out", str(out), "-q"]) == 0
         rows = pq.read_table(str(out / "results.parquet")).to_pylist()
         assert [r["status"] for r in rows] == ["ok", "ok"], (name, rows)
+
+
+# --- 11. tune's --wall-limit bounds the whole command -----------------------------------------------------
+
+_HOOKED_TUNE = """
+import sys, time
+seen = time.monotonic()                 # a moment after this process started
+import symfunnel.synthesis.search as search
+def hooked(sc, **kw):
+    print(repr((seen, kw.get("started"))))
+    raise SystemExit(0)
+search.tune = hooked
+from symfunnel import cli
+sys.argv = ["symfunnel", *sys.argv[1:]]
+sys.exit(cli.main())
+"""
+
+
+def test_tune_counts_its_wall_limit_from_the_process_start(tmp_path):
+    """The limit was counted from the search's start, after Python's start-up and the scenario's loading (1-2 s;
+    `tune --wall-limit 8` took 10.3 s under load). The CLI's own process now hands tune the process's start."""
+    import subprocess
+    import sys
+
+    from symfunnel.core.toml_write import dumps
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["tune"] = {"tau_max": 200.0, "parameters": ["controller.k2"]}
+    p = tmp_path / "t.toml"
+    p.write_text(dumps(raw), encoding="utf-8")
+    r = subprocess.run([sys.executable, "-c", _HOOKED_TUNE, "tune", str(p), "--wall-limit", "8", "-q"],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    seen, started = eval(r.stderr.strip().splitlines()[-1])     # noqa: S307 - our own repr (tune prints to stderr)
+    assert started is not None and started <= seen, (seen, started)
+
+
+def test_tune_started_before_its_limit_stops_at_once():
+    """With `started` a whole limit ago nothing is left: the limit is reached before the first evaluation."""
+    import time
+
+    from symfunnel.core.deadline import WallLimitReached
+    from symfunnel.synthesis.search import tune
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["tune"] = {"tau_max": 200.0, "parameters": ["controller.k2"]}
+    sc = from_dict(raw, file="t.toml", base_dir=__import__("pathlib").Path("."), default_name="t")
+    t0 = time.monotonic()
+    with pytest.raises(WallLimitReached):
+        tune(sc, wall_limit=5.0, started=time.monotonic() - 6.0, gate=False)
+    assert time.monotonic() - t0 < 3.0
