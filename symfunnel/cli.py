@@ -12,9 +12,18 @@ from .core.errors import InputError, SymfunnelError
 EXIT_INTERNAL = 3
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors as one line (what is wrong and where to read the usage), exit 2; argparse prints the
+    whole usage block first, several lines for one bad option."""
+
+    def error(self, message: str):
+        from .core.text import one_line
+        self.exit(2, f"symfunnel: error: {self.prog}: {one_line(message)} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
-    p = argparse.ArgumentParser(prog="symfunnel", description="Symbolic design and verification of funnel "
+    p = OneLineParser(prog="symfunnel", description="Symbolic design and verification of funnel "
                                 "controllers for robot manipulators (CasADi).")
     p.add_argument("--version", action="version", version="symfunnel " + _version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -75,18 +84,22 @@ def main(argv: list[str] | None = None) -> int:
 
     from .core import deadline, lifecycle
     lifecycle.install()                 # first: a signal from here on ends in 130/143 and one line
+    deadline.mark_command_start(process=argv is None)
     thresholds = gc.get_threshold()
     gc.set_threshold(*GC_THRESHOLDS)
+    code = None
     try:
         code = _run(argv, deadline, lifecycle)
     finally:
+        lifecycle.decided(code)         # a signal from here on (a second one, one during the unwinding) changes nothing
         gc.set_threshold(*thresholds)
         late = lifecycle.late_signal()
-        lifecycle.uninstall()
-    if argv is None:
-        # the process's own command line: its exit code is decided, and a signal during the interpreter's
-        # shutdown would only turn a finished command into a killed one (it is said, once)
-        lifecycle.finished(late)
+        if argv is None:
+            # the process's own command line: its exit code is decided, and a signal during the interpreter's
+            # shutdown would only turn a finished command into a killed one (it is said, once); set before the
+            # policy is uninstalled, so that no instant has the default handlers
+            lifecycle.finished(late)
+        lifecycle.uninstall(restore_signals=argv is not None)
     return code
 
 

@@ -278,10 +278,11 @@ def test_arm7_verify_passes_the_gate_with_only_its_declared_finding(capsys):
         assert checks[k]["status"] == "pass", k
 
 
+@pytest.mark.slow          # the check runs arm7's sampled loop at the baked rate over 20 s (issue 44)
 def test_arm7_codegen_c_check_passes(tmp_path, capsys):
     if not _has_command("codegen"):
         pytest.skip("symfunnel codegen is not registered yet")
-    code = main(["codegen", "arm7", "--lang", "c", "--out", str(tmp_path / "c"), "--check"])
+    code = main(["codegen", "arm7", "--lang", "c", "--rate", "4000", "--out", str(tmp_path / "c"), "--check"])
     capsys.readouterr()
     assert code == 0
     man = json.loads((tmp_path / "c" / "manifest.json").read_text())

@@ -455,6 +455,7 @@ def _bounded_run(tau_late=1.1, w_scale=0.5, x_scale=0.5):
     t = np.linspace(0.0, 2.0, T_)
     tau = np.ones((T_, 2))
     tau[10, 1] = -10.0                       # the early peak, joint 2
+    tau[60, 1] = -10.0                       # as high in the third quarter: no growth at the end (issue 44)
     tau[80, 0] = 10.0 * tau_late             # the last quarter's peak, joint 1
     w = np.zeros((T_, 3, 1))
     w[:, 0, 0] = 0.1
@@ -481,6 +482,7 @@ def test_tau_growth_fails_1e_3_above_its_allowance():
     # the last quarter starts at sample int(0.75 T) = 75 of 100: a peak at 74 is "before", one at 75 "late"
     r = _bounded_run(tau_late=0.1)
     r.signals["tau"][10, 1] = 1.0
+    r.signals["tau"][60, 1] = 1.0
     r.signals["tau"][74, 0] = 10.0
     r.signals["tau"][75, 0] = 10.0 * 1.1 * (1 - 1e-3)
     assert VF.check_bounded(r, DESIGN_LEAK2, None)[0].status == "pass"

@@ -21,7 +21,7 @@ def private_cache(tmp_path_factory, monkeypatch):
 @needs_gcc
 def test_c_check_passes_and_second_run_reuses_the_cache(tmp_path, capsys):
     out = tmp_path / "ctl"
-    assert main(["codegen", "--lang", "c", "--out", str(out), "--check", "-q"]) == 0
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(out), "--check", "-q"]) == 0
     text = capsys.readouterr().out
     assert "worst relative error" in text and "PASS" in text
     for name in ("symfunnel_controller.c", "symfunnel_controller.h", "main.c", "Makefile", "trajectory.txt",
@@ -30,7 +30,7 @@ def test_c_check_passes_and_second_run_reuses_the_cache(tmp_path, capsys):
     from symfunnel.core.ccompile import cache_dir
     before = sorted(p.name for p in cache_dir().iterdir())
     mtimes = {p: p.stat().st_mtime_ns for p in cache_dir().rglob("*") if p.is_file()}
-    assert main(["codegen", "--lang", "c", "--out", str(out), "--check", "--json"]) == 0
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(out), "--check", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["check"]["passed"] and data["check"]["worst"] <= 1e-12 and data["check"]["points"] >= 1000
     assert sorted(p.name for p in cache_dir().iterdir()) == before

@@ -240,7 +240,7 @@ def test_simulate_stops_in_the_compile_step_and_leaves_no_cache_entry(tmp_path):
 
 def test_bad_limit_is_bad_input(capsys, tmp_path):
     from symfunnel.cli import main
-    for cmd in (["derive"], ["verify"], ["report"], ["codegen", "--lang", "c", "--out", str(tmp_path / "c")],
+    for cmd in (["derive"], ["verify"], ["report"], ["codegen", "--lang", "c", "--rate", "2000", "--out", str(tmp_path / "c")],
                 ["audit"]):
         assert main([*cmd, "-q", "--wall-limit", "-1"]) == 2
         err = capsys.readouterr().err

@@ -185,7 +185,7 @@ def test_approximator_none_runs_end_to_end(write_scenario, capsys, tmp_path):
     assert main(["verify", path, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["status"] == "pass"
-    assert main(["codegen", path, "--lang", "c", "--out", str(tmp_path / "c"), "--check"]) == 0
+    assert main(["codegen", path, "--lang", "c", "--rate", "2000", "--out", str(tmp_path / "c"), "--check"]) == 0
     capsys.readouterr()
 
 

@@ -191,16 +191,16 @@ def test_codegen_refuses_to_overwrite_the_users_files(tmp_path, capsys):
     d = tmp_path / "ctl"
     d.mkdir()
     (d / "Makefile").write_text("# mine\n")
-    assert main(["codegen", "--lang", "c", "--out", str(d), "-q"]) == 2
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(d), "-q"]) == 2
     one_error(capsys, "Makefile", "--force")
     assert (d / "Makefile").read_text() == "# mine\n" and sorted(p.name for p in d.iterdir()) == ["Makefile"]
-    assert main(["codegen", "--lang", "c", "--out", str(d), "-q", "--force"]) == 0
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(d), "-q", "--force"]) == 0
     capsys.readouterr()
     assert (d / "Makefile").read_text() != "# mine\n"
-    assert main(["codegen", "--lang", "c", "--out", str(d), "-q"]) == 0       # our own files: fine
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(d), "-q"]) == 0       # our own files: fine
     capsys.readouterr()
     (d / "main.c").write_text((d / "main.c").read_text() + "/* edited */\n")
-    assert main(["codegen", "--lang", "c", "--out", str(d), "-q"]) == 2        # changed since: the user's now
+    assert main(["codegen", "--lang", "c", "--rate", "2000", "--out", str(d), "-q"]) == 2        # changed since: the user's now
     one_error(capsys, "main.c")
 
 

@@ -388,7 +388,7 @@ def _commands(tmp_path) -> list[tuple[str, list[str], Path]]:
         ("derive", ["derive", "--latex", str(out / "d.tex")], out / "d.tex"),
         ("simulate", ["simulate", "--t-final", "2000", "--out", str(out / "s.npz")], out / "s.npz"),
         ("verify", ["verify", "--t-final", "2000", "--json"], None),
-        ("codegen", ["codegen", "--lang", "c", "--check", "--out", str(out / "c")], out / "c"),
+        ("codegen", ["codegen", "--lang", "c", "--rate", "2000", "--check", "--out", str(out / "c")], out / "c"),
         ("report", ["report", "--t-final", "2000", "--out", str(out / "r.html")], out / "r.html"),
         ("sweep", ["sweep", str(sweep), "--workers", "2", "--out", str(out / "sw")], out / "sw" / "summary.json"),
         ("tune", ["tune", str(tune), "--out", str(out / "t.toml")], out / "t.toml"),

@@ -429,11 +429,15 @@ def connect(address: str, timeout: float = 10.0, worker_timeout: float = 30.0):
     host, port = _scheduler_address(address)
     import socket
     try:                        # a plain connection first: a failed Client leaves a finalizer that hangs and prints
-        socket.create_connection((host, port), timeout=timeout).close()
+        from .probe import probe_scheduler
+        why = probe_scheduler(host, port, timeout)
     except OSError as exc:
         raise InputError(f"cannot reach the scheduler at {address} ({exc.strerror or type(exc).__name__})",
                          key="--scheduler", expected="the address of a running dask scheduler (tcp://HOST:PORT)") \
             from None
+    if why is not None:         # a server that never answers hung Client past its timeout; junk was a MemoryError
+        raise InputError(f"is no dask scheduler at {address}: {why}", key="--scheduler",
+                         expected="the address of a running dask scheduler (tcp://HOST:PORT)")
     try:
         client = Client(address, timeout=f"{timeout:g}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:

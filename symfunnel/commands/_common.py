@@ -41,6 +41,26 @@ def _load(args):
         return load_scenario(args.scenario)
 
 
+def scenario_inputs(scenario) -> list:
+    """The files a command reads for its scenario (the TOML and the robot file it names), never to be replaced."""
+    from pathlib import Path
+    out = []
+    if getattr(scenario, "path", None) is not None and Path(scenario.path).is_file():
+        out.append(Path(scenario.path))
+    raw = getattr(scenario, "raw", None)
+    robot = (raw.get("model") or {}).get("path") if isinstance(raw, dict) and isinstance(raw.get("model"), dict) \
+        else None
+    if isinstance(robot, str) and out:
+        out.append(out[0].parent / robot)
+    return out
+
+
+def add_force_option(sp) -> None:
+    """`--force`: replace an existing output file that symfunnel did not write (never an input)."""
+    sp.add_argument("--force", action="store_true", help="replace an existing output that symfunnel did not write "
+                    "(an input is never replaced)")
+
+
 def add_plant_option(sp) -> None:
     """`--plant ENGINE`: the plant of the deployed controller's sampled loop (overrides `[plant] engine`)."""
     from ..plant.engines import ENGINES

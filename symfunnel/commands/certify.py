@@ -31,8 +31,8 @@ def run(args) -> int:
     from ..core.errors import InputError
     from ..pipeline import Run, RunOptions
     wl = args.certify_wall_limit
-    if wl is not None and not (math.isfinite(wl) and wl > 0):
-        raise InputError(f"is {wl:g}", key="--wall-limit", expected="a number of seconds > 0")
+    from ..core.deadline import check_seconds          # the cap every other command's --wall-limit has (a week)
+    check_seconds(wl, key="--wall-limit", allow_none=True)
     if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
         raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
     only = certify_ids(args.only)

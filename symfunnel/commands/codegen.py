@@ -36,8 +36,8 @@ def register(sub, common) -> None:
     sp.add_argument("--prefix", metavar="P", help="C: start every exported symbol with P (a C identifier prefix); "
                     "the step API is then Pstate, Pinit, Pstep (default: historical names, symfunnel_step)")
     sp.add_argument("--rate", type=float, metavar="HZ", help="C: sample rate the generated step advances the "
-                    "controller state by (default: [implementation].rate_hz, else 1000); fmu: required, the "
-                    "controller period 1/HZ one DoStep advances")
+                    "controller state by (default: [implementation].rate_hz; required without it); fmu: required, "
+                    "the controller period 1/HZ one DoStep advances")
     sp.add_argument("--json", action="store_true", help="machine-readable summary")
     sp.add_argument("--force", action="store_true", help="overwrite files in DIR that symfunnel did not write")
     sp.set_defaults(func=run)
@@ -61,8 +61,8 @@ def run(args) -> int:
         raise InputError("exists and is not a directory", key="--out", expected="a directory (created when missing)")
     if args.prefix is not None and not valid_prefix(args.prefix):
         raise InputError(f"is '{args.prefix}'", key="--prefix",
-                         expected="a C identifier prefix: a letter or '_' then letters, digits, '_' (at most 32; "
-                         "not '__' or '_' + capital)")
+                         expected="a C identifier prefix: a letter then letters, digits, single '_' (at most "
+                         "32) that names none of the C library's functions (as 'init' + 'state' would)")
     if args.rate is not None:
         check_rate(args.rate, file=None, key="--rate")
     if args.lang == "fmu":
@@ -77,7 +77,8 @@ def run(args) -> int:
     with loading():
         run = Run.load(args.scenario, progress=_progress(getattr(args, "quiet", False) or args.json))
     sc, design = run.scenario, run.design
-    files = run.code(args.lang, prefix=args.prefix, rate_hz=args.rate)
+    rate = baked_rate(sc, args.rate, args.scenario) if args.lang == "c" else args.rate
+    files = run.code(args.lang, prefix=args.prefix, rate_hz=rate)
     from ..core.lifecycle import committing
     code = 0
     report = None
@@ -96,13 +97,19 @@ def run(args) -> int:
             reraise_interrupt(exc)
             write_output(files, args.out, force=args.force)
             raise CheckFailed(f"codegen --check: {exc}") from None
-        code = 0 if report.passed else 1
+        if args.lang == "c":                   # the deployed path at the baked rate: the step must keep the funnels
+            from ..checks.implementation import implementation_checks
+            sampled = implementation_checks(sc, design, rate_hz=rate)[0]
+            report_sampled = sampled.to_json()
+        code = 0 if report.passed and (args.lang != "c" or sampled.status == "pass") else 1
     with committing(code):                     # the command's output: from here on it has succeeded
         paths = write_output(files, args.out, force=args.force)
     summary = {"scenario": sc.name, "language": args.lang, "out": str(args.out),
                "files": [{"name": p.name, "bytes": len(files[p.name].encode("utf-8"))} for p in paths]}
     if report is not None:
         summary["check"] = report.to_json()
+        if args.lang == "c":
+            summary["check"]["sampled_loop"] = report_sampled
     if args.json:
         print(json.dumps(summary, indent=2, allow_nan=False))
         return code
@@ -121,6 +128,8 @@ def run(args) -> int:
             print(f"  {name:<28} {err:.3e}")
         verdict = "PASS" if report.passed else "FAIL"
         print(f"worst relative error {report.worst:.3e} (threshold {report.threshold:.0e}): {verdict}")
+        if args.lang == "c":
+            print(f"sampled loop at the baked rate: {report_sampled['status'].upper()}: {report_sampled['detail']}")
     return code
 
 
@@ -168,3 +177,17 @@ def _run_fmu(args) -> int:
                   "the funnels")
         print(f"check: {'PASS' if report.passed else 'FAIL'}")
     return code
+
+
+def baked_rate(scenario, rate: float | None, name: str | None) -> float:
+    """The rate a generated step is baked at: --rate, else [implementation].rate_hz, else InputError (a silent
+    default can sit below the plant's minimum rate, where the deployed loop leaves its funnels)."""
+    from ..core.errors import InputError
+    if rate is not None:
+        return rate
+    impl = getattr(scenario, "implementation", None)
+    if impl is not None:
+        return float(impl.rate_hz)
+    raise InputError("is missing and the scenario has no [implementation] rate_hz", key="--rate",
+                     expected="the rate the step is called at, at least the minimum that `symfunnel rate "
+                     f"{name or scenario.name}` finds")

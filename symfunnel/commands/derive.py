@@ -23,6 +23,8 @@ def register(sub, common) -> None:
     sp.add_argument("--eval", metavar="POINT.json", help="evaluate every signal at a point (or a list)")
     sp.add_argument("--latex", metavar="FILE", help="write the signals as LaTeX")
     sp.add_argument("--all", action="store_true", help="with --eval: also print Phi and the ESN/adaptation rates")
+    from ._common import add_force_option
+    add_force_option(sp)
     sp.set_defaults(func=cmd_derive)
 
 
@@ -44,6 +46,10 @@ def cmd_derive(args) -> int:
         from ..core.names import compress_names
         from ..pipeline import Run
         sc = _load(args)
+    if args.latex:
+        from ..core.outputs import check_replaceable
+        from ._common import scenario_inputs
+        check_replaceable(args.latex, key="--latex", inputs=scenario_inputs(sc), force=args.force)
     d = Run(sc).design                  # under its own step, DERIVING
     if args.eval:
         with deadline.step(EVALUATING):
@@ -71,8 +77,7 @@ def cmd_derive(args) -> int:
         for k in names:
             info[k] = {"ops": d.ops(k), "free": d.free_symbols(k), "shape": list(d.signals[k].shape)}
     if args.latex:
-        from ..core.lifecycle import committing
-        with deadline.step(WRITING), committing():      # the command's one file: from here on it has succeeded
+        with deadline.step(WRITING):
             _write_latex(d, names, args.latex)
     if args.json:
         print(_dump({"scenario": sc.name, "signals": info}))
@@ -128,7 +133,9 @@ def _write_latex(d, names, path) -> None:
              f"\\section*{{Signals of scenario \\texttt{{{name}}}}}",
              "Derived by symfunnel (CasADi SX, converted to sympy). Long expressions may run past the margin.",
              "", *body, "\\end{document}", ""]
-    atomic_write(path, "\n".join(lines))
+    from ..core.lifecycle import committing
+    with committing():          # the command's one file, written: from here on it has succeeded (the text is built
+        atomic_write(path, "\n".join(lines))    # before: a signal while building it stops the command)
 
 
 def _tex_text(s: str) -> str:

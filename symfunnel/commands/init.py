@@ -46,6 +46,8 @@ def run(args) -> int:
     if out.suffix != ".toml":
         raise InputError(f"is '{out}'", key="--out", expected="a file name ending in .toml")
     check_output_file(out)
+    from ..core.outputs import check_not_input
+    check_not_input(out, [Path(p) for p in (args.source, args.urdf) if p and Path(p).is_file()], key="--out")
     if out.exists() and not args.force:
         raise InputError("exists", file=str(out), key="--out", expected="a new file (or --force to overwrite it)")
     if args.source and args.urdf:
@@ -55,7 +57,7 @@ def run(args) -> int:
     if args.source:
         text, extra = copied_scenario(args.source, out)
         for path, data in extra:
-            if not path.exists():
+            if not path.exists():                   # else the same robot (copied_scenario refuses another)
                 atomic_write(path, data)
         atomic_write(out, text)
         print(out)
@@ -92,13 +94,45 @@ def copied_scenario(source: str, out: Path) -> tuple[str, list[tuple[Path, str]]
         ref = src.parent / path
         if not ref.is_file():
             raise InputError("is not a file", file=str(ref), key="model.path", expected="the URDF the scenario uses")
-        extra.append((out.parent / path, ref.read_text(encoding="utf-8")))
+        # the copy goes next to the output, never above it (a '../' path), and never onto another robot's file
+        copy = out.parent / Path(path).name
+        data = ref.read_text(encoding="utf-8")
+        if copy.exists() and not _same_text(copy, data):
+            raise InputError(f"exists with other content than the scenario's robot {ref}", file=str(copy),
+                             key="model.path", expected="a directory for --out without a different file of that name")
+        if Path(path).name != path:
+            text = _repoint(text, path, Path(path).name)
+        extra.append((copy, data))
     origin = f"the built-in scenario '{source}'" if source in BUILTIN else f"{_toml_text(str(src))}"
     day = datetime.date.today().isoformat()
     head = (f"# Copied by `symfunnel init --from {_toml_text(source)}` from {origin} ({sc.name}) on {day}.\n"
             "# Edit it freely (docs/scenario.md lists every key). If you change the design it describes, a printed\n"
             "# claim ([[claims]]) that no longer matches fails the gate: remove it or declare expect = \"fail\".\n")
     return head + text, extra
+
+
+def _same_text(path: Path, data: str) -> bool:
+    try:
+        return path.read_bytes() == data.encode("utf-8")
+    except OSError:
+        return False
+
+
+def _repoint(text: str, old: str, new: str) -> str:
+    """The scenario text with its [model] path = old rewritten to new (the copy's own, beside it)."""
+    import re
+    import tomllib
+    lines = text.split("\n")
+    for i, line in enumerate(lines):
+        if re.match(r"\s*path\s*=", line):
+            try:
+                value = tomllib.loads(line)["path"]
+            except (tomllib.TOMLDecodeError, KeyError):
+                continue
+            if value == old:
+                lines[i] = f'path = "{_toml_text(new)}"' + "          # copied beside this file from " + _toml_text(old)
+                return "\n".join(lines)
+    return text
 
 
 def _name(stem: str) -> str:
@@ -224,7 +258,7 @@ def scenario_from_urdf(urdf: str, out: Path, name: str, joints: list[str] | None
     ref = [(f"{_fmt(h)} + " if round(h, 6) != 0 else "") + f"{_fmt(a)}*sin({_fmt(0.5 + 0.1 * (i % 5))}*t)"
            for i, (h, a) in enumerate(zip(home, amp))]
     phi0_e2 = _e2_funnel(Path(urdf).absolute().as_posix(), name, ref, q0, n, fixed)
-    fixed_line = (f"fixed_joints = {json.dumps(fixed)}   # held at 0: mimic joints and joints not controlled\n"
+    fixed_line = (f"fixed_joints = {_toml_value(fixed)}   # held at 0: mimic joints and joints not controlled\n"
                   if fixed else "")
     joint_lines = "\n".join(f"#   q{i + 1}: {s}" for i, s in enumerate(joints))
     ref_lines = ",\n     ".join(f'"{r}"' for r in ref)
@@ -249,7 +283,7 @@ title = "Funnel control of the {n}-joint robot {_toml_text(Path(urdf).name)} (sy
 
 [model]
 type = "urdf"
-path = {json.dumps(rel)}   # relative to this file
+path = {_toml_value(rel)}   # relative to this file
 gravity = [0.0, 0.0, -9.81]       # m/s^2, in the base frame
 {fixed_line}
 [reference]
@@ -294,6 +328,13 @@ dt = 0.01                         # s
 '''
 
 
+def _toml_value(v) -> str:
+    """A string or a list of strings as TOML (json.dumps escaped a character beyond the BMP as a surrogate pair,
+    which TOML rejects: a URDF path or joint name with an emoji broke init)."""
+    from ..core.toml_write import value
+    return value(v)
+
+
 def _toml_text(s: str) -> str:
     """`s` safe inside a TOML string or comment (quotes, backslashes and control characters replaced)."""
     return "".join(c if c.isprintable() and c not in '"\\' else "_" for c in s)
@@ -307,8 +348,8 @@ def _e2_funnel(urdf: str, name: str, ref: list[str], q0: list[float], n: int, fi
 
     from ..design import derive, evaluate
     from ..scenario import load_scenario
-    probe = (f'name = "{name}"\n[model]\ntype = "urdf"\npath = {json.dumps(urdf)}\n'
-             + (f'fixed_joints = {json.dumps(list(fixed))}\n' if fixed else '') +
+    probe = (f'name = "{name}"\n[model]\ntype = "urdf"\npath = {_toml_value(str(urdf))}\n'
+             + (f'fixed_joints = {_toml_value(list(fixed))}\n' if fixed else '') +
              f'[reference]\nq = [{", ".join(chr(34) + r + chr(34) for r in ref)}]\n'
              f'[initial]\nq = [{", ".join(_fmt(x) for x in q0)}]\n'
              '[funnel.e1]\nphi0 = 0.1\nphi_inf = 0.01\n[funnel.e2]\nphi0 = 1e6\n[esn]\nsize = 1\n')

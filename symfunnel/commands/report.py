@@ -25,8 +25,9 @@ def register(sub, common) -> None:
                     help="leave out the deployed controller (minimum sample rate, design help, sampled torque)")
     sp.add_argument("--sweep", metavar="DIR", help="the robustness-campaign section of a `symfunnel sweep` "
                                                    "directory alone (default --out: DIR/sweep.html)")
-    from ._common import add_plant_option
+    from ._common import add_force_option, add_plant_option
     add_plant_option(sp)
+    add_force_option(sp)
     sp.set_defaults(func=run)
 
 
@@ -35,7 +36,7 @@ def run(args) -> int:
     from ._common import loading
     with loading():
         from ._common import _engine, _load, _progress
-        from ..core.outputs import check_count, check_output_file
+        from ..core.outputs import check_count
         from ..pipeline import Run, RunOptions
         from ..reporting import build_report, default_path
     check_count(args.samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
@@ -48,9 +49,12 @@ def run(args) -> int:
         return 0
     if args.scenario is None:
         args.scenario = "paper"
-    figures = figures_dir(args.figures) if args.figures is not None else None
+    figures = figures_dir(args.figures, force=args.force) if args.figures is not None else None
     sc = _load(args)
-    check_output_file(args.out if args.out is not None else default_path(sc))
+    from ..core.outputs import check_replaceable
+    from ._common import scenario_inputs
+    check_replaceable(args.out if args.out is not None else default_path(sc), key="--out",
+                      inputs=scenario_inputs(sc), force=args.force)
     engine = _engine(args, sc)
     run = Run(sc, RunOptions(t_final=args.t_final, samples=args.samples, engine=engine), _progress(args.quiet))
     from ..core.io import staged
@@ -61,15 +65,26 @@ def run(args) -> int:
     return 0
 
 
-def figures_dir(arg: str):
-    """The --figures directory, created now and checked writable, so that a bad one fails before any work."""
+def figures_dir(arg: str, *, force: bool = False):
+    """The --figures directory, created now and checked writable, so that a bad one fails before any work; a
+    figure file of our names (figNN-ID.png/.pdf) already there that symfunnel did not write needs --force."""
     import os
+    import re
     from pathlib import Path
 
     from ..core.errors import InputError
+    from ..core.outputs import written_by_symfunnel
     p = Path(arg)
     if p.exists() and not p.is_dir():
         raise InputError(f"{arg} exists and is not a directory", key="--figures", expected="a directory")
+    if p.is_dir() and not force:
+        theirs = sorted(f for f in p.iterdir() if re.fullmatch(r"fig\d\d-.+\.(png|pdf)", f.name)
+                        and f.is_file() and not written_by_symfunnel(f))
+        if theirs:
+            raise InputError(f"holds {theirs[0].name}" + (f" and {len(theirs) - 1} more figure file(s)"
+                                                          if len(theirs) > 1 else "")
+                             + " not written by symfunnel", file=str(theirs[0]), key="--figures",
+                             expected="--force to replace them, or another directory")
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

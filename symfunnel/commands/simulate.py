@@ -56,6 +56,10 @@ def run(args) -> int:
         from ..scenario.implementation import check_rate
         check_rate(args.rate, file=None, key="--rate")
     sc = _load(args)
+    if args.out:
+        from ..core.outputs import check_not_input
+        from ._common import scenario_inputs
+        check_not_input(args.out, scenario_inputs(sc), key="--out")
     engine = _engine(args, sc)
     if args.rate is not None or sc.implementation is not None or engine != "symfunnel":
         return _sampled(args, sc, say, engine)
@@ -81,7 +85,7 @@ def run(args) -> int:
     else:
         _table(summary)
     if res.status != "ok":
-        print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)
+        print(f"symfunnel: {status_text(res.status)}: {res.message}", file=sys.stderr)
         return 1
     return 0
 
@@ -130,7 +134,7 @@ def _metric_rows(s: dict) -> list[tuple[str, str]]:
 
 
 def _table(s: dict) -> None:
-    print(f"simulation of scenario {s['scenario']}: {s['status']}")
+    print(f"simulation of scenario {s['scenario']}: {status_text(s['status'])}")
     print(f"  {s['message']}")
     rows = [
         ("simulated time [s]", f"{_fmt(s['t_end'])} of {_fmt(s['t_final'])} ({s['points']} points)"),
@@ -209,6 +213,13 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
         for k, v in rows:
             print(f"  {k:<{width}} {v}")
     if res.status != "ok":
-        print(f"symfunnel: {res.status}: {res.message}", file=sys.stderr)
+        print(f"symfunnel: {status_text(res.status)}: {res.message}", file=sys.stderr)
         return 1
     return 0
+
+
+def status_text(status: str) -> str:
+    """A run's status in words (simulation.hints.status_text, imported when needed: the CLI starts without it)."""
+    from ..simulation.hints import status_text as text
+    return text(status)
+

@@ -69,10 +69,19 @@ def run(args) -> int:
     if args.out is not None and Path(args.out).is_dir():
         raise InputError("is a directory", file=args.out, key="--out", expected="a .toml file path")
     sc = _load(args)
+    if args.out is not None:
+        from ..core.outputs import check_not_input
+        from ._common import scenario_inputs
+        check_not_input(args.out, scenario_inputs(sc), key="--out")
     say = _progress(args.quiet or args.json)
     with _stdout_to_stderr():
-        r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say, max_evaluations=args.max_evals,
-                 method=args.method)
+        # the limit bounds the whole command: it counts from the command's start (start-up and loading)
+        import time
+
+        from ..core.deadline import command_elapsed
+        r = tune(sc, wall_limit=args.wall_limit, t_final=args.t_final, progress=say,
+                 max_evaluations=args.max_evals, method=args.method,
+                 started=time.monotonic() - command_elapsed())
     if args.out is not None:
         from ..core.lifecycle import committing
         text = r.tuned_text or dumps(r.tuned_raw)
@@ -83,7 +92,8 @@ def run(args) -> int:
     else:
         o = r.objective
         fmt = (lambda v: "-" if v is None else f"{v:.6g}")
-        print(f"tune {sc.name}: {r.status.upper()} after {r.evaluations} evaluations in {r.wall_s:.1f} s")
+        print(f"tune {sc.name}: {r.status.upper()} after {r.evaluations} evaluations in {r.wall_s:.1f} s "
+              f"(since the command started, of --wall-limit {args.wall_limit:g} s)")
         print(f"  method: {r.method}")
         print(f"  why: {r.why}")
         print(f"  objective {o['name']}: {fmt(o['before'])} -> {fmt(o['after'])}")

@@ -232,15 +232,25 @@ def compile_timeout() -> float:
 
 
 def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str]:
-    """Run `cmd` in its own process group; kill the whole group on timeout or any exception (Ctrl-C, SIGTERM)."""
+    """Run `cmd` in its own process group; kill the whole group on timeout or any exception (Ctrl-C, SIGTERM).
+
+    The compiler's own temporaries (cc*.s, cc*.o, *.res) go to a private $TMPDIR, removed when it ends however it
+    ends (and by the watchdog when the process is stopped): a killed gcc left them in the user's $TMPDIR."""
+    import shutil
+    import tempfile
+
     from . import lifecycle
     proc = None
+    scratch = None
     try:
         # a signal between the fork inside Popen and the registration would leave the compiler running: the two
         # happen with signals deferred, and the signal is raised here, inside the try that kills the group
         with lifecycle.signals_deferred():
+            scratch = tempfile.mkdtemp(prefix="symfunnel-cc-")
+            lifecycle.register_temporary(scratch)
+            env = dict(os.environ, TMPDIR=scratch, TMP=scratch, TEMP=scratch)
             proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                    stderr=subprocess.PIPE, text=True, start_new_session=True)
+                                    stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
             lifecycle.register_child(proc.pid, group=True)
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -254,6 +264,9 @@ def run_compiler(cmd: list[str], *, cwd: Path, timeout: float) -> tuple[int, str
     finally:
         if proc is not None:
             lifecycle.unregister_child(proc.pid)
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+            lifecycle.unregister_temporary(scratch)
     return proc.returncode, (out or "") + (err or "")
 
 

@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-__all__ = ["WallLimitReached", "limit", "until", "remaining", "check", "paused", "step", "current_step",
+__all__ = ["mark_command_start", "command_elapsed", "WallLimitReached", "limit", "until", "remaining", "check", "paused", "step", "current_step",
            "command_expiry", "expired_limit", "MAX_SECONDS", "check_seconds"]
 
 #: the longest limit accepted anywhere (--wall-limit, wall_limit, sympy_timeout, $SYMFUNNEL_COMPILE_TIMEOUT): a week
@@ -43,6 +43,31 @@ class _Deadline:
     make: Callable[[], BaseException] | None    # None: WallLimitReached
     fired: bool = False                 # the alarm's handler raised this deadline's exception
     step: str | None = None             # what the command was doing then (the block may raise it after that step)
+
+
+_started = {"at": time.monotonic()}       # when the command began (`mark_command_start`)
+
+
+def mark_command_start(process: bool = False) -> None:
+    """The command begins now, or, with `process` (the CLI's own process), when the process started: Python's
+    start-up and imports count against a command's own wall-clock limit (Linux's /proc; elsewhere now)."""
+    at = time.monotonic()
+    if process:
+        try:
+            import os
+            with open("/proc/self/stat") as fh:
+                start_ticks = int(fh.read().rsplit(")", 1)[1].split()[19])
+            with open("/proc/uptime") as fh:
+                uptime = float(fh.read().split()[0])
+            at -= max(0.0, min(uptime - start_ticks / os.sysconf("SC_CLK_TCK"), 60.0))
+        except (OSError, ValueError, IndexError):
+            pass
+    _started["at"] = at
+
+
+def command_elapsed() -> float:
+    """Seconds since the command began (`mark_command_start`)."""
+    return time.monotonic() - _started["at"]
 
 
 _stack: list[_Deadline] = []

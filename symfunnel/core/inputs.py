@@ -104,10 +104,11 @@ def _kind(mode: int) -> str:
 
 
 def read_text(path: str | os.PathLike, *, expected: str, limit: int = MAX_INPUT_BYTES) -> str:
-    """`read_input` decoded as UTF-8 (InputError when it is not)."""
+    """`read_input` decoded as UTF-8 (InputError when it is not); a leading byte-order mark, which editors on
+    Windows write and TOML forbids, is dropped."""
     data = read_input(path, expected=expected, limit=limit)
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise InputError(f"is not UTF-8 text ({exc.reason} at byte {exc.start})", file=str(path),
                          expected=expected) from None

@@ -36,7 +36,7 @@ from . import deadline
 
 __all__ = ["Terminated", "install", "uninstall", "check", "pending", "reraise_interrupt",
            "become_worker", "in_worker", "register_temporary", "unregister_temporary", "register_child", "unregister_child", "announce",
-           "exit_code", "die_with_parent", "quiet_c_output", "user_stderr", "signals_deferred", "committing", "late_signal", "too_late", "finished", "GRACE"]
+           "exit_code", "die_with_parent", "quiet_c_output", "user_stderr", "signals_deferred", "committing", "late_signal", "too_late", "finished", "decided", "GRACE"]
 
 #: seconds the main thread has to unwind after a signal or the wall-clock limit before the watchdog stops the process
 GRACE = 1.0
@@ -52,7 +52,7 @@ _lock = threading.Lock()
 _announced: list[str] = []
 _done = threading.Event()
 _state = {"worker": False, "thread": None, "wakeup": None, "redeliver": None, "deferred": 0,
-          "committed": None, "late": None}
+          "committed": None, "late": None, "redelivered": 0}
 _user: dict = {"err": None}       # the terminal's stderr while quiet_c_output captures the rest
 
 
@@ -69,6 +69,11 @@ def _exception(signum: int) -> BaseException:
 
 
 def _raise(signum, frame):
+    if _pending:                            # a signal is already stopping the command: one exit code, one line
+        if _state["redelivered"]:           # unless this is the watchdog delivering a swallowed one again
+            _state["redelivered"] -= 1
+            raise _exception(_pending[-1])
+        return
     if _state["committed"] is not None:     # the command's output is complete: too late to stop it (`committing`)
         too_late(signum)
         return
@@ -131,14 +136,23 @@ def too_late(signum, frame=None) -> None:
             os.write(2, (LATE.format(int(signum)) + "\n").encode())
 
 
+def decided(code: int | None) -> None:
+    """The CLI's exit code is decided (`code`; None when argparse exits): a signal from now on neither raises nor
+    changes it -- said once (`too_late`), or not at all when a signal already stopped the command."""
+    if _state["committed"] is None and not _pending:
+        _state["committed"] = 0 if code is None else int(code)
+
+
 def finished(late: int | None = None) -> None:
-    """The CLI's exit code is decided (the policy is uninstalled): a terminating signal during the interpreter's
-    shutdown would only turn a finished command into a killed one, so from now on it is only said (`too_late`)."""
+    """The CLI's exit code is decided (call before `uninstall(restore_signals=False)`, so no instant has the default
+    handlers): a terminating signal during the interpreter's shutdown would only turn a finished command into a
+    killed one, so from now on it is only said (`too_late`), or ignored after a command a signal stopped."""
     if threading.current_thread() is not threading.main_thread():
         return
+    stopped = bool(_pending)
     _state["late"] = late
     for sig in TERMINATING:
-        signal.signal(sig, too_late)
+        signal.signal(sig, signal.SIG_IGN if stopped else too_late)
     import atexit
     atexit.register(_ignore_terminating)
 
@@ -313,6 +327,7 @@ def _watch(rfd: int) -> None:
             _state["redeliver"] = None
             import _thread
             ignore += 1
+            _state["redelivered"] += 1
             with contextlib.suppress(Exception):
                 _thread.interrupt_main(_pending[-1])
         if stop_at is None:
@@ -364,6 +379,7 @@ def install() -> None:
     _announced.clear()
     _done.clear()
     _state["committed"] = _state["late"] = None
+    _state["redelivered"] = 0
     if threading.current_thread() is not threading.main_thread():
         return
     for sig in TERMINATING:
@@ -378,8 +394,9 @@ def install() -> None:
     t.start()
 
 
-def uninstall() -> None:
-    """Restore what `install` changed (the command has finished: the watchdog stands down)."""
+def uninstall(restore_signals: bool = True) -> None:
+    """Restore what `install` changed (the command has finished: the watchdog stands down); without
+    `restore_signals` the signal handlers `finished` set stay (the CLI's own process, about to exit)."""
     if not _saved:
         return
     _done.set()
@@ -396,7 +413,9 @@ def uninstall() -> None:
                 os.close(fd)
         deadline.on_check(None)
     for sig in [k for k in _saved if not isinstance(k, str)]:
-        signal.signal(sig, _saved.pop(sig))
+        saved = _saved.pop(sig)
+        if restore_signals:
+            signal.signal(sig, saved)
     _saved.clear()
     _pending.clear()
     _state["committed"] = _state["late"] = None

@@ -10,6 +10,47 @@ from pathlib import Path
 from .errors import InputError
 
 
+#: what marks a file symfunnel wrote (its generator line, title or metadata), searched in its first MARK_BYTES
+MARKS = (b'<meta name="generator" content="symfunnel', b"<title>symfunnel report:", b"% symfunnel derive --latex",
+         b"# A scenario written by `symfunnel init`", b"# Copied by `symfunnel init --from", b"Software\x00symfunnel",
+         b"/Creator (symfunnel)")
+MARK_BYTES = 16 << 20
+
+
+def written_by_symfunnel(path: str | os.PathLike) -> bool:
+    """True when the file at `path` carries one of symfunnel's MARKS (so replacing it loses nothing of the user's)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(MARK_BYTES)
+    except OSError:
+        return False
+    return any(m in head for m in MARKS)
+
+
+def check_not_input(path: str | os.PathLike, inputs, *, key: str) -> None:
+    """InputError when `path` is (the same file as) one of the command's inputs: an input is never replaced."""
+    p = Path(path)
+    for src in inputs:
+        try:
+            same = os.path.samefile(p, src)
+        except OSError:
+            same = False
+        if same or (not p.exists() and Path(os.path.abspath(p)) == Path(os.path.abspath(src))):
+            raise InputError(f"is this command's input {src}", file=str(p), key=key,
+                             expected="another path (an input is never replaced, not even with --force)")
+
+
+def check_replaceable(path: str | os.PathLike, *, key: str, inputs=(), force: bool = False) -> Path:
+    """A file path a command may write: never one of its inputs, and an existing file only when symfunnel wrote
+    it or with --force (the rule `codegen --out` applies to a directory's files; InputError otherwise)."""
+    p = check_output_file(path, key=key)
+    check_not_input(p, inputs, key=key)
+    if not force and p.exists() and not written_by_symfunnel(p):
+        raise InputError("exists and was not written by symfunnel", file=str(p), key=key,
+                         expected="--force to replace it, or another path")
+    return p
+
+
 def check_output_file(path: str | os.PathLike, *, key: str = "--out") -> Path:
     """Check that a file can be written at `path` (atomically, beside it); InputError naming it otherwise.
 

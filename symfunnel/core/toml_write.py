@@ -22,6 +22,11 @@ def _string(s: str) -> str:
     return re.sub(r"[\x7f\x80-\x9f]", lambda m: f"\\u{ord(m.group()):04x}", out)
 
 
+def value(v) -> str:
+    """One TOML value (a string, number, boolean or list of them) as text, for a line written by hand."""
+    return _value(v)
+
+
 def _value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"

@@ -24,6 +24,21 @@ def check_horizon(t_final: float, step: float, *, key: str, file: str | None = N
                          f"(t_final >= {MIN_HORIZON_STEPS * step:.6g} s)")
 
 
+#: the most memory the arrays of one run may take: a longer run is refused before any work (one line, exit 2)
+MAX_RUN_BYTES = 4 << 30
+
+
+def check_run_memory(samples: float, values_per_sample: int, *, key: str, file: str | None = None,
+                     what: str = "samples") -> None:
+    """InputError naming `key` (the options that set the count, e.g. '--t-final x --rate') when `samples` records of
+    `values_per_sample` doubles would exceed MAX_RUN_BYTES: estimated up front, not met as a MemoryError."""
+    need = float(samples) * int(values_per_sample) * 8.0
+    if not need <= MAX_RUN_BYTES:
+        raise InputError(f"make {float(samples):.3g} {what} of {int(values_per_sample)} values, "
+                         f"{need / 2**30:.3g} GiB of arrays", file=file, key=key,
+                         expected=f"at most {MAX_RUN_BYTES / 2**30:g} GiB: a shorter horizon or a lower rate")
+
+
 def join(prefix: str, key: str | int) -> str:
     """Dotted key path: join('model', 'links') -> 'model.links'; join('links', 2) -> 'links[2]'."""
     if isinstance(key, int):

@@ -168,6 +168,10 @@ def configure(setup: EngineSetup, run: EngineRunPlant) -> None:
                            urdf_dynamics=mj.urdf_dynamics)
 
 
+#: the most MuJoCo steps per sample period (as plant.mujoco.substeps allows)
+MAX_ENGINE_SUBSTEPS = 100000
+
+
 def engine_substeps(setup: EngineSetup, run: EngineRunPlant, h: float, *, width: float, reference=None,
                     file: str | None = None) -> tuple[int, str]:
     """MuJoCo steps per sample period h and where the number comes from (the engine configured for the run)."""
@@ -180,6 +184,11 @@ def engine_substeps(setup: EngineSetup, run: EngineRunPlant, h: float, *, width:
             raise InputError(f"is {mj.timestep:g} s, which does not divide the sample period {h:g} s "
                              f"({k:.6g} steps)", file=file, key="plant.mujoco.timestep",
                              expected="a MuJoCo step h/k for an integer k >= 1, or plant.mujoco.substeps")
+        if round(k) > MAX_ENGINE_SUBSTEPS:           # the cap plant.mujoco.substeps has, for the same work
+            raise InputError(f"is {mj.timestep:g} s, {k:.3g} MuJoCo steps per sample period of {h:g} s",
+                             file=file, key="plant.mujoco.timestep",
+                             expected=f"at most {MAX_ENGINE_SUBSTEPS} steps per period (a timestep of at least "
+                             f"{h / MAX_ENGINE_SUBSTEPS:.3g} s)")
         return int(round(k)), "plant.mujoco.timestep"
     if mj.integrator == "implicitfast":
         return max(1, int(math.ceil(h / MAX_SUBSTEP_IMPLICIT - 1e-9))), (

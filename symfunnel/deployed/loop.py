@@ -221,11 +221,9 @@ def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
                          tuple(f for f in SHARED_FLAGS if f != "-shared") + ("-c",), libs=(), on_build=on_build)
     built = compile_cached({"api.c": text[cut:], base + ".h": hdr, "core.o": obj.path.read_bytes()},
                            ["api.c", "core.o"], f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
-    # the step API's states: the design's own, or the placeholders of a design without them (emit.step.step_states)
     from ..emit.step import step_states
-    x_esn, w_hat = step_states(design)
-    nr, n = w_hat.shape
-    return StepLibrary(built.path, api["prefix"], design.n, int(x_esn.numel()), nr * n)
+    x_esn, w_hat = step_states(design)        # the design's, or the placeholders the step API keeps at 0
+    return StepLibrary(built.path, api["prefix"], design.n, int(x_esn.numel()), int(w_hat.numel()))
 
 
 def plant_substeps(scenario, h: float) -> int:
@@ -333,6 +331,10 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     from ..core.validate import check_horizon
     check_horizon(T, h, key="--t-final" if t_final is not None else "simulation.t_final",
                   file=None if t_final is not None else sc.file, step_name="sample period 1/rate_hz")
+    from ..core.validate import check_run_memory    # q, dq, tau, margins, noise and what the summary copies
+    check_run_memory(T * impl.rate_hz, 10 * n + 2,
+                     key=("--t-final" if t_final is not None else "simulation.t_final")
+                     + f" at {impl.rate_hz:g} Hz", file=None if t_final is not None else sc.file)
     K = int(math.floor(T * impl.rate_hz + 1e-9))
     if controller is None:
         files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
@@ -476,7 +478,7 @@ def _breach_hint(sc, design, impl, controller, breach, tt, Q, DQ, TAU, k: int) -
     from ..simulation.result import scenario_arg
     st = {}
     if isinstance(controller, StepLibrary):
-        st = {"x_esn": np.array(controller.x_esn), "w_hat": np.array(controller.w_hat)}
+        st = {k: np.array(getattr(controller, k)) for k in ("x_esn", "w_hat") if k in design.sym}
     what = breach["funnel"]
     if impl.tau_max is not None and TAU.shape[0]:
         sat = np.nonzero(np.any(np.abs(TAU[:k + 1]) >= np.asarray(impl.tau_max) * (1 - 1e-12), axis=1))[0]

@@ -316,6 +316,8 @@ def main_program(files: dict[str, str], flags=None) -> Built:
 def _check_main(design: Design, files: dict[str, str]) -> float:
     """Worst relative error of main.c's torques over trajectory.txt against CasADi."""
     exe = main_program(files).path
+    from .c import STRICT_CFLAGS              # and under the compiler's default standard (gnu17: POSIX names visible)
+    main_program(files, tuple(f for f in STRICT_CFLAGS if not f.startswith("-std=")))
     with tempfile.TemporaryDirectory(prefix="symfunnel-traj-") as tmp:
         p = Path(tmp) / "trajectory.txt"
         p.write_text(files["trajectory.txt"], encoding="utf-8")

@@ -36,10 +36,26 @@ CLIP = 1.0 - 1e-3
 DEFAULT_RATE_HZ = 1000.0
 
 
+#: names of the C library (glibc's libc and libm, C11 and POSIX) that a prefix + one of the generated names' endings
+#: (init, state, reference) would declare a second time: `--prefix set` made the typedef `setstate`
+C_LIBRARY_CLASHES = frozenset((
+    "aio_init", "cnd_init", "fanotify_init", "inet6_opt_init", "inet6_option_init", "inet6_rth_init", "initstate",
+    "inotify_init", "mbsinit", "mtx_init", "posix_spawn_file_actions_init", "posix_spawnattr_init",
+    "pthread_attr_getdetachstate", "pthread_attr_init", "pthread_attr_setdetachstate", "pthread_barrier_init",
+    "pthread_barrierattr_init", "pthread_cond_init", "pthread_condattr_init", "pthread_mutex_init",
+    "pthread_mutexattr_init", "pthread_rwlock_init", "pthread_rwlockattr_init", "pthread_setcancelstate",
+    "pthread_spin_init", "sem_init", "setstate", "xdr_reference"))
+#: the endings of the generated exported names (the step API's and the contract's functions)
+EXPORTED_ENDINGS = ("state", "init", "step", "state_size", "step_core", "funnels", "errors", "alpha2", "alpha2_dot",
+                    "controller", "reference")
+
+
 def valid_prefix(prefix: str) -> bool:
-    """True for a prefix that makes valid, non-reserved C identifiers (not '__' or '_X' at the start)."""
+    """True for a prefix that makes valid C identifiers CasADi accepts as function names (a letter first, no '__')
+    and declares none of the C library's names (C_LIBRARY_CLASHES)."""
     import re
-    return bool(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,31}", prefix)) and not re.match(r"_[A-Z_]", prefix)
+    return (bool(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,31}", prefix)) and "__" not in prefix
+            and not any(prefix + e in C_LIBRARY_CLASHES for e in EXPORTED_ENDINGS))
 
 
 def etd_factor(rate: float, h: float) -> float:

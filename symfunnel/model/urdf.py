@@ -113,8 +113,16 @@ def _name(el: ET.Element, what: str, file: str, where: str) -> str:
     return name
 
 
-def _floats_attr(el: ET.Element | None, attr: str, count: int, default, *, file: str, key: str) -> np.ndarray:
-    """Parse an attribute of `count` whitespace-separated finite numbers."""
+#: the largest magnitude of a number in a URDF, as in a scenario (masses, inertias, lengths; a larger one overflows
+#: M and its derivatives: a 1e300 kg link came out as one that "moves no mass")
+MAX_URDF_NUMBER = 1e12
+#: a joint limit beyond this magnitude is read as no limit (exporters write 1e16 or DBL_MAX for "unlimited")
+UNLIMITED = 1e6
+
+
+def _floats_attr(el: ET.Element | None, attr: str, count: int, default, *, file: str, key: str,
+                 maximum: float = MAX_URDF_NUMBER) -> np.ndarray:
+    """Parse an attribute of `count` whitespace-separated finite numbers of magnitude at most `maximum`."""
     if el is None or el.get(attr) is None:
         if default is None:
             raise InputError("is missing", file=file, key=key, expected=f"{count} number(s)")
@@ -126,6 +134,9 @@ def _floats_attr(el: ET.Element | None, attr: str, count: int, default, *, file:
         vals = None
     if vals is None or len(vals) != count or not all(math.isfinite(v) for v in vals):
         raise InputError(f"is '{el.get(attr)}'", file=file, key=key, expected=f"{count} finite number(s)")
+    if not all(abs(v) <= maximum for v in vals):
+        raise InputError(f"is '{el.get(attr)}'", file=file, key=key,
+                         expected=f"{count} number(s) of magnitude at most {maximum:g}")
     return np.array(vals)
 
 
@@ -191,13 +202,17 @@ def _parse_joint(el: ET.Element, file: str) -> Joint:
     lim = el.find("limit")
     if lim is not None and jtype in ("revolute", "prismatic") and (lim.get("lower") is not None
                                                                     or lim.get("upper") is not None):
-        lower = float(_floats_attr(lim, "lower", 1, (0.0,), file=file, key=f"{where}/limit@lower")[0])
-        upper = float(_floats_attr(lim, "upper", 1, (0.0,), file=file, key=f"{where}/limit@upper")[0])
+        lower = float(_floats_attr(lim, "lower", 1, (0.0,), file=file, key=f"{where}/limit@lower",
+                                   maximum=math.inf)[0])
+        upper = float(_floats_attr(lim, "upper", 1, (0.0,), file=file, key=f"{where}/limit@upper",
+                                   maximum=math.inf)[0])
         if lower > upper:
             raise InputError(f"has lower {lower:g} > upper {upper:g}", file=file, key=f"{where}/limit",
                              expected="lower <= upper")
         if lower == upper:
             lower = upper = None        # a zero-width range carries no sampling information
+        elif max(abs(lower), abs(upper)) > UNLIMITED:
+            lower = upper = None        # "unlimited" as an exporter writes it: a range that wide overflows
     return Joint(name=name, type=jtype, parent=ends["parent"], child=ends["child"], R=R, p=p, axis=axis,
                  lower=lower, upper=upper, where=where)
 

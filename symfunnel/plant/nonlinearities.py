@@ -96,6 +96,29 @@ def sign_numpy(x, w: float = 0.0) -> np.ndarray:
     return _elementwise(lambda s: sign(s, w), x)
 
 
+#: the largest smoothing width accepted at all: sign_w(v) is off sign(v) by more than 29 % only for |v| < w, so a
+#: width of 0.1 (rad/s or m/s) already blurs the friction of every slow motion; beyond, the plant loses its friction
+MAX_SMOOTHING_WIDTH = 0.1
+#: the largest width as a fraction of a dead zone's smallest breakpoint |b|: the smooth ramp's error w/2 stays a quarter of it
+WIDTH_PER_BREAKPOINT = 0.5
+
+
+def check_smoothing_width(w: float, plant, *, file: str | None, key: str) -> float:
+    """A smoothing width bounded by the scales it smooths (issue 44): at most MAX_SMOOTHING_WIDTH and at most
+    WIDTH_PER_BREAKPOINT of the dead zone's smallest nonzero breakpoint; a width is a numerical device, and an
+    unbounded one removes the friction and the dead zone from the plant (InputError naming `key` otherwise)."""
+    limit, why = MAX_SMOOTHING_WIDTH, "the friction's velocity band"
+    dz = getattr(plant, "dead_zone", None)
+    if dz is not None:
+        b = [abs(float(v)) for v in (*dz.b_l, *dz.b_r) if float(v) != 0.0]
+        if b and WIDTH_PER_BREAKPOINT * min(b) < limit:
+            limit, why = WIDTH_PER_BREAKPOINT * min(b), f"{WIDTH_PER_BREAKPOINT:g} x the dead zone's smallest breakpoint"
+    if not w <= limit:
+        raise InputError(f"is {w:g}, which smooths the friction and dead zone away", file=file, key=key,
+                         expected=f"a numerical width of at most {limit:.3g} ({why}; the default is 1e-3)")
+    return w
+
+
 def _check_branches(left: Sequence, right: Sequence) -> int:
     n = len(left)
     if len(right) != n:

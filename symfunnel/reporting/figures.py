@@ -103,8 +103,9 @@ def export(fig, directory, stem: str) -> list:
 
     from ..core.io import atomic_write
     out = []
-    for fmt, meta in (("png", {"Software": None}), ("pdf", {"Creator": None, "Producer": None,
-                                                           "CreationDate": None})):
+    # "symfunnel" as the writer marks the files as ours (core.outputs.MARKS): a later run may replace them
+    for fmt, meta in (("png", {"Software": "symfunnel"}), ("pdf", {"Creator": "symfunnel", "Producer": None,
+                                                                  "CreationDate": None})):
         buf = io.BytesIO()
         fig.savefig(buf, format=fmt, dpi=150, bbox_inches=_tight_bbox(fig), metadata=meta)
         out.append(atomic_write(Path(directory) / f"{stem}.{fmt}", buf.getvalue()))

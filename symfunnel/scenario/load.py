@@ -10,6 +10,7 @@ from ..core import validate as V
 from ..core.errors import InputError
 from ..family.approximators import parse_rbf
 from ..family.funnels import check_positive
+from ..plant.nonlinearities import check_smoothing_width
 from .claims import parse_claims, parse_deviations, parse_expectations
 from .document import Scenario
 from .sections import (
@@ -128,6 +129,9 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
     x_esn0 = parse_x_esn0(init, esn.size, file)
     plant = parse_plant(raw.get("plant", {}), n, file, model)
     sim = parse_simulation(raw.get("simulation", {}), file)
+    check_smoothing_width(sim.smoothing_width, plant, file=file, key="simulation.smoothing_width")
+    for i, w in enumerate(sim.convergence_widths):
+        check_smoothing_width(w, plant, file=file, key=f"simulation.convergence_widths[{i}]")
     check_reference(reference, sim.t_final, file)
     for key, shape in funnels.items():
         check_positive(shape, sim.t_final, file=file, key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))

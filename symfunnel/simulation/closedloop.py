@@ -25,6 +25,7 @@ import numpy as np
 
 from ..core.errors import InputError
 from ..plant.equations import plant_acceleration, plant_parameters
+from ..plant.nonlinearities import check_smoothing_width
 
 if TYPE_CHECKING:
     from ..design import Design
@@ -210,7 +211,8 @@ def build_closed_loop(scenario, design, *, width=None) -> ClosedLoop:
     if not (isinstance(w, (int, float)) and np.isfinite(w) and w >= 0):
         raise InputError(f"is {w!r}", file=scenario.file, key="simulation.smoothing_width",
                          expected="a finite number >= 0")
-    w = float(w)
+    w = check_smoothing_width(float(w), scenario.plant, file=scenario.file if width is None else None,
+                              key="simulation.smoothing_width" if width is None else "--width")
     L, zg = _loops(scenario, design, w)
     t, x, p, p0, xdot_p, outs_p, parts_p = (L[k] for k in ("t", "x", "p", "p0", "xdot_p", "signals_p", "plant_p"))
     # the nominal loop in (t, x): p replaced by this scenario's values, for every consumer that takes (t, x)

@@ -115,3 +115,26 @@ def breach_hint(design, *, t: float, q, dq, x_esn=None, w_hat=None, funnel: str,
     parts.append(f"or let `symfunnel tune {scenario_arg} --out tuned.toml` search controller.k1/k2 and funnel.e2 "
                  f"(phi0, phi_inf, a) within {limit_key}")
     return f"{funnel} of joint {joint}: " + "; ".join(parts)
+
+
+#: a run's status as the human-readable output says it (the JSON keeps the status itself)
+STATUS_TEXT = {"initial_outside": "the initial state is outside a funnel", "breach": "left a funnel",
+               "timeout": "stopped at the wall-clock limit", "failed": "failed"}
+
+
+def status_text(status: str) -> str:
+    """`status` in words for a line a user reads ('ok' and unknown statuses as they are)."""
+    return STATUS_TEXT.get(status, status)
+
+
+def initial_hint(design, *, funnel: str, joint: int, abs_error: float, scenario_arg: str = "SCENARIO") -> str:
+    """What to change when the initial state starts outside a funnel: at t = 0 no gain has acted yet, so only the
+    funnel's value at 0 or the initial state can fix it (`tune` never changes funnel e1; it does search e2's)."""
+    if funnel == "e1":
+        return (f"e1 of joint {joint} starts outside: widen funnel e1 so that F1(0) > {abs_error:.4g} "
+                f"(funnel.e1.phi0 for the exponential funnel) or start inside, initial.q[{joint - 1}] nearer the reference's qd(0); no gain "
+                "changes |e1(0)|, and `symfunnel tune` does not change funnel e1")
+    return (f"e2 of joint {joint} starts outside (e2(0) = dq(0) - alpha2(0)): widen funnel e2 so that F2(0) > "
+            f"{abs_error:.4g} (funnel.e2.phi0 for the exponential funnel), or change initial.dq[{joint - 1}]; "
+            f"`symfunnel tune {scenario_arg} --out tuned.toml` searches funnel.e2 (phi0, phi_inf, a)")
+

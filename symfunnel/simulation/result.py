@@ -231,7 +231,13 @@ def finish(sc: Scenario, cl: ClosedLoop, comp: Compiled, t_list: list, X_list: l
     sw = stats.get("sim_wall_time")
     t_end = float(t[-1]) if t.size else 0.0
     stats["realtime_factor"] = t_end / sw if sw else None
-    if status in ("breach", "initial_outside") and breach is not None and t.size:
+    if status == "initial_outside" and breach is not None:
+        from .hints import initial_hint
+        hint = initial_hint(cl.design, funnel=breach["funnel"], joint=int(breach["joint"]),
+                            abs_error=float(breach["abs_error"]), scenario_arg=scenario_arg(sc))
+        breach = {**breach, "hint": hint}
+        message += f"; what to do: {hint}"
+    elif status == "breach" and breach is not None and t.size:
         from .hints import breach_hint
         p = parts
         k = -2 if t.size >= 2 else -1      # the last point inside: the design's torque is not defined outside

@@ -15,6 +15,7 @@ from .closedloop import ClosedLoop, build_closed_loop
 from ..core.errors import InputError
 from ..core.validate import check_horizon
 from ..family.integrators import INTEGRATORS
+from ..plant.nonlinearities import check_smoothing_width
 from .between import (BETWEEN_MAX, MAX_REFINED_PER_CHUNK, SCAN_DIP, Between, MarginScan, density, refine,
                       refine_peaks, scan_dips)
 from .breach import bad_index, describe_breach, locate_failure, locate_within
@@ -117,7 +118,8 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
     w = sim.smoothing_width if width is None else width
     if not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0):
         raise InputError(f"is {w!r}", key="--width", expected="a number >= 0")
-    w = float(w)
+    w = check_smoothing_width(float(w), sc.plant, file=None if width is not None else sc.file,
+                              key="--width" if width is not None else "simulation.smoothing_width")
 
     start = time.perf_counter()
     limit = min(limit, deadline.remaining())      # a command's (or Run's) wall-clock limit bounds this run too

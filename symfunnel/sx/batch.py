@@ -412,7 +412,7 @@ def _compile(tape, in_off, out_off):
                 const[w] = c
                 lines.append(f"    l{w} = h{w} = {c!r}")
             else:
-                lines.append(f"    l{w} = h{w} = np.float64({c!r}); b{w} = np.ones(K, dtype=bool)")
+                lines.append(f"    l{w} = h{w} = np.float64({str(c)!r}); b{w} = np.ones(K, dtype=bool)")  # 'inf'/'nan'
         elif op == casadi.OP_PARAMETER:
             raise IntervalError(f"function {name!r} has free SX variables; interval evaluation needs every symbol "
                                 "as an input")

@@ -129,7 +129,8 @@ def _compile(tape):
         elif op == casadi.OP_OUTPUT:
             outs[r[0]][r[1]] = (f"w{a[0]}", "Z" if a[0] in zero_m else f"m{a[0]}")
         elif op == casadi.OP_CONST:
-            lines.append(f"    w{r[0]} = Z + {float(ins.constant)!r}")
+            c = float(ins.constant)           # an overflowed constant prints as inf/nan: not a Python name
+            lines.append(f"    w{r[0]} = Z + {c!r}" if math.isfinite(c) else f"    w{r[0]} = Z + float({str(c)!r})")
             zero_m.add(r[0])
         else:
             w = [f"w{j}" for j in a] + ["_"] * (2 - len(a))

@@ -113,7 +113,8 @@ class TuneResult:
 
 
 def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, progress=None,
-         max_evaluations: int | None = None, gate: bool = True, method: str = "auto") -> TuneResult:
+         max_evaluations: int | None = None, gate: bool = True, method: str = "auto",
+         started: float | None = None) -> TuneResult:
     """Search the `[tune]` parameters of a scenario (see the module doc); never changes the specification.
 
     The whole call keeps `wall_limit` seconds (the search stops at SEARCH_SHARE of it, an evaluation in progress
@@ -133,8 +134,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     if method not in METHODS:
         raise InputError(f"is {method!r}", key="--method", expected="one of " + ", ".join(METHODS))
     requested = method
-    t0 = time.perf_counter()
-    m0 = time.monotonic()
+    # the limit counts from `started` (time.monotonic() when the command began: its start-up and loading count)
+    m0 = time.monotonic() if started is None else min(float(started), time.monotonic())
+    t0 = time.perf_counter() - (time.monotonic() - m0)
     search_end = t0 + SEARCH_SHARE * wall_limit
     ev = Evaluator(scenario, spec, t_final=t_final, progress=say)
     vars_ = variables(scenario, spec)
