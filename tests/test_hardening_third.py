@@ -331,15 +331,21 @@ def test_init_from_copies_the_robot_beside_the_output_and_refuses_a_different_on
     ("max(0.3*sin(t), -1)", "pass"),            # never switches: smooth, its derivatives exact
     ("abs(0.3*sin(t) + 1) - 1", "pass"),
     ("sign(2 + sin(t))*0.3*sin(t)", "pass"),
-    ("sqrt((0.3*sin(t))^2)", "fail"),           # |0.3 sin t|: kinks at t = k pi, the FD of the controller's sees them
+    ("sqrt((0.3*sin(t))^2)", "refused"),        # |0.3 sin t|: kinks at t = k pi, refused at load (not C^2)
 ])
 def test_a_reference_with_a_kink_function_is_audited_not_crashed(tmp_path, ref, status):
-    """sympy differentiates abs/sign/max/min to DiracDelta, which numpy cannot evaluate (NameError, exit 3)."""
+    """sympy differentiates abs/sign/max/min to DiracDelta, which numpy cannot evaluate (NameError, exit 3); a
+    reference that really kinks on the horizon is refused at load, naming the key."""
     import numpy as np
 
     from symfunnel.checks.consistency import check_reference_derivatives
+    from symfunnel.core.errors import InputError
     from symfunnel.design import derive
     p = _variant(tmp_path, 'q = ["0.3*sin(t)", "0.3*sin(t)"]', f'q = ["{ref}", "0.3*sin(t)"]')
+    if status == "refused":
+        with pytest.raises(InputError, match=r"reference\.q"):
+            load_scenario(p)
+        return
     r = check_reference_derivatives(derive(load_scenario(p)), 20.0)
     assert r.status == status, r.detail
     if status == "pass":                         # and the declared derivatives agree with the AD ones exactly
