@@ -19,6 +19,7 @@ from .between import (BETWEEN_MAX, MAX_REFINED_PER_CHUNK, SCAN_DIP, Between, Mar
                       refine_peaks, scan_dips)
 from .breach import bad_index, describe_breach, locate_failure, locate_within
 from .compiled import APPROX_ESN_JACOBIAN, compile_closed_loop, evaluate_outputs
+from .heap import keep_heap
 from .result import SimResult, finish, ok_message
 from .runner import Runner, Timeout
 
@@ -119,6 +120,7 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
         raise InputError(f"is {w!r}", key="--width", expected="a number >= 0")
     w = float(w)
 
+    keep_heap()                                   # a run frees and reallocates MB per chunk (heap module)
     start = time.perf_counter()
     limit = min(limit, deadline.remaining())      # a command's (or Run's) wall-clock limit bounds this run too
     if closed_loop is None:
