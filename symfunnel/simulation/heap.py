@@ -1,8 +1,9 @@
 """glibc's heap kept between a run's chunks: every chunk allocates a few MB of numpy arrays (its states, its samples
 between output points, their signals) and frees them, and glibc's defaults hand that memory back to the kernel
 (trimming the heap's top, or one mmap per large array) only to fault it in again at the next chunk -- a tenth of a
-20 s paper run's CPU time went to those page faults (docs/performance.md). `keep_heap` raises the thresholds once
-per process; $SYMFUNNEL_KEEP_HEAP=0, or any of glibc's own MALLOC_*_ settings, leaves them as they are."""
+20 s paper run's CPU time went to those page faults, a sixth of arm7's 20 s run (whose chunk arrays and CVODES step
+history are tens of MB each: hence thresholds in the hundreds of MB; its peak memory 602 -> 634 MB; figures in
+docs/performance.md). `keep_heap` raises the thresholds once per process; $SYMFUNNEL_KEEP_HEAP=0, or any of glibc's own MALLOC_*_ settings, leaves them as they are."""
 
 from __future__ import annotations
 
@@ -15,9 +16,9 @@ __all__ = ["MMAP_THRESHOLD", "TOP_PAD", "TRIM_THRESHOLD", "keep_heap"]
 #: mallopt's parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
 #: allocations up to this size come from the heap (glibc's default: 128 kB, adapting up to 32 MB)
-MMAP_THRESHOLD = 64 << 20
+MMAP_THRESHOLD = 256 << 20
 #: free memory at the heap's top kept up to this size (default: 128 kB, adapting)
-TRIM_THRESHOLD = 128 << 20
+TRIM_THRESHOLD = 512 << 20
 #: the heap grows by this much more than asked (default: 128 kB)
 TOP_PAD = 16 << 20
 _ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_")
