@@ -97,6 +97,28 @@ def test_step_loops_equal_the_sx_step(paper_design, flags):
 
 
 @needs_gcc
+def test_w_x_straight_line_and_as_loops_give_the_same_step(paper_design, monkeypatch):
+    """The paper's W x (247 nonzeros) is emitted as straight-line code with the weights as constants; forced to the
+    loops over the arrays (UNROLL_W_MAX = 0) the file changes and every output of the step is the same double."""
+    from symfunnel.emit import step as step_mod
+    from symfunnel.family.esn import ESN
+    fl = ("-O2", "-DSYMFUNNEL_LIBM_TANH")
+    step_mod._RATE_FREE.clear()
+    unrolled = generate(paper_design, "c", prefix="arm_", rate_hz=2000.0)
+    monkeypatch.setattr(ESN, "UNROLL_W_MAX", 0)
+    step_mod._RATE_FREE.clear()
+    loops = generate(paper_design, "c", prefix="arm_", rate_hz=2000.0)
+    step_mod._RATE_FREE.clear()
+    assert "arm_sk_xdot_Wx[" not in unrolled["arm_controller.c"] and "arm_sk_xdot_Wx[" in loops["arm_controller.c"]
+    lib_u, lib_l = _lib(unrolled, "arm_controller", fl), _lib(loops, "arm_controller", fl)
+    fu, fl_ = lib_u.function("arm_step_core"), lib_l.function("arm_step_core")
+    etd = np.array(etd_factors(paper_design.scenario, 2000.0))
+    for t, q, dq, x, W in _step_points(paper_design):
+        for a, b in zip(fu(t, q, dq, x, W, etd), fl_(t, q, dq, x, W, etd)):
+            assert np.array_equal(np.asarray(a), np.asarray(b))
+
+
+@needs_gcc
 def test_a_mutant_design_gets_its_own_loops(paper):
     """The loops come from the graph: for the flip_sigma mutant (W_hat' = Gamma(Phi (mu2 z2)^T + sigma W_hat)) the
     coefficient c flips sign and the generated step matches the mutant's SX step, not the paper's."""

@@ -360,3 +360,26 @@ def test_a_run_sampled_from_its_steps_is_the_run_integrated_again_bit_for_bit(wh
         assert np.array_equal(c.x, b.x) and c.stats["between"] == b.stats["between"]
         assert c.stats["steps"] == b.stats["steps"]
         assert calls[True] - before > before       # the chunks integrated again for their samples
+
+
+def test_states_written_in_the_callers_order_are_the_permuted_states(paper_run):
+    """A driver told the public order returns x[order] of what the driver in CVODES' order returns, bit for bit, at
+    the output points and at the samples from the kept steps; a non-permutation is refused."""
+    from symfunnel.family.integrators import INTEGRATORS
+    cl, comp, D = _solver(paper_run)
+    inv = np.argsort(comp.perm)
+    opts = INTEGRATORS.get("cvodes")(paper_run.scenario.simulation, 0.01, 0.01, 1)
+    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
+    E = sundials.DirectCvodes(comp.library, cl.nx, P.size, opts, order=inv)
+    grid = 0.01 * np.arange(1, 41)
+    x0 = cl.x0[comp.perm]
+    X, st = D.run(P, x0, grid)
+    Xo, sto = E.run(P, x0, grid)
+    assert np.array_equal(Xo, X[:, inv]) and st == sto
+    assert not np.array_equal(Xo, X)                    # the order matters: the test can tell
+    times = np.linspace(0.001, 0.399, 97)
+    _, _, Y = D.run_sampled(P, x0, grid, lambda s: times)
+    Xs, _, Yo = E.run_sampled(P, x0, grid, lambda s: times)
+    assert np.array_equal(Xs, X[:, inv]) and np.array_equal(Yo, Y[:, inv])
+    with pytest.raises(RuntimeError, match="permutation"):
+        sundials.DirectCvodes(comp.library, cl.nx, P.size, opts, order=np.zeros(cl.nx, dtype=int))

@@ -5,7 +5,8 @@ s per wall s; baseline: the same loop with the step evaluated by CasADi's VM fro
 `codegen.c_step_ns` (one `Pstep` call timed in C by bench.c on the thread's CPU clock, the generated pair built
 with `_timing.bench_cflags`; baseline: the same step with the controller and step core unrolled as one SX function
 each, built and timed the same way in the same run; the strict -O2 build of both and the step on CasADi's VM from
-Python beside) and `implementation.rate_search_s` (wall time of `symfunnel rate` on the paper; baseline: one 20 s
+Python beside, and the previous path -- the same pair with the reservoir's W x as loops over arrays instead of
+straight-line code -- built and timed the same way in the same run, `w_loops_ns`) and `implementation.rate_search_s` (wall time of `symfunnel rate` on the paper; baseline: one 20 s
 sampled run at the rate it finds).
 """
 
@@ -22,6 +23,21 @@ TARGET_REALTIME = 20.0
 TARGET_STEP_NS = 400.0
 GOAL_STEP_NS = 300.0
 TARGET_RATE_S = 60.0
+
+
+def w_as_loops(design, rate: float) -> dict:
+    """The generated C pair with the reservoir's W x as loops over arrays (the previous path), whatever its size."""
+    from ..emit import step
+    from ..emit.files import generate
+    from ..family.esn import ESN
+    old = ESN.UNROLL_W_MAX
+    step._RATE_FREE.clear()
+    try:
+        ESN.UNROLL_W_MAX = 0
+        return generate(design, "c", rate_hz=rate)
+    finally:
+        ESN.UNROLL_W_MAX = old
+        step._RATE_FREE.clear()
 
 
 class VMStep:
@@ -77,9 +93,13 @@ def run(progress) -> list[dict]:
     from ..emit.c import STRICT_CFLAGS
     files = generate(design, "c", rate_hz=rate)
     unrolled = generate(design, "c", rate_hz=rate, structured=False)
+    w_loops = w_as_loops(design, rate)
     fast, strict = bench_cflags(), tuple(STRICT_CFLAGS)
     t = {(k, fl): run_c_bench(f, fl, 100000, on_build=progress)["step_ns"]
          for k, f in (("loops", files), ("unrolled", unrolled)) for fl in (fast, strict)}
+    w_ns = []                                  # the previous path and this one, interleaved
+    for _ in range(3):
+        w_ns.append((run_c_bench(w_loops, fast, 100000)["step_ns"], run_c_bench(files, fast, 100000)["step_ns"]))
     step_ns, base_ns = t[("loops", fast)], t[("unrolled", fast)]
     f = step_function(design, rate)
     vm_step = VMStep(design, rate)
@@ -92,7 +112,10 @@ def run(progress) -> list[dict]:
                       flags=" ".join(fast), strict_flags=" ".join(strict), strict_ns=t[("loops", strict)],
                       strict_unrolled_ns=t[("unrolled", strict)], casadi_vm_ns=vm["cpu_ns"],
                       casadi_vm_wall_ns=vm["wall_ns"], lines=files["symfunnel_controller.c"].count("\n"),
-                      unrolled_lines=unrolled["symfunnel_controller.c"].count("\n"), scenario=sc.name))
+                      unrolled_lines=unrolled["symfunnel_controller.c"].count("\n"), scenario=sc.name,
+                      w_loops_ns=min(a for a, _ in w_ns), w_straight_ns=min(b for _, b in w_ns),
+                      w_paired_ratio=float(np.median([a / b for a, b in w_ns])),
+                      w_note="the previous path: W x as loops over arrays (ESN.UNROLL_W_MAX = 0), interleaved"))
 
     progress("implementation: symfunnel rate on the paper")
     t0 = time.perf_counter()

@@ -9,6 +9,9 @@ casadi.integrator with CSparse, interleaved in the same process; the median over
 <= 1e-10 relative, because the number of CVODES steps of this loop moves by +-30 % with rounding-level changes, so
 one run is one draw) and `simulate.cli_wall_s` (wall time of `symfunnel simulate paper` in a fresh process with a
 warm compile cache and bytecode cache, CPU time beside; baseline: a process that only imports numpy and casadi).
+`simulate.cpu_per_run_vs_previous` (the same perturbed 20 s paper runs in a fresh process, against the previous
+path -- glibc's default heap thresholds, the states permuted by numpy -- in another, the two alternated) and
+`simulate.arm7_cpu_per_sim_s` (CPU seconds per simulated second of arm7's 20 s run, the same two paths alternated).
 """
 
 from __future__ import annotations
@@ -147,6 +150,51 @@ def cli_seconds() -> dict:
     return {"cli": cli, "floor": floor}
 
 
+#: a fresh process's CPU per run: argv scenario, t_final, perturbations (JSON); the previous path with argv[4] == "1"
+_CHILD = """
+import json, sys, time
+if sys.argv[4] == "1":
+    import symfunnel.simulation.runner as runner
+    runner.PUBLIC_ORDER_IN_C = False
+from symfunnel.pipeline import Run
+from symfunnel.simulation import simulate
+pr = Run.load(sys.argv[1])
+sc, d, cl, tf = pr.scenario, pr.design, pr.closed_loop, float(sys.argv[2])
+simulate(sc, d, t_final=min(tf, 0.5), closed_loop=cl)
+cpu, steps = [], []
+for eps in json.loads(sys.argv[3]):
+    c0 = time.process_time()
+    r = simulate(sc, d, t_final=tf, closed_loop=cl, params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
+    cpu.append(time.process_time() - c0)
+    steps.append(int(r.stats.get("steps") or 0))
+print(json.dumps({"cpu": cpu, "steps": steps, "status": r.status}))
+"""
+
+
+def against_previous(scenario: str, t_final: float, perturbations=PERTURBATIONS, rounds: int = 2) -> dict:
+    """CPU per run of this path and of the previous one (`_CHILD`; $SYMFUNNEL_KEEP_HEAP=0 and
+    runner.PUBLIC_ORDER_IN_C off), each in fresh processes alternated over `rounds` (glibc's heap settings are
+    per process); their medians and paired ratios (previous / this)."""
+    import json
+    out = {"this": [], "previous": [], "steps_this": [], "steps_previous": []}
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    for k in range(rounds):
+        for prev in ((False, True) if k % 2 == 0 else (True, False)):
+            e = dict(env, SYMFUNNEL_KEEP_HEAP="0" if prev else "1")
+            proc = subprocess.run([sys.executable, "-c", _CHILD, scenario, repr(t_final),
+                                   json.dumps(list(perturbations)), "1" if prev else "0"], env=e,
+                                  capture_output=True, text=True, timeout=1200)
+            if proc.returncode != 0:
+                raise RuntimeError(f"the {scenario} runs failed: {proc.stderr.strip()[-500:]}")
+            got = json.loads(proc.stdout.strip().splitlines()[-1])
+            side = "previous" if prev else "this"
+            out[side].extend(got["cpu"])
+            out["steps_" + side].extend(got["steps"])
+    ratio = np.array(out["previous"]) / np.array(out["this"])
+    return dict(out, median_this=float(np.median(out["this"])), median_previous=float(np.median(out["previous"])),
+                paired_ratio=float(np.median(ratio)))
+
+
 def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> list[dict]:
     """Measure both sides on the paper scenario (override the horizon with $SYMFUNNEL_BENCH_T_FINAL)."""
     from ..pipeline import Run
@@ -174,6 +222,10 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
     with _cvodes_backend("direct"):
         sfs = samples_from_steps(sc, d, cl, tf)
+    say("simulate: this path and the previous one in fresh processes, alternated (paper, then arm7 20 s)")
+    prev = against_previous("paper", tf)
+    arm7_tf = float(os.environ.get("SYMFUNNEL_BENCH_ARM7_T_FINAL", 20.0))
+    arm7 = against_previous("arm7", arm7_tf, perturbations=(0.0, 1e-11, -1e-11))
     say("simulate: `symfunnel simulate paper` in a fresh process (warm caches)")
     cli = cli_seconds()
     say(f"simulate: symfunnel {wall:.3f} s for {tf:g} s; now scipy solve_ivp (BDF) on the numpy RHS")
@@ -199,6 +251,17 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
         result("simulate.cpu_per_run", cpu_d, "CPU s", "casadi.integrator (CSparse), same runs", cpu_c,
                cpu_c / cpu_d, target=TARGET_CPU_PER_RUN, meets_target=bool(cpu_d <= TARGET_CPU_PER_RUN),
                **cpu_info),
+        result("simulate.cpu_per_run_vs_previous", prev["median_this"], "CPU s",
+               "the previous path (default heap thresholds, states permuted by numpy), fresh processes alternated",
+               prev["median_previous"], prev["paired_ratio"], t_final=tf, cpu_this=prev["this"],
+               cpu_previous=prev["previous"], steps_this=prev["steps_this"], steps_previous=prev["steps_previous"],
+               realtime_factor_cpu=tf / prev["median_this"], target=TARGET_CPU_PER_RUN,
+               note="ratio: median of the paired ratios (same variant, same round)"),
+        result("simulate.arm7_cpu_per_sim_s", arm7["median_this"] / arm7_tf, "CPU s per simulated s",
+               "the previous path, fresh processes alternated", arm7["median_previous"] / arm7_tf,
+               arm7["paired_ratio"], t_final=arm7_tf, cpu_this=arm7["this"], cpu_previous=arm7["previous"],
+               steps_this=arm7["steps_this"], steps_previous=arm7["steps_previous"],
+               paper_cpu_per_sim_s=prev["median_this"] / tf),
         result("simulate.cli_wall_s", cli["cli"]["wall_s"], "s", "a process importing numpy and casadi only",
                cli["floor"]["wall_s"], cli["floor"]["wall_s"] / cli["cli"]["wall_s"], cpu_s=cli["cli"]["cpu_s"],
                baseline_cpu_s=cli["floor"]["cpu_s"], target=TARGET_CLI_S,

@@ -147,6 +147,9 @@ def _round_sig(x: float, digits: int) -> float:
 class ESN:
     """A continuous-time echo state network with fixed random weights; the controller adapts only W_hat in W_hat^T Phi(X)."""
 
+    #: `xdot_c` emits W x as straight-line code up to this many nonzeros of W, as loops above (compile time)
+    UNROLL_W_MAX = 1500
+
     def __init__(self, config: ESNConfig, n_inputs: int):
         """Draw W_in (N x K), b (N) and W (N x N) from `config.seed` and scale W to the configured spectral radius."""
         if not _is_int(n_inputs) or n_inputs < 1:
@@ -247,7 +250,9 @@ class ESN:
 
         The sums run in the SX graph's order (W_in u and W x each over their columns ascending, then
         (W_in u + W x) + b), so with libm's tanh the result is the graph's value bit for bit (up to the sign of
-        a zero sum)."""
+        a zero sum). Up to UNROLL_W_MAX nonzeros W x is emitted as straight-line code with the weights as constants
+        (the same products and sums in the same order: the same doubles; the paper's step 342 -> 266 ns), above
+        it as loops over the arrays (the compile time of large reservoirs)."""
         c = self.config
         N, K = self.size, self.n_inputs
         W = np.asarray(self.W)
@@ -271,6 +276,7 @@ class ESN:
         def ints(a) -> str:
             return ", ".join(str(int(v)) for v in a) or "0"
         dense_in = len(jp) == N * K
+        unroll = len(cj) <= self.UNROLL_W_MAX
         lines = [f"/* {name}: the reservoir's x_esn_dot = (1/time_constant)(-leak x + tanh(W_in u + W x + b)), "
                  f"N = {N}, K = {K} (family/esn.py) */"]
         if dense_in:
@@ -280,13 +286,14 @@ class ESN:
             lines += [f"static const int {name}_Winp[{K + 1}] = {{{ints(ip)}}};",
                       f"static const int {name}_Wini[{max(len(jp), 1)}] = {{{ints(jp)}}};",
                       f"static const double {name}_Winx[{max(len(jp), 1)}] = {{{num(ivals)}}};"]
-        lines += [f"static const double {name}_b[{N}] = {{{num(self.b)}}};",
-                  f"static const int {name}_Wp[{N + 1}] = {{{ints(rp)}}};",
-                  f"static const int {name}_Wj[{max(len(cj), 1)}] = {{{ints(cj)}}};",
-                  f"static const double {name}_Wx[{max(len(cj), 1)}] = {{{num(vals)}}};",
-                  f"static void {name}(const double *restrict x, const double *restrict u, double *restrict xdot) {{",
+        lines.append(f"static const double {name}_b[{N}] = {{{num(self.b)}}};")
+        if not unroll:
+            lines += [f"static const int {name}_Wp[{N + 1}] = {{{ints(rp)}}};",
+                      f"static const int {name}_Wj[{max(len(cj), 1)}] = {{{ints(cj)}}};",
+                      f"static const double {name}_Wx[{max(len(cj), 1)}] = {{{num(vals)}}};"]
+        lines += [f"static void {name}(const double *restrict x, const double *restrict u, double *restrict xdot) {{",
                   f"  double zu[{N}];",
-                  "  int i, j, p;",
+                  "  int i, j;" if unroll and dense_in else "  int i, j, p;",
                   f"  for (i = 0; i < {N}; ++i) zu[i] = 0.0;"]
         if dense_in:
             lines += [f"  for (j = 0; j < {K}; ++j) {{",
@@ -297,12 +304,21 @@ class ESN:
             lines += [f"  for (j = 0; j < {K}; ++j)",
                       f"    for (p = {name}_Winp[j]; p < {name}_Winp[j + 1]; ++p) "
                       f"zu[{name}_Wini[p]] += {name}_Winx[p] * u[j];"]
-        lines += [f"  for (i = 0; i < {N}; ++i) {{               /* W x row by row (a gather, no scatter) */",
-                  "    double s = 0.0;",
-                  f"    for (p = {name}_Wp[i]; p < {name}_Wp[i + 1]; ++p) s += {name}_Wx[p] * x[{name}_Wj[p]];",
-                  f"    zu[i] = (zu[i] + s) + {name}_b[i];",
-                  "  }",
-                  f"  for (i = 0; i < {N}; ++i) zu[i] = {tanh}(zu[i]);",
+        if unroll:                               # row by row, the weights as constants: no index loads, no branches
+            lines.append("  /* W x row by row, the weights as constants */")
+            for i in range(N):
+                lines.append("  {")
+                lines.append("    double s = 0.0;")
+                lines += [f"    s += {vals[q]!r} * x[{cj[q]}];" for q in range(rp[i], rp[i + 1])]
+                lines.append(f"    zu[{i}] = (zu[{i}] + s) + {name}_b[{i}];")
+                lines.append("  }")
+        else:
+            lines += [f"  for (i = 0; i < {N}; ++i) {{               /* W x row by row (a gather, no scatter) */",
+                      "    double s = 0.0;",
+                      f"    for (p = {name}_Wp[i]; p < {name}_Wp[i + 1]; ++p) s += {name}_Wx[p] * x[{name}_Wj[p]];",
+                      f"    zu[i] = (zu[i] + s) + {name}_b[i];",
+                      "  }"]
+        lines += [f"  for (i = 0; i < {N}; ++i) zu[i] = {tanh}(zu[i]);",
                   f"  for (i = 0; i < {N}; ++i) xdot[i] = {1.0 / c.time_constant!r} * ({-c.leak!r} * x[i] + zu[i]);",
                   "}"]
         return "\n".join(lines) + "\n"

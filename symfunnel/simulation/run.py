@@ -20,6 +20,7 @@ from .between import (BETWEEN_MAX, MAX_REFINED_PER_CHUNK, SCAN_DIP, Between, Mar
                       refine_peaks, scan_dips)
 from .breach import bad_index, describe_breach, locate_failure, locate_within
 from .compiled import APPROX_ESN_JACOBIAN, compile_closed_loop, evaluate_outputs
+from .heap import keep_heap
 from .result import SimResult, finish, ok_message
 from .runner import Runner, Timeout
 
@@ -45,13 +46,27 @@ def _density(method: str, sim, sub: int) -> int:
     return density(sim.rk_substeps if method == "rk" else max(1, sim.rk_substeps // 2), 1)
 
 
-def _refine_chunk(runner, comp, n, mscan, t0, x, tc, X, ta, Xa, oa, is_out, between, used, lowest):
+def _in_time_order(x: np.ndarray, X: np.ndarray, Xb: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """[x; (X stacked on Xb)[order]] written in one pass (no stacked copy to index): the chunk's start, then its
+    output points and the samples between them in time order (`order`: argsort of their times, X's first)."""
+    K = X.shape[0]
+    rank = np.empty_like(order)
+    rank[order] = np.arange(1, order.size + 1)
+    Xg = np.empty((order.size + 1, x.size))
+    Xg[0] = x
+    Xg[rank[:K]] = X
+    Xg[rank[K:]] = Xb
+    return Xg
+
+
+def _refine_chunk(runner, comp, n, mscan, t0, x, tc, X, ta, Xa, oa, is_out, between, used, lowest, Xg=None):
     """The output steps of a chunk where its margins come closest to 0 -- the one holding its smallest sampled margin,
     and those where the margin scan between samples dips -- integrated again on REFINE_POINTS points. Returns the
-    run's stop (as the chunk loop takes it) when such a step leaves a funnel, else None (its samples counted)."""
+    run's stop (as the chunk loop takes it) when such a step leaves a funnel, else None (its samples counted).
+    Xg: [x; Xa] when the caller has it."""
     samp = np.fmin(oa["m1"].min(axis=1), oa["m2"].min(axis=1))
     start_m = mscan.margins(np.array([t0]), x[None, mscan.q], x[None, mscan.dq])[0].min()
-    _, scan_m = mscan(np.concatenate([[t0], ta]), np.concatenate([x[None, :], Xa]))
+    _, scan_m = mscan(np.concatenate([[t0], ta]), np.concatenate([x[None, :], Xa]) if Xg is None else Xg)
     gaps = scan_dips(scan_m, np.concatenate([[start_m], samp]))[:MAX_REFINED_PER_CHUNK]
     iw = int(np.argmin(np.where(np.isfinite(samp), samp, np.inf)))
     steps = set()
@@ -121,6 +136,7 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
     w = check_smoothing_width(float(w), sc.plant, file=None if width is not None else sc.file,
                               key="--width" if width is not None else "simulation.smoothing_width")
 
+    keep_heap()                                   # a run frees and reallocates MB per chunk (heap module)
     start = time.perf_counter()
     limit = min(limit, deadline.remaining())      # a command's (or Run's) wall-clock limit bounds this run too
     if closed_loop is None:
@@ -221,7 +237,8 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
                 # every sample in time order: the output points and the samples between them
                 ta = np.concatenate([tc, tb])
                 order = np.argsort(ta, kind="stable")
-                ta, Xa = ta[order], np.concatenate([X, Xb])[order]
+                Xg = _in_time_order(x, X, Xb, order)          # [the start; the samples in time order]
+                ta, Xa = ta[order], Xg[1:]
                 is_out = order < Kc
                 oa = evaluate_outputs(comp, n, ta, Xa)
                 bi, kind = bad_index(oa, Xa)
@@ -230,7 +247,7 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
                     stop = (ta, Xa, oa, is_out, bi, used)
                 else:
                     stop = _refine_chunk(runner, comp, n, mscan, t0, x, tc, X, ta, Xa, oa, is_out, between, used,
-                                         lowest)
+                                         lowest, Xg)
                     samp_min = float(np.nanmin(np.fmin(oa["m1"].min(axis=1), oa["m2"].min(axis=1))))
                     lowest = min(lowest, samp_min, float(np.nanmin(np.fmin(between.m1, between.m2))))
                 if stop is not None:

@@ -80,6 +80,8 @@ def driver_library() -> ctypes.CDLL | None:
                                 ctypes.c_int, ctypes.c_double]
     lib.sf_sample.restype = ctypes.c_int
     lib.sf_sample.argtypes = [vp, ctypes.c_int, dp, dp]
+    lib.sf_set_order.restype = ctypes.c_int
+    lib.sf_set_order.argtypes = [vp, ip]
     lib.sf_free.restype = None
     lib.sf_free.argtypes = [vp]
     lib.sf_max_growth.restype = ctypes.c_double
@@ -111,7 +113,9 @@ class DirectCvodes:
     OPTIONS = frozenset({"abstol", "reltol", "max_num_steps", "max_step_size", "max_order", "linear_solver",
                          "disable_internal_warnings", "show_eval_warnings"})
 
-    def __init__(self, library: str, nx: int, n_p: int, options: dict):
+    def __init__(self, library: str, nx: int, n_p: int, options: dict, order: np.ndarray | None = None):
+        """`order`: the states are returned as x[order] (the caller's public order: the driver writes them so,
+        instead of a permuted copy of every output array afterwards); None: CVODES' order."""
         import casadi as ca
         unknown = set(options) - self.OPTIONS
         if unknown or options.get("linear_solver", "csparse") != "csparse":
@@ -149,12 +153,17 @@ class DirectCvodes:
             raise RuntimeError(f"the CVODES driver refused the closed loop: {err.value.decode(errors='replace')}")
         self._h = h
         self._finalizer = weakref.finalize(self, lib.sf_free, h)
+        self.order = None if order is None else np.ascontiguousarray(order, dtype=np.intc)
+        if self.order is not None and (self.order.shape != (nx,)
+                                       or lib.sf_set_order(h, _ptr(self.order, ctypes.c_int))):
+            raise RuntimeError("the output order is not a permutation of the states")
         self._stats = np.zeros(8, dtype=np.int_ if ctypes.sizeof(ctypes.c_long) == 8 else np.int32)
         self._msg = ctypes.create_string_buffer(200)
         self._lock = threading.Lock()
 
     def run(self, p: np.ndarray, x0: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, dict]:
-        """States (K, nx) at the relative times `grid` from x0 at 0 (integrator order), and CVODES' statistics;
+        """States (K, nx) at the relative times `grid` from x0 at 0 (x0 in integrator order, the states in the
+        output order), and CVODES' statistics;
         RuntimeError('CVode returned "..."') when CVODES fails."""
         K = int(grid.size)
         X = np.empty((K, self.nx))

@@ -226,7 +226,19 @@ typedef struct {
   size_t *hist_off, hist_n, hist_cap, hist_zlen, hist_zcap;
   int hist_ok;
   N_Vector hist_v[L_MAX];
+  /* the order the states are written out in (out[j] = y[order[j]]: the caller's public order, so that no copy
+   * of every output array is permuted afterwards), or NULL for CVODES' own; scratch: one state for it */
+  int *order;
+  double *scratch;
+  N_Vector scratch_v;
 } sf_solver;
+
+/* One state y (CVODES' order) into out, in the output order. */
+static void sf_put(const sf_solver *s, const double *y, double *out) {
+  int j;
+  if (!s->order) { memcpy(out, y, (size_t) s->nx * sizeof(double)); return; }
+  for (j = 0; j < s->nx; ++j) out[j] = y[s->order[j]];
+}
 
 static void sf_ehfun(int error_code, const char *module, const char *function, char *msg, void *data) {
   sf_solver *s = (sf_solver *) data;
@@ -283,6 +295,8 @@ void sf_free(void *handle) {
   if (s->y) N_VDestroy_Serial(s->y);
   sf_lu_free(&s->lu);
   free(s->arg); free(s->res); free(s->iw); free(s->w); free(s->p); free(s->Jx);
+  free(s->order); free(s->scratch);
+  if (s->scratch_v) N_VDestroy_Serial(s->scratch_v);
   free(s->hist_t); free(s->hist_h); free(s->hist_hu); free(s->hist_z); free(s->hist_q); free(s->hist_off);
   {
     int j;
@@ -340,7 +354,10 @@ void *sf_create(int nx, int np, void *ode, void *jac, const long long *sizes, co
   if (!s->arg || !s->res || !s->iw || !s->w || !s->p || !s->Jx) SF_FAIL("out of memory");
   if (sf_lu_analyse(&s->lu, nx, Jp, Ji)) SF_FAIL("the Jacobian's pattern cannot be factorised in place");
   s->y = N_VMake_Serial(nx, calloc((size_t) nx, sizeof(double)));
-  if (!s->y) SF_FAIL("out of memory");
+  s->scratch = calloc((size_t) nx, sizeof(double));
+  if (!s->y || !s->scratch) SF_FAIL("out of memory");
+  s->scratch_v = N_VMake_Serial(nx, s->scratch);
+  if (!s->scratch_v) SF_FAIL("out of memory");
   s->mem = CVodeCreate(SF_BDF, SF_NEWTON);
   if (!s->mem) SF_FAIL("CVodeCreate failed");
   if (CVodeSetErrHandlerFn(s->mem, sf_ehfun, s) || CVodeSetUserData(s->mem, s)
@@ -410,9 +427,31 @@ int sf_run(void *handle, const double *p, const double *x0, int K, const double 
     if (flag >= 0 && fabs(t - grid[k]) >= 1e-9) flag = CVode(s->mem, grid[k], s->y, &tret, SF_NORMAL);
     if (flag < 0) break;
     t = grid[k];
-    memcpy(X + (size_t) k * (size_t) s->nx, y, (size_t) s->nx * sizeof(double));
+    sf_put(s, y, X + (size_t) k * (size_t) s->nx);
   }
   return sf_finish(s, flag, stats, msg, msglen);
+}
+
+/* The order states are written out in from now on: out[j] = y[order[j]] (a permutation of 0..nx-1), or CVODES'
+ * own with order NULL. 0, or 1 when order is not a permutation. */
+int sf_set_order(void *handle, const int *order) {
+  sf_solver *s = (sf_solver *) handle;
+  int j, *o = 0;
+  char *seen;
+  if (order) {
+    o = malloc((size_t) s->nx * sizeof(int));
+    seen = calloc((size_t) s->nx, 1);
+    if (!o || !seen) { free(o); free(seen); return 1; }
+    for (j = 0; j < s->nx; ++j) {
+      if (order[j] < 0 || order[j] >= s->nx || seen[order[j]]) { free(o); free(seen); return 1; }
+      seen[order[j]] = 1;
+      o[j] = order[j];
+    }
+    free(seen);
+  }
+  free(s->order);
+  s->order = o;
+  return 0;
 }
 
 /* The largest growth factor of the factorisations so far (0 before the first), for the tests. */
@@ -514,8 +553,8 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
     nstloc++;
     if (s->hist_ok) s->hist_ok = sf_hist_push(s, max_bytes);
     while (k < K && (m->cv_tn - grid[k]) * m->cv_h >= 0.0) {
-      N_VSetArrayPointer(X + (size_t) k * (size_t) s->nx, s->hist_v[0]);
-      if (CVodeGetDky(s->mem, grid[k], 0, s->hist_v[0]) != 0) return 1;
+      if (CVodeGetDky(s->mem, grid[k], 0, s->scratch_v) != 0) return 1;
+      sf_put(s, s->scratch, X + (size_t) k * (size_t) s->nx);
       ++k;
       nstloc = 0;
     }
@@ -534,11 +573,7 @@ int sf_sample(void *handle, int M, const double *t, double *Y) {
   double tn = m->cv_tn, h = m->cv_h, hu = m->cv_hu;
   int q = m->cv_q, i, j, rc = 0;
   size_t step = 0, nx = (size_t) s->nx;
-  N_Vector out = N_VMake_Serial(s->nx, Y);
-  if (!s->hist_ok || !s->hist_v[0] || !out) {
-    if (out) N_VDestroy_Serial(out);
-    return 1;
-  }
+  if (!s->hist_ok || !s->hist_v[0]) return 1;
   memcpy(zn, m->cv_zn, sizeof zn);
   for (i = 0; i < M && rc == 0; ++i) {
     while (step < s->hist_n && (s->hist_t[step] - t[i]) * s->hist_h[step] < 0.0) ++step;
@@ -551,11 +586,10 @@ int sf_sample(void *handle, int M, const double *t, double *Y) {
       N_VSetArrayPointer(s->hist_z + s->hist_off[step] + (size_t) j * nx, s->hist_v[j]);
       m->cv_zn[j] = s->hist_v[j];
     }
-    N_VSetArrayPointer(Y + (size_t) i * nx, out);
-    if (CVodeGetDky(s->mem, t[i], 0, out) != 0) rc = 1;
+    if (CVodeGetDky(s->mem, t[i], 0, s->scratch_v) != 0) rc = 1;
+    else sf_put(s, s->scratch, Y + (size_t) i * nx);
   }
   memcpy(m->cv_zn, zn, sizeof zn);
   m->cv_tn = tn; m->cv_h = h; m->cv_hu = hu; m->cv_q = q;
-  N_VDestroy_Serial(out);
   return rc;
 }

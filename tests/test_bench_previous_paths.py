@@ -1,0 +1,25 @@
+"""The bench's previous paths: what `symfunnel bench` measures each new path against in the same run.
+
+bench.simulate.against_previous runs this path and the previous one in fresh processes on the same trajectory (the
+same CVODES step counts: the changes they compare are copies and heap settings, not arithmetic);
+bench.implementation.w_as_loops generates the C pair with W x as loops, and leaves the generator as it was."""
+
+from symfunnel.bench.simulate import against_previous
+
+
+def test_against_previous_runs_both_paths_on_the_same_trajectory():
+    r = against_previous("paper", 1.0, perturbations=(0.0, 1e-11), rounds=1)
+    assert len(r["this"]) == len(r["previous"]) == 2
+    assert r["steps_this"] == r["steps_previous"] and min(r["steps_this"]) > 50
+    assert all(c > 0 for c in r["this"] + r["previous"]) and r["paired_ratio"] > 0
+
+
+def test_w_as_loops_is_the_loop_form_and_restores_the_generator(paper_design):
+    from symfunnel.bench.implementation import w_as_loops
+    from symfunnel.emit.files import generate
+    from symfunnel.family.esn import ESN
+    before = ESN.UNROLL_W_MAX
+    loops = w_as_loops(paper_design, 1000.0)["symfunnel_controller.c"]
+    now = generate(paper_design, "c", rate_hz=1000.0)["symfunnel_controller.c"]
+    assert ESN.UNROLL_W_MAX == before
+    assert "sk_xdot_Wx[247]" in loops and "sk_xdot_Wx[" not in now
