@@ -661,7 +661,7 @@ def test_step_advances_the_controller_states_by_exponential_euler(write_scenario
 def test_clopper_pearson_is_scipys_exact_interval_on_both_sides():
     from scipy.stats import binomtest
 
-    from symfunnel.campaigns.campaign import clopper_pearson
+    from symfunnel.campaigns.statistics import clopper_pearson
     for k, n in ((0, 20), (3, 50), (17, 40), (40, 40)):
         ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="exact")
         assert clopper_pearson(k, n) == pytest.approx([ci.low, ci.high], rel=1e-9, abs=1e-15)
@@ -670,7 +670,7 @@ def test_clopper_pearson_is_scipys_exact_interval_on_both_sides():
 def test_summary_leaves_failed_runs_out_of_the_breach_probability():
     import pyarrow as pa
 
-    from symfunnel.campaigns.campaign import summarize
+    from symfunnel.campaigns.statistics import summarize
     rows = {"run": [0, 1, 2, 3, 4], "x": [0.1, 0.2, 0.3, 0.4, 0.5],
             "status": ["ok", "breach", "failed", "ok", "breach"], "t_end": [2.0, 1.0, 0.0, 2.0, 0.5],
             "min_margin_e1": [0.5, -1e-3, math.nan, 0.4, 0.2], "min_margin_e2": [0.3, 0.2, math.nan, 0.1, -0.2],
@@ -685,7 +685,7 @@ def test_summary_ranks_a_run_without_a_post_transient_margin_by_its_whole_run_ma
     margin, beside the others' post-transient ones."""
     import pyarrow as pa
 
-    from symfunnel.campaigns.campaign import summarize
+    from symfunnel.campaigns.statistics import summarize
     nan = math.nan
     rows = {"run": [0, 1, 2], "x": [0.1, 0.2, 0.3], "status": ["ok", "ok", "ok"], "t_end": [1.0, 1.0, 1.0],
             "min_margin_e1": [0.5, 0.3, 0.6], "min_margin_e2": [0.4, 0.35, 0.2], "max_abs_tau": [1.0, 2.0, 3.0],

@@ -653,7 +653,7 @@ def _server(reply: bytes | None):
 def test_a_scheduler_that_never_answers_or_sends_junk_is_refused_within_the_probe(capsys, reply, needle):
     import time
 
-    from symfunnel.campaigns.campaign import connect
+    from symfunnel.campaigns.cluster import connect
     from symfunnel.core.errors import InputError
     port, close = _server(reply)
     try:

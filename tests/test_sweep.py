@@ -16,7 +16,8 @@ import pytest
 
 from symfunnel.design import derive
 from symfunnel.scenario import load_scenario
-from symfunnel.campaigns.campaign import clopper_pearson, make_job, run_chunk, sweep
+from symfunnel.campaigns.campaign import make_job, run_chunk, sweep
+from symfunnel.campaigns.statistics import clopper_pearson
 from symfunnel.core.toml_write import dumps
 
 # |q0| beyond F1(0) = 0.19 starts outside the funnel (a breach at t = 0): a breach region known in advance

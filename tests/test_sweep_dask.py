@@ -37,7 +37,7 @@ def _scheduler(tmp_path, log):
 
 
 def test_scheduler_without_workers_is_refused(tmp_path):
-    from symfunnel.campaigns.campaign import connect
+    from symfunnel.campaigns.cluster import connect
     from symfunnel.core.errors import InputError
     with open(tmp_path / "dask.log", "w") as log:
         p, address = _scheduler(tmp_path, log)

@@ -59,6 +59,7 @@ V, T, AU, LY, BS = ("symfunnel/checks/verify.py", "symfunnel/checks/theory.py", 
 CO, IM, LO, ST = ("symfunnel/checks/consistency.py", "symfunnel/checks/implementation.py",
                   "symfunnel/deployed/loop.py", "symfunnel/emit/step.py")
 RA, CA, FU = "symfunnel/deployed/rate.py", "symfunnel/campaigns/campaign.py", "symfunnel/family/funnels.py"
+CS = "symfunnel/campaigns/statistics.py"
 BA, SE, RE, PR = ("symfunnel/sx/batch.py", "symfunnel/sx/search.py", "symfunnel/certificates/region.py",
                   "symfunnel/certificates/problem.py")
 IN, IG, BO, SC = ("symfunnel/certificates/invariance.py", "symfunnel/certificates/input_gain.py",
@@ -180,11 +181,11 @@ MUTANTS: tuple[CheckerMutant, ...] = (
        "comparison", "a rate whose run breached may count as holding"),
     _m("rate_tolerance_10x", RA, "while hi / lo > 1 + rel_tol:", "while hi / lo > 1 + 10 * rel_tol:", "tolerance",
        "the bisection stops at 10x its tolerance"),
-    _m("clopper_pearson_lower_one_sided", CA, "float(beta.ppf(a / 2, k, n - k + 1))", "float(beta.ppf(a, k, n - k + 1))",
+    _m("clopper_pearson_lower_one_sided", CS, "float(beta.ppf(a / 2, k, n - k + 1))", "float(beta.ppf(a, k, n - k + 1))",
        "statistic", "the lower end of the breach interval computed one-sided"),
-    _m("clopper_pearson_upper_one_sided", CA, "float(beta.ppf(1 - a / 2, k + 1, n - k))",
+    _m("clopper_pearson_upper_one_sided", CS, "float(beta.ppf(1 - a / 2, k + 1, n - k))",
        "float(beta.ppf(1 - a, k + 1, n - k))", "statistic", "the upper end computed one-sided"),
-    _m("breach_probability_counts_failed", CA, '"breach_probability": breaches / decided if decided else None',
+    _m("breach_probability_counts_failed", CS, '"breach_probability": breaches / decided if decided else None',
        '"breach_probability": breaches / runs if runs else None', "statistic",
        "failed runs counted in the breach probability's denominator"),
     _m("row_breach_wrong_funnel", CA, '        if b["funnel"] == "e1":\n', '        if b["funnel"] != "e1":\n', "index",

@@ -26,15 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import InputError
-from ..core.io import atomic_path, atomic_write, exclusive_lock, json_safe
+from ..core.io import atomic_write, exclusive_lock, json_safe
 from ..simulation.metrics import CAMPAIGN_METRICS, campaign_row
+from .cluster import connect
+from .statistics import summarize
+from .storage import ResultStore
 
 ROW_STATUS = {"ok": "ok", "breach": "breach", "initial_outside": "breach", "timeout": "failed", "failed": "failed"}
-RESULT_COLUMNS = ["status", "t_end", "min_margin_e1", "min_margin_e2", "max_abs_tau",
-                  "min_margin_e1_after_transient", "min_margin_e2_after_transient", "settle_time",
-                  *CAMPAIGN_METRICS]
-PARTS = ".results.parts"
-FLUSH_SECONDS = 10.0
 #: a campaign caps CVODES' step at this fraction of the output step unless the scenario sets simulation.max_step:
 #: fewer rejected steps and Newton-matrix refactorisations (docs/sweep.md, `symfunnel bench --only sweep`)
 MAX_STEP_OF_DT = 0.5
@@ -318,159 +316,7 @@ def _failed_row(rid, columns, values, exc) -> dict:
     return row
 
 
-# --- results on disk -------------------------------------------------------------------------------------
-
-def _schema(columns):
-    import pyarrow as pa
-    fields = [pa.field("run", pa.int64())] + [pa.field(c, pa.float64()) for c in columns]
-    fields += [pa.field("status", pa.string())] + [pa.field(c, pa.float64()) for c in RESULT_COLUMNS[1:]]
-    return pa.schema(fields)
-
-
-def _table(rows, columns):
-    import pyarrow as pa
-    schema = _schema(columns)
-    return pa.Table.from_pylist(rows, schema=schema)
-
-
-def _write_parquet(table, path: Path) -> None:
-    import pyarrow.parquet as pq
-    with atomic_path(path) as tmp:
-        pq.write_table(table, str(tmp))
-
-
-class ResultStore:
-    """results.parquet of a sweep directory, fed by finished chunks (each written at once) and merged periodically."""
-
-    def __init__(self, out: Path, columns: list[str]):
-        self.out = Path(out)
-        self.columns = columns
-        self.parts = self.out / PARTS
-        self.final = self.out / "results.parquet"
-        self._count = 0
-        self._last_merge = time.monotonic()
-
-    def read(self):
-        """Every row written so far (results.parquet and unmerged chunks), one per run, sorted by run."""
-        import pyarrow as pa
-        import pyarrow.compute as pc
-        import pyarrow.parquet as pq
-        tables = []
-        if self.final.exists():
-            try:
-                tables.append(pq.read_table(str(self.final)))
-            except Exception as exc:  # noqa: BLE001 - a damaged file of the user's: bad input, named
-                raise InputError(f"cannot be read ({type(exc).__name__}: {exc})", file=str(self.final),
-                                 expected="results.parquet written by `symfunnel sweep` (delete it, or the "
-                                 "directory, to start afresh)") from None
-        if self.parts.is_dir():
-            for p in sorted(self.parts.glob("*.parquet")):
-                try:
-                    tables.append(pq.read_table(str(p)))
-                except Exception:  # noqa: BLE001 - a chunk cut short by a kill: its runs are simply redone
-                    continue
-        if not tables:
-            return _table([], self.columns)
-        schema = _schema(self.columns)
-        try:
-            t = pa.concat_tables([x.select(schema.names).cast(schema) for x in tables])
-        except (KeyError, ValueError, pa.ArrowInvalid) as exc:
-            raise InputError(f"has other columns than this campaign ({exc})", file=str(self.final),
-                             expected="results of the same campaign") from None
-        t = t.take(pc.sort_indices(t, sort_keys=[("run", "ascending")]))
-        runs = t.column("run").to_numpy()
-        keep = np.ones(runs.size, dtype=bool)
-        keep[1:] = runs[1:] != runs[:-1]
-        return t.filter(pa.array(keep))
-
-    def has_rows(self) -> bool:
-        """Whether any result of an earlier sweep is on disk."""
-        return self.final.exists() or (self.parts.is_dir() and any(self.parts.glob("*.parquet")))
-
-    def done(self) -> set[int]:
-        """Run ids already on disk."""
-        return set(int(r) for r in self.read().column("run").to_numpy())
-
-    def add(self, rows: list[dict]) -> None:
-        """Write one finished chunk at once; merge into results.parquet every FLUSH_SECONDS."""
-        if rows:
-            self._count += 1
-            name = f"part-{os.getpid()}-{time.time_ns()}-{self._count}.parquet"
-            _write_parquet(_table(rows, self.columns), self.parts / name)
-        if time.monotonic() - self._last_merge > FLUSH_SECONDS:
-            self.merge()
-
-    def merge(self):
-        """Rewrite results.parquet from everything written so far (atomically), then drop the merged chunks."""
-        merged = list(self.parts.glob("*.parquet")) if self.parts.is_dir() else []
-        t = self.read()
-        _write_parquet(t, self.final)
-        for p in merged:
-            p.unlink(missing_ok=True)
-        self._last_merge = time.monotonic()
-        return t
-
-    def clear(self) -> None:
-        """Forget a previous sweep in this directory (a fresh start)."""
-        shutil.rmtree(self.parts, ignore_errors=True)
-        for name in ("results.parquet", "results.csv", "summary.json", "worst.toml", "campaign.json"):
-            (self.out / name).unlink(missing_ok=True)
-
-
 # --- execution -------------------------------------------------------------------------------------------
-
-def connect(address: str, timeout: float = 10.0, worker_timeout: float = 30.0):
-    """A dask.distributed client of a running scheduler with workers; InputError naming the address otherwise."""
-    try:
-        from distributed import Client
-    except ImportError:  # pragma: no cover - a regular dependency
-        raise InputError("needs the 'distributed' package", key="--scheduler",
-                         expected="pip install distributed") from None
-    host, port = _scheduler_address(address)
-    import socket
-    try:                        # a plain connection first: a failed Client leaves a finalizer that hangs and prints
-        from .probe import probe_scheduler
-        why = probe_scheduler(host, port, timeout)
-    except OSError as exc:
-        raise InputError(f"cannot reach the scheduler at {address} ({exc.strerror or type(exc).__name__})",
-                         key="--scheduler", expected="the address of a running dask scheduler (tcp://HOST:PORT)") \
-            from None
-    if why is not None:         # a server that never answers hung Client past its timeout; junk was a MemoryError
-        raise InputError(f"is no dask scheduler at {address}: {why}", key="--scheduler",
-                         expected="the address of a running dask scheduler (tcp://HOST:PORT)")
-    try:
-        client = Client(address, timeout=f"{timeout:g}s", set_as_default=False)
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"cannot reach the scheduler at {address} ({type(exc).__name__}: "
-                         f"{str(exc).splitlines()[0] if str(exc) else 'no answer'})", key="--scheduler",
-                         expected="the address of a running dask scheduler (tcp://HOST:PORT)") from None
-    try:
-        client.wait_for_workers(1, timeout=worker_timeout)
-    except (TimeoutError, OSError):
-        client.close()
-        raise InputError(f"the scheduler at {address} has no workers (waited {worker_timeout:g} s)",
-                         key="--scheduler", expected="a scheduler with `dask worker` processes attached") from None
-    return client
-
-
-def _scheduler_address(address) -> tuple[str, int]:
-    """(host, port) of a tcp://HOST:PORT address; InputError naming --scheduler otherwise."""
-    from urllib.parse import urlsplit
-    expected = "a dask scheduler address tcp://HOST:PORT"
-    if not isinstance(address, str) or "://" not in address:
-        raise InputError(f"is '{address}'", key="--scheduler", expected=expected)
-    u = urlsplit(address)
-    if u.scheme == "tls":
-        raise InputError(f"is '{address}': a tls:// scheduler needs certificates, which symfunnel does not "
-                         "configure", key="--scheduler", expected=expected + " (or a tcp:// tunnel)")
-    try:
-        port = u.port
-    except ValueError:
-        port = None
-    if u.scheme != "tcp" or not u.hostname or port is None or u.path not in ("", "/") or u.query:
-        raise InputError(f"is '{address}'", key="--scheduler", expected=expected)
-    return u.hostname, port
-
 
 def _pool_worker_start() -> None:
     """A pool worker dies with its parent and runs one BLAS thread (one process per core already: a second thread
@@ -574,68 +420,7 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
             "steady_runs_per_second": steady}
 
 
-# --- summary, worst case ---------------------------------------------------------------------------------
-
-def clopper_pearson(k: int, n: int, level: float = 0.95) -> list[float]:
-    """Exact (Clopper-Pearson) confidence interval of a binomial proportion k/n."""
-    from scipy.stats import beta
-    if n <= 0:
-        return [0.0, 1.0]
-    a = 1.0 - level
-    lo = 0.0 if k == 0 else float(beta.ppf(a / 2, k, n - k + 1))
-    hi = 1.0 if k == n else float(beta.ppf(1 - a / 2, k + 1, n - k))
-    return [lo, hi]
-
-
-def _finite(v) -> float | None:
-    return float(v) if np.isfinite(v) else None
-
-
-def _quantiles(a: np.ndarray) -> dict:
-    a = a[np.isfinite(a)]
-    if a.size == 0:
-        return {}
-    qs = np.quantile(a, [0.0, 0.01, 0.05, 0.5, 0.95, 0.99, 1.0])
-    return dict(zip(["min", "p01", "p05", "median", "p95", "p99", "max"], (float(x) for x in qs)),
-                mean=float(np.mean(a)))
-
-
-def summarize(table, columns: list[str]) -> dict:
-    """The campaign's figures from its results table (contract keys first)."""
-    d = table.to_pydict()
-    status = np.array(d["status"], dtype=object)
-    whole = np.fmin(np.array(d["min_margin_e1"], float), np.array(d["min_margin_e2"], float))
-    p1 = np.array(d.get("min_margin_e1_after_transient", d["min_margin_e1"]), float)
-    p2 = np.array(d.get("min_margin_e2_after_transient", d["min_margin_e2"]), float)
-    post = np.fmin(p1, p2)         # runs are ranked by the margin after the transient (the whole run's: ties)
-    m = np.where(np.isfinite(post), post, whole)    # a run that ended before its settle time: by its whole run's
-    runs = len(status)
-    breaches = int(np.sum(status == "breach"))
-    failed = int(np.sum(status == "failed"))
-    decided = runs - failed
-    worst = None
-    if np.isfinite(m).any():
-        # lowest post-transient margin; ties go to the lower sum of the two, then the lower whole-run margin
-        total = p1 + p2
-        order = np.lexsort((np.nan_to_num(whole, nan=np.inf), np.nan_to_num(total, nan=np.inf),
-                            np.nan_to_num(m, nan=np.inf)))
-        i = int(order[0])
-        worst = {"run": int(d["run"][i]), "status": str(status[i]), "min_margin": float(whole[i]),
-                 "min_margin_after_transient": _finite(post[i]),
-                 "min_margin_e1_after_transient": _finite(p1[i]), "min_margin_e2_after_transient": _finite(p2[i]),
-                 "settle_time": float(d["settle_time"][i]) if "settle_time" in d else None,
-                 "min_margin_e1": float(d["min_margin_e1"][i]), "min_margin_e2": float(d["min_margin_e2"][i]),
-                 "max_abs_tau": float(d["max_abs_tau"][i]), "values": {c: float(d[c][i]) for c in columns}}
-    return {"runs": runs, "breaches": breaches,
-            "breach_probability": breaches / decided if decided else None,
-            "ci95": clopper_pearson(breaches, decided),
-            "worst_run": worst["run"] if worst else None,
-            "failed": failed, "worst": worst,
-            "min_margin": _quantiles(whole), "min_margin_after_transient": _quantiles(post),
-            "min_margin_e1_after_transient": _quantiles(p1), "min_margin_e2_after_transient": _quantiles(p2),
-            "max_abs_tau": _quantiles(np.array(d["max_abs_tau"], float)),
-            "metrics": {k: _quantiles(np.array(d[k], float)) for k in CAMPAIGN_METRICS if k in d}}
-
+# --- worst case ------------------------------------------------------------------------------------------
 
 def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
     """A complete scenario (TOML text) that `symfunnel simulate` replays to run `run` of the campaign."""
