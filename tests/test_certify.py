@@ -128,7 +128,7 @@ def test_batch_rounds_outward_and_keeps_signs_of_wide_products():
 def test_batch_product_by_a_constant_is_the_general_product_bit_for_bit():
     """_mulc (a product with a constant factor, as the compiled tapes use it) against MUL with bl = bh = c, over
     infinities, NaN, signed zeros, subnormals and huge values, for constants of either sign, zero and extremes."""
-    from symfunnel.sx.batch import MUL, _mulc as MULC
+    from symfunnel.sx.batch_rules import MUL, _mulc as MULC
     rng = np.random.default_rng(11)
     special = np.array([0.0, -0.0, 5e-324, -5e-324, 1e-300, 1.0, -1.0, 1e300, -1e300, np.inf, -np.inf, np.nan])
     a = np.concatenate([special, rng.normal(size=200) * 10.0 ** rng.integers(-300, 300, 200)])

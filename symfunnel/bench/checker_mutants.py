@@ -60,7 +60,7 @@ CO, IM, LO, ST = ("symfunnel/checks/consistency.py", "symfunnel/checks/implement
                   "symfunnel/deployed/loop.py", "symfunnel/emit/step.py")
 RA, CA, FU = "symfunnel/deployed/rate.py", "symfunnel/campaigns/campaign.py", "symfunnel/family/funnels.py"
 CS = "symfunnel/campaigns/statistics.py"
-BA, SE, RE, PR = ("symfunnel/sx/batch.py", "symfunnel/sx/search.py", "symfunnel/certificates/region.py",
+BA, SE, RE, PR = ("symfunnel/sx/batch_rules.py", "symfunnel/sx/search.py", "symfunnel/certificates/region.py",
                   "symfunnel/certificates/problem.py")
 IN, IG, BO, SC = ("symfunnel/certificates/invariance.py", "symfunnel/certificates/input_gain.py",
                   "symfunnel/certificates/bounds.py", "symfunnel/certificates/selfcheck.py")
