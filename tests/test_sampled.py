@@ -353,7 +353,7 @@ def test_simulate_rate_cli_writes_the_sampled_run_and_exits_1_on_a_breach(tmp_pa
     data = np.load(out)
     assert data["tau"].shape == (2000, 2) and data["q"].shape == (2001, 2)
     assert main(["simulate", "paper", "--rate", "400", "-q"]) == 1
-    assert "breach" in capsys.readouterr().err
+    assert "left funnel e" in capsys.readouterr().err         # the breach, in words (JSON keeps "breach")
 
 
 @needs_gcc
