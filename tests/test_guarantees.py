@@ -78,8 +78,9 @@ def test_guarantees_sort_each_fact_once():
                                        "certify.containment")] == ["pass", "warn", "warn", "warn"]
     breach = CheckResult("funnel.containment.e1.joint1", "fail", "breach at t = 1")
     g = guarantees(cert, checks, list(checks.values()) + [breach])
-    assert len(g["proven"]) == 1 and "certify.input_gain" in g["proven"][0]
-    assert len(g["refuted"]) == 1 and "breach at t = 1" in g["refuted"][0]
+    assert len(g["proven"]) == 1 and "certify.input_gain" in str(g["proven"][0]["head"])
+    # one line each, the whole detail in a collapsed block
+    assert len(g["refuted"]) == 1 and "breach at t = 1" in str(g["refuted"][0]["head"]) + str(g["refuted"][0]["detail"])
     assert len(g["open"]) == 3
     # on the set a certificate proves the loop stays in, the bound is a guarantee
     certs[1] = _cert("certify.bounds", "proven", region={"kind": "proven_invariant"}, lower=1.0, upper=2.0)
@@ -87,7 +88,7 @@ def test_guarantees_sort_each_fact_once():
     checks = {c.id: c for c in cert.checks()}
     assert checks["certify.bounds"].status == "pass"
     g = guarantees(cert, checks, list(checks.values()))
-    assert any("max |tau| <= 2" in html.unescape(str(p)) for p in g["proven"])
+    assert any("max |tau| <= 2" in html.unescape(str(p["head"])) for p in g["proven"])
 
 
 @pytest.mark.slow

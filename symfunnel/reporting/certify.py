@@ -54,10 +54,23 @@ def certify_section(run, progress=None) -> dict:
             "guarantees": guarantees(cert, checks, v.checks)}
 
 
+def _brief(text: str, limit: int = 160) -> str:
+    """The first clause of a certificate's or check's detail (the rest is shown on request)."""
+    text = str(text)
+    cut = len(text)
+    for sep in ("; ", " (", " -- ", ": "):
+        k = text.find(sep, 40)
+        if 0 <= k < cut:
+            cut = k
+    cut = min(cut, limit)
+    return text if cut >= len(text) else text[:cut].rstrip(" ,;:") + " ..."
+
+
 def guarantees(cert, checks: dict, all_checks) -> dict:
     """What the report opens with: what is proven for this design (the funnels kept with a margin, the torque
-    bound on the proven set, the input gain), what is refuted and by what, and what is open -- one sentence each,
-    from the certificates and verify's failed checks (a failure of the simulated run is a refutation too)."""
+    bound on the proven set, the input gain), what is refuted and by what, and what is open -- one line each (its
+    first clause; the whole detail, counterexample included, in a collapsed block), from the certificates and
+    verify's failed checks (a failure of the simulated run is a refutation too; a declared finding says so)."""
     proven, refuted, open_ = [], [], []
     first = ("certify.containment", "certify.bounds", "certify.input_gain")      # the guarantee, then its numbers
     for c in sorted(cert.certificates, key=lambda c: first.index(c.id) if c.id in first else len(first)):
@@ -66,25 +79,28 @@ def guarantees(cert, checks: dict, all_checks) -> dict:
         if c.status == "refuted":
             by = f" -- at {_short(c.counterexample)}" if c.counterexample else ""
             if ck is not None and ck.status == "warn":
-                open_.append(f"{name}: refuted as an argument, not as a property of the design: {c.detail}")
+                open_.append((f"{name}: refuted as an argument, not as a property of the design", c.detail))
             else:
-                refuted.append(f"{name}: {c.detail}{by}")
+                declared = " (declared in the scenario)" if ck is not None and ck.expected == "fail" else ""
+                refuted.append((f"{name}{declared}: {_brief(c.detail)}", f"{c.detail}{by}"))
         elif c.status == "undecided":
-            open_.append(f"{name}: undecided -- {c.detail}")
+            open_.append((f"{name}: undecided -- {_brief(c.detail)}", c.detail))
         elif ck is not None and ck.status == "warn":
-            open_.append(f"{name}: holds only on a stand-in region, not on a set the loop is shown to stay in: "
-                         f"{c.detail}")
+            open_.append((f"{name}: holds only on a stand-in region, not on a set the loop is shown to stay in",
+                          c.detail))
         elif c.id == "certify.containment":
             mg = c.extra.get("margin", {})
-            proven.append(f"the funnels are kept: |e1| <= (1 - {fmt(mg.get('e1'))}) F1 and |e2| <= "
-                          f"(1 - {fmt(mg.get('e2'))}) F2 for every plant of the parameter box "
-                          f"(horizon {c.extra.get('horizon')}) -- {c.detail}")
+            proven.append((f"the funnels are kept: |e1| <= (1 - {fmt(mg.get('e1'))}) F1 and |e2| <= "
+                           f"(1 - {fmt(mg.get('e2'))}) F2 for every plant of the parameter box "
+                           f"(horizon {c.extra.get('horizon')})", c.detail))
         elif c.id == "certify.bounds":
-            proven.append(f"on the proven set: max |tau| <= {fmt(c.upper)} (attained {fmt(c.lower)}) -- {c.detail}")
+            proven.append((f"on the proven set: max |tau| <= {fmt(c.upper)} (attained {fmt(c.lower)})", c.detail))
         else:
-            proven.append(f"{name}: {c.detail}")
+            proven.append((f"{name}: {_brief(c.detail)}", c.detail))
     for ck in all_checks:
         if ck.status == "fail" and not ck.id.startswith(("certify.", "claim.")):
-            refuted.append(f"{ck.id} ({ck.method or 'check'}): {ck.detail}")
+            declared = " (declared in the scenario)" if ck.expected == "fail" else ""
+            refuted.append((f"{ck.id}{declared}: {_brief(ck.detail)}", f"{ck.method or 'check'}: {ck.detail}"))
     # a check's detail may hold sympy matrices: shown as tables, as everywhere else in the report
-    return {k: [detail_html(x) for x in v] for k, v in (("proven", proven), ("refuted", refuted), ("open", open_))}
+    return {k: [{"head": detail_html(h), "detail": detail_html(d) if d and d != h else ""} for h, d in v]
+            for k, v in (("proven", proven), ("refuted", refuted), ("open", open_))}
