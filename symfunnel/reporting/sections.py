@@ -388,6 +388,7 @@ def implementation_section(run, progress) -> dict:
     the sampled torque (stairs) over the continuous one, and the peak torque beside the actuator limits."""
     from ..deployed.rate import margin_rate_figure
     from ..deployed.summary import torque_figure
+    from .deployed import fmu_entry
     progress("deployed controller: minimum sample rate, design help, sampled run")
     try:
         data = run.implementation
@@ -414,7 +415,8 @@ def implementation_section(run, progress) -> dict:
             "rate": fmt(res.rate_hz) if res is not None else None,
             "status": (data.get("run") or {}).get("status"), "peak_tau": fmt(data.get("peak_tau")),
             "tau_max": fmt(data.get("tau_max")), "effort": fmt(data.get("effort_limits")),
-            "declared": run.scenario.implementation is not None, "figures": figs}
+            "declared": run.scenario.implementation is not None, "figures": figs,
+            "fmu": fmu_entry(run, res.rate_hz if res is not None else None)}
 
 
 def tuning_section(run, progress, figures_dir=None) -> dict:

@@ -1,0 +1,86 @@
+"""The report's deployed section (issues 41 and 40): the FMU line beside the rate search, checked against the FMU
+`symfunnel codegen --lang fmu` writes (its modelDescription.xml read back with zipfile and ElementTree), and
+`report --no-deployed` leaving it out. The report is written once on tests/data/certify_none.toml with a 2 s horizon
+and neither code generation nor mutants (about 5 s)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+import zipfile
+from pathlib import Path
+
+import pytest
+
+DATA = Path(__file__).parent / "data"
+T_FINAL = 2.0
+
+
+def _report(scenario: Path, out: Path, **kw) -> str:
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.reporting import build_report
+    from symfunnel.scenario import load_scenario
+    run = Run(load_scenario(scenario), RunOptions(t_final=T_FINAL, samples=200))
+    return build_report(run, out, codegen=False, mutants=False, **kw).read_text(encoding="utf-8")
+
+
+def _tree(text: str):
+    import html5lib
+    return html5lib.parse(text, treebuilder="etree", namespaceHTMLElements=False)
+
+
+def _by_id(tree, ident: str):
+    return next((el for el in tree.iter() if el.get("id") == ident), None)
+
+
+def _classes(el) -> dict:
+    """{class: text} of the element's marked children (the FMU line's fields)."""
+    return {c.get("class"): "".join(c.itertext()) for c in el.iter() if c.get("class")}
+
+
+@pytest.fixture(scope="module")
+def certify_none_report(tmp_path_factory) -> str:
+    return _report(DATA / "certify_none.toml", tmp_path_factory.mktemp("report") / "certify_none.html")
+
+
+def test_fmu_line_describes_the_fmu_codegen_writes(certify_none_report, tmp_path):
+    """Issue 41 item 3: the deployed section lists the FMU (name, FMI version, size, identifier, variables, GUID,
+    the FMPy line); each field equals the FMU `codegen --lang fmu` writes at the section's rate."""
+    tree = _tree(certify_none_report)
+    sec = _by_id(tree, "deployed")
+    line = _by_id(sec, "deployed-fmu")
+    assert line is not None, "the deployed section has no FMU line"
+    f = _classes(line)
+    text = " ".join("".join(line.itertext()).split())
+    rate = float(re.search(r"at ([0-9.e+-]+) Hz", text).group(1))
+    # the section's sampled run is at that rate
+    assert re.search(rf"At {re.escape(format(rate, 'g'))} Hz", " ".join("".join(sec.itertext()).split()))
+    out = tmp_path / "fmu"
+    env = {**os.environ, "SYMFUNNEL_QUIET": "1"}
+    p = subprocess.run([sys.executable, "-m", "symfunnel", "codegen", str(DATA / "certify_none.toml"), "--lang",
+                        "fmu", "--rate", repr(rate), "--out", str(out), "--json"], capture_output=True, text=True,
+                       env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    written = out / json.loads(p.stdout)["file"]
+    with zipfile.ZipFile(written) as zf:
+        md = ET.fromstring(zf.read("modelDescription.xml"))
+        assert any(n.startswith("binaries/") and n.endswith(".so") for n in zf.namelist())
+    assert f["fmu-file"] == written.name
+    assert f["fmu-fmi"] == md.get("fmiVersion") == "2.0"
+    assert int(f["fmu-bytes"]) == written.stat().st_size
+    assert f["fmu-id"] == md.find("CoSimulation").get("modelIdentifier")
+    assert f["fmu-guid"] == md.get("guid")
+    assert int(f["fmu-vars"]) == len(md.findall("ModelVariables/ScalarVariable")) > 0
+    assert f'fmpy.simulate_fmu("{written.name}"' in f["fmu-snippet"]
+    assert "binaries" not in certify_none_report and "PK\x03\x04" not in certify_none_report   # not embedded
+
+
+def test_no_deployed_leaves_the_fmu_out(tmp_path):
+    """`report --no-deployed` skips the deployed section, the FMU line with it (no FMU is built)."""
+    text = _report(DATA / "certify_none.toml", tmp_path / "r.html", deployed=False)
+    tree = _tree(text)
+    assert _by_id(tree, "deployed") is None and _by_id(tree, "deployed-fmu") is None
