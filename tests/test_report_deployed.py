@@ -84,3 +84,65 @@ def test_no_deployed_leaves_the_fmu_out(tmp_path):
     text = _report(DATA / "certify_none.toml", tmp_path / "r.html", deployed=False)
     tree = _tree(text)
     assert _by_id(tree, "deployed") is None and _by_id(tree, "deployed-fmu") is None
+
+
+def _cli_bracket(scenario: str) -> dict:
+    """`symfunnel rate SCENARIO --certify --json --t-final T`, run on its own (no wall limit)."""
+    p = subprocess.run([sys.executable, "-m", "symfunnel", "rate", scenario, "--certify", "--json", "--t-final",
+                        repr(T_FINAL), "-q"], capture_output=True, text=True, timeout=600)
+    assert p.returncode in (0, 1), p.stderr
+    return json.loads(p.stdout)
+
+
+def _bracket(text: str) -> tuple[dict, str, str]:
+    """The bracket line's fields, its text and the bracket figure's SVG text."""
+    tree = _tree(text)
+    sec = _by_id(tree, "deployed")
+    line = _by_id(sec, "deployed-bracket")
+    assert line is not None, "the deployed section has no rate bracket"
+    fig = _by_id(sec, "fig-rate-bracket")
+    svg = " ".join("".join(fig.itertext()).split()) if fig is not None else ""
+    return _classes(line), " ".join("".join(line.itertext()).split()), svg
+
+
+def _same(shown: str, value) -> bool:
+    """The report's 6-digit rate against the command's number."""
+    return value is not None and shown == f"{value:.6g}"
+
+
+@pytest.mark.slow
+def test_bracket_on_certify_none_is_proven_and_agrees_with_rate_certify(certify_none_report):
+    """Issue 40: the deployed section shows f_sim, f_proven, f_theory (one figure, log axis) and what is proven on
+    which set; each number against `rate --certify --json` run independently. The report's proof has a 10 s budget,
+    so its f_proven is a rate the command's (deterministic) bisection also proved, at or above the command's."""
+    f, text, svg = _bracket(certify_none_report)
+    cli = _cli_bracket(str(DATA / "certify_none.toml"))
+    assert cli["certificate"]["status"] == "proven"
+    assert f["rate-status"] == "proven"
+    assert _same(f["rate-sim"], cli["min_rate_hz"])
+    assert _same(f["rate-theory"], cli["theory_rate_hz"])
+    proven = float(f["rate-proven"])
+    cli_proven = [t["rate_hz"] for t in cli["certificate"]["tried"] if t["proven"]]
+    assert any(f"{p:.6g}" == f["rate-proven"] for p in cli_proven), (f["rate-proven"], cli_proven)
+    assert proven >= float(f"{cli['proven_rate_hz']:.6g}")
+    assert proven >= cli["min_rate_hz"]                     # a proven rate below the simulated one is a bug
+    assert "on the set S" in text or "any state of the set S" in text
+    assert "(1 \u2212 0.5) F1" in text and "returns to S" in text
+    for label in ("f_sim", "f_proven", "f_theory"):       # the three marks in the figure's legend
+        assert label in svg, label
+    assert f"{proven:.6g} Hz" in svg
+
+
+@pytest.mark.slow
+def test_bracket_on_paper_is_undecided_and_shows_f_sim_and_f_theory(tmp_path):
+    """On paper the one-period proof fails at a point of S at every rate (undecided): the figure shows f_sim and
+    f_theory only and the text says why; both numbers equal the command's."""
+    text = _report(Path("paper"), tmp_path / "paper.html")
+    f, line, svg = _bracket(text)
+    cli = _cli_bracket("paper")
+    assert cli["certificate"]["status"] == "undecided" and cli["proven_rate_hz"] is None
+    assert f["rate-status"] == "undecided" and f["rate-proven"] == "-"
+    assert _same(f["rate-sim"], cli["min_rate_hz"])
+    assert _same(f["rate-theory"], cli["theory_rate_hz"])
+    assert "No rate is proven" in line and "fails the check" in line
+    assert "f_sim" in svg and "f_theory" in svg and "f_proven" not in svg
