@@ -173,6 +173,17 @@ _METHOD = ("one-period validated enclosure (first-order Picard a-priori box, sec
            "sample) by batched interval branch and bound over S; bisection in the period")
 
 
+def simulated_w_hat_range(design, closed_loop, result):
+    """W_hat's box for certify.sampled: the simulated run's range per entry (the certificate widens it); None for a
+    design without an approximator or a run without W_hat."""
+    if not design.n_regressor:
+        return None
+    wh = closed_loop.unpack(result.x).get("w_hat")
+    if wh is None or not len(wh):
+        return None
+    return (np.min(wh, axis=0), np.max(wh, axis=0))
+
+
 def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=DEFAULT_SET_MARGIN,
                     f_sim: float | None = None, w_hat_range=None, wall_limit: float | None = None,
                     work: float = 5e7, progress=None) -> dict:

@@ -47,8 +47,8 @@ def run(args) -> int:
     sc = _load(args)
     engine = _engine(args, sc)
     say = _progress(args.quiet or args.json)
-    from ..pipeline import Run
-    run = Run(sc, progress=say)
+    from ..pipeline import Run, RunOptions
+    run = Run(sc, RunOptions(t_final=args.t_final), progress=say)     # W_hat's box (--certify) from this horizon
     r = min_rate(sc, run.design, margin=args.margin, t_final=args.t_final, progress=say, engine=engine)
     if args.certify:
         # the command's --wall-limit: the proof gets half of what the simulated search left, and ends undecided
@@ -79,17 +79,10 @@ def run(args) -> int:
 
 def _certified(args, sc, run, r: dict, say, wall_limit) -> dict:
     """certify.sampled beside the simulated search: the contract's keys (docs/certify.md)."""
-    import numpy as np
-
     from ..certificates.sampled import DEFAULT_SET_MARGIN
-    from ..certificates.sampled_rate import sampled_bracket
+    from ..certificates.sampled_rate import sampled_bracket, simulated_w_hat_range
     design = run.design
-    wr = None
-    if design.n_regressor:                       # W_hat's box: the simulated run's range (widened by the certificate)
-        res = run.simulation
-        wh = run.closed_loop.unpack(res.x).get("w_hat")
-        if wh is not None and len(wh):
-            wr = (np.min(wh, axis=0), np.max(wh, axis=0))
+    wr = (simulated_w_hat_range(design, run.closed_loop, run.simulation) if design.n_regressor else None)
     T = args.t_final if args.t_final is not None else sc.simulation.t_final
     return sampled_bracket(sc, design, t_final=T, margin=args.margin, set_margin=tuple(args.set_margin or DEFAULT_SET_MARGIN),
                            f_sim=r["min_rate_hz"], w_hat_range=wr, wall_limit=wall_limit, progress=say)

@@ -401,3 +401,25 @@ def tune_comparison(original, tuned, tau_max=None) -> str:
     _legend_outside(axes[0], fontsize=7)
     _legend_outside(axes[1], fontsize=7)
     return fig
+
+
+@_with_rc
+def rate_bracket(marks) -> str:
+    """The deployed controller's rates on one log-frequency axis: marks [(label, Hz)] (f_sim, f_proven, f_theory;
+    the ones that exist), each a vertical line with its value."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.0, 1.9))
+    vals = [float(v) for _, v in marks]
+    for i, (label, v) in enumerate(marks):
+        ax.axvline(v, color=f"C{i}", lw=2, label=f"{label}: {v:.6g} Hz")
+        ax.plot([v], [0.5], "o", color=f"C{i}")
+    if vals:
+        lo, hi = min(vals), max(vals)
+        ax.set_xlim(lo / 3.0, hi * 3.0)
+    ax.set_xscale("log")
+    ax.set_yticks([])
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("sample rate [Hz]")
+    ax.set_title("Sample rates of the deployed controller")
+    _legend_outside(ax, fontsize=8)
+    return fig

@@ -388,6 +388,7 @@ def implementation_section(run, progress) -> dict:
     the sampled torque (stairs) over the continuous one, and the peak torque beside the actuator limits."""
     from ..deployed.rate import margin_rate_figure
     from ..deployed.summary import torque_figure
+    from .deployed import fmu_entry, rate_bracket
     progress("deployed controller: minimum sample rate, design help, sampled run")
     try:
         data = run.implementation
@@ -402,6 +403,9 @@ def implementation_section(run, progress) -> dict:
                      "controller's, first 0.5 s", FIG.to_svg(torque_figure(res, run.simulation, t_max=0.5,
                                                        units=joint_units(run.scenario.model.joint_types,
                                                                          run.scenario.n)))))
+    bracket = rate_bracket(run, r, progress=progress)
+    if bracket.get("figure") and bracket["figure"][2]:
+        figs.append(bracket["figure"])
     sens = data.get("sensitivity") or {}
     rows = [{"key": v["key"], "factor": fmt(v["factor"]), "before": fmt(v["before"]), "after": fmt(v["after"]),
              "rate": fmt(v["min_rate_hz"]), "ratio": fmt(v["ratio"])} for v in sens.get("variations", [])]
@@ -414,7 +418,8 @@ def implementation_section(run, progress) -> dict:
             "rate": fmt(res.rate_hz) if res is not None else None,
             "status": (data.get("run") or {}).get("status"), "peak_tau": fmt(data.get("peak_tau")),
             "tau_max": fmt(data.get("tau_max")), "effort": fmt(data.get("effort_limits")),
-            "declared": run.scenario.implementation is not None, "figures": figs}
+            "declared": run.scenario.implementation is not None, "figures": figs,
+            "fmu": fmu_entry(run, res.rate_hz if res is not None else None), "bracket": bracket}
 
 
 def tuning_section(run, progress, figures_dir=None) -> dict:
