@@ -43,7 +43,8 @@ def certify_section(run, progress=None) -> dict:
                                                               "undecided": "warn"}[c.status],
                      "lower": fmt(c.lower), "upper": fmt(c.upper), "boxes": c.boxes,
                      "seconds": f"{c.seconds:.1f}", "fraction": f"{c.undecided_fraction:.3g}",
-                     "detail": c.detail, "method": c.method, "region": _short(c.region),
+                     "detail": c.detail, "brief": _brief(c.detail, 200), "method": c.method,
+                     "region": _short(c.region),
                      "counterexample": _short(c.counterexample) if c.counterexample else "",
                      "expected": ck.expected if ck else "pass", "reason": ck.reason if ck else "",
                      # the gate's verdict label, as every other table of the report shows it
