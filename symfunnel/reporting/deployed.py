@@ -39,13 +39,14 @@ def fmu_entry(run, rate_hz: float | None, fmi: str = "2") -> dict:
                        f'output=["tau[1]", "status"])'}
 
 
-def rate_bracket(run, r: dict, *, wall_limit: float = BRACKET_WALL_LIMIT, progress=None) -> dict:
+def rate_bracket(run, r: dict, *, wall_limit: float | None = None, progress=None) -> dict:
     """`rate --certify`'s bracket for the report (same margin and horizon as the section's rate search `r`, S at
     the default margins) with the proof limited to `wall_limit` seconds: the three rates, the certificate's status
     and detail, a sentence saying what is proven on which set, and the figure."""
     from ..certificates.sampled import DEFAULT_SET_MARGIN
     from ..certificates.sampled_rate import sampled_bracket, simulated_w_hat_range
     from . import figures as FIG
+    wall_limit = BRACKET_WALL_LIMIT if wall_limit is None else wall_limit
     f_sim = r.get("min_rate_hz")
     hz = (lambda v: "-" if v is None else f"{v:.6g}")      # the rates as `rate --certify` prints them
     try:
