@@ -28,33 +28,15 @@ def register(sub, common) -> None:
 
 def run(args) -> int:
     """Search, print (table or JSON); exit 1 when no rate up to 1 MHz holds."""
-    import math
-
     from ._common import loading
     with loading():
         from ._common import _dump, _engine, _load, _progress
-        from ..core.errors import InputError
-        from ..deployed.rate import min_rate
-    if not (math.isfinite(args.margin) and 0 <= args.margin < 1):
-        raise InputError(f"is {args.margin:g}", key="--margin", expected="a number in [0, 1)")
-    if args.t_final is not None and not (math.isfinite(args.t_final) and args.t_final > 0):
-        raise InputError(f"is {args.t_final:g}", key="--t-final", expected="a number > 0")
-    import time
-    started = time.monotonic()
-    for k, v in zip(("e1", "e2"), args.set_margin or ()):
-        if not (math.isfinite(v) and 1e-3 <= v < 1):
-            raise InputError(f"is {v:g} for {k}", key="--set-margin", expected="margins in [0.001, 1)")
+        from ..api import rate_search
     sc = _load(args)
     engine = _engine(args, sc)
     say = _progress(args.quiet or args.json)
-    from ..pipeline import Run
-    run = Run(sc, progress=say)
-    r = min_rate(sc, run.design, margin=args.margin, t_final=args.t_final, progress=say, engine=engine)
-    if args.certify:
-        # the command's --wall-limit: the proof gets half of what the simulated search left, and ends undecided
-        wl = getattr(args, "command_wall_limit", None)
-        left = None if wl is None else max(0.0, 0.5 * (wl - (time.monotonic() - started)))
-        r.update(_certified(args, sc, run, r, say, left))
+    r = rate_search(sc, margin=args.margin, t_final=args.t_final, plant=args.plant, certify=args.certify,
+                    set_margin=args.set_margin, wall_limit=getattr(args, "command_wall_limit", None), progress=say)
     if args.json:
         print(_dump(r))
     else:
@@ -76,20 +58,3 @@ def run(args) -> int:
             print(f"  {c['detail']}")
     return 0 if r["min_rate_hz"] is not None else 1
 
-
-def _certified(args, sc, run, r: dict, say, wall_limit) -> dict:
-    """certify.sampled beside the simulated search: the contract's keys (docs/certify.md)."""
-    import numpy as np
-
-    from ..certificates.sampled import DEFAULT_SET_MARGIN
-    from ..certificates.sampled_rate import sampled_bracket
-    design = run.design
-    wr = None
-    if design.n_regressor:                       # W_hat's box: the simulated run's range (widened by the certificate)
-        res = run.simulation
-        wh = run.closed_loop.unpack(res.x).get("w_hat")
-        if wh is not None and len(wh):
-            wr = (np.min(wh, axis=0), np.max(wh, axis=0))
-    T = args.t_final if args.t_final is not None else sc.simulation.t_final
-    return sampled_bracket(sc, design, t_final=T, margin=args.margin, set_margin=tuple(args.set_margin or DEFAULT_SET_MARGIN),
-                           f_sim=r["min_rate_hz"], w_hat_range=wr, wall_limit=wall_limit, progress=say)

@@ -175,20 +175,10 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
 
     On a physics engine without a rate (no --rate, no [implementation]): at twice the minimum rate on that engine."""
     from ._common import _dump
-    from ..deployed.loop import simulate_sampled
+    from ..api import sampled_simulation
     from ..pipeline import Run
     design = Run(sc, progress=say).design
-    rate = args.rate
-    if rate is None and sc.implementation is None:
-        from ..deployed.rate import min_rate
-        found = min_rate(sc, design, t_final=args.t_final, progress=say, engine=engine)
-        if found["min_rate_hz"] is None:
-            print(f"symfunnel: breach: no sample rate up to 1 MHz keeps both funnels on the {engine} plant",
-                  file=sys.stderr)
-            return 1
-        rate = 2.0 * found["min_rate_hz"]
-        say(f"sampled at {rate:.6g} Hz: twice the minimum rate {found['min_rate_hz']:.6g} Hz on the {engine} plant")
-    res = simulate_sampled(sc, design, rate_hz=rate, t_final=args.t_final, progress=say, engine=engine)
+    res = sampled_simulation(sc, design, rate_hz=args.rate, t_final=args.t_final, engine=engine, progress=say)
     summary = res.summary()
     if args.out:
         from ..core.lifecycle import committing

@@ -92,3 +92,16 @@ def check_count(value: int, *, key: str, minimum: int, maximum: int, what: str) 
     if not minimum <= value <= maximum:
         raise InputError(f"is {value}", key=key, expected=f"{what} between {minimum} and {maximum}")
     return value
+
+
+def scenario_inputs(scenario) -> list:
+    """The files a command reads for its scenario (the TOML and the robot file it names), never to be replaced."""
+    out = []
+    if getattr(scenario, "path", None) is not None and Path(scenario.path).is_file():
+        out.append(Path(scenario.path))
+    raw = getattr(scenario, "raw", None)
+    robot = (raw.get("model") or {}).get("path") if isinstance(raw, dict) and isinstance(raw.get("model"), dict) \
+        else None
+    if isinstance(robot, str) and out:
+        out.append(out[0].parent / robot)
+    return out

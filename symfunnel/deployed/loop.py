@@ -69,6 +69,11 @@ class SampledResult:
     e1: np.ndarray | None = None                  # (K+1, n) tracking error at the samples
     joint_types: list | None = None               # the model's joint types: the metrics' units
 
+    def __repr__(self) -> str:
+        """Short: rate, status and samples (not the arrays; `summary()` has every figure)."""
+        return (f"SampledResult(scenario={self.scenario!r}, rate_hz={self.rate_hz:.6g}, status={self.status!r}, "
+                f"{max(self.t.size - 1, 0)} samples)")
+
     @property
     def ok(self) -> bool:
         """True when the run reached its final time inside both funnels."""
