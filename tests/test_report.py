@@ -49,8 +49,8 @@ def test_overview_counts_and_tables_agree_with_verify_json(report_run, report_te
     v = report_run.verification
     js = v.to_json()
     k = js["counts"]
-    line = (f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {k['warn']} warnings, "
-            f"{k['skip']} skipped")
+    warnings = f"{k['warn']} warning" + ("" if k["warn"] == 1 else "s")
+    line = f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {warnings}, {k['skip']} skipped"
     assert line == counts_line(v.checks)
     gate = next(el for el in tree.iter() if el.get("id") == "gate")
     assert line in "".join(gate.itertext())

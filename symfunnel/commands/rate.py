@@ -43,15 +43,14 @@ def run(args) -> int:
         found = (f"none ({r['reason']})" if r.get("reason") else "none up to 1 MHz") if r["min_rate_hz"] is None \
             else f"{r['min_rate_hz']:.6g} Hz"
         print(f"minimum sample rate of scenario {sc.name} on the {engine} plant (margin >= {r['margin']:g} after the transient): {found}")
+        from ..core.text import number
         for d in r["tried"]:
-            m = "-" if d["min_margin"] is None else f"{d['min_margin']:.4g}"
-            mt = d.get("min_margin_after_transient")
-            mt = "-" if mt is None else f"{mt:.4g}"
+            m, mt = number(d["min_margin"]), number(d.get("min_margin_after_transient"))
             print(f"  {d['rate_hz']:>12.6g} Hz  {d['status']:<8} min margin after the transient {mt:>10} "
                   f"(whole run {m})  {'holds' if d['holds'] else 'does not hold'}")
         if args.certify:
             c = r["certificate"]
-            fmt = (lambda v: "-" if v is None else f"{v:.6g} Hz")
+            fmt = (lambda v: number(v, ".6g", "Hz"))
             print(f"proven rate (certify.sampled, {c['status']}): {fmt(r['proven_rate_hz'])}; simulated "
                   f"{fmt(r['min_rate_hz'])}; theory bound {fmt(r['theory_rate_hz'])}"
                   + ("" if r["ratio"] is None else f"; proven / simulated = {r['ratio']:.3g}"))
