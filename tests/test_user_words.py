@@ -79,3 +79,33 @@ def test_top_level_help_names_the_gate_and_the_exit_codes(capsys):
     for code, words in (("0", "success"), ("1", "a check failed"), ("2", "bad input"), ("3", "internal error"),
                         ("130", "interrupted")):
         assert any(line.split()[:1] == [code] and words in line for line in out.splitlines()), (code, out)
+
+
+def test_simulate_events_line_is_words_not_a_dict(capsys):
+    """The events row: the total, then each counter in words; the counters sum to the total (from the JSON)."""
+    assert main(["simulate", "paper", "--t-final", "1", "--json", "-q"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert main(["simulate", "paper", "--t-final", "1", "-q"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.strip().startswith("events"))
+    assert "{" not in line and "_" not in line, line
+    assert sum(s["event_counts"].values()) == s["events"] > 0
+    import re
+    assert re.search(r"grid\)\s+(\d+): ", line).group(1) == str(s["events"])
+    c = s["event_counts"]
+    assert f"e1 zero crossings {c['e1_zero_crossings']}" in line
+    assert f"dead-zone transitions {c['dead_zone_transitions']}" in line
+
+
+def test_figure_legends_name_the_printed_claim_by_its_name():
+    """The Lyapunov figures' legends say 'printed claim theorem1', never the Claim object or its check id."""
+    from symfunnel.checks.verify import decay_claim
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.reporting import figures as FIG
+    from symfunnel.scenario import load_scenario
+    sc = load_scenario("paper")
+    claim = decay_claim(sc)
+    assert claim is not None
+    r = Run(sc, RunOptions(t_final=0.5, samples=50))
+    svg = FIG.lyapunov_bound(r.lyapunov, r.simulation, claim) + FIG.lyapunov_decay(r.lyapunov, r.simulation, claim)
+    assert f"printed claim {claim.name}" in svg
+    assert "Claim(" not in svg and f"claim.{claim.name}" not in svg

@@ -133,6 +133,17 @@ def _metric_rows(s: dict) -> list[tuple[str, str]]:
     return rows
 
 
+#: the event counters of a summary (`event_counts`) in words
+EVENT_WORDS = {"e1_zero_crossings": "e1 zero crossings", "e2_zero_crossings": "e2 zero crossings",
+               "dead_zone_transitions": "dead-zone transitions", "friction_sign_changes": "friction sign changes"}
+
+
+def _events(s: dict) -> str:
+    """'18: e1 zero crossings 7, e2 zero crossings 7, ...' (a counter not in EVENT_WORDS by its key in words)."""
+    parts = [f"{EVENT_WORDS.get(k, k.replace('_', ' '))} {v}" for k, v in (s.get("event_counts") or {}).items()]
+    return _fmt(s["events"]) + (": " + ", ".join(parts) if parts else "")
+
+
 def _table(s: dict) -> None:
     print(f"simulation of scenario {s['scenario']}: {status_text(s['status'])}")
     print(f"  {s['message']}")
@@ -148,7 +159,7 @@ def _table(s: dict) -> None:
         ("integrator", f"{s['integrator']} ({s['code']} code), smoothing width {_fmt(s['smoothing_width'])}"),
         ("steps / RHS / Jacobian evaluations",
          f"{_fmt(s['steps'])} / {_fmt(s['rhs_evaluations'])} / {_fmt(s['jacobian_evaluations'])}"),
-        ("events (switches on the output grid)", f"{_fmt(s['events'])} {s['event_counts']}"),
+        ("events (switches on the output grid)", _events(s)),
         ("wall time [s]", f"{_fmt(s['wall_time'], '.3g')} (compile/load {_fmt(s['compile_time'], '.3g')}, "
                           f"real-time factor {_fmt(s['realtime_factor'], '.4g')})"),
     ]
