@@ -223,7 +223,8 @@ def test_failing_scenario_gives_a_report_that_shows_the_failure(write_scenario, 
     assert code == 0
     assert capsys.readouterr().out.strip() == str(out)
     html = out.read_text(encoding="utf-8")
-    assert "funnel.initial_condition" in html and "initial_outside" in html
+    assert "funnel.initial_condition" in html and "the initial state is outside a funnel" in html
+    assert "initial_outside" not in html                # the status in words, not the JSON's value
     assert re.search(r'id="gate">\s*<p>Gate \(<code>symfunnel verify</code>\): <span class="badge fail">FAIL', html)
     assert "Failures of this design" in html
     assert not list(out.parent.glob(".*.tmp"))            # atomic: no temporary file left behind

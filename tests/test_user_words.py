@@ -109,3 +109,18 @@ def test_figure_legends_name_the_printed_claim_by_its_name():
     svg = FIG.lyapunov_bound(r.lyapunov, r.simulation, claim) + FIG.lyapunov_decay(r.lyapunov, r.simulation, claim)
     assert f"printed claim {claim.name}" in svg
     assert "Claim(" not in svg and f"claim.{claim.name}" not in svg
+
+
+def test_verify_says_an_initial_state_outside_its_funnel_in_words(write_scenario, capsys):
+    """paper with F1(0) = 0.18 below |e1(0)|: verify's run line and its progress say so in words, never the JSON's
+    status value `initial_outside` (which --json keeps)."""
+    from symfunnel.scenario import DATA_DIR
+    text = (DATA_DIR / "paper_2dof.toml").read_text(encoding="utf-8").replace("phi0 = 0.4 ", "phi0 = 0.18 ", 1)
+    p = write_scenario(text)
+    main(["verify", str(p), "--t-final", "0.5", "--samples", "100"])
+    cap = capsys.readouterr()
+    assert "continuous-time run: the initial state is outside a funnel: " in cap.out
+    assert "simulation: the initial state is outside a funnel (" in cap.err
+    assert "initial_outside" not in cap.out + cap.err
+    main(["verify", str(p), "--t-final", "0.5", "--samples", "100", "--json", "-q"])
+    assert json.loads(capsys.readouterr().out)["verdicts"]["continuous"]["status"] == "initial_outside"

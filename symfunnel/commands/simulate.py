@@ -200,7 +200,7 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
         print(_dump(summary))
     else:
         print(f"sampled-data simulation of scenario {sc.name} at {res.rate_hz:g} Hz on the {engine} plant: "
-              f"{res.status}")
+              f"{status_text(res.status)}")
         print(f"  {res.message}")
         keys = ["min_margin_e1", "min_margin_e2", "max_abs_tau", "tau_max", "saturated_fraction", "samples",
                 "plant_substeps", "wall_time", "realtime_factor"]
