@@ -160,3 +160,20 @@ def test_verify_with_mutants_is_a_verification_with_the_score():
     assert v.mutation_score == pytest.approx(killed / (len(m["mutants"]) - equivalent))
     assert v.to_json()["mutation"]["score"] == v.mutation_score
     assert f"mutation_score={v.mutation_score:.3f}" in repr(v)
+
+
+def test_rate_with_certify_gives_the_cli_bracket():
+    """`certify=True` is `rate --certify`: the same keys and the same proven rate (sampled_1dof, proven in ~1 s);
+    only the certificate's own wall time differs between the two runs."""
+    from pathlib import Path
+    one = Path(__file__).parent / "data" / "sampled_1dof.toml"
+    r = sf.rate(one, certify=True, wall_limit=60)
+    p = _cli("rate", one, "--certify", "--json", "-q", "--wall-limit", "60")
+    assert p.returncode == 0, p.stderr
+    cli, api = json.loads(p.stdout), r.to_json()
+    assert set(api) == set(cli) >= {"min_rate_hz", "proven_rate_hz", "theory_rate_hz", "ratio", "certificate"}
+    assert set(api["certificate"]) == set(cli["certificate"]) and api["certificate"]["id"] == "certify.sampled"
+    assert api["certificate"]["status"] == cli["certificate"]["status"] == "proven"
+    assert api["proven_rate_hz"] == cli["proven_rate_hz"] == r.proven_rate_hz >= r.min_rate_hz
+    assert api["tried"] == cli["tried"]
+    assert f"proven_rate_hz={r.proven_rate_hz:.6g}" in repr(r)
