@@ -19,7 +19,7 @@ from .core.version import __version__
 
 #: the commands, as plain functions of `symfunnel.api` (imported on first use: `import symfunnel` stays cheap)
 _API = ("load_scenario", "derive", "evaluate", "audit", "simulate", "verify", "certify", "codegen", "rate", "report",
-        "sweep", "tune", "run", "Run")
+        "sweep", "tune", "init", "run", "Run")
 
 __all__ = ["InputError", "CheckFailed", "SimulationError", "SymfunnelError", "__version__", *_API]
 

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from .synthesis.search import TuneResult
 
 __all__ = ["load_scenario", "derive", "evaluate", "run", "Run", "audit", "simulate", "verify", "certify", "codegen",
-           "rate", "report", "sweep", "tune"]
+           "rate", "report", "sweep", "tune", "init"]
 
 
 def _scenario(scenario) -> Scenario:
@@ -90,7 +90,7 @@ class ReportResult:
 
 
 #: CLI options whose keyword is not the option's name with "-" as "_" (a `--no-x` flag is `x=False`)
-OPTION_KEYWORDS = {"rate": "rate_hz"}
+OPTION_KEYWORDS = {"rate": "rate_hz", "from": "source"}
 
 
 def keyword_of(option: str) -> str:
@@ -511,3 +511,14 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         from .core.toml_write import dumps
         atomic_write(out, res.tuned_text or dumps(res.tuned_raw))
     return res
+
+
+@_keywords
+def init(out, *, urdf: str | Path | None = None, source: str | Path | None = None, joints=None,
+         force: bool = False) -> Path:
+    """`symfunnel init`: write a commented starting scenario to `out` (.toml) and return its path: a 2-link planar
+    arm, the movable joints of `urdf` (`joints` a subset, names), or a copy of `source` (`--from`: a built-in name or
+    a file); an existing `out` is replaced only with `force=True`."""
+    from .design.starting import write_starting
+    return write_starting(out, urdf=None if urdf is None else str(urdf),
+                          source=None if source is None else str(source), joints=joints, force=force)

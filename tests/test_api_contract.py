@@ -18,7 +18,6 @@ from symfunnel.cli import build_parser
 #: CLI commands without an API function, and why
 CLI_ONLY_COMMANDS = {
     "bench": "measures symfunnel itself (a developer's tool; symfunnel.bench holds its functions)",
-    "init": "writes a starting scenario file for a user to edit (a file, not a computation)",
 }
 
 #: CLI options without a keyword of their own, and why ("*": on every command)
@@ -33,7 +32,8 @@ CLI_ONLY_OPTIONS = {
 }
 
 #: the options whose keyword is not the option's name with "-" as "_" and "--no-x" as x (design.md section 9)
-RENAMED = {"--rate": "rate_hz"}
+RENAMED = {"--rate": "rate_hz",
+           "--from": "source"}         # `from` is a Python keyword
 
 
 def _keyword(option: str) -> str:
@@ -93,6 +93,8 @@ def test_the_top_level_shows_the_api_and_its_exceptions():
     (lambda: sf.certify("paper", only="nonsense"), "only"),
     (lambda: sf.verify("paper", plant="no-such-engine"), "plant"),
     (lambda: sf.tune("paper", max_evals=0), "max_evals"),
+    (lambda: sf.init("s.txt"), "out"),
+    (lambda: sf.init("s.toml", source="paper", urdf="a.urdf"), "source"),
 ])
 def test_api_errors_name_the_keyword_not_the_cli_option(call, key):
     with pytest.raises(sf.InputError) as e:
@@ -177,3 +179,21 @@ def test_rate_with_certify_gives_the_cli_bracket():
     assert api["proven_rate_hz"] == cli["proven_rate_hz"] == r.proven_rate_hz >= r.min_rate_hz
     assert api["tried"] == cli["tried"]
     assert f"proven_rate_hz={r.proven_rate_hz:.6g}" in repr(r)
+
+
+def test_init_writes_what_the_cli_writes(tmp_path):
+    from symfunnel.cli import main
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    p = sf.init(tmp_path / "a" / "arm.toml")
+    assert main(["init", "--out", str(tmp_path / "b" / "arm.toml"), "-q"]) == 0
+    assert p == tmp_path / "a" / "arm.toml"
+    assert p.read_text().replace(str(tmp_path / "a"), "D") == \
+        (tmp_path / "b" / "arm.toml").read_text().replace(str(tmp_path / "b"), "D")
+    sc = sf.load_scenario(p)
+    assert sc.n == 2 and repr(sc).startswith("Scenario('arm'")
+    with pytest.raises(sf.InputError, match="key 'out'.*exists.*force"):
+        sf.init(p)
+    assert sf.init(p, force=True) == p
+    with pytest.raises(sf.InputError, match="key 'joints': is given without urdf"):
+        sf.init(tmp_path / "j.toml", joints="a,b")
