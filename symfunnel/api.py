@@ -149,7 +149,10 @@ def run(scenario, *, t_final: float | None = None, integrator: str | None = None
         mutant: str | None = None, rate_hz: float | None = None, plant: str | None = None) -> Run:
     """The pipeline of a scenario with its stages computed on first use (`run.design`, `run.simulation`, ...);
     every option as in `RunOptions` (None: the scenario's own setting); `plant` as `--plant` (the engine)."""
+    from .core.outputs import MAX_SAMPLES, check_count
     from .plant.engines import resolve_engine
+    check_count(samples, key="--samples", minimum=1, maximum=MAX_SAMPLES, what="a number of samples")
+    check_count(seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")
     sc = _scenario(scenario)
     engine = resolve_engine(sc, plant) if plant is not None else None
     return Run(sc, RunOptions(t_final=t_final, integrator=integrator, width=width, wall_limit=wall_limit, jit=jit,
@@ -329,8 +332,11 @@ def codegen(scenario, lang: str = "c", out=None, *, check: bool = False, prefix:
     `lang="fmu"` (with `rate_hz`, `out`; `fmi` as `--fmi`) writes `out/<name>.fmu` and returns
     `deployed.fmu.FmuExport` (its `check` the FMPy check; a failed one raises CheckFailed after writing)."""
     from .core.errors import InputError
+    from .core.outputs import MAX_POINTS, check_count
     from .emit.check import check_output
     from .emit.files import write_output
+    check_count(points, key="--points", minimum=1000, maximum=MAX_POINTS, what="a number of check points")
+    check_count(seed, key="--seed", minimum=0, maximum=2**63 - 1, what="a seed")
     if lang == "fmu":
         from .deployed.fmu import export_fmu, fmu_options
         fmi = fmu_options(fmi, rate_hz, prefix, check=check, keys=("fmi", "rate_hz", "prefix", "check"))

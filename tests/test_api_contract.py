@@ -94,6 +94,10 @@ def test_the_top_level_shows_the_api_and_its_exceptions():
     (lambda: sf.verify("paper", plant="no-such-engine"), "plant"),
     (lambda: sf.tune("paper", max_evals=0), "max_evals"),
     (lambda: sf.init("s.txt"), "out"),
+    (lambda: sf.verify("paper", samples=0), "samples"),            # was a CasADi assertion (a degenerate map)
+    (lambda: sf.report("paper", samples=1.5), "samples"),
+    (lambda: sf.codegen("paper", points=0, check=True), "points"),
+    (lambda: sf.verify("paper", seed=-1), "seed"),
     (lambda: sf.init("s.toml", source="paper", urdf="a.urdf"), "source"),
 ])
 def test_api_errors_name_the_keyword_not_the_cli_option(call, key):
