@@ -7,8 +7,6 @@ contain the initial errors (e2's initial funnel width is set from the derived e2
 
 from __future__ import annotations
 
-from pathlib import Path
-
 #: the scenario writers, in design.starting (the API's `symfunnel.init` writes with them too), imported on use: the
 #: CLI's start-up (`symfunnel --help`) imports no design code
 _WRITERS = ("copied_scenario", "scenario_from_urdf", "scenario_two_link")
