@@ -13,6 +13,7 @@ _WRITERS = ("copied_scenario", "scenario_from_urdf", "scenario_two_link")
 
 
 def __getattr__(name):
+    """The writers by their old names here (`symfunnel.commands.init.scenario_from_urdf`), from design.starting."""
     if name in _WRITERS:
         from ..design import starting
         return getattr(starting, name)
