@@ -24,7 +24,8 @@ class OneLineParser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     p = OneLineParser(prog="symfunnel", description="Symbolic design and verification of funnel "
-                                "controllers for robot manipulators (CasADi).")
+                                "controllers for robot manipulators (CasADi).", epilog=EPILOG,
+                      formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version="symfunnel " + _version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -41,6 +42,21 @@ def build_parser() -> argparse.ArgumentParser:
             help="wall-clock limit in s for the whole command (deriving, building, compiling, simulating, checking); "
                  "reached, it stops with one line and exit 1, writing nothing")
     return p
+
+
+#: the end of `symfunnel --help`: which command is the gate, and the exit codes (docs/limits.md)
+EPILOG = """\
+`symfunnel verify SCENARIO` is the gate: it exits 0 only when every check's outcome is the one the
+scenario declares (CI runs it); the other commands design, explain, prove, deploy and report.
+
+exit codes:
+  0    success
+  1    a check failed, a simulation left its funnel, or a --wall-limit was reached
+  2    bad input: one line naming the file, the key and what was expected
+  3    internal error (a bug: SYMFUNNEL_DEBUG=1 shows the traceback; please report it)
+  130  interrupted (Ctrl-C); 143 terminated (SIGTERM)
+
+`symfunnel COMMAND --help` lists a command's options; docs/cli.md all of them."""
 
 
 #: commands whose `--wall-limit` bounds the whole command (simulate's bounds its run: derive, compile, integrate)

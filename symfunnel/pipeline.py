@@ -141,7 +141,8 @@ class Run:
             self.scenario, design, t_final=o.t_final, integrator=o.integrator, width=o.width,
             progress=self.progress, wall_limit=o.wall_limit, closed_loop=cl, jit=o.jit),
             "compiling and integrating the closed loop")
-        self._say(f"simulation: {res.status} ({res.message})")
+        from .simulation.hints import status_text
+        self._say(f"simulation: {status_text(res.status)} ({res.message})")
         return res
 
     @cached_property

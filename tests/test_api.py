@@ -27,8 +27,8 @@ def test_one_function_per_command_with_json_results(tmp_path):
     r = sf.report("paper", tmp_path / "r.html", codegen=False, mutants=False, deployed=False, t_final=0.5,
                   samples=200)
     assert r.path.exists() and r.to_json()["path"].endswith("r.html")
-    m = sf.verify("paper", mutants=True)
-    assert m["score"] >= 0.9
+    m = sf.verify("paper", t_final=1.0, samples=500, mutants=True)
+    assert m.status == "pass" and m.mutation_score >= 0.9
 
 
 def test_errors_are_raised_not_exit_codes(write_scenario):

@@ -27,7 +27,7 @@ def test_verdict_labels_say_expected_and_unexpected():
     assert [verdict(c)[1] for c in cs] == ["finding", "fail", "fail", "pass", "warn", "skip"]
     k = counts(cs)
     assert (k["pass"], k["fail"], k["expected_fail"], k["warn"], k["skip"], k["unexpected"]) == (2, 2, 1, 1, 1, 2)
-    assert counts_line(cs) == "2 passed, 2 failed (1 expected), 1 warnings, 1 skipped"
+    assert counts_line(cs) == "2 passed, 2 failed (1 expected), 1 warning, 1 skipped"
 
 
 # --- margins after the transient -------------------------------------------------------------------------

@@ -49,8 +49,8 @@ def test_overview_counts_and_tables_agree_with_verify_json(report_run, report_te
     v = report_run.verification
     js = v.to_json()
     k = js["counts"]
-    line = (f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {k['warn']} warnings, "
-            f"{k['skip']} skipped")
+    warnings = f"{k['warn']} warning" + ("" if k["warn"] == 1 else "s")
+    line = f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {warnings}, {k['skip']} skipped"
     assert line == counts_line(v.checks)
     gate = next(el for el in tree.iter() if el.get("id") == "gate")
     assert line in "".join(gate.itertext())
@@ -223,7 +223,8 @@ def test_failing_scenario_gives_a_report_that_shows_the_failure(write_scenario, 
     assert code == 0
     assert capsys.readouterr().out.strip() == str(out)
     html = out.read_text(encoding="utf-8")
-    assert "funnel.initial_condition" in html and "initial_outside" in html
+    assert "funnel.initial_condition" in html and "the initial state is outside a funnel" in html
+    assert "initial_outside" not in html                # the status in words, not the JSON's value
     assert re.search(r'id="gate">\s*<p>Gate \(<code>symfunnel verify</code>\): <span class="badge fail">FAIL', html)
     assert "Failures of this design" in html
     assert not list(out.parent.glob(".*.tmp"))            # atomic: no temporary file left behind

@@ -453,6 +453,10 @@ class SweepResult:
     out: Path
     table: object = field(repr=False, default=None)
 
+    def __repr__(self) -> str:
+        """Short: where the campaign is and how many runs (not the summary)."""
+        return f"SweepResult(out={str(self.out)!r}, runs={self.summary.get('runs')!r})"
+
     def to_json(self) -> dict:
         """The `--json` output (= summary.json)."""
         return json_safe(self.summary)

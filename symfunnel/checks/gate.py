@@ -53,9 +53,10 @@ def counts(checks: list[CheckResult]) -> dict:
 
 
 def counts_line(checks: list[CheckResult]) -> str:
-    """'19 passed, 13 failed (13 expected), 1 warnings, 0 skipped': verify's count line, also in the report."""
+    """'19 passed, 13 failed (13 expected), 1 warning, 0 skipped': verify's count line, also in the report."""
+    from ..core.text import plural
     k = counts(checks)
-    return (f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {k['warn']} warnings, "
+    return (f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {plural(k['warn'], 'warning')}, "
             f"{k['skip']} skipped")
 
 

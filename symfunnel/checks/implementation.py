@@ -60,7 +60,7 @@ def implementation_checks(scenario: Scenario, design: Design | None, *, rate_hz:
         ev["min_rate"] = {"min_rate_hz": found["min_rate_hz"], "margin": found["margin"], "runs": len(found["tried"])}
     if r.ok:
         c = CheckResult("implementation.containment", "pass" if r.min_margin > 0 else "fail",
-                        f"{how}: reached t = {r.t[-1]:g} s; min margin {r.min_margin:.4g} at the samples",
+                        f"{how}: {r.message}; min margin {r.min_margin:.4g} at the samples",
                         method="sampled-data simulation", margin=r.min_margin, evidence=ev)
     else:
         c = CheckResult("implementation.containment", "fail", f"{how}: {r.message}", method="sampled-data simulation",

@@ -58,6 +58,7 @@ class Verification:
     checks: list[CheckResult]
     timings: dict = field(default_factory=dict)
     certification: object = None        # the certificates (symfunnel.certificates.Certification) shown as checks
+    mutation: dict | None = None        # mutation testing (pipeline.run_mutants) when asked for: score, mutants
 
     @property
     def failed(self) -> list[CheckResult]:
@@ -90,8 +91,20 @@ class Verification:
         import html
         rows = "".join(f"<tr><td>{html.escape(c.id)}</td><td>{c.status}</td><td>{c.expected}</td>"
                        f"<td>{html.escape(c.detail)}</td></tr>" for c in self.checks)
-        return (f"<p>gate: <b>{self.status}</b></p><table><tr><th>check</th><th>status</th><th>expected</th>"
+        score = "" if self.mutation is None else f"; mutation score <b>{self.mutation['score']:.3f}</b>"
+        return (f"<p>gate: <b>{self.status}</b>{score}</p><table><tr><th>check</th><th>status</th><th>expected</th>"
                 f"<th>detail</th></tr>{rows}</table>")
+
+    @property
+    def mutation_score(self) -> float | None:
+        """Killed / non-equivalent mutants when mutation testing ran (`verify(mutants=True)`), else None."""
+        return None if self.mutation is None else self.mutation["score"]
+
+    def __repr__(self) -> str:
+        from .gate import counts_line
+        score = "" if self.mutation is None else f", mutation_score={self.mutation['score']:.3f}"
+        return (f"Verification(scenario={self.scenario.name!r}, status={self.status!r}, checks={len(self.checks)} "
+                f"({counts_line(self.checks)}), unexpected={[c.id for c in self.unexpected]}{score})")
 
     def to_json(self) -> dict:
         """{"scenario", "status", "checks": [...], "simulation": summary, "lyapunov": {...}, "timings"}."""
@@ -107,6 +120,8 @@ class Verification:
             out["lyapunov"] = json_safe({"W_star": L.w_star_info, "rho_const": L.rho_const,
                                       "rho_const_lower": L.rho_const_lower, "delta_max": L.delta_max,
                                       "rho_paper_const": L.rho_paper_const, "delta_paper": L.delta_paper_const})
+        if self.mutation is not None:
+            out["mutation"] = json_safe(self.mutation)
         return out
 
 

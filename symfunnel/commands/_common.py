@@ -23,6 +23,8 @@ def _dump(obj) -> str:
     return json.dumps(json_safe(obj), indent=2, allow_nan=False)
 
 
+from ..core.outputs import scenario_inputs  # noqa: F401 - the commands' name for it
+
 #: the step of reading the scenario (and importing what reads it), named in the message of a limit reached there
 LOADING = "loading the scenario"
 
@@ -39,20 +41,6 @@ def _load(args):
     with loading():
         from ..scenario import load_scenario
         return load_scenario(args.scenario)
-
-
-def scenario_inputs(scenario) -> list:
-    """The files a command reads for its scenario (the TOML and the robot file it names), never to be replaced."""
-    from pathlib import Path
-    out = []
-    if getattr(scenario, "path", None) is not None and Path(scenario.path).is_file():
-        out.append(Path(scenario.path))
-    raw = getattr(scenario, "raw", None)
-    robot = (raw.get("model") or {}).get("path") if isinstance(raw, dict) and isinstance(raw.get("model"), dict) \
-        else None
-    if isinstance(robot, str) and out:
-        out.append(out[0].parent / robot)
-    return out
 
 
 def add_force_option(sp) -> None:

@@ -8,9 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-
-#: The largest --points (memory grows linearly with it).
-MAX_POINTS = 100_000
+from ..core.outputs import MAX_POINTS
 
 
 def register(sub, common) -> None:

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-
-#: The largest --samples (memory grows linearly with it: about 1 kB per sample).
-MAX_SAMPLES = 1_000_000
+from ..core.outputs import MAX_SAMPLES
 
 
 def register(sub, common) -> None:

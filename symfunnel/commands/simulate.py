@@ -133,6 +133,17 @@ def _metric_rows(s: dict) -> list[tuple[str, str]]:
     return rows
 
 
+#: the event counters of a summary (`event_counts`) in words
+EVENT_WORDS = {"e1_zero_crossings": "e1 zero crossings", "e2_zero_crossings": "e2 zero crossings",
+               "dead_zone_transitions": "dead-zone transitions", "friction_sign_changes": "friction sign changes"}
+
+
+def _events(s: dict) -> str:
+    """'18: e1 zero crossings 7, e2 zero crossings 7, ...' (a counter not in EVENT_WORDS by its key in words)."""
+    parts = [f"{EVENT_WORDS.get(k, k.replace('_', ' '))} {v}" for k, v in (s.get("event_counts") or {}).items()]
+    return _fmt(s["events"]) + (": " + ", ".join(parts) if parts else "")
+
+
 def _table(s: dict) -> None:
     print(f"simulation of scenario {s['scenario']}: {status_text(s['status'])}")
     print(f"  {s['message']}")
@@ -148,7 +159,7 @@ def _table(s: dict) -> None:
         ("integrator", f"{s['integrator']} ({s['code']} code), smoothing width {_fmt(s['smoothing_width'])}"),
         ("steps / RHS / Jacobian evaluations",
          f"{_fmt(s['steps'])} / {_fmt(s['rhs_evaluations'])} / {_fmt(s['jacobian_evaluations'])}"),
-        ("events (switches on the output grid)", f"{_fmt(s['events'])} {s['event_counts']}"),
+        ("events (switches on the output grid)", _events(s)),
         ("wall time [s]", f"{_fmt(s['wall_time'], '.3g')} (compile/load {_fmt(s['compile_time'], '.3g')}, "
                           f"real-time factor {_fmt(s['realtime_factor'], '.4g')})"),
     ]
@@ -175,20 +186,10 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
 
     On a physics engine without a rate (no --rate, no [implementation]): at twice the minimum rate on that engine."""
     from ._common import _dump
-    from ..deployed.loop import simulate_sampled
+    from ..api import sampled_simulation
     from ..pipeline import Run
     design = Run(sc, progress=say).design
-    rate = args.rate
-    if rate is None and sc.implementation is None:
-        from ..deployed.rate import min_rate
-        found = min_rate(sc, design, t_final=args.t_final, progress=say, engine=engine)
-        if found["min_rate_hz"] is None:
-            print(f"symfunnel: breach: no sample rate up to 1 MHz keeps both funnels on the {engine} plant",
-                  file=sys.stderr)
-            return 1
-        rate = 2.0 * found["min_rate_hz"]
-        say(f"sampled at {rate:.6g} Hz: twice the minimum rate {found['min_rate_hz']:.6g} Hz on the {engine} plant")
-    res = simulate_sampled(sc, design, rate_hz=rate, t_final=args.t_final, progress=say, engine=engine)
+    res = sampled_simulation(sc, design, rate_hz=args.rate, t_final=args.t_final, engine=engine, progress=say)
     summary = res.summary()
     if args.out:
         from ..core.lifecycle import committing
@@ -199,7 +200,7 @@ def _sampled(args, sc, say, engine: str = "symfunnel") -> int:
         print(_dump(summary))
     else:
         print(f"sampled-data simulation of scenario {sc.name} at {res.rate_hz:g} Hz on the {engine} plant: "
-              f"{res.status}")
+              f"{status_text(res.status)}")
         print(f"  {res.message}")
         keys = ["min_margin_e1", "min_margin_e2", "max_abs_tau", "tau_max", "saturated_fraction", "samples",
                 "plant_substeps", "wall_time", "realtime_factor"]

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-
-#: The largest --samples (memory grows linearly with it: about 1 kB per sample).
-MAX_SAMPLES = 1_000_000
+from ..core.outputs import MAX_SAMPLES
 
 
 def register(sub, common) -> None:
@@ -78,9 +76,11 @@ def run(args) -> int:
         from ..checks.gate import counts_line, outcome_hint
         print(f"verification of scenario {sc.name} ({sc.file})")
         vd = v.verdicts()
-        print(f"  continuous-time run: {vd['continuous']['status']}: {vd['continuous']['message']}")
+        from .simulate import status_text
+        print(f"  continuous-time run: {status_text(vd['continuous']['status'])}: {vd['continuous']['message']}")
         if vd["sampled"] is not None:
-            print(f"  sampled run (deployed C step): {vd['sampled']['status']}: {vd['sampled']['message']}")
+            print(f"  sampled run (deployed C step): {status_text(vd['sampled']['status'])}: "
+                  f"{vd['sampled']['message']}")
         if v.lyapunov is not None and sc.design.approximator != "none":
             info = v.lyapunov.w_star_info
             whence = "not given by the source" if sc.source else "the ideal weight"

@@ -87,8 +87,29 @@ def check_output_file(path: str | os.PathLike, *, key: str = "--out") -> Path:
     return p
 
 
+#: the largest --samples of verify and report (memory grows linearly with it: about 1 kB per sample)
+MAX_SAMPLES = 1_000_000
+#: the largest --points of `codegen --check` (memory grows linearly with it)
+MAX_POINTS = 100_000
+
+
 def check_count(value: int, *, key: str, minimum: int, maximum: int, what: str) -> int:
     """An integer option within [minimum, maximum] (the maximum keeps memory use bounded)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"is {value!r}", key=key, expected=f"{what}: an integer between {minimum} and {maximum}")
     if not minimum <= value <= maximum:
         raise InputError(f"is {value}", key=key, expected=f"{what} between {minimum} and {maximum}")
     return value
+
+
+def scenario_inputs(scenario) -> list:
+    """The files a command reads for its scenario (the TOML and the robot file it names), never to be replaced."""
+    out = []
+    if getattr(scenario, "path", None) is not None and Path(scenario.path).is_file():
+        out.append(Path(scenario.path))
+    raw = getattr(scenario, "raw", None)
+    robot = (raw.get("model") or {}).get("path") if isinstance(raw, dict) and isinstance(raw.get("model"), dict) \
+        else None
+    if isinstance(robot, str) and out:
+        out.append(out[0].parent / robot)
+    return out

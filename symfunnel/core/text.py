@@ -52,3 +52,29 @@ def shown(value, limit: int = MAX_VALUE) -> str:
 def article(word: str) -> str:
     """'a' or 'an' before `word` (by its first letter's sound, good enough for type names)."""
     return "an" if word[:1].lower() in "aeiou" else "a"
+
+
+def plural(n: int, noun: str, nouns: str | None = None) -> str:
+    """'1 warning', '2 warnings': a count and its noun in the number it takes."""
+    return f"{n} {noun if n == 1 else (nouns or noun + 's')}"
+
+
+#: what a table or a progress line shows for a number that does not exist (no margin after a transient a run never
+#: finished, a rate not found): one sign everywhere, never `-inf`, `nan` or `None`
+MISSING = "\u2014"
+
+
+def number(value, spec: str = ".4g", unit: str = "") -> str:
+    """`value` formatted by `spec` (with ` unit`), or MISSING for None, inf and nan."""
+    import math
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return MISSING
+    return f"{value:{spec}}" + (f" {unit}" if unit else "")
+
+
+def reached(t_end: float, horizon: float, step: float) -> str:
+    """'reached the horizon t = 5 s' when a run ended less than one step (of its output or sample grid) before its
+    horizon, which a grid that does not divide the horizon leaves (4.99829 s on 5 s), else 'reached t = 3.2 s'."""
+    if 0.0 <= horizon - t_end < step * (1 + 1e-9):
+        return f"reached the horizon t = {horizon:g} s"
+    return f"reached t = {t_end:g} s"

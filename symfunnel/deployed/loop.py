@@ -31,6 +31,7 @@ import casadi as ca
 import numpy as np
 
 from ..core.errors import InputError
+from ..core.text import reached
 from .cfun import _CFun, _compiled
 from ..simulation.between import margin_function
 
@@ -68,6 +69,11 @@ class SampledResult:
     between_margins: np.ndarray | None = None     # (K, 2n) per period the smallest true margins over its RK4 steps
     e1: np.ndarray | None = None                  # (K+1, n) tracking error at the samples
     joint_types: list | None = None               # the model's joint types: the metrics' units
+
+    def __repr__(self) -> str:
+        """Short: rate, status and samples (not the arrays; `summary()` has every figure)."""
+        return (f"SampledResult(scenario={self.scenario!r}, rate_hz={self.rate_hz:.6g}, status={self.status!r}, "
+                f"{max(self.t.size - 1, 0)} samples)")
 
     @property
     def ok(self) -> bool:
@@ -341,7 +347,7 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
         controller = step_library(design, files, on_build=say)
     controller.init()
     if engine != "symfunnel":
-        return _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, say)
+        return _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, say, T)
     plant = _compiled(plant_step_function(sc, subs, name=f"sfs_plant_{subs}_m", design=design), on_build=say)
     p_t, p_x, p_u = plant.inputs
     xf, mb = plant.outputs
@@ -359,7 +365,7 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
     stepf, sp, ptrs = controller.raw()
     pending = np.zeros(n)
     p_t[1] = h
-    status, message, k_end = "ok", f"reached t = {K * h:g} s inside both funnels", K
+    status, message, k_end = "ok", f"{reached(K * h, T, h)} inside both funnels", K
     outside = None
     start = time.perf_counter()
     if isinstance(controller, StepLibrary):
@@ -494,7 +500,7 @@ def _breach_hint(sc, design, impl, controller, breach, tt, Q, DQ, TAU, k: int) -
 _ENGINE_RC = {-100: "a plant force function failed", -101: "too many joints for the loop (at most 64)"}
 
 
-def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, say) -> SampledResult:
+def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, say, T=None) -> SampledResult:
     """simulate_sampled on a physics engine (deployed.engine): the same measurements, step and hold."""
     from .engine import EngineRunPlant, engine_setup, run_engine_loop
     if not isinstance(controller, StepLibrary):
@@ -518,7 +524,7 @@ def _engine_sampled(sc, design, impl, controller, K, h, stop_on_breach, plant, s
                           TAU=TAU, width=float(sc.simulation.smoothing_width), reference=ref, file=sc.file)
     wall = time.perf_counter() - start
     rc, k_end = out["rc"], out["k_end"]
-    status, message = "ok", f"reached t = {K * h:g} s inside both funnels"
+    status, message = "ok", f"{reached(K * h, K * h if T is None else T, h)} inside both funnels"
     if rc < 0 and rc != -102 and out["outside"] is None:
         status = "failed"
         message = (f"the step function returned {rc} at t = {k_end * h:g} s" if rc > -100

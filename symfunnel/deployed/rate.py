@@ -35,6 +35,7 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
              progress: Callable[[str], None] | None = None, engine: str | None = None) -> dict:
     """{"min_rate_hz": float | None, "margin", "tried": [{"rate_hz", "status", "min_margin", "holds"}], "engine"}
     on the plant `engine` (default the scenario's `[plant] engine`)."""
+    from ..core.text import number
     from .loop import simulate_sampled
     if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
         raise InputError(f"is {margin!r}", file=scenario.file, key="--margin", expected="a number in [0, 1)")
@@ -58,7 +59,8 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
         tried.append({"rate_hz": rate, "status": res.status, "min_margin": m if math.isfinite(m) else None,
                       "min_margin_after_transient": mt if math.isfinite(mt) else None,
                       "settle_time": res.stats.get("settle_time"), "holds": bool(ok)})
-        say(f"rate {rate:.6g} Hz: {res.status}, min margin after the transient {mt:.3g} (whole run {m:.3g}) -> "
+        say(f"rate {rate:.6g} Hz: {res.status}, min margin after the transient {number(mt, '.3g')} (whole run "
+            f"{number(m, '.3g')}) -> "
             f"{'holds' if ok else 'does not hold'}")
         if res.breach is not None and res.breach["time"] == 0.0 and "between_samples" not in res.breach:
             raise _OutsideAtStart(res.breach)

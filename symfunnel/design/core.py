@@ -38,6 +38,11 @@ class Design:
     mutant: str | None = None              # the seeded error this design carries (verify --mutants), if any
     _functions: dict = field(default_factory=dict, repr=False)
 
+    def __repr__(self) -> str:
+        """Short: the scenario and the signals' names (not their SX expressions)."""
+        mutant = "" if self.mutant is None else f", mutant={self.mutant!r}"
+        return f"Design(scenario={self.scenario.name!r}, {len(self.signals)} signals{mutant})"
+
     @property
     def n(self) -> int:
         """Number of joints."""

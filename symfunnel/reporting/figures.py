@@ -255,6 +255,12 @@ def weights(res, W_star=None) -> str:
     return fig
 
 
+def _claim_name(claim) -> str:
+    """A printed claim as a legend names it: the scenario's name of it ('theorem1'), never the object or its id."""
+    name = getattr(claim, "name", claim)
+    return str(name).removeprefix("claim.")
+
+
 @_with_rc
 def lyapunov_bound(L, res, claim: str | None = None) -> str:
     """V(t) with the integrated bound (and a printed decay claim's, when the scenario has one)."""
@@ -265,7 +271,7 @@ def lyapunov_bound(L, res, claim: str | None = None) -> str:
     ax.semilogy(t, B, color="C2", ls="--",
                 label=f"corrected bound, \u03c1 = {L.rho_const:.3g}, \u03b4 = {L.delta_max:.3g}")
     if claim and np.isfinite(L.rho_paper_const) and np.isfinite(L.delta_paper_const) and np.isfinite(Bp).any():
-        ax.semilogy(t, Bp, color="C3", ls=":", label=f"bound of the printed claim {claim}, \u03c1 = "
+        ax.semilogy(t, Bp, color="C3", ls=":", label=f"bound of the printed claim {_claim_name(claim)}, \u03c1 = "
                     f"{L.rho_paper_const:.3g}, \u03b4 = {L.delta_paper_const:.3g}")
     ax.set_title("Lyapunov function V(t) and V(0)e^(-\u03c1t) + (\u03b4/\u03c1)(1 - e^(-\u03c1t))", fontsize=10)
     ax.set_xlabel("t [s]")
@@ -284,11 +290,11 @@ def lyapunov_decay(L, res, claim: str | None = None) -> str:
     ax.plot(t, RC, color="C2", lw=1, label="-\u03c1V + \u03b4 (corrected, eq. 8)")
     printed = bool(claim) and np.isfinite(rp).any()
     if printed:
-        ax.plot(t, RP, color="C3", lw=1, ls=":", label=f"-\u03c1V + \u03b4 (printed claim {claim})")
+        ax.plot(t, RP, color="C3", lw=1, ls=":", label=f"-\u03c1V + \u03b4 (printed claim {_claim_name(claim)})")
     ax.plot(t, Vd, color="C0", lw=1, label="dV/dt (exact, AD along the flow)")
     bad = np.isfinite(L.V_dot) & np.isfinite(rp) & (L.V_dot > np.where(np.isfinite(rp), rp, np.inf))
     if printed and bad.any():
-        ax.plot(L.t[bad], L.V_dot[bad], "x", color="crimson", ms=6, label=f"{claim} violated")
+        ax.plot(L.t[bad], L.V_dot[bad], "x", color="crimson", ms=6, label=f"printed claim {_claim_name(claim)} violated")
     bad_c = np.isfinite(L.V_dot) & (L.V_dot > rc)
     if bad_c.any():
         ax.plot(L.t[bad_c], L.V_dot[bad_c], "o", mfc="none", color="crimson", ms=7,
@@ -314,7 +320,7 @@ def falsification(fz, bins: int = 40, claim: str | None = None) -> str:
     fig, axes = plt.subplots(2, 1, figsize=(8.0, 4.4), sharex=True)
     versions = [("rhs", "corrected (eq. 8)", "C2")]
     if claim and np.isfinite(np.asarray(a["rhs_paper"], float)).any():
-        versions.insert(0, ("rhs_paper", f"printed claim {claim}", "C3"))
+        versions.insert(0, ("rhs_paper", f"printed claim {_claim_name(claim)}", "C3"))
     for key, label, color in versions:
         m = np.asarray(a[key], float) - np.asarray(a["V_dot"], float)
         with np.errstate(invalid="ignore"):

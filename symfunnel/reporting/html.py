@@ -18,6 +18,8 @@ def environment():
                              trim_blocks=True, lstrip_blocks=True, undefined=jinja2.StrictUndefined)
     env.filters["fmt"] = fmt
     env.filters["detail"] = detail_html
+    from ..simulation.hints import status_text
+    env.filters["status_words"] = status_text       # a run's status in words ('initial_outside' is JSON's)
     return env
 
 

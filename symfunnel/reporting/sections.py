@@ -291,7 +291,8 @@ def simulation_section(v, progress, figures_dir=None) -> dict:
     if v.falsification is not None:
         add("falsification", "Falsification over sampled states", FIG.falsification, v.falsification, 40, claim)
     summ = res.summary()
-    stats = [("status", res.status), ("message", res.message),
+    from ..simulation.hints import status_text
+    stats = [("status", status_text(res.status)), ("message", res.message),
              ("simulated", f"{summ.get('t_end', 0):g} of {summ.get('t_final') or 0:g} s, {summ.get('points')} output points"),
              ("integrator", f"{summ.get('integrator')} ({summ.get('code')} code), steps {summ.get('steps')}, "
                             f"rhs evaluations {summ.get('rhs_evaluations')}"),

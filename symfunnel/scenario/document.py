@@ -194,6 +194,11 @@ class Scenario:
                                  "validates the changed document like the loader")
         object.__setattr__(self, name, value)
 
+    def __repr__(self) -> str:
+        """Short: the name, the file and the size (not the model, the expressions, every table)."""
+        return (f"Scenario({self.name!r}, file={str(self.path)!r}, {self.n} joints, "
+                f"t_final={self.simulation.t_final:g} s)")
+
     @property
     def n(self) -> int:
         """Number of joints."""

@@ -44,7 +44,8 @@ def _settle(design, T: float) -> tuple[float, str]:
     F = np.vstack([F1, F2])
     wide = np.any(F > (1.0 + SETTLE_BAND) * F[:, -1:], axis=0)
     idx = np.nonzero(wide)[0]
-    ts = 0.0 if idx.size == 0 else float(t[min(idx[-1] + 1, t.size - 1)])
+    # the grid's value as T k / (N - 1), correctly rounded (5.975, not linspace's 5.9750000000000005)
+    ts = 0.0 if idx.size == 0 else T * min(int(idx[-1]) + 1, t.size - 1) / (t.size - 1)
     return ts, f"funnels within {100 * SETTLE_BAND:g} % of their width at t = {T:g} s"
 
 

@@ -70,6 +70,12 @@ class SimResult:
             out.append((min(vals) if lowest else max(vals)) if vals else None)
         return out
 
+    def __repr__(self) -> str:
+        """Short: status, horizon and points (not the arrays; `summary()` has every figure)."""
+        t_end = float(self.t[-1]) if self.t.size else 0.0
+        return (f"SimResult(scenario={self.scenario!r}, status={self.status!r}, t_end={t_end:.6g} s, "
+                f"{self.t.size} points)")
+
     def summary(self) -> dict:
         """The JSON summary: margins, torque (both over the output points and the samples between them), ESN
         estimation error, wall time, integrator statistics."""

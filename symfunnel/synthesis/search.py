@@ -100,6 +100,11 @@ class TuneResult:
     comparison: dict = field(default_factory=dict)
     at_bounds: list[dict] = field(default_factory=list)
 
+    def __repr__(self) -> str:
+        """Short: status, method and evaluations (not the tuned file's text)."""
+        return (f"TuneResult(status={self.status!r}, method={self.method!r}, {self.evaluations} evaluations, "
+                f"changes={[c.get('key') for c in self.changes]})")
+
     def to_json(self) -> dict:
         """The `--json` output of the contract (plus details)."""
         from ..core.io import json_safe
