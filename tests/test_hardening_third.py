@@ -10,6 +10,7 @@ import pytest
 from symfunnel.pipeline import Run, RunOptions
 from symfunnel.scenario import load_scenario
 from symfunnel.scenario.load import from_dict
+from tests.test_hostile_second_pass import one_error
 
 
 def _paper_variant(tmp_path, **sections):
@@ -47,14 +48,6 @@ def _variant(tmp_path, old: str, new: str, name="v.toml"):
     p = tmp_path / name
     p.write_text(text.replace(old, new, 1))
     return p
-
-
-def one_error(capsys, *needles):
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("symfunnel: error: "), err
-    for n in needles:
-        assert n in err[0], err[0]
-    return err[0]
 
 
 @pytest.mark.parametrize("width, limit", [("1e6", "0.1"), ("0.5", "0.1"), ("0.11", "0.1")])
