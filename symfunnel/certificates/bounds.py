@@ -106,7 +106,7 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     elif invariant:
         m, m_source = float(inv.extra["m"]), "the margin the invariance certificate proves"
     else:
-        m, m_source = BOUNDS_MARGIN, "BOUNDS_MARGIN (no invariance certificate gives one)"
+        m, m_source = BOUNDS_MARGIN, "a stand-in margin: no certificate proves a set the loop stays in"
     states = {}
     w_source = None
     tau_max = None
@@ -217,7 +217,8 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
     if moved:
         extra["witnesses_moved_into_the_ball"] = moved
     text = "; ".join(f"{k}: " + ", ".join(f"[{e['lo']:.4g}, {e['hi']:.4g}]" for e in v) for k, v in encl.items())
-    head = f"on {'S' if S is not None else f'R_{m:g}'} ({m_source}) x the parameter box x the state boxes: {text}"
+    where = "the proven set S" if S is not None else f"the funnel region |e_i| <= (1 - {m:g}) F_i"
+    head = f"on {where} ({m_source}) x the parameter box x the state boxes: {text}"
     common = dict(region=region_info, boxes=boxes, seconds=time.monotonic() - t0,
                   method="interval range search (best-first, mean-value form in t, s, p; states as boxes)",
                   extra=extra, lower=float(max(abs_seen)), upper=float(max(abs_hi)))
@@ -242,7 +243,8 @@ def certify_bounds(ctx: Context, budget: Budget) -> Certificate:
                         # implementation.saturation measures it along the run)
                         extra["witness"] = ce
                         return Certificate(CID, "undecided", f"saturation not excluded: |tau_{j + 1}| = "
-                                           f"{abs(vals[j]):.6g} >= tau_max = {tau_max[j]:g} at a state of R_{m:g}, "
+                                           f"{abs(vals[j]):.6g} >= tau_max = {tau_max[j]:g} at a state of the "
+                                           f"funnel region with margin {m:g}, "
                                            "a region the closed loop is not proven to stay in (no invariance "
                                            "certificate), so no counterexample of the loop; " + head,
                                            undecided_fraction=1.0, **common)
