@@ -79,6 +79,13 @@ def _drop_cancelled(expr: ca.SX, nodes: ca.SX, restore: tuple[ca.SX, ca.SX] | No
     return e, ok
 
 
+#: operations CasADi differentiates as 0 (or as a step) although they are not constant: jumps and kinks
+_IRREGULAR = {getattr(ca, k): k[3:].lower() for k in ("OP_SIGN", "OP_FABS", "OP_FMIN", "OP_FMAX", "OP_FLOOR",
+                                                    "OP_CEIL", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ",
+                                                    "OP_NE", "OP_NOT", "OP_AND", "OP_OR", "OP_FMOD",
+                                                    "OP_REMAINDER", "OP_COPYSIGN")}
+
+
 def _enters_smoothly(e: ca.SX, A: ca.SX) -> bool:
     """Whether no operation CasADi differentiates as 0 although it is not constant (sign, floor, a comparison,
     min/max, abs...) takes an argument that depends on the symbols A, in the graph of e (a pass over its tape)."""
@@ -259,34 +266,22 @@ def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | Non
     return {"status": "proven", "boxes": boxes}
 
 
-#: operations of t that break the regularity the argument needs (q_d in C^2, F in C^1): jumps and kinks
-_IRREGULAR = {getattr(ca, k): k[3:].lower() for k in ("OP_SIGN", "OP_FABS", "OP_FMIN", "OP_FMAX", "OP_FLOOR",
-                                                    "OP_CEIL", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ",
-                                                    "OP_NE", "OP_NOT", "OP_AND", "OP_OR", "OP_FMOD",
-                                                    "OP_REMAINDER", "OP_COPYSIGN")}
-
-
 def regularity(ctx: Context) -> str | None:
-    """Why the argument cannot apply, or None: the reference and the funnels as SX of t must be free of jumps and
-    kinks (no sign, abs, min, max, floor, comparison... of t: the first-exit argument needs q_d in C^2 and F in C^1),
-    and each F_i_j must be > 0 on [0, T] (a rigorous lower bound by interval branch and bound)."""
-    from .region import scalar_range
-    d = ctx.design
-    t = d.sym["t"]
-    parts = {"reference.q": d.reference_t["qd"], "funnel.e1": d.signals["F1"], "funnel.e2": d.signals["F2"]}
-    for key, e in parts.items():
-        f = ca.Function("regularity", [t], [e])
-        ops = sorted({_IRREGULAR[f.instruction_id(k)] for k in range(f.n_instructions())
-                      if f.instruction_id(k) in _IRREGULAR})
-        if ops:
-            return (f"{key} uses {', '.join(ops)} of t: the argument needs q_d in C^2 and F in C^1 on [0, T], "
-                    "which a jump or kink breaks")
-    for key, name in (("funnel.e1", "F1"), ("funnel.e2", "F2")):
-        f = d.function(name, ["t"])
-        for j in range(d.n):
-            lo, _ = scalar_range(f, ctx.t_final, j)
-            if not lo > 0:
-                return f"{key}: F of joint {j + 1} is not proven > 0 on [0, {ctx.t_final:g}] (lower bound {lo:.3g})"
+    """Why the argument cannot apply, or None: the first-exit argument needs q_d in C^2 and F_i > 0 in C^1 on
+    [0, T]. That is the loader's proof (`scenario.regularity`: no jump or kink of t can switch on the horizon, F
+    proven positive), memoised per expression and horizon, asked again here so that a certificate never rests on a
+    scenario that reached it without that proof."""
+    from ..core.errors import InputError
+    from ..scenario.regularity import check_funnel_regular, check_reference_regular
+    sc = ctx.scenario
+    try:
+        check_reference_regular(sc.reference, ctx.t_final, file=sc.file)
+        for key, shape in sc.funnels.items():
+            check_funnel_regular(shape, ctx.t_final, file=sc.file,
+                                 key=f"funnel.{key}" + (".F" if "F" in shape.KEYS else ""))
+    except InputError as exc:
+        return (f"{exc.key}: {exc.reason} -- the argument needs q_d in C^2 and F in C^1 with F > 0 on "
+                f"[0, {ctx.t_final:g}]")
     return None
 
 
@@ -315,7 +310,6 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
     """certify.containment over the margins M1_GRID x M2_GRID."""
     t0 = time.monotonic()
     d, sc = ctx.design, ctx.scenario
-    n = d.n
 
     def done(status, detail, **kw):
         kw.setdefault("method", "Nagumo's condition on the faces of S by batched interval branch and bound "
@@ -347,7 +341,6 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
     rng = np.random.default_rng(45)
     tried, attempts, boxes = [], 0, 0
     last_undecided = None
-    share = budget.boxes
     w_of: dict[float, float] = {}          # the W_hat radius per c2 (sup ||G|| over S depends on the e2 margin)
     for m1, m2 in itertools.product(M1_GRID, M2_GRID):
         c1, c2 = 1.0 - m1, 1.0 - m2
