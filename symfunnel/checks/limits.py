@@ -32,21 +32,18 @@ def urdf_joint_limits(model) -> list[dict] | None:
         return None
     import pathlib
 
-    from ..core.inputs import read_input
     from ..model.tree import bodies_from_tree
+    from ..model.urdf import limit_attributes
     bodies = bodies_from_tree(model.tree)
     velocity: dict[str, float] = {}
     try:
-        root = ET.fromstring(read_input(pathlib.Path(model.tree.file), expected="a URDF file"))
-        for el in root.findall("joint"):
-            lim = el.find("limit")
-            v = None if lim is None else lim.get("velocity")
+        for name, v in limit_attributes(pathlib.Path(model.tree.file), "velocity").items():
             try:
                 fv = float(v) if v is not None else math.nan
             except ValueError:
                 fv = math.nan
             if math.isfinite(fv) and fv > 0:
-                velocity[el.get("name", "")] = fv
+                velocity[name] = fv
     except (ET.ParseError, OSError):
         pass
     return [{"name": b.joint.name, "lower": b.joint.lower, "upper": b.joint.upper,

@@ -217,19 +217,27 @@ def _parse_joint(el: ET.Element, file: str) -> Joint:
                  lower=lower, upper=upper, where=where)
 
 
+def limit_attributes(path: str | pathlib.Path, attr: str) -> dict[str, str | None]:
+    """Each joint's `<limit attr>` as the file writes it (the text; None where absent), by joint name: one reading
+    of the URDF's limits for the effort (the torque limit) and the velocity (`checks.limits`)."""
+    root = ET.fromstring(pathlib.Path(path).read_bytes())
+    out: dict[str, str | None] = {}
+    for el in root.findall("joint"):
+        lim = el.find("limit")
+        out[el.get("name", "")] = None if lim is None else lim.get(attr)
+    return out
+
+
 def effort_limits(path: str | pathlib.Path) -> list[float | None]:
     """Each movable joint's `<limit effort>` (N m or N) in the model's coordinate order; None where absent."""
     tree = parse_urdf(path)
-    root = ET.fromstring(pathlib.Path(path).read_bytes())
     effort: dict[str, float | None] = {}
-    for el in root.findall("joint"):
-        lim = el.find("limit")
-        value = None if lim is None else lim.get("effort")
+    for name, value in limit_attributes(path, "effort").items():
         try:
-            effort[el.get("name", "")] = None if value is None else float(value)
-            if value is not None and not (math.isfinite(effort[el.get("name", "")])):
+            effort[name] = None if value is None else float(value)
+            if value is not None and not (math.isfinite(effort[name])):
                 raise ValueError(value)
         except ValueError:
-            raise InputError(f"has effort '{value}'", file=str(path), key=f"joint[{el.get('name')}]/limit@effort",
+            raise InputError(f"has effort '{value}'", file=str(path), key=f"joint[{name}]/limit@effort",
                              expected="a finite number") from None
     return [effort.get(name) for name in movable_joint_names(tree)]
