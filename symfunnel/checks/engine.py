@@ -104,7 +104,7 @@ def check_engine_agreement(scenario, *, samples: int = SAMPLES, seed: int = 0,
         return (np.array(Cf(q, dq)) @ np.asarray(dq).reshape(-1, 1)).ravel() + np.array(Gf(q)).ravel()
     others = {}
     if scenario.model.kind == "urdf":
-        pin = _pinocchio(eng.notes.file, eng.names, scenario.model.gravity, eng.notes.held)
+        pin = _pinocchio(scenario.model.tree.file, eng.names, scenario.model.gravity, eng.notes.held)
         if pin is not None:
             others["pinocchio"] = pin
     a = scenario.audit

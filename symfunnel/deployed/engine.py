@@ -132,7 +132,7 @@ def engine_setup(scenario, on_build=None) -> EngineSetup:
     from ..plant.equations import plant_forces, plant_parameters
     from .cfun import _compiled
     mujoco = require_mujoco(file=scenario.file)
-    engine = load_engine(scenario.model, file=scenario.file)
+    engine = load_engine(scenario.model, file=scenario.file, mjcf=scenario.plant.mujoco.mjcf)
     names, p0 = plant_parameters(scenario)
     n = scenario.n
     q, dq, tau = ca.SX.sym("q", n), ca.SX.sym("dq", n), ca.SX.sym("tau", n)

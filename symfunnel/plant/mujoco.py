@@ -22,7 +22,9 @@ What is done to the robot description, and why (each is a MuJoCo convention that
   listed.
 * `<dynamics damping friction>` become MuJoCo's `dof_damping` and `dof_frictionloss`: dynamics of the engine that
   the controller's model does not have; kept unless `urdf_dynamics = false`, and always reported.
-* Joints are matched to symfunnel's coordinates by name (never by position).
+* Joints are matched to symfunnel's coordinates by name (never by position): MuJoCo orders a URDF's joints as
+  symfunnel does (depth-first, children in joint document order, fixed links fused in place), but a user's own
+  MJCF (`[plant.mujoco] mjcf`, plant.mjcf) orders them as it likes.
 
 MuJoCo's message for a file it refuses, a missing `mujoco` package and a model it cannot load are InputErrors
 (exit 2, one line). The engine's M and bias forces are read with `mj_fullM` (MuJoCo >= 4: `mjData.qM` is gone).
@@ -71,6 +73,7 @@ class EngineNotes:
     floored: dict[str, float] = field(default_factory=dict)  # link -> amount added to its smallest moments
     replaced_extension: bool = False                         # the URDF had a <mujoco> element of its own
     urdf_dynamics: dict[str, dict] = field(default_factory=dict)   # joint -> {"damping", "friction"} of the URDF
+    changed: list[str] = field(default_factory=list)         # what was changed in a user's MJCF (plant.mjcf)
 
     def lines(self) -> list[str]:
         """The notes as short sentences."""
@@ -87,6 +90,7 @@ class EngineNotes:
         if self.floored:
             out.append("zero principal moments raised for MuJoCo: " + ", ".join(
                 f"{k} (+{v:.2g} kg m^2)" for k, v in self.floored.items()))
+        out.extend(self.changed)
         if self.replaced_extension:
             out.append("the URDF's own <mujoco> element replaced by symfunnel's compiler and option settings")
         return out
@@ -340,14 +344,20 @@ class _Refused(Exception):
     pass
 
 
-def load_engine(model, *, file: str, timestep: float = 1e-3) -> Engine:
-    """The Engine of a scenario's RigidBodyModel (planar, dh or urdf; `file` is the scenario's, for messages)."""
+def load_engine(model, *, file: str, timestep: float = 1e-3, mjcf: str | None = None) -> Engine:
+    """The Engine of a scenario's RigidBodyModel (planar, dh or urdf; `file` is the scenario's, for messages): the
+    URDF read by MuJoCo, the MJCF written from the link tree, or the user's own MJCF `mjcf` ([plant.mujoco] mjcf)."""
     from .engines import check_engine_model
     check_engine_model(model, "mujoco", file=file, key=ENGINE_KEY)
     mujoco = require_mujoco(file=file)
     gravity = np.asarray(model.gravity, dtype=float)
     tree = model.tree
-    if model.kind == "urdf":
+    if mjcf is not None:
+        from .mjcf import load_mjcf
+        mj, changed = load_mjcf(mujoco, mjcf, gravity=gravity, timestep=timestep, flags=FLAGS, file=file)
+        notes = EngineNotes(source=f"the MJCF {Path(mjcf).name} (plant.mujoco.mjcf), joints matched by name",
+                            file=str(mjcf), changed=changed)
+    elif model.kind == "urdf":
         urdf = tree.file
         held = [j.name for j in tree.joints if j.type == "fixed"]     # fixed in the URDF or by model.fixed_joints
         try:
@@ -372,32 +382,52 @@ def load_engine(model, *, file: str, timestep: float = 1e-3) -> Engine:
             raise InputError(f"MuJoCo refuses the MJCF written from the model: {exc}", file=file,
                              key=ENGINE_KEY, expected="a model whose links MuJoCo accepts") from None
     from ..model.tree import bodies_from_tree
-    names = [b.joint.name for b in bodies_from_tree(tree)]
-    jid, qadr, dadr = [], [], []
-    hinge, slide = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
-    for nm in names:
-        j = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_JOINT, nm)
-        if j < 0 or int(mj.jnt_type[j]) not in (hinge, slide):
-            raise InputError(f"joint '{nm}' of the model is not a hinge or slide joint of the MuJoCo model",
-                             file=notes.file or file, key=ENGINE_KEY,
-                             expected="the same movable joints in MuJoCo as in symfunnel's model")
-        jid.append(j)
-        qadr.append(int(mj.jnt_qposadr[j]))
-        dadr.append(int(mj.jnt_dofadr[j]))
-    if mj.nv != len(names) or mj.nq != len(names):
-        raise InputError(f"the MuJoCo model has {mj.nv} degrees of freedom, symfunnel's {len(names)}",
-                         file=notes.file or file, key=ENGINE_KEY,
-                         expected="the same movable joints in MuJoCo as in symfunnel's model")
+    joints = [b.joint for b in bodies_from_tree(tree)]
+    names = [j.name for j in joints]
+    jid = joint_ids(mujoco, mj, joints, file=file, mjcf=mjcf, where=notes.file or file)
+    if mjcf is not None:
+        from .mjcf import check_axes
+        check_axes(mujoco, mj, tree, names, jid, mjcf=mjcf, file=file)
     mj.jnt_limited[:] = 0            # belt and braces next to the disabled limit flag
     mj.geom_contype[:] = 0
     mj.geom_conaffinity[:] = 0
-    mj.jnt_stiffness[:] = 0.0        # URDF has no joint springs; MJCF written here neither
+    mj.jnt_stiffness[:] = 0.0        # URDF has no joint springs; MJCF written here neither (a user's: noted)
     nominal = {k: np.array(getattr(mj, k), dtype=float) for k in
                ("body_mass", "body_inertia", "dof_damping", "dof_frictionloss", "dof_armature")}
-    eng = Engine(mj, names, np.array(qadr, dtype=np.int32), np.array(dadr, dtype=np.int32),
+    eng = Engine(mj, names, np.array([int(mj.jnt_qposadr[j]) for j in jid], dtype=np.int32),
+                 np.array([int(mj.jnt_dofadr[j]) for j in jid], dtype=np.int32),
                  np.array([int(mj.jnt_bodyid[j]) for j in jid], dtype=np.int32), notes, nominal)
     eng.configure()
     return eng
+
+
+def joint_ids(mujoco, mj, joints, *, file: str, mjcf=None, where: str = "") -> list[int]:
+    """MuJoCo's joint id of each of symfunnel's movable joints, in symfunnel's coordinate order, found by name
+    (never by position: MuJoCo's order is its own); each must be a hinge (revolute, continuous) or a slide
+    (prismatic) joint, and MuJoCo must have no other degree of freedom."""
+    want = {"prismatic": int(mujoco.mjtJoint.mjJNT_SLIDE)}
+    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    names = [j.name for j in joints]
+    jid = []
+    for jt in joints:
+        j = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_JOINT, jt.name)
+        if j < 0 or int(mj.jnt_type[j]) != want.get(jt.type, hinge):
+            if mjcf is not None:
+                from .mjcf import mjcf_joint_error
+                raise mjcf_joint_error(mujoco, mj, jt.name, j, names, mjcf=mjcf, file=file)
+            kind = "slide" if jt.type == "prismatic" else "hinge"
+            raise InputError(f"joint '{jt.name}' of the model is not a {kind} joint of the MuJoCo model",
+                             file=where or file, key=ENGINE_KEY,
+                             expected="the same movable joints in MuJoCo as in symfunnel's model")
+        jid.append(j)
+    if mj.nv != len(names) or mj.nq != len(names):
+        if mjcf is not None:
+            from .mjcf import mjcf_extra_error
+            raise mjcf_extra_error(mujoco, mj, names, mjcf=mjcf, file=file)
+        raise InputError(f"the MuJoCo model has {mj.nv} degrees of freedom, symfunnel's {len(names)}",
+                         file=where or file, key=ENGINE_KEY,
+                         expected="the same movable joints in MuJoCo as in symfunnel's model")
+    return jid
 
 
 # --- agreement of the engine with another model of the same robot -------------------------------------------------

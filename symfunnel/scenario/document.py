@@ -58,6 +58,7 @@ class MujocoSpec:
     substeps: int | None = None               # MuJoCo steps per sample period (None: timestep or the stability rule)
     timestep: float | None = None             # MuJoCo's step in s; must divide the sample period
     integrator: str = "implicitfast"          # MuJoCo's integrator: "implicitfast" or "RK4" (deployed.engine)
+    mjcf: str | None = None                   # the user's own MJCF of the robot (absolute path); None: the model's
 
 
 @dataclass

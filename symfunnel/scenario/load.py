@@ -127,7 +127,7 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
 
     esn = parse_esn(raw.get("esn", {}), file)
     x_esn0 = parse_x_esn0(init, esn.size, file)
-    plant = parse_plant(raw.get("plant", {}), n, file, model)
+    plant = parse_plant(raw.get("plant", {}), n, file, model, base_dir)
     sim = parse_simulation(raw.get("simulation", {}), file)
     check_smoothing_width(sim.smoothing_width, plant, file=file, key="simulation.smoothing_width")
     for i, w in enumerate(sim.convergence_widths):

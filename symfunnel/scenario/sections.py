@@ -156,7 +156,7 @@ def parse_esn(table: Any, file: str) -> ESNSpec:
     )
 
 
-def parse_plant(table: Any, n: int, file: str, model) -> PlantSpec:
+def parse_plant(table: Any, n: int, file: str, model, base_dir: Path | None = None) -> PlantSpec:
     p = "plant"
     V.check_keys(table, ["viscous", "coulomb", "disturbance", "dead_zone", "mass_scale", "parameters", "coriolis",
                          "disturbance_scale", "engine", "mujoco"], file=file, prefix=p)
@@ -164,7 +164,7 @@ def parse_plant(table: Any, n: int, file: str, model) -> PlantSpec:
     ENGINES.get(engine, file=file, key="plant.engine")
     if engine != "symfunnel":
         check_engine_model(model, engine, file=file, key="plant.engine")
-    mujoco = parse_mujoco(table.get("mujoco", {}), n, file)
+    mujoco = parse_mujoco(table.get("mujoco", {}), n, file, base_dir)
     coriolis = V.get_str(table, "coriolis", "christoffel", file=file, prefix=p, choices=["christoffel", "model"])
     viscous = V.per_joint(table, "viscous", n, 0.0, file=file, prefix=p, minimum=0)
     coulomb = V.per_joint(table, "coulomb", n, 0.0, file=file, prefix=p, minimum=0)
@@ -195,15 +195,25 @@ def parse_plant(table: Any, n: int, file: str, model) -> PlantSpec:
 
 
 #: the keys of `[plant.mujoco]`
-MUJOCO_KEYS = ["mass_scale", "damping", "armature", "urdf_dynamics", "substeps", "timestep", "integrator"]
+MUJOCO_KEYS = ["mass_scale", "damping", "armature", "urdf_dynamics", "substeps", "timestep", "integrator", "mjcf"]
 #: MuJoCo's integrators the engine loop offers (deployed.engine says how each treats the friction)
 MUJOCO_INTEGRATORS = ["implicitfast", "RK4"]
 
 
-def parse_mujoco(table: Any, n: int, file: str) -> MujocoSpec:
-    """`[plant.mujoco]`: engine-only mass scale, damping and armature per joint, the URDF's joint dynamics, the step."""
+def parse_mujoco(table: Any, n: int, file: str, base_dir: Path | None = None) -> MujocoSpec:
+    """`[plant.mujoco]`: engine-only mass scale, damping and armature per joint, the URDF's joint dynamics, the step,
+    and the user's own MJCF of the robot (a path relative to the scenario's directory, checked to exist)."""
     p = "plant.mujoco"
     V.check_keys(table, MUJOCO_KEYS, file=file, prefix=p)
+    mjcf = None
+    if "mjcf" in table:
+        rel = V.get_str(table, "mjcf", "", file=file, prefix=p)
+        path = Path(base_dir if base_dir is not None else ".") / rel
+        if not path.is_file():
+            raise InputError(f"MJCF file '{path}' does not exist", file=file, key=p + ".mjcf",
+                             expected="a path to an MJCF file of the robot, relative to the scenario file's "
+                                      "directory")
+        mjcf = str(path.resolve())
     if "substeps" in table and "timestep" in table:
         raise InputError("is given together with plant.mujoco.timestep", file=file, key=p + ".substeps",
                          expected="either substeps (MuJoCo steps per sample period) or timestep, not both")
@@ -218,7 +228,7 @@ def parse_mujoco(table: Any, n: int, file: str) -> MujocoSpec:
         timestep=V.get_float(table, "timestep", None, file=file, prefix=p, minimum=0, strict_min=True, maximum=1.0)
         if "timestep" in table else None,
         integrator=V.get_str(table, "integrator", MujocoSpec.integrator, file=file, prefix=p,
-                             choices=MUJOCO_INTEGRATORS))
+                             choices=MUJOCO_INTEGRATORS), mjcf=mjcf)
 
 
 def parse_simulation(table: Any, file: str) -> SimulationSpec:
