@@ -94,6 +94,8 @@ def test_engine_agreement_on_the_reordered_mjcf_and_a_positional_mutant_fails(tm
     c = check_engine_agreement(sc)
     assert c.status == "pass" and c.value <= 1e-12, c.detail
     assert "the MJCF mjorder.xml (plant.mujoco.mjcf)" in c.detail
+    p = c.evidence["others"]["pinocchio"]          # the third opinion reads the model's URDF, not the MJCF
+    assert max(p["M"], p["bias"], p["M_vs_engine"], p["bias_vs_engine"]) < 1e-12
     positional(monkeypatch)
     bad = check_engine_agreement(load_scenario(scenario_file(tmp_path)))
     assert bad.status == "fail" and bad.value > 0.1, bad.detail
