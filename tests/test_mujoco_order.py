@@ -194,3 +194,51 @@ def test_an_mjcf_with_the_wrong_gravity_and_fluid_gets_the_models_world(tmp_path
     assert c.status == "pass" and c.value <= 1e-12, c.detail
     notes = " ".join(c.evidence["notes"])
     assert "gravity (0, 0, -1.62) replaced" in notes and "density, viscosity" in notes
+
+
+def _link(name: str, k: int) -> str:
+    m = 0.5 + 0.3 * k
+    return (f'<link name="{name}"><inertial><origin xyz="{0.05 + 0.01 * k} 0.02 {0.03 * k}"/><mass value="{m}"/>'
+            f'<inertia ixx="{0.01 + 0.001 * k}" iyy="0.012" izz="0.013" ixy="0.001" ixz="0" iyz="0"/>'
+            '</inertial></link>')
+
+
+def _joint(name: str, parent: str, child: str, kind: str = "revolute", axis: str = "0 1 0") -> str:
+    tail = "" if kind == "fixed" else f'<axis xyz="{axis}"/><limit lower="-2" upper="2" effort="10" velocity="3"/>'
+    return (f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
+            f'<origin xyz="0.1 0 0.2" rpy="0.3 0 0"/>{tail}</joint>')
+
+
+#: URDF trees where MuJoCo's order could plausibly differ from symfunnel's (MuJoCo 4.0.1: it never does)
+TREES = {
+    "fixed link first, its child fused in place": (
+        ["base", "f", "la", "lb"], [("jf", "base", "f", "fixed"), ("ja", "base", "la"), ("jb", "f", "lb")]),
+    "fused between siblings, deep branch": (
+        ["base", "l1", "f", "la", "lb", "lc"],
+        [("j1", "base", "l1", "revolute", "0 0 1"), ("jf", "l1", "f", "fixed"), ("ja", "l1", "la"),
+         ("jb", "f", "lb"), ("jc", "lb", "lc")]),
+    "links reversed, joints before their parent's": (
+        ["lc", "lb", "la", "l1", "base"],
+        [("jc", "la", "lc"), ("jb", "l1", "lb"), ("j1", "base", "l1", "revolute", "0 0 1"), ("ja", "l1", "la")]),
+}
+
+
+@pytest.mark.parametrize("tree", sorted(TREES))
+def test_urdf_trees_declared_out_of_order_agree_whatever_order_mujoco_gives(tmp_path, tree):
+    """MuJoCo reads these URDFs itself; whatever its joint order (today symfunnel's), the engine's M and C dq + G
+    equal symfunnel's at random states."""
+    import casadi as ca
+
+    from symfunnel.model.urdf import build_urdf
+    links, joints = TREES[tree]
+    (tmp_path / "t.urdf").write_text('<robot name="t">' + "".join(_link(n, k) for k, n in enumerate(links))
+                                     + "".join(_joint(*j) for j in joints) + "</robot>")
+    model = build_urdf({"type": "urdf", "path": "t.urdf"}, file="s.toml", base_dir=tmp_path)
+    eng = load_engine(model, file="s.toml")
+    assert sorted(mujoco_order(eng.model)) == sorted(eng.names) == sorted(j[0] for j in joints if len(j) == 3
+                                                                         or j[3] != "fixed")
+    Mf = ca.Function("M", [model.q], [model.numeric(model.M)])
+    bf = ca.Function("b", [model.q, model.dq], [model.numeric(ca.mtimes(model.C, model.dq) + model.G)])
+    r = plant_mujoco.agreement(eng, lambda q: np.array(Mf(q)), lambda q, dq: np.array(bf(q, dq)).ravel(),
+                               -2.0, 2.0, 2.0, samples=30)
+    assert r["value"] <= 1e-12, r
