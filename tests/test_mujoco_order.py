@@ -242,3 +242,28 @@ def test_urdf_trees_declared_out_of_order_agree_whatever_order_mujoco_gives(tmp_
     r = plant_mujoco.agreement(eng, lambda q: np.array(Mf(q)), lambda q, dq: np.array(bf(q, dq)).ravel(),
                                -2.0, 2.0, 2.0, samples=30)
     assert r["value"] <= 1e-12, r
+
+
+def test_per_joint_engine_settings_reach_the_namesake_joint_in_the_reordered_mjcf(monkeypatch):
+    """[plant.mujoco] mass_scale, damping and armature per coordinate: the MJCF engine (MuJoCo order s, b, a, c) and
+    the URDF engine (symfunnel's order) give the same M (armature on its diagonal) and engine-only lists; mapped by
+    position, the slider's mass scale lands on the arm."""
+    model = load_scenario_model()
+    settings = {"mass_scale": [1.0, 1.5, 1.0, 2.0], "damping": [0.1, 0.2, 0.3, 0.4],
+                "armature": [0.01, 0.02, 0.03, 0.04]}
+    rng = np.random.default_rng(3)
+    states = [(rng.uniform(-1, 1, 4), rng.uniform(-1, 1, 4)) for _ in range(10)]
+
+    def matrices(eng):
+        eng.configure(**settings)
+        data = mujoco.MjData(eng.model)
+        return [eng.mass_and_bias(data, q, dq) for q, dq in states], eng.engine_only()
+
+    urdf, urdf_only = matrices(load_engine(model, file="s.toml"))
+    mine, mine_only = matrices(load_engine(model, file="s.toml", mjcf=str(DATA / "mjorder.xml")))
+    assert mine_only == urdf_only == {"damping": settings["damping"], "armature": settings["armature"]}
+    for (Mu, bu), (Mm, bm) in zip(urdf, mine):
+        assert np.abs(Mm - Mu).max() <= 1e-12 * np.abs(Mu).max() and np.abs(bm - bu).max() <= 1e-12 * np.abs(bu).max()
+    positional(monkeypatch)
+    bad, _ = matrices(load_engine(model, file="s.toml", mjcf=str(DATA / "mjorder.xml")))
+    assert max(np.abs(Mb - Mu).max() / np.abs(Mu).max() for (Mu, _), (Mb, _) in zip(urdf, bad)) > 0.01
