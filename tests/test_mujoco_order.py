@@ -185,6 +185,20 @@ def test_a_missing_mjcf_file_exits_2_in_one_line(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "plant.mujoco.mjcf" in err and "nowhere.xml" in err
 
 
+def test_the_mjcf_is_an_input_of_the_scenario_and_a_directory_is_refused(tmp_path, capsys):
+    """Scenario.inputs (a campaign's fingerprint) holds the MJCF's sha256; a directory named as the MJCF: one line."""
+    import hashlib
+    sc = load_scenario(scenario_file(tmp_path))
+    xml = str((tmp_path / "mjorder.xml").resolve())
+    assert sc.inputs[xml] == hashlib.sha256((tmp_path / "mjorder.xml").read_bytes()).hexdigest()
+    p = tmp_path / "s.toml"
+    (tmp_path / "dir.xml").mkdir()
+    p.write_text(p.read_text().replace('mjcf = "mjorder.xml"', 'mjcf = "dir.xml"'))
+    assert main(["simulate", str(p), "--plant", "mujoco", "--rate", "2000", "--t-final", "0.1", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "plant.mujoco.mjcf" in err and "is a directory" in err
+
+
 def test_an_mjcf_with_the_wrong_gravity_and_fluid_gets_the_models_world(tmp_path):
     """The MJCF's own gravity and fluid forces are replaced by the scenario's world (and said so): agreement holds."""
     text = (DATA / "mjorder.xml").read_text().replace(

@@ -209,10 +209,13 @@ def parse_mujoco(table: Any, n: int, file: str, base_dir: Path | None = None) ->
     if "mjcf" in table:
         rel = V.get_str(table, "mjcf", "", file=file, prefix=p)
         path = Path(base_dir if base_dir is not None else ".") / rel
-        if not path.is_file():
-            raise InputError(f"MJCF file '{path}' does not exist", file=file, key=p + ".mjcf",
+        from ..core.inputs import read_input
+        try:        # read here so that a campaign's fingerprint covers it (Scenario.inputs); MuJoCo reads it again
+            read_input(path, expected="an MJCF file")
+        except InputError as exc:
+            raise InputError(f"MJCF file '{path}': {exc.reason}", file=file, key=p + ".mjcf",
                              expected="a path to an MJCF file of the robot, relative to the scenario file's "
-                                      "directory")
+                                      "directory") from None
         mjcf = str(path.resolve())
     if "substeps" in table and "timestep" in table:
         raise InputError("is given together with plant.mujoco.timestep", file=file, key=p + ".substeps",
