@@ -281,3 +281,18 @@ def test_per_joint_engine_settings_reach_the_namesake_joint_in_the_reordered_mjc
     positional(monkeypatch)
     bad, _ = matrices(load_engine(model, file="s.toml", mjcf=str(DATA / "mjorder.xml")))
     assert max(np.abs(Mb - Mu).max() / np.abs(Mu).max() for (Mu, _), (Mb, _) in zip(urdf, bad)) > 0.01
+
+
+def test_a_sweep_on_the_mjcf_engine_writes_a_worst_case_that_replays(tmp_path, capsys):
+    """`sweep --plant mujoco` over the engine's mass scale on the MJCF; its worst.toml (in the output directory)
+    names the MJCF by its absolute path, as it does the URDF, so `simulate worst.toml --plant mujoco` replays it."""
+    p = scenario_file(tmp_path, extra='\n[implementation]\nrate_hz = 2000.0\n\n[[uncertainty]]\n'
+                      'key = "plant.mujoco.mass_scale"\ndist = "uniform"\nlow = 1.0\nhigh = 1.5\n\n'
+                      '[sweep]\nruns = 2\nt_final = 0.2\n')
+    out = tmp_path / "sw"
+    assert main(["sweep", str(p), "--workers", "1", "--plant", "mujoco", "--out", str(out), "-q"]) == 0
+    assert f'mjcf = "{(tmp_path / "mjorder.xml").resolve()}"' in (out / "worst.toml").read_text()
+    capsys.readouterr()
+    assert main(["simulate", str(out / "worst.toml"), "--plant", "mujoco", "--json", "-q"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["engine"] == "mujoco" and "mjorder.xml" in s["engine_notes"][0] and s["rate_hz"] == 2000.0

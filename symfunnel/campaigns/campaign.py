@@ -439,6 +439,9 @@ def worst_scenario(job: Job, campaign, run: int, n: int) -> str:
     model = raw.get("model", {})
     if isinstance(model.get("path"), str):
         model["path"] = str((Path(job.base_dir) / model["path"]).resolve())
+    mj = raw.get("plant", {}).get("mujoco", {})
+    if isinstance(mj, dict) and isinstance(mj.get("mjcf"), str):     # the user's MJCF, like the URDF
+        mj["mjcf"] = str((Path(job.base_dir) / mj["mjcf"]).resolve())
     raw["name"] = f"{job.name}-worst"[:64]
     raw["title"] = f"{raw.get('title', job.name)} - worst run {run} of a sweep"
     raw.setdefault("simulation", {})["t_final"] = float(job.t_final)
