@@ -296,3 +296,17 @@ def test_a_sweep_on_the_mjcf_engine_writes_a_worst_case_that_replays(tmp_path, c
     assert main(["simulate", str(out / "worst.toml"), "--plant", "mujoco", "--json", "-q"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["engine"] == "mujoco" and "mjorder.xml" in s["engine_notes"][0] and s["rate_hz"] == 2000.0
+
+
+def test_init_from_a_scenario_with_an_mjcf_names_it_where_it_is(tmp_path):
+    """`init --from` copies the URDF beside the output but names the MJCF by its full path (it may include files
+    relative to itself): the copy in another directory loads and reads the same MJCF (before: exit 2 at its key)."""
+    src = scenario_file(tmp_path)
+    (tmp_path / "elsewhere").mkdir()
+    out = tmp_path / "elsewhere" / "copy.toml"
+    assert main(["init", "--from", str(src), "--out", str(out), "-q"]) == 0
+    import tomllib
+    load_scenario(str(out))
+    named = tomllib.loads(out.read_text())["plant"]["mujoco"]["mjcf"]
+    assert Path(named) == (tmp_path / "mjorder.xml").resolve()
+    assert (tmp_path / "elsewhere" / "mjorder.urdf").is_file()

@@ -79,6 +79,10 @@ def copied_scenario(source: str, out: Path) -> tuple[str, list[tuple[Path, str]]
         if Path(path).name != path:
             text = _repoint(text, path, Path(path).name)
         extra.append((copy, data))
+    mjcf = ((tomllib.loads(text).get("plant") or {}).get("mujoco") or {}).get("mjcf")
+    if isinstance(mjcf, str) and not Path(mjcf).is_absolute():
+        # an MJCF may include files and meshes relative to itself: the copy names it where it is, not a copy of it
+        text = _repoint(text, mjcf, str((src.parent / mjcf).resolve()), key="mjcf", why="the MJCF of")
     origin = f"the built-in scenario '{source}'" if source in BUILTIN else f"{_toml_text(str(src))}"
     day = datetime.date.today().isoformat()
     head = (f"# Copied by `symfunnel init --from {_toml_text(source)}` from {origin} ({sc.name}) on {day}.\n"
@@ -94,19 +98,19 @@ def _same_text(path: Path, data: str) -> bool:
         return False
 
 
-def _repoint(text: str, old: str, new: str) -> str:
-    """The scenario text with its [model] path = old rewritten to new (the copy's own, beside it)."""
+def _repoint(text: str, old: str, new: str, *, key: str = "path", why: str = "copied beside this file from") -> str:
+    """The scenario text with its `key = old` rewritten to new (the copy beside it, or the original's full path)."""
     import re
     import tomllib
     lines = text.split("\n")
     for i, line in enumerate(lines):
-        if re.match(r"\s*path\s*=", line):
+        if re.match(rf"\s*{key}\s*=", line):
             try:
-                value = tomllib.loads(line)["path"]
+                value = tomllib.loads(line)[key]
             except (tomllib.TOMLDecodeError, KeyError):
                 continue
             if value == old:
-                lines[i] = f'path = "{_toml_text(new)}"' + "          # copied beside this file from " + _toml_text(old)
+                lines[i] = f'{key} = "{_toml_text(new)}"' + f"          # {why} " + _toml_text(old)
                 return "\n".join(lines)
     return text
 
