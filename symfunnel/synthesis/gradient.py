@@ -50,6 +50,10 @@ STALL_ITER = 3
 #: time (which made the result depend on the machine's speed), without the stall stop
 PREVIOUS = {"tolerance": PREVIOUS_TOLERANCE, "polish_iter": 15, "coarse_wall_share": 0.5, "stall": False}
 CURRENT = {"tolerance": TOLERANCE, "polish_iter": POLISH_ITER, "coarse_wall_share": 1.0, "stall": True}
+#: the coarse first pass: IPOPT over this fraction of the horizon (and of the grid) first, then over the whole
+#: horizon from its result; the transient, where the paper's peak torque and narrowest margins are, is at the start,
+#: and a fifth of the horizon costs about a fifth of the sensitivities
+COARSE_FRACTION = 0.25
 
 
 def schedule() -> dict:
@@ -57,10 +61,6 @@ def schedule() -> dict:
     measures both in one run)."""
     import os
     return PREVIOUS if os.environ.get("SYMFUNNEL_TUNE_PATH", "").strip().lower() == "previous" else CURRENT
-#: the coarse first pass: IPOPT over this fraction of the horizon (and of the grid) first, then over the whole
-#: horizon from its result; the transient, where the paper's peak torque and narrowest margins are, is at the start,
-#: and a fifth of the horizon costs about a fifth of the sensitivities
-COARSE_FRACTION = 0.25
 
 
 def ipopt_available() -> bool:
