@@ -4,6 +4,8 @@ bench.simulate.against_previous runs this path and the previous one in fresh pro
 same CVODES step counts: the changes they compare are copies and heap settings, not arithmetic);
 bench.implementation.w_as_loops generates the C pair with W x as loops, and leaves the generator as it was."""
 
+import pytest
+
 from symfunnel.bench.simulate import against_previous
 
 
@@ -23,3 +25,23 @@ def test_w_as_loops_is_the_loop_form_and_restores_the_generator(paper_design):
     now = generate(paper_design, "c", rate_hz=1000.0)["symfunnel_controller.c"]
     assert ESN.UNROLL_W_MAX == before
     assert "sk_xdot_Wx[247]" in loops and "sk_xdot_Wx[" not in now
+
+
+@pytest.mark.slow
+def test_cli_tune_runs_both_schedules_in_fresh_processes(tmp_path):
+    """bench.tune.cli_tune (tune.paper_default_wall_s): each schedule's tune in its own process, its --json and the
+    CPU of the process and its IPOPT child; a short horizon and one evaluation keep it cheap."""
+    import copy
+
+    from symfunnel.bench.tune import cli_tune
+    from symfunnel.core.toml_write import dumps
+    from symfunnel.scenario import load_scenario
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["simulation"]["t_final"] = 0.3
+    raw["tune"] = {"parameters": ["controller.k2"]}
+    src = tmp_path / "s.toml"
+    src.write_text(dumps(raw), encoding="utf-8")
+    for path in ("", "previous"):
+        r = cli_tune(path, str(tmp_path / f"out{path}.toml"), ("--max-evals", "1"), scenario=str(src))
+        assert r["rc"] in (0, 1) and r["json"]["status"] in ("ok", "infeasible"), r
+        assert r["cpu_s"] > 0 and r["wall_s"] > 0 and r["json"]["method"].startswith("gradient")

@@ -90,10 +90,14 @@ def test_the_coarse_pass_runs_first_on_a_quarter_of_the_horizon(tmp_path):
     assert problem(tmp_path, t_final=0.5, grid=40, coarse=None)[2].coarse is None
 
 
-def test_the_polish_after_a_feasible_coarse_result_is_short_and_never_worse(tmp_path, monkeypatch):
-    """A coarse result that meets the whole horizon's constraints is only polished: at most POLISH_ITER IPOPT
-    iterations, warm-started, and the result's peak is never above the coarse result's on the whole horizon."""
-    from symfunnel.synthesis.gradient import POLISH_ITER, GradientProblem
+@pytest.mark.parametrize("path", ["now", "previous"])
+def test_the_polish_after_a_feasible_coarse_result_is_short_and_never_worse(tmp_path, monkeypatch, path):
+    """A coarse result that meets the whole horizon's constraints is only polished: at most the schedule's
+    polish_iter IPOPT iterations (POLISH_ITER = 0 now: none, the coarse result is the answer; 15 on the previous
+    schedule), warm-started, and the result's peak is never above the coarse result's on the whole horizon."""
+    from symfunnel.synthesis.gradient import PREVIOUS, POLISH_ITER, GradientProblem
+    monkeypatch.setenv("SYMFUNNEL_TUNE_PATH", "previous" if path == "previous" else "")
+    polish_iter = PREVIOUS["polish_iter"] if path == "previous" else POLISH_ITER
     sc, vs, gp = problem(tmp_path, t_final=0.5, grid=40)
     z0 = np.array([v.z_of(v.user_x()) for v in vs])
     runs = []
@@ -104,12 +108,17 @@ def test_the_polish_after_a_feasible_coarse_result_is_short_and_never_worse(tmp_
         runs.append({"T": self.T, "z0": np.array(z, float), "max_iter": kw["max_iter"], "warm": kw["warm"], **r})
         return r
     monkeypatch.setattr(GradientProblem, "_solve", spy)
-    r = gp.solve(z0, objective="peak_torque", ref=500.0, wall_s=120.0, max_iter=POLISH_ITER + 5)
-    coarse, polish = runs
-    assert coarse["T"] == pytest.approx(0.125) and coarse["max_iter"] == POLISH_ITER + 5 and not coarse["warm"]
-    assert polish["T"] == pytest.approx(0.5) and polish["warm"] and polish["max_iter"] == POLISH_ITER
+    r = gp.solve(z0, objective="peak_torque", ref=500.0, wall_s=120.0, max_iter=20)
+    coarse = runs[0]
+    assert coarse["T"] == pytest.approx(0.125) and coarse["max_iter"] == 20 and not coarse["warm"]
+    if polish_iter == 0:
+        assert len(runs) == 1 and r["iterations"] == 0 and np.array_equal(r["z"], coarse["z"])
+        assert np.min(np.asarray(gp.g(r["z"]))) >= 0                      # why it was not polished
+        return
+    polish = runs[1]
+    assert polish["T"] == pytest.approx(0.5) and polish["warm"] and polish["max_iter"] == polish_iter
     assert np.min(np.asarray(gp.g(polish["z0"]))) >= 0                    # why it was only polished
-    assert r["iterations"] <= POLISH_ITER
+    assert r["iterations"] <= polish_iter
     peak = lambda z: float(np.max(np.abs(np.asarray(gp.figures(z)[0]))))  # noqa: E731
     assert peak(r["z"]) <= peak(polish["z0"]) * 1.01
 

@@ -8,6 +8,10 @@ simulation of the printed design; target <= 60 s, with the CPU time of the proce
 `tune.paper_max_evals_10_wall_s`: the built-in paper as a user first tunes it (`symfunnel tune --max-evals 10`,
 method auto (IPOPT on the paper, chosen by the problem's size), default 240 s limit: `within_limit`,
 `lowers_peak_torque`), beside one continuous-time simulation of it.
+`tune.paper_default_wall_s` (issue 43): `symfunnel tune paper` as a user first runs it (default method and limit, a
+fresh process, the compiled DAE already cached), beside the same command on the previous schedule
+(`SYMFUNNEL_TUNE_PATH=previous`, `synthesis.gradient.PREVIOUS`) in the same run: wall and CPU time of each (the
+process and its IPOPT child), ratios previous / now; target <= 60 s wall.
 Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
 """
 
@@ -21,6 +25,7 @@ from ._result import result
 
 TARGET_S = 300.0
 GRADIENT_TARGET_S = 60.0       # issue 24: the gradient path on the paper without [implementation]
+DEFAULT_TARGET_S = 60.0        # issue 43: `symfunnel tune` on the paper, default method and limit
 
 
 def scenario(t_final: float | None = None, sampled: bool = True):
@@ -91,11 +96,77 @@ def run(progress) -> list[dict]:
                       method=r.method, evaluations=r.evaluations, objective=r.objective, gate=r.gate["status"],
                       lowers_peak_torque=bool(r.objective["after"] is not None and r.objective["before"] is not None
                                               and r.objective["after"] < r.objective["before"])))
+    out.append(paper_default(progress))
     return out
+
+
+def cli_tune(env_path: str, out_file: str, extra: tuple = (), scenario: str = "paper") -> dict:
+    """`symfunnel tune SCENARIO --json --out FILE` in a fresh process on the schedule `env_path` ("" now, "previous"):
+    {"wall_s", "cpu_s" (the process and its waited-for children), "json" (its --json output or None), "rc"}."""
+    import json
+    import subprocess
+    import sys
+    env = {**os.environ, "SYMFUNNEL_TUNE_PATH": env_path}
+    c0, t0 = _children_cpu(), time.perf_counter()
+    p = subprocess.run([sys.executable, "-m", "symfunnel", "tune", scenario, "--json", "--out", out_file, *extra],
+                       capture_output=True, text=True, env=env)
+    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+    try:
+        js = json.loads(p.stdout)
+    except ValueError:
+        js = None
+    return {"wall_s": wall, "cpu_s": cpu, "json": js, "rc": p.returncode}
+
+
+def paper_default(progress) -> dict:
+    """`tune.paper_default_wall_s`: the default tune of the paper now and on the previous schedule, in one run."""
+    import tempfile
+    from pathlib import Path
+    _warm_compile(progress)
+    runs = {}
+    with tempfile.TemporaryDirectory(prefix="symfunnel-bench-tune-") as tmp:
+        for label, path in (("now", ""), ("previous", "previous")):
+            progress(f"tune: symfunnel tune paper (defaults), schedule {label}")
+            runs[label] = cli_tune(path, str(Path(tmp, f"{label}.toml")))
+    now, prev = runs["now"], runs["previous"]
+    js = now["json"] or {}
+    pj = prev["json"] or {}
+    return result("tune.paper_default_wall_s", now["wall_s"], "s",
+                  "the same command on the previous schedule (SYMFUNNEL_TUNE_PATH=previous)", prev["wall_s"],
+                  prev["wall_s"] / now["wall_s"], cpu_s=now["cpu_s"], baseline_cpu_s=prev["cpu_s"],
+                  cpu_ratio=prev["cpu_s"] / now["cpu_s"] if now["cpu_s"] > 0 else None,
+                  target_s=DEFAULT_TARGET_S, meets_target=bool(now["wall_s"] <= DEFAULT_TARGET_S),
+                  meets_target_cpu=bool(now["cpu_s"] <= DEFAULT_TARGET_S), status=js.get("status"),
+                  gate=(js.get("gate") or {}).get("status"), objective=js.get("objective"),
+                  evaluations=js.get("evaluations"), baseline_status=pj.get("status"),
+                  baseline_objective=pj.get("objective"), exit_codes=[now["rc"], prev["rc"]])
+
+
+def _warm_compile(progress) -> None:
+    """Build (and cache) the paper's sensitivity DAE before either timed run, so that neither pays the first compile."""
+    import warnings
+
+    from ..scenario import load_scenario
+    from ..scenario.tune import TuneSpec
+    from ..synthesis.candidates import variables
+    from ..synthesis.gradient import GradientProblem
+    progress("tune: compiling the paper's sensitivity DAE once (cached) before the timed runs")
+    sc = load_scenario("paper")
+    spec = sc.tune or TuneSpec()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        GradientProblem(sc, spec, variables(sc, spec), t_final=1.0, coarse=None, grid_points=10)
+
+
+def _children_cpu() -> float:
+    """CPU seconds of this process's waited-for children (and theirs)."""
+    import resource
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ch.ru_utime + ch.ru_stime
 
 
 def _cpu_with_children() -> float:
     """CPU seconds of this process plus its waited-for children (IPOPT runs in a killable child)."""
     import resource
-    me, ch = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return me.ru_utime + me.ru_stime + ch.ru_utime + ch.ru_stime
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    return me.ru_utime + me.ru_stime + _children_cpu()
