@@ -23,3 +23,14 @@ def test_w_as_loops_is_the_loop_form_and_restores_the_generator(paper_design):
     now = generate(paper_design, "c", rate_hz=1000.0)["symfunnel_controller.c"]
     assert ESN.UNROLL_W_MAX == before
     assert "sk_xdot_Wx[247]" in loops and "sk_xdot_Wx[" not in now
+
+
+def test_c_loop_vs_python_runs_both_loops_on_the_same_trajectory(paper_run):
+    """simulate.cpu_per_run's baseline: the Python loop over the same driver, the same steps as the C loop, and the
+    switch left as it was."""
+    from symfunnel.bench.simulate import PERTURBATIONS, c_loop_vs_python
+    from symfunnel.simulation import crun
+    r = c_loop_vs_python(paper_run.scenario, paper_run.design, paper_run.closed_loop, 0.5, rounds=1)
+    assert len(r["c"]) == len(r["python"]) == len(PERTURBATIONS)
+    assert r["steps_c"] == r["steps_python"] and min(r["steps_c"]) > 50
+    assert r["paired_ratio"] > 0 and crun.RUN_IN_C is True
