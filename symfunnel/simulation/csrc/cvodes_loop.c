@@ -60,13 +60,15 @@ static double sf_now(void) {
   return (double) ts.tv_sec + 1e-9 * (double) ts.tv_nsec;
 }
 
-/* A growable scratch array */
+/* A growable scratch array; growing it drops its contents (no caller keeps them across a larger request, and
+ * realloc's copy of the old contents was 1.6 % of the paper run) */
 typedef struct { double *v; size_t cap; } sf_buf;
 static double *sf_need(sf_buf *b, size_t n) {
   if (n > b->cap) {
-    double *v = realloc(b->v, (n > 0 ? n : 1) * sizeof(double));
-    if (!v) return 0;
-    b->v = v;
+    free(b->v);
+    b->cap = 0;
+    b->v = malloc((n > 0 ? n : 1) * sizeof(double));
+    if (!b->v) return 0;
     b->cap = n;
   }
   return b->v;
