@@ -112,6 +112,16 @@ def test_the_c_loop_is_the_python_loop_bit_for_bit(which, tmp_path, monkeypatch)
     _assert_same(a, b)
 
 
+def test_a_history_too_large_to_keep_is_integrated_again_in_c(monkeypatch):
+    """A chunk whose kept steps pass HISTORY_BYTES is integrated again on its dense grid (runner.py's fallback), in
+    C as in Python: the same run, and no chunk handed back (arm7's 20 s run has such a chunk at t = 11.25 s)."""
+    from symfunnel.simulation import sundials
+    monkeypatch.setattr(sundials, "HISTORY_BYTES", 2e5)
+    a, b, calls = _both(load_scenario("paper"), 1.0, monkeypatch)
+    assert a.ok and [rc for rc, _ in calls] == [crun.DONE], calls
+    _assert_same(a, b)
+
+
 def test_the_comparison_sees_a_changed_run(tmp_path, monkeypatch):
     """Not vacuous: a C loop refining on another number of points gives another run."""
     sc, tf = _scenario("dip", tmp_path)

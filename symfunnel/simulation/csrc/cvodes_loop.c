@@ -60,6 +60,8 @@ static double sf_now(void) {
   return (double) ts.tv_sec + 1e-9 * (double) ts.tv_nsec;
 }
 
+typedef char sf_long_fits_a_double[sizeof(long) <= sizeof(double) ? 1 : -1];  /* index arrays in sf_buf */
+
 /* A growable scratch array; growing it drops its contents (no caller keeps them across a larger request, and
  * realloc's copy of the old contents was 1.6 % of the paper run) */
 typedef struct { double *v; size_t cap; } sf_buf;
@@ -207,6 +209,22 @@ static double sf_fmin(double a, double b) {
   return b < a ? b : a;
 }
 
+/* order[0..n-1] sorted by key[order[i]], equal keys in their given order (numpy's stable argsort): a bottom-up
+ * merge sort, tmp n entries of scratch */
+static void sf_stable_sort(const double *key, long *order, long *tmp, long n) {
+  long width, i, *src = order, *dst = tmp, *t;
+  for (width = 1; width < n; width *= 2) {
+    for (i = 0; i < n; i += 2 * width) {
+      long a = i, mid = i + width < n ? i + width : n, end = i + 2 * width < n ? i + 2 * width : n, b = mid, o = i;
+      while (a < mid && b < end) dst[o++] = key[src[b]] < key[src[a]] ? src[b++] : src[a++];
+      while (a < mid) dst[o++] = src[a++];
+      while (b < end) dst[o++] = src[b++];
+    }
+    t = src; src = dst; dst = t;
+  }
+  if (src != order) memcpy(order, src, (size_t) n * sizeof(long));
+}
+
 /* searchsorted(tc, v, "left"): the number of tc below v */
 static long sf_left(const double *tc, int K, double v) {
   long lo = 0, hi = K;
@@ -314,7 +332,18 @@ static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_
       double c0 = sf_now();
       int rc = sf_sample(L->cv, (int) nin, rel, Xb + (size_t) (s - 1) * nx);
       L->integ += sf_now() - c0;
-      if (rc) return 1;                  /* the kept steps did not fit: the Python loop integrates again */
+      if (rc) {                          /* the kept steps did not fit in memory: the chunk integrated again on */
+        long nd = (long) Kc * s - (s - 1), d;   /* the dense grid (Runner.grid(Kc, h, s)), its inner points kept */
+        double *gd = sf_need(&w->tg, (size_t) nd), *Xd = sf_need(&w->Xg, (size_t) nd * nx);
+        if (!gd || !Xd) return -1;
+        for (i = 0, d = 0; i < Kc; ++i) {
+          gd[d++] = h * (double) (i + 1);
+          for (j = 1; j < s && i + 1 < Kc; ++j) gd[d++] = rel[(size_t) i * (s - 1) + (j - 1)];
+        }
+        if (sf_integrate(L, t0, x, (int) nd, gd, Xd, xp, 0, 0)) { nb = 0; goto sorted; }
+        for (d = 0, i = 0; d < nd; ++d)
+          if (d % s) memcpy(Xb + (size_t) (s - 1 + i++) * nx, Xd + (size_t) d * nx, (size_t) nx * sizeof(double));
+      }
     }
     for (i = 0; i < s; ++i) g1[i] = hs * (double) (i + 1);
     if (sf_integrate(L, t0, x, s, g1, X1, xp, 0, 0) == 0) nfirst = s - 1;
@@ -328,6 +357,7 @@ static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_
   } else {
     nb = 0;
   }
+sorted:
   /* tc, and every sample in time order (a stable sort of [tc; tb]: nearly sorted, so insertion) */
   Ta = Kc + nb;
   tc = t_out + row;
@@ -342,13 +372,11 @@ static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_
     double *key = sf_need(&w->tg, (size_t) Ta + 1);
     long a, b2;
     if (!key) return -1;
+    long *tmp = (long *) (void *) sf_need(&w->Xr, (size_t) Ta + 1);
+    if (!tmp) return -1;
     for (a = 0; a < Ta; ++a) { key[a] = a < Kc ? tc[a] : tb[a - Kc]; order[a] = a; }
-    for (a = 1; a < Ta; ++a) {           /* stable: an equal time keeps its place after the earlier entry */
-      long o = order[a];
-      double v = key[o];
-      for (b2 = a; b2 > 0 && key[order[b2 - 1]] > v; --b2) order[b2] = order[b2 - 1];
-      order[b2] = o;
-    }
+    sf_stable_sort(key, order, tmp, Ta);
+    (void) b2;
     memcpy(Xa, x, (size_t) nx * sizeof(double));          /* Xg = [x; samples in time order]; Xa = Xg + nx */
     for (a = 0; a < Ta; ++a) {
       long o = order[a];
