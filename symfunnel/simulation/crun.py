@@ -140,5 +140,7 @@ class CLoop:
         for name, m in zip(OUTPUT_NAMES, self.nnz):
             O[name] = np.array(O_out[off:off + rows * m].reshape(m, rows).T[:done], order="F")
             off += rows * m
-        return Advance(rc=int(rc), t=t_out[:done], X=X_out[:done], O=O, k=int(state[0]), K=int(state[1]),
+        if done < rows:              # a call that stopped early: copies, so that the rows not written are freed
+            t_out, X_out = t_out[:done].copy(), X_out[:done].copy()
+        return Advance(rc=int(rc), t=t_out, X=X_out, O=O, k=int(state[0]), K=int(state[1]),
                        sub=int(state[2]), x=xs, lowest=float(fstate[0]))
