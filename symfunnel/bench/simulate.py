@@ -103,54 +103,48 @@ def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
     return {"cpu": cpu, "wall": wall, "steps": steps}
 
 
+def alternated(sc, d, cl, t_final: float, module, flag: str, rounds: int = 2) -> dict:
+    """CPU and wall seconds and CVODES steps per run with the module switch `module.<flag>` on (True) and off
+    (False), the two interleaved over the perturbed runs in this process (the switch as it was afterwards), and
+    their paired ratio (off / on)."""
+    from ..simulation import simulate
+    old = getattr(module, flag)
+    cpu, wall, steps = ({True: [], False: []} for _ in range(3))
+    try:
+        for k in range(rounds):
+            for eps in PERTURBATIONS:
+                for on in ((True, False) if k % 2 else (False, True)):
+                    setattr(module, flag, on)
+                    c0, t0 = time.process_time(), time.perf_counter()
+                    r = simulate(sc, d, t_final=t_final, closed_loop=cl,
+                                 params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
+                    cpu[on].append(time.process_time() - c0)
+                    wall[on].append(time.perf_counter() - t0)
+                    steps[on].append(int(r.stats.get("steps") or 0))
+    finally:
+        setattr(module, flag, old)
+    ratio = np.array(cpu[False]) / np.array(cpu[True])
+    return {"cpu": cpu, "wall": wall, "steps": steps, "paired_ratio": float(np.median(ratio))}
+
+
 def c_loop_vs_python(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
     """CPU and wall seconds per run with the chunks in C (`simulation.crun`) and with the Python loop (the previous
     path), interleaved over the perturbed runs in this process; their paired ratio (Python / C)."""
     from ..simulation import crun
-    from ..simulation import simulate
-    old = crun.RUN_IN_C
-    cpu = {True: [], False: []}
-    wall = {True: [], False: []}
-    steps = {True: [], False: []}
-    try:
-        for k in range(rounds):
-            for eps in PERTURBATIONS:
-                for flag in ((True, False) if k % 2 else (False, True)):
-                    crun.RUN_IN_C = flag
-                    c0, t0 = time.process_time(), time.perf_counter()
-                    r = simulate(sc, d, t_final=t_final, closed_loop=cl,
-                                 params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
-                    cpu[flag].append(time.process_time() - c0)
-                    wall[flag].append(time.perf_counter() - t0)
-                    steps[flag].append(int(r.stats.get("steps") or 0))
-    finally:
-        crun.RUN_IN_C = old
-    ratio = np.array(cpu[False]) / np.array(cpu[True])
+    r = alternated(sc, d, cl, t_final, crun, "RUN_IN_C", rounds)
+    cpu, wall, steps = r["cpu"], r["wall"], r["steps"]
     return {"c": cpu[True], "python": cpu[False], "wall_c": wall[True], "wall_python": wall[False],
             "steps_c": steps[True], "steps_python": steps[False], "median_c": float(np.median(cpu[True])),
-            "median_python": float(np.median(cpu[False])), "paired_ratio": float(np.median(ratio))}
+            "median_python": float(np.median(cpu[False])), "paired_ratio": r["paired_ratio"]}
 
 
 def samples_from_steps(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
     """CPU seconds per run with the samples between output points taken from the kept steps and with a chunk
-    integrated again instead (`runner.SAMPLE_FROM_STEPS`), interleaved over the perturbed runs; their paired ratio."""
+    integrated again instead (`runner.SAMPLE_FROM_STEPS`; the C loop runs only with it on), interleaved over the
+    perturbed runs; their paired ratio."""
     from ..simulation import runner as runner_mod
-    from ..simulation import simulate
-    old = runner_mod.SAMPLE_FROM_STEPS
-    cpu = {True: [], False: []}
-    try:
-        for k in range(rounds):
-            for eps in PERTURBATIONS:
-                for flag in ((True, False) if k % 2 else (False, True)):
-                    runner_mod.SAMPLE_FROM_STEPS = flag
-                    c0 = time.process_time()
-                    simulate(sc, d, t_final=t_final, closed_loop=cl,
-                             params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
-                    cpu[flag].append(time.process_time() - c0)
-    finally:
-        runner_mod.SAMPLE_FROM_STEPS = old
-    ratio = np.array(cpu[False]) / np.array(cpu[True])
-    return {"with": cpu[True], "without": cpu[False], "paired_ratio": float(np.median(ratio))}
+    r = alternated(sc, d, cl, t_final, runner_mod, "SAMPLE_FROM_STEPS", rounds)
+    return {"with": r["cpu"][True], "without": r["cpu"][False], "paired_ratio": r["paired_ratio"]}
 
 
 def _process_seconds(cmd: list[str], env: dict, repeats: int = 3) -> dict:
