@@ -299,7 +299,7 @@ static int sf_refine(sf_loop *L, sf_work *w, sf_between *B, double t_a, const do
 /* One chunk from (k, x) of Kc output points: 0 kept (its outputs written at row `row` of the run's arrays), 1 handed
  * over, -1 out of memory. */
 static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_between *B, double *lowest,
-                    int *sub, long *unchecked, long *steps_out, double *t_out, double *X_out, double *O_out,
+                    int *sub, long *unchecked, double *t_out, double *X_out, double *O_out,
                     sf_cint rows, sf_cint row) {
   int nx = L->nx, n = L->n, i, j, c, s, nsteps = 0, BM = L->ints[I_BETWEEN_MAX], Kn, used;
   double h = L->reals[R_H], t0 = (double) k * h, hs;
@@ -310,7 +310,6 @@ static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_
   if (!grid || !X || !xp) return -1;
   for (i = 0; i < Kc; ++i) grid[i] = h * (double) (i + 1);
   if (sf_integrate(L, t0, x, Kc, grid, X, xp, 1, &nsteps)) return 1;
-  *steps_out = nsteps;
   memcpy(L->chunk, L->stats, sizeof L->chunk);      /* the run counts this integration only */
   s = sf_density(nsteps, Kc, BM);
   if (*sub > s) s = *sub;
@@ -370,13 +369,12 @@ sorted:
   if (!ta || !order || !Xa || !O) return -1;
   {
     double *key = sf_need(&w->tg, (size_t) Ta + 1);
-    long a, b2;
+    long a;
     if (!key) return -1;
     long *tmp = (long *) (void *) sf_need(&w->Xr, (size_t) Ta + 1);
     if (!tmp) return -1;
     for (a = 0; a < Ta; ++a) { key[a] = a < Kc ? tc[a] : tb[a - Kc]; order[a] = a; }
     sf_stable_sort(key, order, tmp, Ta);
-    (void) b2;
     memcpy(Xa, x, (size_t) nx * sizeof(double));          /* Xg = [x; samples in time order]; Xa = Xg + nx */
     for (a = 0; a < Ta; ++a) {
       long o = order[a];
@@ -561,13 +559,13 @@ int sf_loop_run(void *handle, void *outputs, void *margins, const int *ints, con
     double c0 = sf_now(), elapsed = reals[R_ELAPSED0] + (c0 - start), lowest = fstate[0], spent, per_point,
         remaining;
     int Kc = (int) (K < M - k ? K : M - k), sub_new = sub, r;
-    long steps = 0, unch = unchecked;
+    long unch = unchecked;
     if (elapsed > reals[R_LIMIT]) { rc = SF_LOOP_TIMEOUT; break; }
     if (c0 - start > reals[R_SLICE]) { rc = SF_LOOP_SLICE; break; }
     if (row + Kc > rows) { rc = SF_LOOP_HANDOVER; break; }
     memcpy(bkeep, between, (size_t) 7 * n * sizeof(double));
     Bkeep = B;
-    r = sf_chunk(&L, &w, k, Kc, x, &B, &lowest, &sub_new, &unch, &steps, t_out, X_out, O_out, rows, row);
+    r = sf_chunk(&L, &w, k, Kc, x, &B, &lowest, &sub_new, &unch, t_out, X_out, O_out, rows, row);
     if (r) {                                  /* nothing of the chunk is kept */
       memcpy(between, bkeep, (size_t) 7 * n * sizeof(double));
       B = Bkeep;
@@ -575,7 +573,6 @@ int sf_loop_run(void *handle, void *outputs, void *margins, const int *ints, con
       break;
     }
     stats[0] += L.chunk[0]; stats[1] += L.chunk[1]; stats[2] += L.chunk[6]; stats[3] += L.chunk[3];
-    (void) steps;
     fstate[0] = lowest;
     sub = sub_new;
     unchecked = unch;
