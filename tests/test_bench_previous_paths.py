@@ -45,3 +45,14 @@ def test_cli_tune_runs_both_schedules_in_fresh_processes(tmp_path):
         r = cli_tune(path, str(tmp_path / f"out{path}.toml"), ("--max-evals", "1"), scenario=str(src))
         assert r["rc"] in (0, 1) and r["json"]["status"] in ("ok", "infeasible"), r
         assert r["cpu_s"] > 0 and r["wall_s"] > 0 and r["json"]["method"].startswith("gradient")
+
+
+def test_c_loop_vs_python_runs_both_loops_on_the_same_trajectory(paper_run):
+    """simulate.cpu_per_run's baseline: the Python loop over the same driver, the same steps as the C loop, and the
+    switch left as it was."""
+    from symfunnel.bench.simulate import PERTURBATIONS, c_loop_vs_python
+    from symfunnel.simulation import crun
+    r = c_loop_vs_python(paper_run.scenario, paper_run.design, paper_run.closed_loop, 0.5, rounds=1)
+    assert len(r["c"]) == len(r["python"]) == len(PERTURBATIONS)
+    assert r["steps_c"] == r["steps_python"] and min(r["steps_c"]) > 50
+    assert r["paired_ratio"] > 0 and crun.RUN_IN_C is True

@@ -10,8 +10,10 @@ casadi.integrator with CSparse, interleaved in the same process; the median over
 one run is one draw) and `simulate.cli_wall_s` (wall time of `symfunnel simulate paper` in a fresh process with a
 warm compile cache and bytecode cache, CPU time beside; baseline: a process that only imports numpy and casadi).
 `simulate.cpu_per_run_vs_previous` (the same perturbed 20 s paper runs in a fresh process, against the previous
-path -- glibc's default heap thresholds, the states permuted by numpy -- in another, the two alternated) and
+path -- the chunks run by the Python loop, `simulation.crun` off -- in another, the two alternated) and
 `simulate.arm7_cpu_per_sim_s` (CPU seconds per simulated second of arm7's 20 s run, the same two paths alternated).
+`simulate.cpu_per_run` and `simulate.realtime_factor` carry the previous path (the Python loop over the same C
+driver, interleaved with the C loop in the same process) beside them: its CPU per run and the paired ratio.
 """
 
 from __future__ import annotations
@@ -29,8 +31,8 @@ import numpy as np
 
 from ._result import result
 
-#: Targets of issue 24.
-TARGET_CPU_PER_RUN = 0.07
+#: Targets of issue 43 (issue 24's CPU per run was 0.07).
+TARGET_CPU_PER_RUN = 0.045
 TARGET_REALTIME = 400.0
 TARGET_CLI_S = 1.0
 #: relative changes of the plant's mass the CPU-per-run median runs over (rounding level: the same run)
@@ -101,26 +103,48 @@ def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
     return {"cpu": cpu, "wall": wall, "steps": steps}
 
 
-def samples_from_steps(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
-    """CPU seconds per run with the samples between output points taken from the kept steps and with a chunk
-    integrated again instead (`runner.SAMPLE_FROM_STEPS`), interleaved over the perturbed runs; their paired ratio."""
-    from ..simulation import runner as runner_mod
+def alternated(sc, d, cl, t_final: float, module, flag: str, rounds: int = 2) -> dict:
+    """CPU and wall seconds and CVODES steps per run with the module switch `module.<flag>` on (True) and off
+    (False), the two interleaved over the perturbed runs in this process (the switch as it was afterwards), and
+    their paired ratio (off / on)."""
     from ..simulation import simulate
-    old = runner_mod.SAMPLE_FROM_STEPS
-    cpu = {True: [], False: []}
+    old = getattr(module, flag)
+    cpu, wall, steps = ({True: [], False: []} for _ in range(3))
     try:
         for k in range(rounds):
             for eps in PERTURBATIONS:
-                for flag in ((True, False) if k % 2 else (False, True)):
-                    runner_mod.SAMPLE_FROM_STEPS = flag
-                    c0 = time.process_time()
-                    simulate(sc, d, t_final=t_final, closed_loop=cl,
-                             params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
-                    cpu[flag].append(time.process_time() - c0)
+                for on in ((True, False) if k % 2 else (False, True)):
+                    setattr(module, flag, on)
+                    c0, t0 = time.process_time(), time.perf_counter()
+                    r = simulate(sc, d, t_final=t_final, closed_loop=cl,
+                                 params={"plant.mass_scale": float(sc.plant.mass_scale) * (1 + eps)})
+                    cpu[on].append(time.process_time() - c0)
+                    wall[on].append(time.perf_counter() - t0)
+                    steps[on].append(int(r.stats.get("steps") or 0))
     finally:
-        runner_mod.SAMPLE_FROM_STEPS = old
+        setattr(module, flag, old)
     ratio = np.array(cpu[False]) / np.array(cpu[True])
-    return {"with": cpu[True], "without": cpu[False], "paired_ratio": float(np.median(ratio))}
+    return {"cpu": cpu, "wall": wall, "steps": steps, "paired_ratio": float(np.median(ratio))}
+
+
+def c_loop_vs_python(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """CPU and wall seconds per run with the chunks in C (`simulation.crun`) and with the Python loop (the previous
+    path), interleaved over the perturbed runs in this process; their paired ratio (Python / C)."""
+    from ..simulation import crun
+    r = alternated(sc, d, cl, t_final, crun, "RUN_IN_C", rounds)
+    cpu, wall, steps = r["cpu"], r["wall"], r["steps"]
+    return {"c": cpu[True], "python": cpu[False], "wall_c": wall[True], "wall_python": wall[False],
+            "steps_c": steps[True], "steps_python": steps[False], "median_c": float(np.median(cpu[True])),
+            "median_python": float(np.median(cpu[False])), "paired_ratio": r["paired_ratio"]}
+
+
+def samples_from_steps(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """CPU seconds per run with the samples between output points taken from the kept steps and with a chunk
+    integrated again instead (`runner.SAMPLE_FROM_STEPS`; the C loop runs only with it on), interleaved over the
+    perturbed runs; their paired ratio."""
+    from ..simulation import runner as runner_mod
+    r = alternated(sc, d, cl, t_final, runner_mod, "SAMPLE_FROM_STEPS", rounds)
+    return {"with": r["cpu"][True], "without": r["cpu"][False], "paired_ratio": r["paired_ratio"]}
 
 
 def _process_seconds(cmd: list[str], env: dict, repeats: int = 3) -> dict:
@@ -154,8 +178,8 @@ def cli_seconds() -> dict:
 _CHILD = """
 import json, sys, time
 if sys.argv[4] == "1":
-    import symfunnel.simulation.runner as runner
-    runner.PUBLIC_ORDER_IN_C = False
+    import symfunnel.simulation.crun as crun
+    crun.RUN_IN_C = False
 from symfunnel.pipeline import Run
 from symfunnel.simulation import simulate
 pr = Run.load(sys.argv[1])
@@ -172,15 +196,14 @@ print(json.dumps({"cpu": cpu, "steps": steps, "status": r.status}))
 
 
 def against_previous(scenario: str, t_final: float, perturbations=PERTURBATIONS, rounds: int = 2) -> dict:
-    """CPU per run of this path and of the previous one (`_CHILD`; $SYMFUNNEL_KEEP_HEAP=0 and
-    runner.PUBLIC_ORDER_IN_C off), each in fresh processes alternated over `rounds` (glibc's heap settings are
-    per process); their medians and paired ratios (previous / this)."""
+    """CPU per run of this path and of the previous one (`_CHILD`: the chunks in the Python loop, crun.RUN_IN_C
+    off), each in fresh processes alternated over `rounds`; their medians and paired ratios (previous / this)."""
     import json
     out = {"this": [], "previous": [], "steps_this": [], "steps_previous": []}
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
     for k in range(rounds):
         for prev in ((False, True) if k % 2 == 0 else (True, False)):
-            e = dict(env, SYMFUNNEL_KEEP_HEAP="0" if prev else "1")
+            e = dict(env, SYMFUNNEL_KEEP_HEAP="1")
             proc = subprocess.run([sys.executable, "-c", _CHILD, scenario, repr(t_final),
                                    json.dumps(list(perturbations)), "1" if prev else "0"], env=e,
                                   capture_output=True, text=True, timeout=1200)
@@ -216,9 +239,12 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
         sims.append(r.stats["sim_wall_time"])
         integ.append(r.stats["integrate_time"])
     wall = float(np.median(walls))
-    say("simulate: CPU per run, direct CVODES backend and casadi.integrator, interleaved")
+    say("simulate: CPU per run, the chunks in C and in the Python loop, interleaved")
+    with _cvodes_backend("direct"):
+        loops = c_loop_vs_python(sc, d, cl, tf)
+    say("simulate: CPU per run, direct CVODES backend and casadi.integrator")
     direct, casadi_ = cpu_per_run(sc, d, cl, tf, "direct"), cpu_per_run(sc, d, cl, tf, "casadi")
-    cpu_d, cpu_c = float(np.median(direct["cpu"])), float(np.median(casadi_["cpu"]))
+    cpu_d, cpu_c = loops["median_c"], float(np.median(casadi_["cpu"]))
     say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
     with _cvodes_backend("direct"):
         sfs = samples_from_steps(sc, d, cl, tf)
@@ -246,13 +272,20 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     return [
         result("simulate.realtime_factor", tf / wall, "s/s", "scipy solve_ivp BDF, numpy RHS", tf / base_wall,
                None, realtime_factor_cpu=tf / cpu_d, target=TARGET_REALTIME,
+               previous_path="the chunks in the Python loop (same process, interleaved)",
+               previous_realtime_factor_cpu=tf / loops["median_python"], paired_ratio_vs_previous=loops["paired_ratio"],
                meets_target=bool(tf / wall >= TARGET_REALTIME), meets_target_cpu=bool(tf / cpu_d >= TARGET_REALTIME),
                note="wall clock (a loaded machine stretches it); realtime_factor_cpu: simulated s per CPU s", **info),
-        result("simulate.cpu_per_run", cpu_d, "CPU s", "casadi.integrator (CSparse), same runs", cpu_c,
-               cpu_c / cpu_d, target=TARGET_CPU_PER_RUN, meets_target=bool(cpu_d <= TARGET_CPU_PER_RUN),
+        result("simulate.cpu_per_run", cpu_d, "CPU s",
+               "the previous path: the chunks in the Python loop, same runs interleaved", loops["median_python"],
+               loops["paired_ratio"], target=TARGET_CPU_PER_RUN, meets_target=bool(cpu_d <= TARGET_CPU_PER_RUN),
+               cpu_c_loop=loops["c"], cpu_python_loop=loops["python"], steps_c_loop=loops["steps_c"],
+               steps_python_loop=loops["steps_python"], casadi_integrator_cpu=cpu_c,
+               ratio_vs_casadi_integrator=cpu_c / cpu_d,
+               note="ratio: median of the paired ratios, Python loop / C loop (same perturbation, same round)",
                **cpu_info),
         result("simulate.cpu_per_run_vs_previous", prev["median_this"], "CPU s",
-               "the previous path (default heap thresholds, states permuted by numpy), fresh processes alternated",
+               "the previous path (the chunks in the Python loop), fresh processes alternated",
                prev["median_previous"], prev["paired_ratio"], t_final=tf, cpu_this=prev["this"],
                cpu_previous=prev["previous"], steps_this=prev["steps_this"], steps_previous=prev["steps_previous"],
                realtime_factor_cpu=tf / prev["median_this"], target=TARGET_CPU_PER_RUN,

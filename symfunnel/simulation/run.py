@@ -20,6 +20,7 @@ from .between import (BETWEEN_MAX, MAX_REFINED_PER_CHUNK, SCAN_DIP, Between, Mar
                       refine_peaks, scan_dips)
 from .breach import bad_index, describe_breach, locate_failure, locate_within
 from .compiled import APPROX_ESN_JACOBIAN, compile_closed_loop, evaluate_outputs
+from .crun import SLICE, TIMEOUT, CLoop
 from .heap import keep_heap
 from .result import SimResult, finish, ok_message
 from .runner import Runner, Timeout
@@ -205,10 +206,28 @@ def simulate(scenario: Scenario, design: Design, *, t_final: float | None = None
     between = Between(n)
     lowest = float(np.min(np.fmin(o0["m1"], o0["m2"])))      # the smallest margin sampled so far
     mscan = MarginScan(comp, cl.slices, cl.design)
+    cloop = CLoop.for_run(runner, comp, cl, CHUNK_SIZES)
     last_report = sim_start
     with deadline.paused():                    # the loop stops at `limit` itself, keeping the trajectory
         try:
             while k < M:
+                if cloop is not None:          # the chunks that end without a stop, in C (`crun`)
+                    adv = cloop.advance(k=k, K=K, sub=sub, x=x, lowest=lowest, between=between, M=M, h=h,
+                                        tf=float(tf), limit=limit, elapsed=time.perf_counter() - start,
+                                        fixed=fixed_chunks)
+                    if adv.t.size:
+                        t_list.append(adv.t)
+                        X_list.append(adv.X)
+                        O_list.append(adv.O)
+                        k, x = adv.k, adv.x
+                    K, sub, lowest = adv.K, adv.sub, adv.lowest
+                    if adv.rc == TIMEOUT:
+                        raise Timeout()
+                    if adv.rc == SLICE:
+                        say(f"t = {k * h:.3g} / {tf:g} s")
+                        continue
+                    if k >= M:
+                        break
                 Kc = min(K, M - k)
                 t0 = k * h
                 elapsed = time.perf_counter() - start

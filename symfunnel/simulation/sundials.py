@@ -31,7 +31,7 @@ BACKENDS = ("direct", "casadi")
 #: the most memory one chunk's step history may take (the paper's 500-point chunks: ~12 MB)
 HISTORY_BYTES = 256e6
 DRIVER_FLAGS = ("-std=c99", "-O2", "-fPIC", "-shared")
-_SOURCES = ("cvodes_driver.c", "cvodes_mem.h")
+_SOURCES = ("cvodes_driver.c", "cvodes_loop.c", "cvodes_mem.h")
 _REASON: list[str] = []
 
 
@@ -61,7 +61,8 @@ def driver_library() -> ctypes.CDLL | None:
     libs = (f"-L{d}", "-l:libcasadi_integrator_cvodes.so", "-l:libcasadi_sundials_common.so", f"-Wl,-rpath,{d}",
             "-lm")
     try:
-        built = compile_cached(src, ["cvodes_driver.c"], "symfunnel_cvodes.so", DRIVER_FLAGS, libs=libs)
+        built = compile_cached(src, ["cvodes_driver.c", "cvodes_loop.c"], "symfunnel_cvodes.so", DRIVER_FLAGS,
+                               libs=libs)
         lib = ctypes.CDLL(str(built.path))
     except (OSError, RuntimeError) as exc:
         from .hints import error_line
@@ -88,6 +89,9 @@ def driver_library() -> ctypes.CDLL | None:
     lib.sf_max_growth.argtypes = [vp]
     lib.sf_factor_solve.restype = ctypes.c_int
     lib.sf_factor_solve.argtypes = [vp, dp, ctypes.c_double, dp]
+    lp = ctypes.POINTER(ctypes.c_long)
+    lib.sf_loop_run.restype = ctypes.c_int
+    lib.sf_loop_run.argtypes = [vp, vp, vp, ip, dp, ip, ip, ip, dp, dp, lp, dp, dp, lp, dp, dp, dp, ctypes.c_long]
     return lib
 
 
