@@ -180,3 +180,20 @@ def test_the_identity_check_kills_both_projection_mutants_and_passes_the_design(
     assert check_identity(derive(sc), rng).status == "pass"
     for m in ("flip_projection", "drop_projection_test"):
         assert check_identity(derive(sc, mutant=m), np.random.default_rng(0)).status == "fail", m
+
+
+def test_the_w_hat_face_is_proven_on_the_graph_and_not_for_a_wrong_law():
+    from symfunnel.certificates.projection_face import W_MARGIN, projection_face
+    sc = _small()
+    ok = projection_face(derive(sc))
+    assert ok["ok"] and ok["w"] == pytest.approx(R * (1 + EPS) * (1 + W_MARGIN))
+    for m in ("flip_projection", "drop_projection_test"):
+        assert not projection_face(derive(sc, mutant=m))["ok"], m
+    # d/dt ||W||^2 along the law on the sphere of the proven radius, at random states (independent of the proof)
+    d = derive(sc)
+    rng = np.random.default_rng(9)
+    pts, Ws = _points(d, 50, rng, np.full(50, ok["w"]))
+    law = d.function("law", ["t", "q", "dq", "qd", "dqd", "ddqd", "x_esn", "w_hat"], ["w_hat_dot"])
+    for j in range(50):
+        args = [pts[a][:, j] for a in ("t", "q", "dq", "qd", "dqd", "ddqd", "x_esn")] + [Ws[j]]
+        assert float(np.sum(Ws[j] * np.asarray(law(*args), float))) <= 0.0
