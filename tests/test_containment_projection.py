@@ -142,3 +142,27 @@ def test_paper_small_dead_zone_with_projection_is_pinned(slopes):
     assert "e1 joint 1 +, e1 joint 1 -, e1 joint 2 +, e1 joint 2 - are proven" in cert.detail
     screened = [(r["m1"], r["m2"]) for r in cert.extra["tried"] if r.get("result", "").startswith("undecided")]
     assert screened == [(0.9, 0.05), (0.9, 0.02), (0.9, 0.01)]
+
+
+def test_certify_sampled_takes_the_projection_ball_and_refuses_a_box_without_it():
+    """The deployed step clips W_hat onto ||W_hat||_F <= R (1 + eps): certify.sampled's S takes the box of that ball
+    (kept at every period), and a declared W_hat box that does not contain the ball is undecided, naming it."""
+    import time
+
+    from symfunnel.certificates.problem import Budget
+    from symfunnel.certificates.sampled import OnePeriod, declared_set
+    from symfunnel.certificates.sampled_rate import certify_sampled
+    sc = _small()
+    d = derive(sc)
+    ctx = Context(sc, d, 0.5, parameter_box(sc), None, None, w_star_info={}, breach=None)
+    rho = R * (1 + EPS)
+    S = declared_set(ctx, 0.5, 0.5)
+    lo, hi = S.states["w_hat"]
+    assert np.all(lo == -rho) and np.all(hi == rho) and "projection" in S.notes["w_hat"]
+    assert OnePeriod(ctx, S).w_ball == pytest.approx(rho)
+    nr, n = d.n_regressor, d.n
+    small = declared_set(ctx, 0.5, 0.5, w_box=(-0.1 * np.ones((nr, n)), 0.1 * np.ones((nr, n))), w_source="test")
+    c = certify_sampled(ctx, Budget(1e6), S=small, theory=False)
+    assert c.status == "undecided" and "projection's ball" in c.detail
+    c = certify_sampled(ctx, Budget(2e6, time.monotonic() + 60), S=S, theory=False)
+    assert c.status in ("proven", "undecided") and "not affine" not in c.detail, c.detail
