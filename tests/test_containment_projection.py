@@ -140,6 +140,7 @@ def test_paper_small_dead_zone_with_projection_is_pinned(slopes):
     assert cert.extra["margin"] == {"e1": 0.9, "e2": 0.01}
     assert set(cert.extra["fractions"]) == {f"e2 joint {j} {s}" for j in (1, 2) for s in "+-"}
     assert "e1 joint 1 +, e1 joint 1 -, e1 joint 2 +, e1 joint 2 - are proven" in cert.detail
+    assert "sampled points sign n <= -" in cert.detail      # the open face points inward where sampled
     screened = [(r["m1"], r["m2"]) for r in cert.extra["tried"] if r.get("result", "").startswith("undecided")]
     assert screened == [(0.9, 0.05), (0.9, 0.02), (0.9, 0.01)]
 

@@ -274,8 +274,9 @@ class _Filippov:
         return self.F.eval_points(X)
 
 
-def _screen(F, faces: list[dict], rng) -> dict | None:
-    """The first sampled face point where the flow points outward (sign * n >= 0 or not finite), or None."""
+def _screen(F, faces: list[dict], rng, worst: dict | None = None) -> dict | None:
+    """The first sampled face point where the flow points outward (sign * n >= 0 or not finite), or None; `worst`
+    collects each screened face's largest sampled sign * n (how far inward the flow points at worst there)."""
     for f in faces:
         lo, hi = f["lo"], f["hi"]
         X = lo + rng.random((SCREEN, lo.size)) * (hi - lo)
@@ -283,6 +284,8 @@ def _screen(F, faces: list[dict], rng) -> dict | None:
         X[: SCREEN // 2] = np.where(rng.random((SCREEN // 2, lo.size)) < 0.5, lo, hi)
         X[0] = 0.5 * lo + 0.5 * hi
         V = f["sign"] * F.eval_points(X)[:, f["pos"]]
+        if worst is not None:
+            worst[f["name"]] = float(np.max(V))
         bad = ~(V < 0)
         if bad.any():
             k = int(np.argmax(np.where(np.isfinite(V), V, np.inf)))
@@ -473,7 +476,8 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
             states = controller_state_boxes(ctx, (lo_w, hi_w))
         lo, hi = fc.box(c1, c2, states)
         faces = fc.faces(lo, hi)
-        bad = _screen(F, faces, rng)
+        sampled: dict = {}
+        bad = _screen(F, faces, rng, sampled)
         if bad is not None:
             row["result"] = f"outward at a sampled point of face {bad['face']['name']} (sign n = {bad['value']:.4g})"
             row["why"] = _why(fc, bad, w, w_what)
@@ -493,6 +497,7 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
             continue
         if res["status"] == "undecided":
             row["result"] = f"undecided: {res['fraction']:.3g} of face {res['face']} left"
+            res["sampled_max"] = sampled.get(res["face"])
             last_undecided = (m1, m2, w, res)
             continue
         region = {"kind": "proven_invariant", "t": [0.0, float(ctx.t_final)],
@@ -515,8 +520,11 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
         extra.update(face=res["face"], margin={"e1": m1, "e2": m2}, w_bound=w, fractions=res["fractions"])
         held = res.get("proven_faces") or []
         ball = (f"; the W_hat ball ||W_hat||_F <= {w:.4g} is proven invariant ({w_what})" if w is not None else "")
+        sm = res.get("sampled_max")
         return done("undecided", f"no margin proven; at m1 = {m1:g}, m2 = {m2:g} the face {res['face']} is left "
                     f"({res['fraction']:.3g} of it) within the budget"
+                    + (f" (at its {SCREEN} sampled points sign n <= {sm:.4g}: inward there, the interval enclosure "
+                       "is what is too wide)" if sm is not None and sm < 0 else "")
                     + (f", while the faces {', '.join(held)} are proven" if held else "") + ball, boxes=boxes,
                     undecided_fraction=float(res["fraction"]), extra=extra)
     # the first margin pair whose failure says which inequality fails, else the first with a failing face
