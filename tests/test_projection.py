@@ -197,3 +197,14 @@ def test_the_w_hat_face_is_proven_on_the_graph_and_not_for_a_wrong_law():
     for j in range(50):
         args = [pts[a][:, j] for a in ("t", "q", "dq", "qd", "dqd", "ddqd", "x_esn")] + [Ws[j]]
         assert float(np.sum(Ws[j] * np.asarray(law(*args), float))) <= 0.0
+
+
+@pytest.mark.slow
+def test_verify_with_mutants_passes_the_design_and_kills_both_projection_mutants():
+    import symfunnel as sf
+    v = sf.verify(_small(), t_final=2.0, mutants=True)
+    assert v.status == "pass", v.unexpected
+    rows = {r["id"]: r for r in v.mutation["mutants"]}
+    for m in ("flip_projection", "drop_projection_test"):
+        assert rows[m]["killed"] and rows[m]["by"] == ["design.identity.vdot"], rows[m]
+    assert v.mutation_score == 1.0
