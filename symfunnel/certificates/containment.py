@@ -163,8 +163,8 @@ class _Faces:
         exprs, self.info = face_expressions(d, p)
         extra = {k: exprs.pop(k) for k in ("G2", "P2") if k in exprs}
         # the estimate W_hat^T Phi (carried by W_hat's first row) enters n2 through M_p^-1 D M, which is near the
-        # identity: in the mean-value form its box costs about its own width, in plain intervals tens of times that
-        # every sign(g) of the faces (Coulomb friction's sign(dq), the AD of |e| in the transformation) becomes an
+        # identity: in the mean-value form its box costs about its own width, in plain intervals tens of times that.
+        # Every sign(g) of the faces (Coulomb friction's sign(dq), the AD of |e| in the transformation) becomes an
         # input sgn_k of its own, set per box to the hull of sign over the box's enclosure of g ([-1, 1] where it
         # contains 0: Filippov's set-valued sign), `_Filippov`: the faces are then continuous in every other input,
         # so the mean-value form applies across dq = 0 and e = 0 too (with sign in the graph a box meeting them had
