@@ -64,6 +64,7 @@ BA, SE, RE, PR = ("symfunnel/sx/batch_rules.py", "symfunnel/sx/search.py", "symf
                   "symfunnel/certificates/problem.py")
 IN, IG, BO, SC = ("symfunnel/certificates/invariance.py", "symfunnel/certificates/input_gain.py",
                   "symfunnel/certificates/bounds.py", "symfunnel/certificates/selfcheck.py")
+PF, CN = "symfunnel/certificates/projection_face.py", "symfunnel/certificates/containment.py"
 
 MUTANTS: tuple[CheckerMutant, ...] = (
     # --- funnel containment (checks/verify.py)
@@ -231,6 +232,15 @@ MUTANTS: tuple[CheckerMutant, ...] = (
        "a saturation witness accepted outside the proven W_hat ball"),
     _m("selfcheck_disabled", SC, "    if below or above:", "    if False:", "comparison",
        "the certificates' self-check never fires"),
+    # --- certify.containment with a projected W_hat law (certificates/projection_face.py, containment.py)
+    _m("projection_boundary_test_unchecked", PF, "    if not ca.is_equal(c, ca.fmax(a, 0) * k, 2):",
+       "    if False:", "comparison", "the projection's c accepted without its boundary test max(a, 0)"),
+    _m("projection_radius_at_layer", PF, "w = outer_radius(P[\"R\"], P[\"eps\"]) * (1.0 + W_MARGIN)",
+       "w = P[\"R\"] * (1.0 + W_MARGIN)", "constant", "the W_hat ball proven at R, inside the boundary layer"),
+    _m("filippov_sign_of_midpoint", CN, "        HI[:, self.sidx] = np.where(DH < 0, -1.0, 1.0)",
+       "        HI[:, self.sidx] = np.where(DH < 0, -1.0, 1.0)\n"
+       "        LO[:, self.sidx] = HI[:, self.sidx] = np.sign(0.5 * DL + 0.5 * DH)", "sign",
+       "sign(g) taken at the box's midpoint, not Filippov's hull over the box"),
 )
 
 #: files and folders of the repository the copies need (the tests read docs/, derivations/ and README.md)

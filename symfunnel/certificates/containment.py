@@ -44,6 +44,7 @@ import casadi as ca
 import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes
+from .projection_face import projection_face
 from .region import structurally_zero, true_unknown
 from .result import Certificate
 from ..sx.rewrite import replace_nodes
@@ -52,7 +53,7 @@ from ..sx.search import extrema
 CID = "certify.containment"
 #: the margins tried, in this order (the first proven is reported): e1's, then e2's
 M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
-M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.1, 0.2, 0.5)
+M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.002, 0.1, 0.2, 0.5)
 #: sampled points per face in the screen that discards a margin before any branch and bound
 SCREEN = 192
 #: margins on which a proof is attempted (those surviving the screen, in grid order)
@@ -161,13 +162,43 @@ class _Faces:
         p = ca.SX.sym("p", len(ctx.params.names))
         exprs, self.info = face_expressions(d, p)
         extra = {k: exprs.pop(k) for k in ("G2", "P2") if k in exprs}
-        self.prob = RegionProblem(ctx, exprs, p, "containment")
+        # the estimate W_hat^T Phi (carried by W_hat's first row) enters n2 through M_p^-1 D M, which is near the
+        # identity: in the mean-value form its box costs about its own width, in plain intervals tens of times that.
+        # Every sign(g) of the faces (Coulomb friction's sign(dq), the AD of |e| in the transformation) becomes an
+        # input sgn_k of its own, set per box to the hull of sign over the box's enclosure of g ([-1, 1] where it
+        # contains 0: Filippov's set-valued sign), `_Filippov`: the faces are then continuous in every other input,
+        # so the mean-value form applies across dq = 0 and e = 0 too (with sign in the graph a box meeting them had
+        # only the natural enclosure, whose width shrinks only linearly)
+        names = list(exprs)
+        nodes = sign_nodes([exprs[k] for k in names])
+        inputs = {}
+        if nodes:
+            sgn = ca.SX.sym("sgn", len(nodes))
+            exprs = dict(zip(names, replace_nodes([exprs[k] for k in names], ca.vertcat(*nodes), sgn)))
+            inputs = {"sgn": sgn}
+        centered = (("w_hat",) if self.info.get("estimate") else ()) + tuple(inputs)
+        self.prob = RegionProblem(ctx, exprs, p, "containment", centered=centered, extra=inputs)
         F = self.prob.F
+        if inputs:
+            args = ca.vertcat(*[v.dep(0) for v in nodes])
+            F = _Filippov(F, RegionProblem(ctx, {"g": args}, p, "containment_sign").F)
         self.F = F
         self.pos = {k: F.out_off[F.out_names.index(k)] for k in exprs}
         # ||G||^2 (and ||Phi||^2) on their own (their mean-value Jacobian is not the faces' and costs as much)
-        self.gprob = RegionProblem(ctx, extra, p, "containment_w") if "G2" in extra else None
+        self.gprob = RegionProblem(ctx, extra, p, "containment_w") if extra else None
         self.si = {k: (F.in_off[F.in_names.index(k)], F.in_off[F.in_names.index(k) + 1]) for k in ("s1", "s2")}
+
+    def split_indices(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """The bisected coordinates: the region's (t, s, p) and the estimate W_hat^T Phi's (W_hat's first row) where
+        it carries it -- near a zero of the torque the dead zone's branch is decided only on a narrower estimate."""
+        idx = self.prob.split_indices(lo, hi)
+        if not self.info.get("estimate"):
+            return idx
+        F = self.F
+        i = F.in_names.index("w_hat")
+        rows = self.ctx.design.sym["w_hat"].shape[0]
+        est = [j for j in range(F.in_off[i], F.in_off[i + 1], rows) if lo[j] < hi[j]]
+        return np.concatenate([idx, np.array(est, dtype=int)])
 
     def box(self, c1: float, c2: float, states: dict, prob=None) -> tuple[np.ndarray, np.ndarray]:
         """The flat box of S (m = 0, s_i in [-c_i, c_i]) in the layout of `prob` (default: the faces')."""
@@ -175,6 +206,10 @@ class _Faces:
         reg = prob.region(0.0, states)
         reg["s1"] = (-c1 * np.ones(self.n), c1 * np.ones(self.n))
         reg["s2"] = (-c2 * np.ones(self.n), c2 * np.ones(self.n))
+        if "sgn" in prob.in_names:
+            k = prob.F.in_names.index("sgn")
+            size = prob.F.in_off[k + 1] - prob.F.in_off[k]
+            reg["sgn"] = (-np.ones(size), np.ones(size))
         return prob.flat(reg)
 
     def faces(self, lo: np.ndarray, hi: np.ndarray) -> list[dict]:
@@ -192,8 +227,56 @@ class _Faces:
         return out
 
 
-def _screen(F, faces: list[dict], rng) -> dict | None:
-    """The first sampled face point where the flow points outward (sign * n >= 0 or not finite), or None."""
+def sign_nodes(exprs: list) -> list:
+    """The distinct sign(g) nodes of the expressions' graph (a walk over it, each node once)."""
+    seen, out, keys = set(), [], set()
+    stack = [e for x in exprs for e in ca.vertsplit(ca.vec(ca.SX(x)), 1)]
+    while stack:
+        e = stack.pop()
+        h = e.element_hash()
+        if h in seen:
+            continue
+        seen.add(h)
+        if e.is_op(ca.OP_SIGN):
+            key = str(e.dep(0))
+            if key not in keys:
+                keys.add(key)
+                out.append(e)
+        stack.extend(e.dep(i) for i in range(e.n_dep()))
+    return out
+
+
+class _Filippov:
+    """The face function with its last input sgn (each sign(g) of the faces) filled in per box: the hull of sign
+    over the box's enclosure of g, with [-1, 1] where it contains 0 (Filippov's set-valued sign; it contains sign's
+    own values too), sign(g) at a point. An enclosure over sgn's hull contains the faces' values on the box, as
+    sign(g(x)) lies in it for every x of the box. Every other attribute is the face function's."""
+
+    def __init__(self, F, args):
+        self.F, self.args = F, args
+        i = F.in_names.index("sgn")
+        self.sidx = np.arange(F.in_off[i], F.in_off[i + 1])
+        self.k0 = args.n_in_nz           # the arguments' function has the face function's inputs without sgn
+
+    def __getattr__(self, name):
+        return getattr(self.F, name)
+
+    def eval_batch(self, LO, HI, with_jacobian: bool = False):
+        LO, HI = np.array(LO, float), np.array(HI, float)
+        DL, DH, _ = self.args.eval_batch(LO[:, :self.k0], HI[:, :self.k0])
+        LO[:, self.sidx] = np.where(DL > 0, 1.0, -1.0)
+        HI[:, self.sidx] = np.where(DH < 0, -1.0, 1.0)
+        return self.F.eval_batch(LO, HI, with_jacobian=with_jacobian)
+
+    def eval_points(self, X):
+        X = np.array(X, float)
+        X[:, self.sidx] = np.sign(self.args.eval_points(X[:, :self.k0]))
+        return self.F.eval_points(X)
+
+
+def _screen(F, faces: list[dict], rng, worst: dict | None = None) -> dict | None:
+    """The first sampled face point where the flow points outward (sign * n >= 0 or not finite), or None; `worst`
+    collects each screened face's largest sampled sign * n (how far inward the flow points at worst there)."""
     for f in faces:
         lo, hi = f["lo"], f["hi"]
         X = lo + rng.random((SCREEN, lo.size)) * (hi - lo)
@@ -201,6 +284,8 @@ def _screen(F, faces: list[dict], rng) -> dict | None:
         X[: SCREEN // 2] = np.where(rng.random((SCREEN // 2, lo.size)) < 0.5, lo, hi)
         X[0] = 0.5 * lo + 0.5 * hi
         V = f["sign"] * F.eval_points(X)[:, f["pos"]]
+        if worst is not None:
+            worst[f["name"]] = float(np.max(V))
         bad = ~(V < 0)
         if bad.any():
             k = int(np.argmax(np.where(np.isfinite(V), V, np.inf)))
@@ -223,7 +308,8 @@ def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | Non
                 left[k] += vol
             k = int(np.argmax(left))
             return {"status": "undecided", "boxes": boxes, "face": faces[k]["name"], "fraction": float(left[k]),
-                    "fractions": {faces[i]["name"]: float(v) for i, v in enumerate(left) if v > 0}}
+                    "fractions": {faces[i]["name"]: float(v) for i, v in enumerate(left) if v > 0},
+                    "proven_faces": [f["name"] for i, f in enumerate(faces) if left[i] == 0]}
         batch, queue = queue[:1024], queue[1024:]
         LO = np.array([b[0] for b in batch])
         HI = np.array([b[1] for b in batch])
@@ -330,7 +416,12 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
     r1, r2, note = _initial_ratios(ctx)
     init = d.variant.initial_states()
     kappa = (fc.info["adaptation"] or {}).get("kappa")
-    if d.n_regressor and kappa is None:
+    pface = projection_face(d) if d.n_regressor and kappa is None and "projection" in d.parts else None
+    if pface is not None and not pface["ok"]:
+        return done("undecided", f"the projected adaptive law's ball is not shown invariant: {pface['why']}",
+                    undecided_fraction=1.0, extra={"margin": None, "w_bound": None, "horizon": "finite",
+                                                   "face": "W_hat"})
+    if d.n_regressor and kappa is None and pface is None:
         return done("undecided", "the adaptive law is not W_hat_dot = G(x) - kappa W_hat with kappa > 0 "
                     "(no sigma-modification to bound W_hat with): no W_hat face", undecided_fraction=1.0,
                     extra={"margin": None, "w_bound": None, "horizon": "finite", "face": "W_hat"})
@@ -338,6 +429,8 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
         return done("undecided", "x_esn(0) lies outside the reservoir's invariant box |x| <= 1/leak",
                     undecided_fraction=1.0, extra={"margin": None, "w_bound": None, "horizon": "finite",
                                                    "face": "x_esn"})
+    w_what = ("the projected law's invariant ball, proven on its graph" if pface
+              else "sup ||G||_F / kappa over S")
     rng = np.random.default_rng(45)
     tried, attempts, boxes = [], 0, 0
     last_undecided = None
@@ -363,7 +456,8 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
                 boxes += exs[0].boxes
                 sup = {k: (math.sqrt(max(-e.bound, 0.0)) if np.isfinite(e.bound) else math.inf)
                        for k, e in zip(GF.out_names, exs)}
-                w_of[c2] = (W_SAFETY * sup["G2"] / kappa, sup.get("P2"))
+                # the W_hat face: sigma-modification's ball from sup ||G|| / kappa, or the projection's own ball
+                w_of[c2] = (pface["w"] if pface else W_SAFETY * sup["G2"] / kappa, sup.get("P2"))
             w, phi_sup = w_of[c2]
             w0 = float(np.linalg.norm(np.asarray(init["w_hat"], float)))
             row["w"] = w
@@ -382,26 +476,28 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
             states = controller_state_boxes(ctx, (lo_w, hi_w))
         lo, hi = fc.box(c1, c2, states)
         faces = fc.faces(lo, hi)
-        bad = _screen(F, faces, rng)
+        sampled: dict = {}
+        bad = _screen(F, faces, rng, sampled)
         if bad is not None:
             row["result"] = f"outward at a sampled point of face {bad['face']['name']} (sign n = {bad['value']:.4g})"
-            row["why"] = _why(fc, bad, w)
+            row["why"] = _why(fc, bad, w, w_what)
             continue
         if attempts >= PROOF_ATTEMPTS or budget.expired():
             row["result"] = "not attempted (budget)"
             continue
         attempts += 1
-        split_of = [fc.prob.split_indices(f["lo"], f["hi"]) for f in faces]
+        split_of = [fc.split_indices(f["lo"], f["hi"]) for f in faces]
         left = max(256, (budget.boxes - boxes) // max(1, PROOF_ATTEMPTS - attempts + 1))
         res = _decide(F, faces, split_of, left, budget.seconds(0.5))
         boxes += res["boxes"]
         if res["status"] == "failed":
             row["result"] = (f"outward at a point of face {res['face']['name']} found by the search (sign n = "
                              f"{res['value']:.4g})")
-            row["why"] = _why(fc, {"face": res["face"], "x": res["x"], "value": res["value"]}, w)
+            row["why"] = _why(fc, {"face": res["face"], "x": res["x"], "value": res["value"]}, w, w_what)
             continue
         if res["status"] == "undecided":
             row["result"] = f"undecided: {res['fraction']:.3g} of face {res['face']} left"
+            res["sampled_max"] = sampled.get(res["face"])
             last_undecided = (m1, m2, w, res)
             continue
         region = {"kind": "proven_invariant", "t": [0.0, float(ctx.t_final)],
@@ -422,8 +518,14 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
     if last_undecided is not None:
         m1, m2, w, res = last_undecided
         extra.update(face=res["face"], margin={"e1": m1, "e2": m2}, w_bound=w, fractions=res["fractions"])
+        held = res.get("proven_faces") or []
+        ball = (f"; the W_hat ball ||W_hat||_F <= {w:.4g} is proven invariant ({w_what})" if w is not None else "")
+        sm = res.get("sampled_max")
         return done("undecided", f"no margin proven; at m1 = {m1:g}, m2 = {m2:g} the face {res['face']} is left "
-                    f"({res['fraction']:.3g} of it) within the budget", boxes=boxes,
+                    f"({res['fraction']:.3g} of it) within the budget"
+                    + (f" (at its {SCREEN} sampled points sign n <= {sm:.4g}: inward there, the interval enclosure "
+                       "is what is too wide)" if sm is not None and sm < 0 else "")
+                    + (f", while the faces {', '.join(held)} are proven" if held else "") + ball, boxes=boxes,
                     undecided_fraction=float(res["fraction"]), extra=extra)
     # the first margin pair whose failure says which inequality fails, else the first with a failing face
     first = next((r for r in tried if r.get("why")), next((r for r in tried if "why" in r), tried[-1]))
@@ -450,7 +552,7 @@ def _face_of(text: str) -> str | None:
     return text[k + 5:].split(" (")[0] if k >= 0 else None
 
 
-def _why(fc: _Faces, bad: dict, w: float | None) -> str:
+def _why(fc: _Faces, bad: dict, w: float | None, w_what: str = "sup ||G||_F / kappa over S") -> str:
     """Which inequality fails at an outward point: with W_hat = 0 there, does the face hold? Then the W_hat ball's
     radius is what breaks it (and by how much)."""
     f = bad["face"]
@@ -463,7 +565,7 @@ def _why(fc: _Faces, bad: dict, w: float | None) -> str:
     v0 = float(f["sign"] * F.eval_points(x0[None, :])[0, f["pos"]])
     if v0 < 0:
         return (f"with W_hat = 0 the face {f['name']} points inward there (sign n = {v0:.4g}); the estimate "
-                f"W_hat^T Phi over the W_hat ball of radius w = {w:.4g} (sup ||G||_F / kappa over S) moves it by "
+                f"W_hat^T Phi over the W_hat ball of radius w = {w:.4g} ({w_what}) moves it by "
                 f"{bad['value'] - v0:.4g}: the inequality |W_hat^T Phi| < {-v0:.4g} (the face's inward margin) fails "
                 f"by a factor {(bad['value'] - v0) / -v0:.3g}")
     return f"the face {f['name']} points outward even with W_hat = 0 (sign n = {v0:.4g})"

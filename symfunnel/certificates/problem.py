@@ -73,7 +73,11 @@ class RegionProblem:
     """Named signals over the funnel region R_m: inputs t, s1, s2, m (a point), p (the uncertain parameters only;
     the others are the scenario's numbers) and the controller states."""
 
-    def __init__(self, ctx: Context, exprs: dict[str, ca.SX], p: ca.SX, name: str = "region"):
+    def __init__(self, ctx: Context, exprs: dict[str, ca.SX], p: ca.SX, name: str = "region",
+                 centered: tuple[str, ...] = (), extra: dict[str, ca.SX] | None = None):
+        """`centered`: inputs the mean-value form is taken in too (besides t, s1, s2, p); `extra`: symbols of the
+        expressions that are inputs of their own, after the controller states (e.g. Coulomb friction's Filippov
+        value in place of sign(dq))."""
         d = ctx.design
         self.ctx = ctx
         self.design = d
@@ -86,18 +90,20 @@ class RegionProblem:
         exprs = dict(zip(exprs, ca.substitute(list(exprs.values()), [p], [ca.vertcat(*full)])))
         ins, outs, names, states, rewritten = region_signals(d, exprs)
         self.state_names = [k for k, _ in d.states]
-        self.in_names = ["t", "s1", "s2", "m", "p", *self.state_names]
+        extra = dict(extra or {})
+        self.in_names = ["t", "s1", "s2", "m", "p", *self.state_names, *extra]
         self.names = names
         self.rewritten = rewritten
-        self.function = ca.Function(name, ins + [pu] + states, outs, self.in_names, names,
+        self.function = ca.Function(name, ins + [pu] + states + list(extra.values()), outs, self.in_names, names,
                                     {"cse": True, "allow_duplicate_io_names": True})
         self.F = check_rules(self.function, f"signal {', '.join(names)}", ctx.scenario.file,
-                             wrt=["t", "s1", "s2", "p"])
+                             wrt=["t", "s1", "s2", "p", *centered])
         # the ordinary twin: the same expressions in the design's own symbols (no rewriting), for re-checks
         sym = d.sym
         base = [sym[k] for k in ("t", "q", "dq", "qd", "dqd", "ddqd")] + [pu] + states
-        self.ordinary = ca.Function(name + "_ordinary", base, [exprs[k] for k in names],
-                                    ["t", "q", "dq", "qd", "dqd", "ddqd", "p", *self.state_names], names,
+        self.extra_names = list(extra)
+        self.ordinary = ca.Function(name + "_ordinary", base + list(extra.values()), [exprs[k] for k in names],
+                                    ["t", "q", "dq", "qd", "dqd", "ddqd", "p", *self.state_names, *extra], names,
                                     {"allow_duplicate_io_names": True})
         self._alpha2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
         self._F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
@@ -181,7 +187,9 @@ class RegionProblem:
     def ordinary_values(self, point: dict) -> dict[str, np.ndarray]:
         """Every signal at a region point by the ordinary CasADi Function of the design (not the rewritten one)."""
         sp = self.state_point(point)
-        vals = self.ordinary(*[sp[k] for k in ["t", "q", "dq", "qd", "dqd", "ddqd", "p", *self.state_names]])
+        sp.update({k: np.asarray(point[k], float) for k in self.extra_names})
+        vals = self.ordinary(*[sp[k] for k in ["t", "q", "dq", "qd", "dqd", "ddqd", "p", *self.state_names,
+                                               *self.extra_names]])
         vals = [vals] if len(self.names) == 1 else vals
         return {k: np.asarray(v, float).ravel() for k, v in zip(self.names, vals)}
 

@@ -21,7 +21,9 @@ sample states (t_k, sigma_k, p, controller states) and h:
    sample sigma_k + h sigma'(...) within S's margins; W_hat's exponential-Euler update stays in its box (an affine
    update: W+ = b W + phi A, b = 1 - phi c in [0, 1], so A's enclosure inside c times the box suffices, whatever h);
    x_esn's update is the convex combination exp(-lambda h) x + (1 - exp(-lambda h)) tanh(.)/leak (emit.step's ETD
-   lemma), inside its box at every h.
+   lemma), inside its box at every h. With a projected law (`[adaptation] projection`) the step clips W_hat onto the
+   ball ||W_hat||_F <= R (1 + eps) after its update, so a W_hat box containing that ball is kept at every h (S then
+   takes that box, unless one is declared; one that does not contain the ball is undecided).
 
 `sampled_rate` bisects in h and brackets the result with the simulated rate and the theory bound.
 
@@ -45,6 +47,7 @@ import numpy as np
 
 from ..core.errors import InputError
 from ..emit.step import CLIP
+from ..family.projection import outer_radius
 from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
@@ -96,6 +99,13 @@ def declared_set(ctx: Context, m1: float, m2: float, w_box=None, w_source: str |
                              expected=f"a margin in [{1 - CLIP:g}, 1) (the step projects at {CLIP:g} F)")
     notes = {}
     w = None
+    proj = ctx.design.parts.get("projection")
+    if ctx.design.n_regressor and w_box is None and proj is not None:
+        r = outer_radius(proj["R"], proj["eps"])
+        shape = tuple(int(v) for v in ctx.design.sym["w_hat"].shape)
+        w_box = (np.full(shape, -r), np.full(shape, r))
+        w_source = (f"the box of the projection's ball ||W_hat||_F <= {r:.6g}, which the deployed step clips W_hat "
+                    "onto")
     if ctx.design.n_regressor:
         if w_box is None:
             from .bounds import w_hat_box
@@ -263,6 +273,11 @@ class OnePeriod:
                              (de2_k - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
         exprs = {"tau": tau, "rate": rates, "rate_k": rates_k}
         self.w_rate = None
+        # a projected law: the deployed step clips W_hat radially onto ||W_hat||_F <= R (1 + eps) after its update
+        # (emit.step), so W_hat's next sample lies in that ball whatever the period -- a box containing the ball is
+        # kept without the affine argument
+        proj = d.parts.get("projection")
+        self.w_ball = outer_radius(proj["R"], proj["eps"]) if proj is not None else None
         if "w_hat" in sym:
             W = sym["w_hat"]
             wdot = Sg["w_hat_dot"]

@@ -103,7 +103,14 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
                            undecided_fraction=1.0, seconds=time.monotonic() - t0, method=_METHOD,
                            extra={**base, "proven_rate_hz": None})
     op = OnePeriod(ctx, S, tau_max)
-    if "w_hat" in S.states and op.w_rate is None:
+    if "w_hat" in S.states and op.w_ball is not None:
+        lo, hi = (np.asarray(v, float) for v in S.states["w_hat"])
+        if not (np.all(lo <= -op.w_ball) and np.all(hi >= op.w_ball)):
+            return Certificate(CID, "undecided", f"W_hat's box does not contain the projection's ball ||W_hat||_F <= "
+                               f"{op.w_ball:.6g}, onto which the step clips W_hat, so the box is not shown to be "
+                               "kept", region=region, undecided_fraction=1.0, seconds=time.monotonic() - t0,
+                               method=_METHOD, extra={**base, "proven_rate_hz": None})
+    elif "w_hat" in S.states and op.w_rate is None:
         return Certificate(CID, "undecided", "W_hat's update is not affine in W_hat with a constant diagonal "
                            "decay, so its box is not shown to be kept", region=region, undecided_fraction=1.0,
                            seconds=time.monotonic() - t0, method=_METHOD, extra={**base, "proven_rate_hz": None})

@@ -105,12 +105,30 @@ def identity_allowance(f: ca.Function, pts: dict[str, np.ndarray], resid: np.nda
     return allowed
 
 
+def _across_layer(design, pts: dict, proj: dict, rng) -> dict:
+    """The points with each W_hat scaled to a norm uniform in [R (1 - eps), R (1 + 2 eps)]."""
+    r, c = design.sym["w_hat"].shape
+    k = pts["t"].shape[1]
+    V = pts["vec_w_hat"]
+    R, eps = float(proj["R"]), float(proj["eps"])
+    V = V / np.maximum(np.linalg.norm(V, axis=0), 1e-300) * rng.uniform(R * (1 - eps), R * (1 + 2 * eps), k)
+    out = dict(pts)
+    out["vec_w_hat"] = V
+    out["w_hat"] = V.reshape(r, c, k, order="F").transpose(0, 2, 1).reshape(r, k * c) if c > 1 else V
+    return out
+
+
 def check_identity(design, rng, *, closed_loop=None, result=None, samples: int = IDENTITY_SAMPLES) -> CheckResult:
     """design.identity.vdot: V_dot along nominal model + f equals the variant's target form (sampled, by AD), to
     IDENTITY_TOL relative, or to the round-off bound of the residual's evaluation where that is larger."""
     f = identity_function(design)
     n, nr = design.n, design.n_regressor
     sets = [("inside the funnels", funnel_states(design, samples, rng, fill=0.98))]
+    proj = design.parts.get("projection")
+    if proj is not None:
+        # W_hat across the projection's boundary layer too (W_hat's box alone may lie inside or far outside it)
+        sets.append(("with W_hat across the projection's layer", _across_layer(
+            design, funnel_states(design, samples, rng, fill=0.98), proj, rng)))
     traj = _trajectory_points(design, closed_loop, result, 500)
     if traj is not None:
         sets.append(("along the simulated trajectory", traj))

@@ -24,7 +24,9 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ..core.errors import InputError
 from ..family.approximators import APPROXIMATORS
+from ..family.projection import project
 from ..family.transforms import TRANSFORMS
 from ..sx.linalg import ldl_solve
 
@@ -36,6 +38,7 @@ class Mutant:
     id: str
     description: str
     needs_weights: bool = False          # only for designs with an approximator
+    needs_projection: bool = False       # only for designs whose law is projected onto a ball
     transform: str | None = None         # only for this transformation
 
 
@@ -57,6 +60,10 @@ MUTANTS = (
            transform="funnel"),
     Mutant("z_for_mu_in_adaptation", "adaptation driven by z2 instead of mu2 z2", needs_weights=True),
     Mutant("flip_sigma", "W_hat' = Gamma(Phi (mu2 z2)^T + sigma W_hat)", needs_weights=True),
+    Mutant("flip_projection", "W_hat' = Y + c W_hat (the projection's correction pushes outwards)",
+           needs_weights=True, needs_projection=True),
+    Mutant("drop_projection_test", "the projection's correction without the boundary test max(<W_hat, Y>, 0): "
+           "applied where Y already points inwards", needs_weights=True, needs_projection=True),
 )
 
 
@@ -75,6 +82,23 @@ def _named(prefix: str, n: int) -> ca.SX:
     return ca.vertcat(*[ca.SX.sym(f"{prefix}{i + 1}") for i in range(n)])
 
 
+def _check_projection(scenario, n_regressor: int) -> tuple[float, float] | None:
+    """(R, eps) of [adaptation] projection, validated against the design: it needs adaptive weights, and W_hat(0)
+    inside the ball ||W_hat||_F <= R (InputError naming the key otherwise); None without a projection."""
+    R = scenario.projection
+    if R is None:
+        return None
+    if not n_regressor:
+        raise InputError("is set but the design has no adaptive weights (no approximator)", file=scenario.file,
+                         key="adaptation.projection", expected="no projection, or an approximator")
+    w0 = abs(float(scenario.w_hat0)) * float(np.sqrt(n_regressor * scenario.n))
+    if not w0 <= R:
+        raise InputError(f"= {R:g} leaves W_hat(0) outside the ball: ||W_hat(0)||_F = {w0:.6g} (w_hat0 in each of "
+                         f"{n_regressor} x {scenario.n} entries)", file=scenario.file, key="adaptation.projection",
+                         expected=f"a radius >= {w0:.6g}, or a smaller w_hat0")
+    return float(R), float(scenario.projection_layer)
+
+
 class Backstepping:
     """The paper's two-step backstepping over a transformation and an approximator."""
 
@@ -85,6 +109,7 @@ class Backstepping:
         self.transform = TRANSFORMS.get(scenario.design.transform, file=scenario.file, key="design.transform")()
         self.approximator = APPROXIMATORS.get(scenario.design.approximator, file=scenario.file,
                                               key="approximator.type")(scenario)
+        self.projection = _check_projection(scenario, self.approximator.n_regressor)
 
     # --- layout -------------------------------------------------------------------------------------
 
@@ -111,6 +136,7 @@ class Backstepping:
     def mutants(self) -> list[Mutant]:
         """The mutants that apply to this combination of transformation and approximator."""
         return [m for m in MUTANTS if (not m.needs_weights or self.n_regressor)
+                and (not m.needs_projection or self.projection is not None)
                 and (m.transform is None or m.transform == self.transform.name)]
 
     def equivalent(self, design, mutant: str) -> str | None:
@@ -148,6 +174,7 @@ class Backstepping:
             sym[name] = ca.SX.sym(name, *shape)
         nr = self.n_regressor
         w_hat = sym["w_hat"] if nr else ca.SX(0, n)
+        parts: dict = {}
 
         val = values or {}
         k1, k2 = val.get("controller.k1", ca.DM(sc.k1)), val.get("controller.k2", ca.DM(sc.k2))
@@ -207,7 +234,16 @@ class Backstepping:
                      "z_for_mu_in_adaptation": s["z2"]}.get(mut, s["mu2"] * s["z2"])
             learn = -1 if mut == "flip_adaptation" else 1
             leak = -1 if mut == "flip_sigma" else 1
-            s["w_hat_dot"] = gamma * (learn * ca.mtimes(s["Phi"], drive.T) - leak * sigma * w_hat)
+            raw = gamma * (learn * ca.mtimes(s["Phi"], drive.T) - leak * sigma * w_hat)
+            if self.projection is None:
+                s["w_hat_dot"] = raw
+            else:
+                P = project(w_hat, raw, *self.projection)
+                if mut == "drop_projection_test":
+                    P["c"] = P["a"] * P["k"]
+                s["w_hat_dot"] = raw + P["c"] * w_hat if mut == "flip_projection" else raw - P["c"] * w_hat
+                parts["projection"] = {**P, "w_dot": s["w_hat_dot"], "R": self.projection[0],
+                                       "eps": self.projection[1]}
         for name, rate in self.approximator.dynamics(sym, s).items():
             s[f"{name}_dot"] = rate
 
@@ -218,7 +254,7 @@ class Backstepping:
         constants = {"k1": ca.SX(k1), "k2": ca.SX(k2), "Gamma": ca.SX(gamma), "sigma": ca.SX(sigma)}
         return Design(scenario=sc, variant=self, sym=sym, signals=dict(s),
                       reference_t={"qd": qd_t, "dqd": dqd_t, "ddqd": ddqd_t}, constants=constants,
-                      mutant=mutant)
+                      mutant=mutant, parts=parts)
 
     def signal_info(self) -> dict[str, tuple[str, int]]:
         """name -> (description, funnel level needed: 0 none, 1 funnel e1, 2 both) of every signal derived."""
@@ -260,6 +296,13 @@ class Backstepping:
             rho = ca.fmin(rho, sigma * gamma)
             delta = delta + sigma / 2 * ca.sumsqr(W_star)
             w_term = sigma * ca.fabs(ca.trace(ca.mtimes(Wt.T, w_hat)))
+            if self.projection is not None:
+                # the projection's correction -c W_hat adds (c / Gamma) tr(W~^T W_hat) to V_dot (<= 0 for
+                # ||W*|| <= R); c from the operator applied to the law written here, not the design's node
+                Y = gamma * (ca.mtimes(s["Phi"], (s["mu2"] * s["z2"]).T) - sigma * w_hat)
+                proj = ca.trace(ca.mtimes(Wt.T, w_hat)) * project(w_hat, Y, *self.projection)["c"] / gamma
+                target = target + proj
+                w_term = w_term + ca.fabs(proj)
         else:
             V_w, w_term = ca.SX(0), ca.SX(0)
         scale = (ca.sum1(k1 * s["mu1"] * s["z1"] ** 2) + ca.sum1(k2 * s["mu2"] * s["z2"] ** 2)
@@ -270,7 +313,8 @@ class Backstepping:
     def target_text(self) -> str:
         """The target form of V_dot, as text for check details."""
         out = "-sum k1 mu1 z1^2 - sum k2 mu2 z2^2 + (mu2 z2)^T eps"
-        return out + (" + sigma tr(W~^T W_hat)" if self.n_regressor else "")
+        out += " + sigma tr(W~^T W_hat)" if self.n_regressor else ""
+        return out + (" + (c/Gamma) tr(W~^T W_hat) (projection, c >= 0)" if self.projection is not None else "")
 
     def rho_text(self) -> str:
         """The constant lower bound of rho, as text."""

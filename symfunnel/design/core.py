@@ -36,6 +36,8 @@ class Design:
     reference_t: dict[str, ca.SX]          # qd, dqd, ddqd as SX in t (from the scenario's expressions)
     constants: dict[str, ca.SX]
     mutant: str | None = None              # the seeded error this design carries (verify --mutants), if any
+    #: named parts of a signal's derivation a certificate reads (e.g. "projection": the projected law's a, b, k, c)
+    parts: dict = field(default_factory=dict, repr=False)
     _functions: dict = field(default_factory=dict, repr=False)
 
     def __repr__(self) -> str:

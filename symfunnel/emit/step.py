@@ -12,7 +12,9 @@ which integrates the linear decay parts (-lambda x, -Gamma sigma W) exactly and 
 the period, as the zero-order hold holds the measurements. Why: x+ = a x + (1 - a) tanh(.) / leak with
 a = exp(-lambda_x h) in (0, 1) is a convex combination, so the reservoir stays in [-1/leak, 1/leak] at every h
 (explicit Euler leaves it, and diverges, for h > 2 time_constant / leak); W+ = b W + (1 - b)/sigma Phi (mu2 z2)^T
-with b in (0, 1] stays bounded for bounded Phi mu2 z2 at every h. The period's remaining limit is the loop through
+with b in (0, 1] stays bounded for bounded Phi mu2 z2 at every h. With [adaptation] projection = R the law is
+the projected one (family.projection) and the step then scales W+ radially onto the ball ||W||_F <= R (1 + eps)
+when it left it, so the deployed W_hat stays in the ball the continuous law keeps, at every h. The period's remaining limit is the loop through
 the plant (the e2 funnel's gains), which `symfunnel rate` measures.
 
 Outside a funnel the design's torque is not defined (F - |e| <= 0): the step then evaluates the design at the
@@ -26,6 +28,8 @@ import math
 
 import casadi as ca
 import numpy as np
+
+from ..family.projection import outer_radius, radial_clip
 
 __all__ = ["CLIP", "DEFAULT_RATE_HZ", "step_function", "step_core", "etd_factor", "etd_factors", "c_step_files",
            "valid_prefix", "emit_controller_c", "step_settings"]
@@ -144,6 +148,11 @@ def step_core(design, tau_max=None, name: str = "step_core") -> ca.Function:
         tau = ca.fmin(ca.fmax(tau, -tm), tm)
     x_next = x_esn + etd[0] * xdot
     w_next = w_hat + etd[1] * wdot
+    proj = design.parts.get("projection")
+    if proj is not None:
+        # the projected law keeps ||W_hat|| <= R (1 + eps) in continuous time; one step can cross the layer, so the
+        # step scales W_hat radially back onto that ball (family.projection.radial_clip; identity inside)
+        w_next = radial_clip(w_next, outer_radius(proj["R"], proj["eps"]))
     return ca.Function(name, [P.t, P.q, P.dq, x_esn, w_hat, etd], [tau, x_next, w_next, P.margin, P.qd],
                        ["t", "q", "dq", "x_esn", "w_hat", "etd"], ["tau", "x_esn_next", "w_hat_next", "margin", "qd"],
                        {"cse": True, "allow_duplicate_io_names": True})

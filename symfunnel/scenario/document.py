@@ -181,6 +181,10 @@ class Scenario:
     implementation: ImplementationSpec | None = None  # None: the continuous-time controller
     rbf: RBFSpec | None = None      # `[rbf]` settings (approximator type "rbf"), None otherwise
     tune: TuneSpec | None = None    # of [tune], or None
+    #: [adaptation] projection: W_hat's ball radius R of the projected law (family.projection), None: no projection
+    projection: float | None = None
+    #: [adaptation] projection_layer: the boundary layer's relative width eps (the ball kept is R (1 + eps))
+    projection_layer: float = 0.05
     #: every file read to build it ({resolved path: sha256 of the content read}: the TOML, a URDF, ...)
     inputs: dict = field(default_factory=dict, repr=False, compare=False)
 

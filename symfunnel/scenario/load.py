@@ -10,6 +10,7 @@ from ..core import validate as V
 from ..core.errors import InputError
 from ..family.approximators import parse_rbf
 from ..family.funnels import check_positive
+from ..family.projection import DEFAULT_LAYER as PROJECTION_LAYER
 from ..plant.nonlinearities import check_smoothing_width
 from .claims import parse_claims, parse_deviations, parse_expectations
 from .document import Scenario
@@ -118,10 +119,14 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
     k2 = V.per_joint(ctl, "k2", n, 10.0, file=file, prefix="controller", minimum=0, strict_min=True)
 
     ad = raw.get("adaptation", {})
-    V.check_keys(ad, ["gamma", "sigma", "w_hat0"], file=file, prefix="adaptation")
+    V.check_keys(ad, ["gamma", "sigma", "w_hat0", "projection", "projection_layer"], file=file, prefix="adaptation")
     gamma = V.get_float(ad, "gamma", 10.0, file=file, prefix="adaptation", minimum=0, strict_min=True)
     sigma = V.get_float(ad, "sigma", 0.02, file=file, prefix="adaptation", minimum=0)
     w_hat0 = V.get_float(ad, "w_hat0", 0.0, file=file, prefix="adaptation")
+    projection = (V.get_float(ad, "projection", file=file, prefix="adaptation", minimum=0, strict_min=True)
+                  if "projection" in ad else None)
+    projection_layer = V.get_float(ad, "projection_layer", PROJECTION_LAYER, file=file, prefix="adaptation", minimum=0,
+                                   maximum=1, strict_min=True)
     if "w_hat" in init:
         w_hat0 = V.as_float(init["w_hat"], file=file, key="initial.w_hat")
 
@@ -174,7 +179,7 @@ def _from_dict(raw: dict, *, file: str, base_dir: Path, default_name: str) -> Sc
                     x_esn0=x_esn0, w_hat0=w_hat0, funnels=funnels, k1=k1, k2=k2, gamma=gamma,
                     sigma=sigma, esn=esn, plant=plant, simulation=sim, audit=audit, claims=claims,
                     design=design, expectations=expectations, raw=raw, campaign=campaign, implementation=impl,
-                    rbf=rbf, tune=tune)
+                    rbf=rbf, tune=tune, projection=projection, projection_layer=projection_layer)
 
 
 def replace(self: Scenario, changes: dict | None = None, /, **kw) -> Scenario:
