@@ -2,8 +2,9 @@
 
 The set S of states at a sampling instant t_k in [0, T]: |e1_j| <= (1 - m1) F1_j(t_k), |e2_j| <= (1 - m2) F2_j(t_k),
 x_esn in its invariant box |x_i| <= 1/leak, W_hat in a box (declared, or the simulated run's range widened), every
-parameter of the box (the dead zone's breakpoints and scales included). `SampledSet` is the seam: today S is declared
-(margins by option); a containment certificate can hand over its own S later.
+parameter of the box (the dead zone's breakpoints and scales included). `SampledSet` is the seam: S is declared
+(margins by option) or `containment_set`, the set a proven `certify.containment` shows invariant (W_hat then in its
+ball ||W_hat||_F <= w).
 
 In the normalised errors sigma_i = e_i / F_i (the region coordinates s of `region.region_signals` at m = 0) the plant
 under the held torque u_k is the non-autonomous ODE
@@ -80,6 +81,7 @@ class SampledSet:
     states: dict = field(default_factory=dict)        # controller-state boxes {name: (lo, hi)}
     source: str = "declared"
     notes: dict = field(default_factory=dict)
+    w_ball: float | None = None     # W_hat in the ball ||W_hat||_F <= w_ball (states["w_hat"] its bounding box)
 
     def describe(self, t_final: float) -> dict:
         """The contract's region dict of S."""
@@ -106,6 +108,34 @@ def declared_set(ctx: Context, m1: float, m2: float, w_box=None, w_source: str |
         notes["x_esn"] = "the reservoir's invariant box |x_i| <= 1/leak"
     states = controller_state_boxes(ctx, w) if (w is not None or not ctx.design.n_regressor) else {}
     return SampledSet(float(m1), float(m2), states, "declared", notes)
+
+
+def containment_set(ctx: Context, M: float) -> SampledSet | None:
+    """S from a proven `certify.containment` of this context (None otherwise): its margins (each raised to the
+    rate's margin M where it is below: the period's funnel check needs S within the margin M), W_hat in its ball
+    ||W_hat||_F <= w (boxes evaluate over the bounding box; the update is checked to keep the ball) and x_esn in its
+    invariant box. The sampled proof re-proves the return to this S itself; containment only proposes it."""
+    from .containment import proven_set
+    P = proven_set(ctx)
+    if P is None:
+        return None
+    m1, m2 = max(P["m1"], float(M)), max(P["m2"], float(M))
+    notes = {"containment_margin": {"e1": P["m1"], "e2": P["m2"]}}
+    if (m1, m2) != (P["m1"], P["m2"]):
+        notes["raised_to_rate_margin"] = float(M)
+    w = P["w"]
+    if ctx.design.n_regressor:
+        if w is None:
+            return None
+        W0 = np.zeros_like(np.asarray(ctx.design.variant.initial_states()["w_hat"], float))
+        states = controller_state_boxes(ctx, (W0 - w, W0 + w))
+        notes["w_hat"] = f"the containment certificate's ball ||W_hat||_F <= {w:.6g} (kept by the update: checked)"
+    else:
+        states = controller_state_boxes(ctx, None)
+    if "x_esn" in dict(ctx.design.states):
+        notes["x_esn"] = "the reservoir's invariant box |x_i| <= 1/leak"
+    return SampledSet(float(m1), float(m2), states, "certify.containment", notes,
+                      w_ball=None if w is None else float(w))
 
 
 def _nominal_de2(design) -> ca.SX:
@@ -363,6 +393,10 @@ class OnePeriod:
         sl = slice(1, 2 * n + 1)
         kl, kh = LO[:, sl], HI[:, sl]
         lim_M = 1.0 - M
+        # (a) follows from (b) when S lies within the funnels with margin M (`implied`, the module doc): then the
+        # a-priori box need only stay where the rates are defined (|sigma| < 1), not within the margin M
+        implied = bool(np.all(self.lim_S <= lim_M))
+        lim_P = 1.0 if implied else lim_M
         # Picard: Sigma_{j+1} = K + [0, h] f(T, Sigma_j); valid once Sigma_{j+1} is inside Sigma_j
         wl, wh = kl.copy(), kh.copy()
         valid = np.zeros(K, dtype=bool)
@@ -377,8 +411,8 @@ class OnePeriod:
             idx = np.flatnonzero(live)
             RL, RH, RS = self._rate_in(FL[idx], FH[idx], tl[idx], th[idx], wl[idx], wh[idx], UL[idx], UH[idx])
             fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
-            nl = _dn(kl[idx] + _dn(h * np.minimum(RL, 0.0)))
-            nh = _up(kh[idx] + _up(h * np.maximum(RH, 0.0)))
+            nl = _add_dn(kl[idx], h * np.minimum(RL, 0.0))
+            nh = _add_up(kh[idx], h * np.maximum(RH, 0.0))
             inside = fin & np.all((nl >= wl[idx]) & (nh <= wh[idx]), axis=1)
             good = idx[inside]
             valid[good] = True
@@ -390,19 +424,30 @@ class OnePeriod:
             ok[bad] = False
             grow = idx[fin & ~inside]
             g = np.flatnonzero(fin & ~inside)
-            # inflate: the new bounds, widened by a tenth of their width and an absolute 1e-9
+            # inflate, on the sides the new bounds leave only: widened by a tenth of their width and an absolute
+            # 1e-9 (a side that is contained stays where it is: at a face of S where the rate points inward the
+            # box then keeps the face's value exactly instead of crossing the margin by the inflation)
             w = nh[g] - nl[g]
-            wl[grow] = _dn(np.minimum(wl[grow], nl[g] - 0.1 * w - 1e-9))
-            wh[grow] = _up(np.maximum(wh[grow], nh[g] + 0.1 * w + 1e-9))
+            wl[grow] = np.where(nl[g] < wl[grow], _dn(nl[g] - 0.1 * w - 1e-9), wl[grow])
+            wh[grow] = np.where(nh[g] > wh[grow], _up(nh[g] + 0.1 * w + 1e-9), wh[grow])
             # an enclosure that leaves the funnels with margin M cannot pass (a): stop inflating it
-            out = np.any((wl[grow] < -lim_M) | (wh[grow] > lim_M), axis=1)
+            out = np.any((wl[grow] < -lim_P) | (wh[grow] > lim_P) if not implied else
+                         (wl[grow] <= -lim_P) | (wh[grow] >= lim_P), axis=1)
             why[grow[out][ok[grow[out]]]] = WHY.index("funnel")
             ok[grow[out]] = False
         why[ok & ~valid] = WHY.index("enclosure")
+        # a box whose enclosure left the funnels with margin M: split the normalised error that leaves (the layer
+        # of S at that face is what needs refining), unless the B&B finds it much thinner than the widest variable
+        out = np.flatnonzero(why == WHY.index("funnel"))
+        if out.size:
+            viol = np.maximum(wh[out] - lim_P, -lim_P - wl[out])
+            hint[out] = 1 + np.argmax(viol, axis=1)
         ok &= valid
         # (a) the funnels with margin M over the whole period
-        a = np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
-        why[ok & ~a] = WHY.index("funnel")
+        a = implied | np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
+        fa = np.flatnonzero(ok & ~a)
+        why[fa] = WHY.index("funnel")
+        hint[fa] = 1 + np.argmax(np.maximum(SH[fa] - lim_M, -lim_M - SL[fa]), axis=1)
         ok &= a
         # (b) the next sample in S: first order K + h D, and where that fails the second-order form
         el = _dn(kl + _dn(h * DL))
@@ -425,13 +470,23 @@ class OnePeriod:
         ok &= first
         if self.w_f is not None and ok.any():
             idx = np.flatnonzero(ok)
-            AL, AH, _ = self.w_aff.eval_batch(FL[idx], FH[idx])
-            c = self.w_rate
-            wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
-            good = np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
+            good = self.w_kept(FL[idx], FH[idx])
             why[idx[~good]] = WHY.index("w_hat")
             ok[idx[~good]] = False
         return ok, {"why": why, "DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
+
+    def w_kept(self, FL: np.ndarray, FH: np.ndarray) -> np.ndarray:
+        """Per box (full rows: the split part and the controller states), whether W_hat's exponential-Euler update
+        W+ = b W + (1 - b) A / c (b = 1 - phi c in [0, 1]) provably stays in S's W_hat set: its box when
+        c lo <= A <= c hi, its ball ||W_hat||_F <= w when ||A||_F <= c w (outward rounded)."""
+        AL, AH, _ = self.w_aff.eval_batch(FL, FH)
+        c = self.w_rate
+        if self.S.w_ball is not None:
+            a = np.maximum(np.abs(AL), np.abs(AH))
+            sq = _up(_up(np.sum(_up(a * a), axis=1)) * (1 + 4 * a.shape[1] * 2.0 ** -52))
+            return np.all(np.isfinite(a), axis=1) & (sq <= _dn(_dn(c * self.S.w_ball) ** 2))
+        wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
+        return np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
 
     def _hint(self, LO, HI, el2, eh2, J) -> np.ndarray:
         """Per box, the split variable for the next sample's most violated component: the largest
@@ -481,6 +536,17 @@ def _dn(x):
 
 def _up(x):
     return np.nextafter(x, np.inf)
+
+
+def _add_up(a, b):
+    """An upper bound of a + b for b >= 0 (b = h D rounded up): exact where b is 0, so a box whose rate points
+    inward keeps its face without an ulp of outward rounding."""
+    return np.where(b > 0, _up(a + _up(b)), a)
+
+
+def _add_dn(a, b):
+    """A lower bound of a + b for b <= 0, exact where b is 0."""
+    return np.where(b < 0, _dn(a + _dn(b)), a)
 
 
 def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes: int, expiry=None,

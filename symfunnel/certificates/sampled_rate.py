@@ -14,13 +14,15 @@ import numpy as np
 
 from .problem import Budget, Context
 from .result import Certificate
-from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, declared_set, prove_period
+from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, containment_set, declared_set, prove_period
 
 
 #: the highest rate tried (the simulated search's ceiling)
 MAX_RATE_HZ = 1e6
 #: the bracket [not proven, proven] ends below this ratio
 RATE_REL_TOL = 0.1
+#: the work budget of certify.containment when certify.sampled computes it (its budget in `certify`)
+CONTAINMENT_WORK = 5e7
 #: boxes per period h tried (a deterministic budget; --wall-limit can only end a search earlier)
 BOXES_PER_RATE = 40000
 
@@ -79,19 +81,43 @@ def theory_rate(op: OnePeriod, S: SampledSet, M: float, t_final: float, max_boxe
             "binding": int(np.argmin(hs)), "converged": bool(all(e.converged for e in er))}
 
 
-def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=DEFAULT_SET_MARGIN, tau_max=None,
+def choose_set(ctx: Context, budget: Budget, margin: float, set_margin=None) -> tuple[SampledSet, dict]:
+    """S for certify.sampled: `set_margin` (E1, E2) declares it; else the set a proven `certify.containment`
+    shows invariant (computed here when this context has not computed it), else the declared default margins.
+    Returns S and a record of the choice ({"source", "containment": status, margins and W_hat radius})."""
+    if set_margin is not None:
+        return declared_set(ctx, float(set_margin[0]), float(set_margin[1])), {"source": "--set-margin"}
+    from .containment import CID as CONTAINMENT, certify_containment
+    c = ctx.results.get(CONTAINMENT)
+    if c is None:
+        c = certify_containment(ctx, Budget(CONTAINMENT_WORK, budget.expiry))
+        ctx.results[CONTAINMENT] = c
+    rec = {"containment": {"status": c.status, "margin": c.extra.get("margin"), "w_bound": c.extra.get("w_bound")}}
+    S = containment_set(ctx, margin)
+    if S is not None:
+        return S, {"source": "certify.containment", **rec}
+    S = declared_set(ctx, *DEFAULT_SET_MARGIN)
+    return S, {"source": f"the default margins (certify.containment is {c.status})", **rec}
+
+
+def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=None, tau_max=None,
                     start_hz: float | None = None, S: SampledSet | None = None, theory: bool = True,
                     progress=None) -> Certificate:
     """certify.sampled: the lowest rate (within RATE_REL_TOL) at which one period from S provably keeps the
-    funnels with margin `margin` and returns to S; undecided with what is left otherwise."""
+    funnels with margin `margin` and returns to S; undecided with what is left otherwise. S: given, else declared by
+    `set_margin`, else the containment certificate's (`choose_set`)."""
     t0 = time.monotonic()
     say = progress or (lambda s: None)
     sc, d = ctx.scenario, ctx.design
     T = float(ctx.t_final)
-    S = S or declared_set(ctx, float(set_margin[0]), float(set_margin[1]))
+    choice = {"source": S.source} if S is not None else None
+    if S is None:
+        S, choice = choose_set(ctx, budget, margin, set_margin)
     region = S.describe(T)
     region["parameters"] = ctx.params.describe()
-    base = {"rate_margin": margin, "set": region}
+    if S.w_ball is not None:
+        region["w_hat_ball"] = S.w_ball
+    base = {"rate_margin": margin, "set": region, "set_choice": choice}
     impl = getattr(sc, "implementation", None)
     if impl is not None and (impl.delay_samples or impl.noise_q or impl.noise_dq or impl.encoder_resolution):
         return Certificate(CID, "undecided", "the scenario's [implementation] has a delay, measurement noise or "
@@ -145,14 +171,14 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
             hi = mid
         else:
             lo = mid
-    th = theory_rate(op, S, margin, T) if theory else {"rate_hz": None, "reason": "not computed"}
+    th = _theory(ctx, op, S, margin, tau_max) if theory else {"rate_hz": None, "reason": "not computed"}
     boxes = sum(r["boxes"] for r in tried)
     extra = {**base, "proven_rate_hz": hi, "not_proven_below_hz": lo, "tried": tried, "initial_in_set": inside,
              "initial_e_over_F": sig0, "theory": th}
     secs = time.monotonic() - t0
     if hi is not None and inside:
         return Certificate(CID, "proven", f"at every rate >= {hi:.6g} Hz one period from any state of S (margins "
-                           f"e1 {S.m1:g}, e2 {S.m2:g}) keeps both funnels with margin {margin:g} and returns to S, "
+                           f"e1 {S.m1:g}, e2 {S.m2:g}{_source_words(S)}) keeps both funnels with margin {margin:g} and returns to S, "
                            f"for every parameter of the box; the initial state is in S, so the sampled loop keeps "
                            f"the funnels on [0, {T:g}] s", lower=hi, upper=lo, region=region, boxes=boxes,
                            seconds=secs, method=_METHOD, extra=extra)
@@ -167,6 +193,26 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
                        f"'{last['reason']}' with {last['left']:.3g} of S left{why})", upper=lo, region=region,
                        boxes=boxes, undecided_fraction=float(last["left"]), seconds=secs, method=_METHOD,
                        extra=extra)
+
+
+def _theory(ctx: Context, op: OnePeriod, S: SampledSet, margin: float, tau_max) -> dict:
+    """The reach-time bound on S; when S's margins leave no gap above the rate's margin (a containment set at
+    m2 = M), on the declared default S instead, and the record says which set it is on."""
+    T = float(ctx.t_final)
+    if min(S.m1, S.m2) > margin:
+        return {**theory_rate(op, S, margin, T), "set": {"e1": S.m1, "e2": S.m2, "source": S.source}}
+    D = declared_set(ctx, *DEFAULT_SET_MARGIN, w_box=S.states.get("w_hat"), w_source="S's W_hat box")
+    out = theory_rate(OnePeriod(ctx, D, tau_max), D, margin, T)
+    return {**out, "set": {"e1": D.m1, "e2": D.m2, "source": "declared (S's margins leave no gap above the rate's "
+                                                              f"margin {margin:g})"}}
+
+
+def _source_words(S: SampledSet) -> str:
+    """Where S comes from, for the detail."""
+    if S.source == "certify.containment":
+        return ", the set certify.containment proves invariant" + (
+            f", W_hat in its ball ||W_hat||_F <= {S.w_ball:.4g}" if S.w_ball is not None else "")
+    return ", declared"
 
 
 _METHOD = ("one-period validated enclosure (first-order Picard a-priori box, second-order Taylor form of the next "
@@ -184,7 +230,7 @@ def simulated_w_hat_range(design, closed_loop, result):
     return (np.min(wh, axis=0), np.max(wh, axis=0))
 
 
-def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=DEFAULT_SET_MARGIN,
+def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=None,
                     f_sim: float | None = None, w_hat_range=None, wall_limit: float | None = None,
                     work: float = 5e7, progress=None) -> dict:
     """`rate --certify`'s additions: {"proven_rate_hz", "theory_rate_hz", "ratio" (proven / simulated),

@@ -1,0 +1,146 @@
+"""certify.sampled's set S: the containment certificate's S when it is proven (docs/certify.md, certify.sampled)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+DATA = Path(__file__).parent / "data"
+NONE = DATA / "certify_none.toml"
+
+
+def _ctx(path, t_final=None):
+    from symfunnel.certificates.problem import Context
+    from symfunnel.certificates.region import parameter_box
+    from symfunnel.design import derive
+    from symfunnel.scenario import load_scenario
+    sc = load_scenario(str(path))
+    return Context(sc, derive(sc), float(t_final or sc.simulation.t_final), parameter_box(sc), None, None)
+
+
+@pytest.mark.slow
+def test_certify_none_uses_the_containment_set_and_proves_a_rate_from_it():
+    """certify_none: certify.containment is proven (m1, m2), and certify.sampled then starts from and returns to
+    that S (not the declared 0.5 / 0.5): the JSON says so, the margins are containment's and a rate is proven; an
+    explicit set margin overrides it."""
+    from symfunnel.certificates.containment import CID, certify_containment
+    from symfunnel.certificates.problem import Budget
+    from symfunnel.certificates.sampled_rate import certify_sampled
+    ctx = _ctx(NONE, t_final=1.0)
+    cont = certify_containment(ctx, Budget(5e7))
+    ctx.results[CID] = cont
+    assert cont.status == "proven"
+    m = cont.extra["margin"]
+    c = certify_sampled(ctx, Budget(4e6, time.monotonic() + 120), start_hz=4e5, theory=False)
+    assert c.status == "proven", c.detail
+    assert c.extra["set_choice"]["source"] == "certify.containment"
+    assert c.region["source"] == "certify.containment"
+    assert c.region["margin"] == {"e1": max(m["e1"], 0.05), "e2": max(m["e2"], 0.05)}
+    assert "certify.containment" in c.detail
+    d = certify_sampled(ctx, Budget(4e6, time.monotonic() + 120), start_hz=4e5, theory=False, set_margin=(0.5, 0.5))
+    assert d.region["source"] == "declared" and d.region["margin"] == {"e1": 0.5, "e2": 0.5}
+    assert d.extra["set_choice"]["source"] == "--set-margin"
+
+
+def test_containment_is_computed_when_not_given_and_the_default_is_said_when_not_proven():
+    """Without a containment result in the context certify.sampled computes it; a scenario where it is not proven
+    (the flip_k2 mutant) falls back to the declared default margins and the choice names containment's status."""
+    from symfunnel.certificates.problem import Budget, Context
+    from symfunnel.certificates.region import parameter_box
+    from symfunnel.certificates.sampled_rate import choose_set
+    from symfunnel.design import derive
+    from symfunnel.scenario import load_scenario
+    ctx = _ctx(NONE, t_final=1.0)
+    S, rec = choose_set(ctx, Budget(5e7), 0.05)
+    assert S.source == "certify.containment" and rec["containment"]["status"] == "proven"
+    sc = load_scenario(str(DATA / "sampled_1dof.toml"))
+    ctx = Context(sc, derive(sc, mutant="flip_k2"), 2.0, parameter_box(sc), None, None)
+    S, rec = choose_set(ctx, Budget(5e7), 0.05)
+    assert S.source == "declared" and (S.m1, S.m2) == (0.5, 0.5)
+    assert rec["containment"]["status"] != "proven" and rec["containment"]["status"] in rec["source"]
+
+
+def test_the_w_hat_ball_is_kept_only_when_the_update_stays_in_it():
+    """W_hat in the containment's ball: the update W+ = b W + (1 - b) A / c stays in ||W||_F <= w iff ||A||_F <= c w.
+    On the paper-like design (c = Gamma sigma = 0.2), A is the design's own w_hat_dot at W_hat = 0 (its forcing),
+    evaluated here at a point of S: a radius 1 % below ||A|| / c is refused there, 1 % above is accepted."""
+    import casadi as ca
+
+    from symfunnel.certificates.sampled import OnePeriod, SampledSet
+    from symfunnel.certificates.problem import controller_state_boxes
+    path = Path(__file__).parent.parent / "derivations" / "paper_small_dead_zone.toml"
+    ctx = _ctx(path, t_final=1.0)
+    d = ctx.design
+    nr, n = d.n_regressor, d.n
+
+    def S(w):
+        W0 = np.zeros((nr, n))
+        return SampledSet(0.5, 0.5, controller_state_boxes(ctx, (W0 - w, W0 + w)), "test", {}, w_ball=w)
+    op = OnePeriod(ctx, S(1.0))
+    assert op.w_rate == pytest.approx(0.2, rel=1e-12)
+    # ||A||_F at a point, independently: the design's w_hat_dot at W_hat = 0 (its affine part), x_esn = 0
+    names = [k for k, _ in d.states]
+    f = d.function("w_hat_dot", ["t", "q", "dq", "qd", "dqd", "ddqd", *names])
+    t = 0.3
+    qd, dqd, ddqd = (np.asarray(v, float).ravel() for v in d.reference(t))
+    F1, F2 = (np.asarray(v, float).ravel() for v in d.function("funnel_bounds", ["t"], ["F1", "F2"])(t))
+    s1, s2 = np.full(n, 0.3), np.full(n, -0.4)
+    q = qd + s1 * F1
+    a2 = np.asarray(d.function("alpha2", ["t", "q", "qd", "dqd"])(t, q, qd, dqd), float).ravel()
+    dq = a2 + s2 * F2
+    zeros = [np.zeros((r, c)) for _, (r, c) in d.states]
+    A = np.asarray(ca.evalf(f(t, q, dq, qd, dqd, ddqd, *zeros)), float)
+    normA = float(np.linalg.norm(A))
+    assert normA > 0
+    P = ctx.params
+    X = np.concatenate([[t], s1, s2, [0.0], P.nominal[op.wide]])[None, :]
+    for w, kept in ((0.99 * normA / 0.2, False), (1.01 * normA / 0.2, True)):
+        op = OnePeriod(ctx, S(w))
+        FL, FH = op._full(X, X)
+        FL[:, op.i_st:] = FH[:, op.i_st:] = 0.0          # W_hat = 0 and x_esn = 0 at the point: A is a point
+        assert bool(op.w_kept(FL, FH)[0]) == kept, (w, normA)
+
+
+def test_a_face_of_s_on_the_rate_margin_is_proven_where_the_flow_points_inward():
+    """S with e2's margin equal to the rate's (0.95 F2, as containment proves on sampled_1dof): a sample on that
+    face whose rate points inward keeps the face's value in the a-priori box (no outward inflation or ulp crossing
+    the margin), and the funnel check (a) follows from the return to S (b); proven at 1 kHz, and the one-period
+    bound of a face point is checked against the plant integrated by scipy from that point."""
+    from scipy.integrate import solve_ivp
+
+    import casadi as ca
+
+    from symfunnel.certificates.sampled import OnePeriod, declared_set, prove_period
+    from symfunnel.emit.step import step_function
+    from symfunnel.plant.equations import plant_acceleration, plant_parameters
+    ctx = _ctx(DATA / "sampled_1dof.toml")
+    op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.05))
+    assert prove_period(op, 1e-3, 0.05, 2.0, max_boxes=20000)["proven"]
+    # a face point: sigma2 = 0.95 at t = 0.7, sigma1 = 0.2; the plant from there under the step's torque
+    d, sc = ctx.design, ctx.scenario
+    t0, s1, s2, h = 0.7, 0.2, 0.95, 1e-3
+    X = np.array([[t0, s1, s2, 0.0]])
+    ok, info = op.check(X, X, h, 0.05)
+    assert ok[0]
+    qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(t0))
+    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
+    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+    F1, F2 = (float(np.ravel(v)[0]) for v in F(t0))
+    q0 = qd[0] + s1 * F1
+    dq0 = float(np.ravel(a2(t0, [q0], qd, dqd))[0]) + s2 * F2
+    tau = float(np.ravel(step_function(d, 1000.0)(t0, [q0], [dq0], np.zeros(1), np.zeros((1, 1)))[0])[0])
+    q, dq, t, u = ca.SX.sym("q", 1), ca.SX.sym("dq", 1), ca.SX.sym("t"), ca.SX.sym("u", 1)
+    _, p0 = plant_parameters(sc)
+    acc = ca.Function("acc", [t, q, dq, u], [plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(p0))["ddq"]])
+    sol = solve_ivp(lambda tt, x: [x[1], float(acc(tt, x[:1], x[1:], [tau]))], (t0, t0 + h), [q0, dq0],
+                    rtol=1e-11, atol=1e-13, dense_output=True)
+    for tt in np.linspace(t0, t0 + h, 9):
+        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
+        F1, F2 = (float(np.ravel(v)[0]) for v in F(tt))
+        x = sol.sol(tt)
+        sg = np.array([(x[0] - qd[0]) / F1, (x[1] - float(np.ravel(a2(tt, x[:1], qd, dqd))[0])) / F2])
+        assert np.all(np.abs(sg) <= [0.5 + 1e-9, 0.95 + 1e-9]), (tt, sg)       # stays in S, so in the funnels
+        assert np.all(sg >= info["SL"][0] - 1e-9) and np.all(sg <= info["SH"][0] + 1e-9)
