@@ -144,3 +144,89 @@ def test_a_face_of_s_on_the_rate_margin_is_proven_where_the_flow_points_inward()
         sg = np.array([(x[0] - qd[0]) / F1, (x[1] - float(np.ravel(a2(tt, x[:1], qd, dqd))[0])) / F2])
         assert np.all(np.abs(sg) <= [0.5 + 1e-9, 0.95 + 1e-9]), (tt, sg)       # stays in S, so in the funnels
         assert np.all(sg >= info["SL"][0] - 1e-9) and np.all(sg <= info["SH"][0] + 1e-9)
+
+
+def test_taylor_enclosure_contains_the_integrated_two_joint_plant_and_is_tighter():
+    """The Taylor a-priori enclosure against scipy on certify_none (2 joints), from points on the faces and corners
+    of containment's S (|e1| = 0.5 F1, |e2| = 0.95 F2, built here from the design's funnels and alpha2): the
+    integrated trajectory under the generated step's held torque stays in the enclosure Sigma at every output
+    time and its rate in D (the end in sigma_k + h D); and D is narrower than the first-order Picard's."""
+    import casadi as ca
+    from scipy.integrate import solve_ivp
+
+    from symfunnel.certificates.sampled import OnePeriod, declared_set
+    from symfunnel.emit.step import step_function
+    from symfunnel.plant.equations import plant_acceleration, plant_parameters
+    ctx = _ctx(NONE, t_final=5.0)
+    d, sc = ctx.design, ctx.scenario
+    n = d.n
+    op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.05))
+    h = 1.0 / 4000.0
+    step = step_function(d, 4000.0)
+    q, dq, t, u = ca.SX.sym("q", n), ca.SX.sym("dq", n), ca.SX.sym("t"), ca.SX.sym("u", n)
+    _, p0 = plant_parameters(sc)
+    acc = ca.Function("acc", [t, q, dq, u], [plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(p0))["ddq"]])
+    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
+    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+
+    def sigma(tt, x):
+        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
+        F1, F2 = (np.asarray(v, float).ravel() for v in F(tt))
+        return np.concatenate([(x[:n] - qd) / F1, (x[n:] - np.asarray(a2(tt, x[:n], qd, dqd), float).ravel()) / F2])
+    rng = np.random.default_rng(5)
+    narrower = 0
+    for k in range(10):
+        tk = float(rng.uniform(0, 5.0))
+        s = np.concatenate([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.95, 0.95, n)])
+        j = int(rng.integers(0, 2 * n))
+        s[j] = rng.choice([-1, 1]) * (0.5 if j < n else 0.95)                           # on a face
+        if k < 3:
+            s = np.array([0.5, -0.5, 0.95, -0.95]) * rng.choice([-1, 1], 4)              # a corner
+        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tk))
+        F1, F2 = (np.asarray(v, float).ravel() for v in F(tk))
+        q0 = qd + s[:n] * F1
+        dq0 = np.asarray(a2(tk, q0, qd, dqd), float).ravel() + s[n:] * F2
+        tau = np.asarray(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0], float).ravel()
+        # a small box of sample states around the point, inside S (the point in it)
+        lim = np.array([0.5] * n + [0.95] * n)
+        XL = np.concatenate([[max(tk - 0.01, 0.0)], np.maximum(s - 0.01, -lim), [0.0]])[None, :]
+        XH = np.concatenate([[tk + 0.01], np.minimum(s + 0.01, lim), [0.0]])[None, :]
+        op.taylor = True
+        _, info = op.check(XL, XH, h, 0.05)
+        op.taylor = False
+        _, first = op.check(XL, XH, h, 0.05)
+        assert np.all(np.isfinite(info["DL"])), s
+        narrower += bool(np.all(np.isinf(first["DL"])) or np.all(info["DH"] - info["DL"] < first["DH"] - first["DL"]))
+        sol = solve_ivp(lambda tt, x: np.concatenate([x[n:], np.asarray(acc(tt, x[:n], x[n:], tau), float).ravel()]),
+                        (tk, tk + h), np.concatenate([q0, dq0]), rtol=1e-11, atol=1e-13, dense_output=True)
+        for tt in np.linspace(tk, tk + h, 9):
+            sg = sigma(tt, sol.sol(tt))
+            assert np.all(sg >= info["SL"][0] - 1e-9) and np.all(sg <= info["SH"][0] + 1e-9), (tk, tt, sg)
+            disp = sg - s
+            assert np.all(disp >= (tt - tk) * info["DL"][0] - 1e-9) and np.all(disp <= (tt - tk) * info["DH"][0]
+                                                                                + 1e-9), (tk, tt, disp)
+            # and the rate itself: sigma' by a central difference of the integrated solution, inside D
+            e = 1e-7
+            if tk + e <= tt <= tk + h - e:
+                rate = (sigma(tt + e, sol.sol(tt + e)) - sigma(tt - e, sol.sol(tt - e))) / (2 * e)
+                assert np.all(rate >= info["DL"][0] - 1e-4 * (1 + np.abs(rate))), (rate, info["DL"][0])
+                assert np.all(rate <= info["DH"][0] + 1e-4 * (1 + np.abs(rate))), (rate, info["DH"][0])
+    assert narrower >= 8
+
+
+def test_a_warm_started_period_agrees_with_the_cold_search_and_costs_less():
+    """Bisection warm start: the boxes a budget-ended search at a longer period did not leave are proven at every
+    shorter period, so the search there starts from the queue; on sampled_1dof (containment's S 0.5 / 0.05) the
+    warm search at 600 Hz from the one ended at 560 Hz proves what the cold search proves, with fewer boxes; a
+    queue from a shorter period is refused."""
+    from symfunnel.certificates.sampled import OnePeriod, declared_set, prove_period
+    ctx = _ctx(DATA / "sampled_1dof.toml")
+    op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.05))
+    long_ = prove_period(op, 1 / 560.0, 0.05, 2.0, max_boxes=3000)
+    assert not long_["proven"] and long_["reason"] == "boxes" and long_["queue"] is not None
+    cold = prove_period(op, 1 / 600.0, 0.05, 2.0, max_boxes=40000)
+    warm = prove_period(op, 1 / 600.0, 0.05, 2.0, max_boxes=40000, warm=long_)
+    assert cold["proven"] and warm["proven"]
+    assert warm["boxes"] < cold["boxes"], (warm["boxes"], cold["boxes"])
+    with pytest.raises(ValueError):
+        prove_period(op, 1 / 500.0, 0.05, 2.0, max_boxes=100, warm=long_)

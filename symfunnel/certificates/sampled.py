@@ -50,7 +50,9 @@ from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
 from .problem import Context, controller_state_boxes
-from .region import region_signals, structurally_zero, true_unknown
+from .region import region_signals, true_unknown
+from .sampled_graph import (_add_dn, _add_up, _continuous_rates, _dn, _imul, _nominal_de2, _sum_dn, _sum_up,
+                            _up)
 
 CID = "certify.sampled"
 #: S's margins (e1, e2) when none are given
@@ -136,110 +138,6 @@ def containment_set(ctx: Context, M: float) -> SampledSet | None:
         notes["x_esn"] = "the reservoir's invariant box |x_i| <= 1/leak"
     return SampledSet(float(m1), float(m2), states, "certify.containment", notes,
                       w_ball=None if w is None else float(w))
-
-
-def _nominal_de2(design) -> ca.SX:
-    """de2 = (v - W_hat^T Phi) - alpha2_dot of the nominal loop without the alpha2_dot - alpha2_dot cancellation
-    interval arithmetic cannot see: when v = alpha2_dot + g with g free of alpha2_dot (v affine in alpha2_dot with
-    the identity as coefficient, checked on the graph: alpha2_dot's nodes replaced by a symbol A, dv/dA = I),
-    de2 = g - W_hat^T Phi = v(A = 0) - W_hat^T Phi; else (a mutant that scales alpha2_dot) the design's de2."""
-    from ..sx.rewrite import replace_nodes
-    S = design.signals
-    n = design.n
-    A = ca.SX.sym("A", n)
-    vA = replace_nodes([S["v"]], S["alpha2_dot"], A)[0]
-    try:
-        J = np.asarray(ca.evalf(ca.jacobian(vA, A)), float)
-    except RuntimeError:
-        return S["de2"]
-    if not np.array_equal(J, np.eye(n)):
-        return S["de2"]
-    est = ca.mtimes(design.sym["w_hat"].T, S["Phi"]) if "w_hat" in design.sym else ca.SX.zeros(n)
-    if not structurally_zero(S["ddq"] - (S["v"] - est)):
-        return S["de2"]
-    return ca.substitute(vA, A, ca.SX.zeros(n)) - est
-
-
-_SWITCHING = ("OP_SIGN", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ", "OP_NE", "OP_NOT", "OP_AND", "OP_OR",
-              "OP_FLOOR", "OP_CEIL")
-
-
-def _switching_on(inputs: list, wrt: list, outputs: list) -> int:
-    """How many discontinuous operations (sign, comparisons, branches, floor) of the graph of `outputs` have an
-    argument that depends on the symbols `wrt` (the other inputs are held constant)."""
-    f = ca.Function("g", inputs, outputs)
-    codes = {getattr(ca, k) for k in _SWITCHING if hasattr(ca, k)}
-    op_input, op_output, op_const = ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST
-    wrt_ids = set()
-    for i, x in enumerate(inputs):
-        for k in range(x.nnz()):
-            if any(ca.depends_on(x.nz[k], w) for w in wrt):
-                wrt_ids.add((i, k))
-    dep: dict[int, bool] = {}
-    count = 0
-    for k in range(f.n_instructions()):
-        op = f.instruction_id(k)
-        o = f.instruction_output(k)
-        if op == op_input:
-            i, nz = f.instruction_input(k)
-            dep[o[0]] = (i, nz) in wrt_ids
-        elif op == op_output or op == op_const:
-            if op == op_const:
-                dep[o[0]] = False
-        else:
-            d = any(dep.get(a, False) for a in f.instruction_input(k) if a >= 0)
-            if op in codes and d:
-                count += 1
-            dep[o[0]] = d
-    return count
-
-
-def _continuous_rates(design, inputs, state, plant_ddq) -> tuple[bool, str]:
-    """Whether sigma' is continuous along a period (so the next sample's second-order form may use the Lipschitz
-    mean-value argument where its interval evaluation flags a sign that may switch): the plant's acceleration has no
-    discontinuous operation depending on the state (t, q, dq) -- the held torque's dead zone is constant -- and the
-    design's alpha2, F and F' have none, and the transformation's z is C^1 at e = 0 (proven by sympy: the
-    derivative of each branch of |s| agrees at 0), so alpha2_dot's sign(e1) from the AD of |e1| multiplies a jump 0."""
-    S = design.signals
-    if _switching_on(inputs, state, [plant_ddq]):
-        return False, "the plant's acceleration switches with the state (Coulomb friction, a branch)"
-    sym = design.sym
-    ins = [sym[k] for k in ("t", "q", "qd", "dqd", "ddqd")]
-    if _switching_on(ins, ins, [S["alpha2"], S["F1"], S["F2"], S["dF1"], S["dF2"]]):
-        return False, "alpha2 or a funnel has a discontinuous operation"
-    if not _transform_c1(design.variant.transform.name):
-        return False, "the transformation's z is not shown C^1 at e = 0"
-    return True, "sigma' is continuous along a period (checked)"
-
-
-_C1: dict = {}
-
-
-def _transform_c1(name: str) -> bool:
-    """sympy: z(s) of the registered transformation (F = 1) has equal one-sided derivatives at s = 0."""
-    if name in _C1:
-        return _C1[name]
-    import sympy
-
-    from ..family.transforms import TRANSFORMS
-    from ..sx.proof import _Timeout, time_limit
-    from ..sx.tosympy import sx_to_sympy
-    T = TRANSFORMS.get(name)()
-    s = ca.SX.sym("s")
-    z = T.build(s, ca.SX(1))["z"]
-    ok = False
-    try:
-        with time_limit(10.0):
-            S = sympy.Symbol("s", real=True)
-            e = sx_to_sympy(z, [s], [[S]])[0]
-            P = sympy.Symbol("P", positive=True)
-            right = sympy.diff(e.subs(S, P), P)
-            left = sympy.diff(e.subs(S, -P), P)         # d/ds at -P is -d/dP of z(-P)
-            ok = bool(sympy.simplify(sympy.limit(right, P, 0, "+") + sympy.limit(left, P, 0, "+")) == 0)
-    except (_Timeout, RecursionError, NotImplementedError, TypeError, ValueError):
-        ok = False
-    _C1[name] = ok
-    return ok
 
 
 def _check(f: ca.Function, file: str, what: str, wrt=None):
@@ -334,6 +232,11 @@ class OnePeriod:
         self.next_f = ca.Function("next_sample", base + [hs] + states, [nxt], bnames + ["h"] + self.state_names,
                                   ["next"], opts)
         self.next = _check(self.next_f, sc.file, "the next sample", ["t", "s1", "s2", "p"])
+        # the rates at the sample under the step's own torque, alone (the Taylor a-priori enclosure's centre)
+        self.ratek_f = ca.Function("sigma_rate_k", base + states, [o["rate_k"]], bnames + self.state_names,
+                                   ["rate_k"], opts)
+        self.ratek = _check(self.ratek_f, sc.file, "the normalised errors' rates at the sample",
+                            ["t", "s1", "s2", "p"])
         acc = ca.jacobian(o["rate"], t) + ca.mtimes(ca.jacobian(o["rate"], sig), o["rate"])
         self.acc_f = ca.Function("sigma_acc", base + [u] + states, [acc], bnames + ["u"] + self.state_names,
                                  ["acc"], opts)
@@ -359,6 +262,7 @@ class OnePeriod:
         self.st_lo = np.concatenate(st_lo) if st_lo else np.zeros(0)
         self.st_hi = np.concatenate(st_hi) if st_hi else np.zeros(0)
         self.dim = self.i_st                      # the split part: t, s1, s2, m, p (m is a point)
+        self.taylor = True                        # the Taylor a-priori enclosure first (`_taylor`)
         self.lim_S = np.concatenate([np.full(n, 1 - S.m1), np.full(n, 1 - S.m2)])
 
     def box(self, t_final: float) -> tuple[np.ndarray, np.ndarray]:
@@ -404,6 +308,16 @@ class OnePeriod:
         DH = np.full((K, 2 * n), np.inf)
         SL, SH = wl.copy(), wh.copy()
         tl, th = LO[:, 0], _up(HI[:, 0] + h)
+        if self.taylor and ok.any():
+            # the Taylor form first (the rates' correlation with the held torque kept), the first-order form where
+            # it fails
+            idx = np.flatnonzero(ok)
+            tv, tDL, tDH, tSL, tSH, tsw = self._taylor(FL[idx], FH[idx], kl[idx], kh[idx], tl[idx], th[idx],
+                                                       UL[idx], UH[idx], h, lim_P)
+            good = idx[tv]
+            valid[good] = True
+            DL[good], DH[good], SL[good], SH[good] = tDL[tv], tDH[tv], tSL[tv], tSH[tv]
+            switched[good] = tsw[tv]
         for it in range(PICARD_ITERATIONS):
             live = ok & ~valid
             if not live.any():
@@ -475,6 +389,79 @@ class OnePeriod:
             ok[idx[~good]] = False
         return ok, {"why": why, "DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
 
+    def _taylor(self, FL, FH, kl, kh, tl, th, UL, UH, h, lim):
+        """The a-priori enclosure in Taylor (mean-value) form, per box K of sample states: the displacement
+        Delta = sigma(t) - sigma_k over the period satisfies Delta in [0, h] D with
+
+            D = R_k + J_t [0, h] + J_sigma Delta  (intersected with the rates over Sigma = K + Delta),
+
+        R_k the rates at the sample under the step's own torque (one function of the sample state: the torque's
+        cancellation against alpha2_dot is kept, where the first-order form holds the torque as an independent box)
+        and J the rates' Jacobian in (t, sigma) over [t_k, t_k + h] x Sigma with the torque held (interval AD:
+        Clarke's Jacobian where sigma' is Lipschitz along the period, which is required: `continuous`, or no
+        discontinuity switches on the box). If [0, h] D lies in Delta, the Picard operator maps the continuous
+        functions with sigma - sigma_k in Delta into themselves (Schauder; unique by Lipschitz), so the solution
+        stays in K + Delta and its rate in D. Returns (valid, DL, DH, SL, SH, switched) per box."""
+        n2 = 2 * self.n
+        K = FL.shape[0]
+        RL, RH, _ = self.ratek.eval_batch(FL, FH)
+        fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
+        gl = _dn(h * np.minimum(RL, 0.0))
+        gh = _up(h * np.maximum(RH, 0.0))
+        w = gh - gl
+        al, ah = _dn(gl - 0.1 * w - 1e-12), _up(gh + 0.1 * w + 1e-12)     # Delta
+        valid = np.zeros(K, dtype=bool)
+        live = fin.copy()
+        DL, DH = np.full((K, n2), -np.inf), np.full((K, n2), np.inf)
+        SL, SH = kl.copy(), kh.copy()
+        sw = np.ones(K, dtype=bool)
+        nw = self.rate.w_flat.size
+        for _ in range(PICARD_ITERATIONS):
+            idx = np.flatnonzero(live & ~valid)
+            if not idx.size:
+                break
+            sl, sh = _dn(kl[idx] + al[idx]), _up(kh[idx] + ah[idx])
+            inside = np.all((sl > -lim) & (sh < lim), axis=1) if lim >= 1.0 else \
+                np.all((sl >= -lim) & (sh <= lim), axis=1)
+            live[idx[~inside]] = False
+            idx, sl, sh = idx[inside], sl[inside], sh[inside]
+            if not idx.size:
+                break
+            n_ = self.n
+            RLo = np.concatenate([tl[idx, None], sl, FL[idx, 2 * n_ + 1:self.i_st], UL[idx], FL[idx, self.i_st:]], 1)
+            RHi = np.concatenate([th[idx, None], sh, FH[idx, 2 * n_ + 1:self.i_st], UH[idx], FH[idx, self.i_st:]], 1)
+            NL, NH, nsw = self.rate.eval_batch(RLo, RHi)
+            JL, JH, _ = self.rate.jac.eval_batch(RLo, RHi)
+            m = idx.size
+            JL = JL.reshape(m, nw, n2).transpose(0, 2, 1)
+            JH = JH.reshape(m, nw, n2).transpose(0, 2, 1)
+            # J_t [0, h]
+            tL = _dn(h * np.minimum(JL[:, :, 0], 0.0))
+            tH = _up(h * np.maximum(JH[:, :, 0], 0.0))
+            # J_sigma Delta, interval matrix times interval vector, outward
+            pl, ph = _imul(JL[:, :, 1:n2 + 1], JH[:, :, 1:n2 + 1], al[idx][:, None, :], ah[idx][:, None, :])
+            cl, ch = _sum_dn(pl, 2), _sum_up(ph, 2)
+            dl = _dn(_dn(RL[idx] + tL) + cl)
+            dh = _up(_up(RH[idx] + tH) + ch)
+            ok_ = np.isfinite(dl) & np.isfinite(dh)
+            dl = np.where(ok_, np.maximum(dl, NL), NL)
+            dh = np.where(ok_, np.minimum(dh, NH), NH)
+            smooth = self.continuous | ~np.asarray(nsw, bool)
+            fin2 = np.all(np.isfinite(dl) & np.isfinite(dh), axis=1) & smooth
+            live[idx[~fin2]] = False
+            nl, nh = _dn(h * np.minimum(dl, 0.0)), _up(h * np.maximum(dh, 0.0))
+            cont = fin2 & np.all((nl >= al[idx]) & (nh <= ah[idx]), axis=1)
+            g = idx[cont]
+            valid[g] = True
+            DL[g], DH[g], SL[g], SH[g] = dl[cont], dh[cont], sl[cont], sh[cont]
+            sw[g] = np.asarray(nsw, bool)[cont]
+            grow = fin2 & ~cont
+            gi = idx[grow]
+            ww = nh[grow] - nl[grow]
+            al[gi] = np.where(nl[grow] < al[gi], _dn(nl[grow] - 0.1 * ww - 1e-12), al[gi])
+            ah[gi] = np.where(nh[grow] > ah[gi], _up(nh[grow] + 0.1 * ww + 1e-12), ah[gi])
+        return valid, DL, DH, SL, SH, sw
+
     def w_kept(self, FL: np.ndarray, FH: np.ndarray) -> np.ndarray:
         """Per box (full rows: the split part and the controller states), whether W_hat's exponential-Euler update
         W+ = b W + (1 - b) A / c (b = 1 - phi c in [0, 1]) provably stays in S's W_hat set: its box when
@@ -530,28 +517,12 @@ class OnePeriod:
         return L, H, np.asarray(sw, bool)
 
 
-def _dn(x):
-    return np.nextafter(x, -np.inf)
-
-
-def _up(x):
-    return np.nextafter(x, np.inf)
-
-
-def _add_up(a, b):
-    """An upper bound of a + b for b >= 0 (b = h D rounded up): exact where b is 0, so a box whose rate points
-    inward keeps its face without an ulp of outward rounding."""
-    return np.where(b > 0, _up(a + _up(b)), a)
-
-
-def _add_dn(a, b):
-    """A lower bound of a + b for b <= 0, exact where b is 0."""
-    return np.where(b < 0, _dn(a + _dn(b)), a)
-
-
 def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes: int, expiry=None,
-                 rng_seed: int = 20241205) -> dict:
-    """Branch and bound over S at period h: {"proven": bool, "boxes", "left": undecided volume fraction, "reason"}."""
+                 rng_seed: int = 20241205, warm: dict | None = None) -> dict:
+    """Branch and bound over S at period h: {"proven": bool, "boxes", "left": undecided volume fraction, "reason",
+    "queue": the boxes left when the budget ended it}. `warm`: such a result at a period >= h (a lower rate) -- its
+    boxes outside the queue are proven at that period, so at every shorter one (the module doc: the property is per
+    sample state), and the search starts from its queue."""
     lo, hi = op.box(t_final)
     split = op.split_vars(lo, hi)
     scale = np.where(hi - lo > 0, hi - lo, 1.0)
@@ -567,6 +538,10 @@ def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes
                 "failed": WHY[int(infop["why"][k])]}
     # breadth-first: the oldest (largest) boxes first, so what is left shrinks evenly over S
     LO, HI, V = lo[None, :].copy(), hi[None, :].copy(), np.array([1.0])
+    if warm is not None and warm.get("queue") is not None:
+        if not warm["h"] >= h:
+            raise ValueError(f"a warm start from period {warm['h']:g} s cannot serve the longer period {h:g} s")
+        LO, HI, V = (np.array(a, copy=True) for a in warm["queue"])
     boxes = 0
     while LO.shape[0]:
         take = min(BATCH, LO.shape[0])
@@ -583,8 +558,9 @@ def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes
         if np.any(np.max(rel, axis=1) < THIN):
             return {"proven": False, "boxes": boxes, "left": left, "reason": "thin"}
         if boxes >= max_boxes or (expiry is not None and time.monotonic() >= expiry):
-            return {"proven": False, "boxes": boxes, "left": left,
-                    "reason": "boxes" if boxes >= max_boxes else "seconds"}
+            return {"proven": False, "boxes": boxes, "left": left, "h": h,
+                    "reason": "boxes" if boxes >= max_boxes else "seconds",
+                    "queue": (np.concatenate([BL, LO]), np.concatenate([BH, HI]), np.concatenate([BV, V]))}
         k = split[np.argmax(rel, axis=1)]
         # the sensitivity's choice, unless that variable is already much thinner (relative to S) than the widest
         hint = info["hint"][bad]
