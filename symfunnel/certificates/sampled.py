@@ -263,6 +263,7 @@ class OnePeriod:
         self.st_hi = np.concatenate(st_hi) if st_hi else np.zeros(0)
         self.dim = self.i_st                      # the split part: t, s1, s2, m, p (m is a point)
         self.taylor = True                        # the Taylor a-priori enclosure first (`_taylor`)
+        self.monotone = True                      # the next sample's bounds on monotone faces (`_monotone`)
         self.lim_S = np.concatenate([np.full(n, 1 - S.m1), np.full(n, 1 - S.m2)])
 
     def box(self, t_final: float) -> tuple[np.ndarray, np.ndarray]:
@@ -372,7 +373,10 @@ class OnePeriod:
         need = np.flatnonzero(ok & ~first & (self.continuous | ~switched))
         if need.size:
             i = need
-            NL, NH, _, J = self.next.eval_batch(*self._with_h(FL[i], FH[i], h), with_jacobian=True)
+            XL, XH = self._with_h(FL[i], FH[i], h)
+            NL, NH, nsw, J = self.next.eval_batch(XL, XH, with_jacobian=True)
+            if self.monotone:
+                NL, NH = self._monotone(XL, XH, NL, NH, np.asarray(nsw, bool))
             AL, AH = self._acc_in(FL[i], FH[i], tl[i], th[i], SL[i], SH[i], UL[i], UH[i])
             r = _up(_up(h * h) * 0.5)
             el2 = _dn(NL + _dn(r * np.minimum(AL, 0.0)))
@@ -461,6 +465,41 @@ class OnePeriod:
             al[gi] = np.where(nl[grow] < al[gi], _dn(nl[grow] - 0.1 * ww - 1e-12), al[gi])
             ah[gi] = np.where(nh[grow] > ah[gi], _up(nh[grow] + 0.1 * ww + 1e-12), ah[gi])
         return valid, DL, DH, SL, SH, sw
+
+    def _monotone(self, XL, XH, NL, NH, sw):
+        """The next sample's bounds tightened by monotonicity: where next_o is provably nondecreasing in a variable
+        on the box (its Jacobian's interval >= 0, interval AD on a box where no discontinuity switches), its upper
+        bound is taken on the box's upper face in that variable (nonincreasing: the lower face), and conversely for
+        the lower bound; each output's bound is the centered form on its own reduced box."""
+        keep = np.flatnonzero(~sw)
+        if not keep.size:
+            return NL, NH
+        XL, XH = XL[keep], XH[keep]
+        m, n2 = XL.shape[0], 2 * self.n
+        wf = self.next.w_flat
+        JL, JH, _ = self.next.jac.eval_batch(XL, XH)
+        JL = JL.reshape(m, wf.size, n2).transpose(0, 2, 1)
+        JH = JH.reshape(m, wf.size, n2).transpose(0, 2, 1)
+        lo_w, hi_w = XL[:, wf][:, None, :], XH[:, wf][:, None, :]
+        up_pick = np.where(JL >= 0, hi_w, np.where(JH <= 0, lo_w, np.nan))       # (m, n2, nw): where max is
+        dn_pick = np.where(JL >= 0, lo_w, np.where(JH <= 0, hi_w, np.nan))
+        boxes_l, boxes_h = [], []
+        for pick in (up_pick, dn_pick):
+            BL = np.repeat(XL[:, None, :], n2, 1)
+            BH = np.repeat(XH[:, None, :], n2, 1)
+            BL[:, :, wf] = np.where(np.isnan(pick), BL[:, :, wf], pick)
+            BH[:, :, wf] = np.where(np.isnan(pick), BH[:, :, wf], pick)
+            boxes_l.append(BL.reshape(m * n2, -1))
+            boxes_h.append(BH.reshape(m * n2, -1))
+        L, H, _ = self.next.eval_batch(np.concatenate(boxes_l), np.concatenate(boxes_h))
+        o = np.tile(np.arange(n2), m)
+        r = np.arange(m * n2)
+        up = H[:m * n2][r, o].reshape(m, n2)
+        dn = L[m * n2:][r, o].reshape(m, n2)
+        NL, NH = NL.copy(), NH.copy()
+        NH[keep] = np.where(np.isfinite(up), np.minimum(NH[keep], up), NH[keep])
+        NL[keep] = np.where(np.isfinite(dn), np.maximum(NL[keep], dn), NL[keep])
+        return NL, NH
 
     def w_kept(self, FL: np.ndarray, FH: np.ndarray) -> np.ndarray:
         """Per box (full rows: the split part and the controller states), whether W_hat's exponential-Euler update
