@@ -266,3 +266,17 @@ def _split(op, x):
     """A flat row of the next-sample function's layout as its inputs."""
     F = op.next.natural
     return [x[F.in_off[i]:F.in_off[i + 1]] for i in range(len(F.in_names))]
+
+
+def test_the_scaling_bench_generates_planar_arms_and_its_n2_period_is_proven():
+    """bench certify's scaling: the generated planar arms have n joints and load; at n = 2 one period at 100 kHz
+    from S (0.5 / 0.5) is proven within a small budget (the figure the bench times), with the split dimensions
+    2n + 1 (t and the 2n normalised errors; no uncertain parameter)."""
+    from symfunnel.bench._sampled import period_scaling, planar_text
+    from symfunnel.scenario.load import from_dict
+    import tomllib
+    for n in (2, 3, 4):
+        sc = from_dict(tomllib.loads(planar_text(n)), file=f"planar{n}.toml", base_dir=DATA, default_name="p")
+        assert sc.n == n
+    row = period_scaling(2, max_boxes=4000)
+    assert row["proven"] and row["left"] == 0.0 and row["split_dims"] == 5 and row["boxes"] <= 4000
