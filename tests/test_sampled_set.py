@@ -280,3 +280,78 @@ def test_the_scaling_bench_generates_planar_arms_and_its_n2_period_is_proven():
         assert sc.n == n
     row = period_scaling(2, max_boxes=4000)
     assert row["proven"] and row["left"] == 0.0 and row["split_dims"] == 5 and row["boxes"] <= 4000
+
+
+UNCERTAIN = """
+[[uncertainty]]
+key = "plant.parameters.a"
+dist = "uniform"
+low = 1.8
+high = 2.2
+
+[[uncertainty]]
+key = "plant.viscous"
+dist = "uniform"
+low = 0.0
+high = 0.3
+"""
+
+
+@pytest.mark.slow
+def test_sampled_runs_at_f_proven_over_the_parameter_box_from_the_boundary_of_s_never_breach(tmp_path):
+    """Issue 40's acceptance: the generated C step's sampled loop at f_proven, for each corner of the parameter box
+    (sampled_1dof with the plant's inertia a in [1.8, 2.2] and viscous friction in [0, 0.3]) and from each corner
+    and face midpoint of S at t = 0, keeps both funnels with the rate's margin between the samples and returns to S
+    at every sample -- S rebuilt here from the design's funnels, reference and alpha2 at the certificate's margins."""
+    import copy
+    import tomllib
+
+    from symfunnel.certificates.problem import Budget, Context
+    from symfunnel.certificates.region import parameter_box
+    from symfunnel.certificates.sampled_rate import certify_sampled
+    from symfunnel.deployed.loop import simulate_sampled
+    from symfunnel.design import derive
+    from symfunnel.scenario import load_scenario
+    from symfunnel.scenario.load import from_dict
+    text = (DATA / "sampled_1dof.toml").read_text().replace("[simulation]", "[plant.parameters]\na = 2.0\n[simulation]")
+    path = tmp_path / "uncertain.toml"
+    path.write_text(text + UNCERTAIN)
+    sc = load_scenario(str(path))
+    d = derive(sc)
+    T = 1.0
+    ctx = Context(sc, d, T, parameter_box(sc), None, None)
+    cert = certify_sampled(ctx, Budget(5e7, time.monotonic() + 300), theory=False)
+    assert cert.status == "proven", cert.detail
+    fp = cert.extra["proven_rate_hz"]
+    m1, m2 = cert.region["margin"]["e1"], cert.region["margin"]["e2"]
+    M = cert.extra["rate_margin"]
+    raw0 = tomllib.loads(text)
+    qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(0.0))
+    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
+    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+    F1, F2 = (np.asarray(v, float).ravel() for v in F(0.0))
+    starts = [(s1, s2) for s1 in (-1.0, 0.0, 1.0) for s2 in (-1.0, 0.0, 1.0) if abs(s1) == 1 or abs(s2) == 1]
+    runs = 0
+    for a in (1.8, 2.2):
+        for visc in (0.0, 0.3):
+            for s1, s2 in starts:
+                q0 = qd + s1 * (1 - m1) * F1
+                dq0 = np.asarray(a2(0.0, q0, qd, dqd), float).ravel() + s2 * (1 - m2) * F2
+                raw = copy.deepcopy(raw0)
+                raw["plant"]["parameters"]["a"] = a
+                raw["plant"]["viscous"] = visc
+                raw["initial"] = {"q": q0.tolist(), "dq": dq0.tolist()}
+                sc2 = from_dict(raw, file=str(path), base_dir=tmp_path, default_name="corner")
+                res = simulate_sampled(sc2, d, rate_hz=fp, t_final=T)       # the controller: the same design
+                assert res.ok, (a, visc, s1, s2, res.status, res.message)
+                assert np.min(res.between_margins) >= M - 1e-9, (a, visc, s1, s2)
+                # back in S at every sample: e1 / F1 and (dq - alpha2) / F2 from the design's own functions
+                for k in range(0, res.t.size, 7):
+                    tk = float(res.t[k])
+                    qdk, dqdk, _ = (np.asarray(v, float).ravel() for v in d.reference(tk))
+                    G1, G2 = (np.asarray(v, float).ravel() for v in F(tk))
+                    r1 = np.abs(res.q[k] - qdk) / G1
+                    r2 = np.abs(res.dq[k] - np.asarray(a2(tk, res.q[k], qdk, dqdk), float).ravel()) / G2
+                    assert np.all(r1 <= 1 - m1 + 1e-9) and np.all(r2 <= 1 - m2 + 1e-9), (a, visc, s1, s2, tk, r1, r2)
+                runs += 1
+    assert runs == 32
