@@ -207,35 +207,23 @@ def test_one_period_enclosure_contains_the_integrated_plant():
     """Soundness against a second implementation: from states of S drawn here, the plant integrated over one period
     by scipy (tight tolerances) under the generated step's held torque stays inside the certificate's a-priori
     enclosure of sigma = e / F at every output time, and its end inside the certificate's bound of the next sample."""
-    import casadi as ca
     from scipy.integrate import solve_ivp
 
     from symfunnel.certificates.sampled import OnePeriod, declared_set
     from symfunnel.emit.step import step_function
-    from symfunnel.plant.equations import plant_acceleration, plant_parameters
+
+    from .test_sampled_set import plant_and_sigma, state_at
     ctx = _ctx(ONE)
-    d, sc = ctx.design, ctx.scenario
+    d = ctx.design
     op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.5))
     h = 1.0 / 3000.0
     step = step_function(d, 3000.0)
-    q, dq, t, u = ca.SX.sym("q", 1), ca.SX.sym("dq", 1), ca.SX.sym("t"), ca.SX.sym("u", 1)
-    _, p0 = plant_parameters(sc)
-    acc = ca.Function("acc", [t, q, dq, u], [plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(p0))["ddq"]])
-    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
-    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
-
-    def sigma(tt, x):
-        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
-        F1, F2 = (float(np.ravel(v)[0]) for v in F(tt))
-        return np.array([(x[0] - qd[0]) / F1, (x[1] - float(np.ravel(a2(tt, x[:1], qd, dqd))[0])) / F2])
+    acc, sigma = plant_and_sigma(ctx)
     rng = np.random.default_rng(11)
     checked = 0
     for _ in range(12):
         tk, s1, s2 = rng.uniform(0, 2.0), rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5)
-        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tk))
-        F1, F2 = (float(np.ravel(v)[0]) for v in F(tk))
-        q0 = qd + s1 * F1
-        dq0 = np.asarray(a2(tk, q0, qd, dqd), float).ravel() + s2 * F2
+        q0, dq0 = state_at(d, tk, [s1, s2])
         tau = float(np.ravel(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0])[0])
         X = np.array([[tk, s1, s2, 0.0]])
         ok, info = op.check(X, X, h, 0.05)

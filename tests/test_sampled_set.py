@@ -21,6 +21,40 @@ def _ctx(path, t_final=None):
     return Context(sc, derive(sc), float(t_final or sc.simulation.t_final), parameter_box(sc), None, None)
 
 
+def plant_and_sigma(ctx):
+    """The plant's acceleration at the nominal parameters (a CasADi Function of t, q, dq, u) and sigma(t, x) =
+    (e1 / F1, (dq - alpha2) / F2) of a state x = (q, dq), built from the design's reference, funnels and alpha2
+    (not from the certificate's region functions)."""
+    import casadi as ca
+
+    from symfunnel.plant.equations import plant_acceleration, plant_parameters
+    d, sc = ctx.design, ctx.scenario
+    n = d.n
+    q, dq, t, u = ca.SX.sym("q", n), ca.SX.sym("dq", n), ca.SX.sym("t"), ca.SX.sym("u", n)
+    _, p0 = plant_parameters(sc)
+    acc = ca.Function("acc", [t, q, dq, u], [plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(p0))["ddq"]])
+    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
+    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+
+    def sigma(tt, x):
+        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
+        F1, F2 = (np.asarray(v, float).ravel() for v in F(tt))
+        return np.concatenate([(x[:n] - qd) / F1, (x[n:] - np.asarray(a2(tt, x[:n], qd, dqd), float).ravel()) / F2])
+    return acc, sigma
+
+
+def state_at(design, t: float, s) -> tuple[np.ndarray, np.ndarray]:
+    """The joint state (q, dq) whose normalised errors at time t are s = (e1 / F1, e2 / F2) (2n numbers), from the
+    design's reference, funnels and alpha2."""
+    n = design.n
+    s = np.asarray(s, float)
+    qd, dqd, _ = (np.asarray(v, float).ravel() for v in design.reference(t))
+    F1, F2 = (np.asarray(v, float).ravel() for v in design.function("funnel_bounds", ["t"], ["F1", "F2"])(t))
+    q = qd + s[:n] * F1
+    a2 = np.asarray(design.function("alpha2", ["t", "q", "qd", "dqd"])(t, q, qd, dqd), float).ravel()
+    return q, a2 + s[n:] * F2
+
+
 @pytest.mark.slow
 def test_certify_none_uses_the_containment_set_and_proves_a_rate_from_it():
     """certify_none: certify.containment is proven (m1, m2), and certify.sampled then starts from and returns to
@@ -111,37 +145,24 @@ def test_a_face_of_s_on_the_rate_margin_is_proven_where_the_flow_points_inward()
     bound of a face point is checked against the plant integrated by scipy from that point."""
     from scipy.integrate import solve_ivp
 
-    import casadi as ca
-
     from symfunnel.certificates.sampled import OnePeriod, declared_set, prove_period
     from symfunnel.emit.step import step_function
-    from symfunnel.plant.equations import plant_acceleration, plant_parameters
     ctx = _ctx(DATA / "sampled_1dof.toml")
     op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.05))
     assert prove_period(op, 1e-3, 0.05, 2.0, max_boxes=20000)["proven"]
     # a face point: sigma2 = 0.95 at t = 0.7, sigma1 = 0.2; the plant from there under the step's torque
-    d, sc = ctx.design, ctx.scenario
+    d = ctx.design
     t0, s1, s2, h = 0.7, 0.2, 0.95, 1e-3
     X = np.array([[t0, s1, s2, 0.0]])
     ok, info = op.check(X, X, h, 0.05)
     assert ok[0]
-    qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(t0))
-    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
-    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
-    F1, F2 = (float(np.ravel(v)[0]) for v in F(t0))
-    q0 = qd[0] + s1 * F1
-    dq0 = float(np.ravel(a2(t0, [q0], qd, dqd))[0]) + s2 * F2
+    q0, dq0 = (float(v[0]) for v in state_at(d, t0, [s1, s2]))
     tau = float(np.ravel(step_function(d, 1000.0)(t0, [q0], [dq0], np.zeros(1), np.zeros((1, 1)))[0])[0])
-    q, dq, t, u = ca.SX.sym("q", 1), ca.SX.sym("dq", 1), ca.SX.sym("t"), ca.SX.sym("u", 1)
-    _, p0 = plant_parameters(sc)
-    acc = ca.Function("acc", [t, q, dq, u], [plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(p0))["ddq"]])
+    acc, sigma = plant_and_sigma(ctx)
     sol = solve_ivp(lambda tt, x: [x[1], float(acc(tt, x[:1], x[1:], [tau]))], (t0, t0 + h), [q0, dq0],
                     rtol=1e-11, atol=1e-13, dense_output=True)
     for tt in np.linspace(t0, t0 + h, 9):
-        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
-        F1, F2 = (float(np.ravel(v)[0]) for v in F(tt))
-        x = sol.sol(tt)
-        sg = np.array([(x[0] - qd[0]) / F1, (x[1] - float(np.ravel(a2(tt, x[:1], qd, dqd))[0])) / F2])
+        sg = sigma(tt, sol.sol(tt))
         assert np.all(np.abs(sg) <= [0.5 + 1e-9, 0.95 + 1e-9]), (tt, sg)       # stays in S, so in the funnels
         assert np.all(sg >= info["SL"][0] - 1e-9) and np.all(sg <= info["SH"][0] + 1e-9)
 
@@ -151,28 +172,17 @@ def test_taylor_enclosure_contains_the_integrated_two_joint_plant_and_is_tighter
     of containment's S (|e1| = 0.5 F1, |e2| = 0.95 F2, built here from the design's funnels and alpha2): the
     integrated trajectory under the generated step's held torque stays in the enclosure Sigma at every output
     time and its rate in D (the end in sigma_k + h D); and D is narrower than the first-order Picard's."""
-    import casadi as ca
     from scipy.integrate import solve_ivp
 
     from symfunnel.certificates.sampled import OnePeriod, declared_set
     from symfunnel.emit.step import step_function
-    from symfunnel.plant.equations import plant_acceleration, plant_parameters
     ctx = _ctx(NONE, t_final=5.0)
-    d, sc = ctx.design, ctx.scenario
+    d = ctx.design
     n = d.n
     op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.05))
     h = 1.0 / 4000.0
     step = step_function(d, 4000.0)
-    q, dq, t, u = ca.SX.sym("q", n), ca.SX.sym("dq", n), ca.SX.sym("t"), ca.SX.sym("u", n)
-    _, p0 = plant_parameters(sc)
-    acc = ca.Function("acc", [t, q, dq, u], [plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(p0))["ddq"]])
-    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
-    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
-
-    def sigma(tt, x):
-        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
-        F1, F2 = (np.asarray(v, float).ravel() for v in F(tt))
-        return np.concatenate([(x[:n] - qd) / F1, (x[n:] - np.asarray(a2(tt, x[:n], qd, dqd), float).ravel()) / F2])
+    acc, sigma = plant_and_sigma(ctx)
     rng = np.random.default_rng(5)
     narrower = 0
     for k in range(10):
@@ -182,10 +192,7 @@ def test_taylor_enclosure_contains_the_integrated_two_joint_plant_and_is_tighter
         s[j] = rng.choice([-1, 1]) * (0.5 if j < n else 0.95)                           # on a face
         if k < 3:
             s = np.array([0.5, -0.5, 0.95, -0.95]) * rng.choice([-1, 1], 4)              # a corner
-        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tk))
-        F1, F2 = (np.asarray(v, float).ravel() for v in F(tk))
-        q0 = qd + s[:n] * F1
-        dq0 = np.asarray(a2(tk, q0, qd, dqd), float).ravel() + s[n:] * F2
+        q0, dq0 = state_at(d, tk, s)
         tau = np.asarray(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0], float).ravel()
         # a small box of sample states around the point, inside S (the point in it)
         lim = np.array([0.5] * n + [0.95] * n)
@@ -326,17 +333,13 @@ def test_sampled_runs_at_f_proven_over_the_parameter_box_from_the_boundary_of_s_
     m1, m2 = cert.region["margin"]["e1"], cert.region["margin"]["e2"]
     M = cert.extra["rate_margin"]
     raw0 = tomllib.loads(text)
-    qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(0.0))
-    F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
-    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
-    F1, F2 = (np.asarray(v, float).ravel() for v in F(0.0))
+    _, sigma = plant_and_sigma(ctx)
     starts = [(s1, s2) for s1 in (-1.0, 0.0, 1.0) for s2 in (-1.0, 0.0, 1.0) if abs(s1) == 1 or abs(s2) == 1]
     runs = 0
     for a in (1.8, 2.2):
         for visc in (0.0, 0.3):
             for s1, s2 in starts:
-                q0 = qd + s1 * (1 - m1) * F1
-                dq0 = np.asarray(a2(0.0, q0, qd, dqd), float).ravel() + s2 * (1 - m2) * F2
+                q0, dq0 = state_at(d, 0.0, [s1 * (1 - m1), s2 * (1 - m2)])
                 raw = copy.deepcopy(raw0)
                 raw["plant"]["parameters"]["a"] = a
                 raw["plant"]["viscous"] = visc
@@ -348,10 +351,8 @@ def test_sampled_runs_at_f_proven_over_the_parameter_box_from_the_boundary_of_s_
                 # back in S at every sample: e1 / F1 and (dq - alpha2) / F2 from the design's own functions
                 for k in range(0, res.t.size, 7):
                     tk = float(res.t[k])
-                    qdk, dqdk, _ = (np.asarray(v, float).ravel() for v in d.reference(tk))
-                    G1, G2 = (np.asarray(v, float).ravel() for v in F(tk))
-                    r1 = np.abs(res.q[k] - qdk) / G1
-                    r2 = np.abs(res.dq[k] - np.asarray(a2(tk, res.q[k], qdk, dqdk), float).ravel()) / G2
+                    r = np.abs(sigma(tk, np.concatenate([res.q[k], res.dq[k]])))
+                    r1, r2 = r[:d.n], r[d.n:]
                     assert np.all(r1 <= 1 - m1 + 1e-9) and np.all(r2 <= 1 - m2 + 1e-9), (a, visc, s1, s2, tk, r1, r2)
                 runs += 1
     assert runs == 32
