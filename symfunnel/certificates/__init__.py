@@ -32,7 +32,8 @@ _ORDER = ("certify.input_gain", "certify.invariance", "certify.containment", "ce
 
 def _sampled(ctx: Context, budget: Budget) -> Certificate:
     """certify.sampled at the scenario's [implementation] (its tau_max; the bisection starts at its rate, else at
-    1 kHz), S declared with the default margins; `rate --certify` adds the simulated rate and the C step's run."""
+    1 kHz), S the set certify.containment proves (computed when not asked for), else the default margins;
+    `rate --certify` adds the simulated rate and the C step's run."""
     from .sampled_rate import certify_sampled
     impl = getattr(ctx.scenario, "implementation", None)
     return certify_sampled(ctx, budget, tau_max=impl.tau_max if impl is not None else None,

@@ -16,11 +16,14 @@ sample states (t_k, sigma_k, p, controller states) and h:
 
 1. u_k: the enclosure of the C step's torque over K (`emit.step.step_core`'s tau: the design's torque, saturated at
    tau_max; the step's projection onto the funnels is the identity on S since m >= 1 - CLIP);
-2. a-priori enclosure (first-order Picard): a box Sigma with K_sigma + [0, h] sigma'([t_k, t_k + h], Sigma, u_k, p)
-   inside Sigma encloses sigma(t) on the whole period;
-3. (a) Sigma within |sigma| <= 1 - M (the funnels with the rate's margin M between the samples) and (b) the next
-   sample sigma_k + h sigma'(...) within S's margins; W_hat's exponential-Euler update stays in its box (an affine
-   update: W+ = b W + phi A, b = 1 - phi c in [0, 1], so A's enclosure inside c times the box suffices, whatever h);
+2. a-priori enclosure: in Taylor form around the rates at the sample (`OnePeriod._taylor`), else first-order
+   Picard -- a box Sigma with K_sigma + [0, h] sigma'([t_k, t_k + h], Sigma, u_k, p) inside Sigma; either encloses
+   sigma(t) on the whole period;
+3. (a) the funnels with the rate's margin M between the samples -- implied by (b) when S lies within them (the
+   convexity argument below), else Sigma within |sigma| <= 1 - M -- and (b) the next sample sigma_k + h sigma'(...)
+   (+ h^2/2 sigma'', on monotone faces where that pays) within S's margins; W_hat's exponential-Euler update stays in
+   its set (an affine update: W+ = b W + phi A, b = 1 - phi c in [0, 1], so A's enclosure inside c times the box, or
+   ||A||_F <= c w for containment's ball, suffices, whatever h);
    x_esn's update is the convex combination exp(-lambda h) x + (1 - exp(-lambda h)) tanh(.)/leak (emit.step's ETD
    lemma), inside its box at every h.
 

@@ -26,6 +26,8 @@ RATE_REL_TOL = 0.1
 WARM_QUEUE = 4
 #: the work budget of certify.containment when certify.sampled computes it (its budget in `certify`)
 CONTAINMENT_WORK = 5e7
+#: the share of a wall-clock limit certify.containment may use when certify.sampled computes it
+CONTAINMENT_SHARE = 0.4
 #: boxes per period h tried (a deterministic budget; --wall-limit can only end a search earlier)
 BOXES_PER_RATE = 40000
 
@@ -93,7 +95,10 @@ def choose_set(ctx: Context, budget: Budget, margin: float, set_margin=None) -> 
     from .containment import CID as CONTAINMENT, certify_containment
     c = ctx.results.get(CONTAINMENT)
     if c is None:
-        c = certify_containment(ctx, Budget(CONTAINMENT_WORK, budget.expiry))
+        # at most CONTAINMENT_SHARE of what is left of a wall-clock limit: the rate's own search keeps the rest
+        expiry = None if budget.expiry is None else \
+            time.monotonic() + CONTAINMENT_SHARE * max(0.0, budget.expiry - time.monotonic())
+        c = certify_containment(ctx, Budget(CONTAINMENT_WORK, expiry))
         ctx.results[CONTAINMENT] = c
     rec = {"containment": {"status": c.status, "margin": c.extra.get("margin"), "w_bound": c.extra.get("w_bound")}}
     S = containment_set(ctx, margin)
