@@ -356,3 +356,47 @@ def test_sampled_runs_at_f_proven_over_the_parameter_box_from_the_boundary_of_s_
                     assert np.all(r1 <= 1 - m1 + 1e-9) and np.all(r2 <= 1 - m2 + 1e-9), (a, visc, s1, s2, tk, r1, r2)
                 runs += 1
     assert runs == 32
+
+
+def test_enclosure_with_coulomb_friction_contains_the_integrated_plant_across_its_switch(tmp_path):
+    """With Coulomb friction (sign(dq): sigma' is not continuous along a period) the Taylor form is used only on
+    boxes where no switch can happen; from states with dq near 0 (the sign may flip inside the period) the
+    enclosure still contains the plant integrated by scipy (event-free, tight tolerances) under the held torque."""
+    from scipy.integrate import solve_ivp
+
+    from symfunnel.certificates.sampled import OnePeriod, declared_set
+    from symfunnel.emit.step import step_function
+    p = tmp_path / "coulomb.toml"
+    p.write_text((DATA / "sampled_1dof.toml").read_text().replace("coulomb = 0.0", "coulomb = 0.5"))
+    ctx = _ctx(p)
+    d = ctx.design
+    op = OnePeriod(ctx, declared_set(ctx, 0.5, 0.5))
+    assert not op.continuous
+    h = 1.0 / 2000.0
+    step = step_function(d, 2000.0)
+    acc, sigma = plant_and_sigma(ctx)
+    rng = np.random.default_rng(2)
+    checked = 0
+    for _ in range(40):
+        tk = float(rng.uniform(0, 2.0))
+        s1 = float(rng.uniform(-0.5, 0.5))
+        # e2 such that dq is within a few 1e-3 of 0: the friction's sign can switch during the period
+        q0, a2 = state_at(d, tk, [s1, 0.0])
+        F2 = float(np.asarray(d.function("funnel_bounds", ["t"], ["F1", "F2"])(tk)[1], float).ravel()[0])
+        s2 = float(np.clip((rng.uniform(-3e-3, 3e-3) - a2[0]) / F2, -0.5, 0.5))
+        q0, dq0 = state_at(d, tk, [s1, s2])
+        tau = float(np.asarray(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0], float).ravel()[0])
+        X = np.array([[tk, s1, s2, 0.0]])
+        ok, info = op.check(X, X, h, 0.05)
+        if not np.all(np.isfinite(info["DL"])):
+            continue
+        sol = solve_ivp(lambda tt, x: [x[1], float(acc(tt, x[:1], x[1:], [tau]))], (tk, tk + h),
+                        [q0[0], dq0[0]], rtol=1e-12, atol=1e-14, dense_output=True, max_step=h / 200)
+        for tt in np.linspace(tk, tk + h, 17):
+            sg = sigma(tt, sol.sol(tt))
+            assert np.all(sg >= info["SL"][0] - 1e-8) and np.all(sg <= info["SH"][0] + 1e-8), (tk, tt, sg)
+            disp = sg - np.array([s1, s2])
+            assert np.all(disp >= (tt - tk) * info["DL"][0] - 1e-8)
+            assert np.all(disp <= (tt - tk) * info["DH"][0] + 1e-8)
+        checked += 1
+    assert checked >= 20
