@@ -428,13 +428,12 @@ def rate_search(sc: Scenario, *, margin: float = 0.05, t_final: float | None = N
 
 def _certified_rate(sc, run, r: dict, *, t_final, margin, set_margin, wall_limit, progress) -> dict:
     """certify.sampled beside the simulated search: the contract's keys (docs/certify.md)."""
-    from .certificates.sampled import DEFAULT_SET_MARGIN
     from .certificates.sampled_rate import sampled_bracket, simulated_w_hat_range
     design = run.design
     # W_hat's box: the simulated run's range (widened by the certificate), as the report's bracket takes it
     wr = simulated_w_hat_range(design, run.closed_loop, run.simulation) if design.n_regressor else None
     T = t_final if t_final is not None else sc.simulation.t_final
-    return sampled_bracket(sc, design, t_final=T, margin=margin, set_margin=tuple(set_margin or DEFAULT_SET_MARGIN),
+    return sampled_bracket(sc, design, t_final=T, margin=margin, set_margin=tuple(set_margin) if set_margin else None,
                            f_sim=r["min_rate_hz"], w_hat_range=wr, wall_limit=wall_limit, progress=progress)
 
 

@@ -25,14 +25,15 @@ CERTIFICATES = CERTIFY_CHECKS
 #: the deterministic work budget of each certificate, in tape operations x boxes (a certificate with a 600-operation
 #: tape gets ~80,000 boxes; a wall-clock limit can only stop a search earlier)
 DEFAULT_WORK = {"certify.input_gain": 4e7, "certify.bounds": 5e7, "certify.invariance": 5e7,
-                "certify.containment": 5e7, "certify.sampled": 5e7}
+                "certify.containment": 5e7, "certify.sampled": 5e7}     # containment's: sampled_rate.CONTAINMENT_WORK
 #: the order they are computed in (bounds uses the set a containment or invariance certificate proves)
 _ORDER = ("certify.input_gain", "certify.invariance", "certify.containment", "certify.bounds")
 
 
 def _sampled(ctx: Context, budget: Budget) -> Certificate:
     """certify.sampled at the scenario's [implementation] (its tau_max; the bisection starts at its rate, else at
-    1 kHz), S declared with the default margins; `rate --certify` adds the simulated rate and the C step's run."""
+    1 kHz), S the set certify.containment proves (computed when not asked for), else the default margins;
+    `rate --certify` adds the simulated rate and the C step's run."""
     from .sampled_rate import certify_sampled
     impl = getattr(ctx.scenario, "implementation", None)
     return certify_sampled(ctx, budget, tau_max=impl.tau_max if impl is not None else None,

@@ -2,8 +2,9 @@
 
 The set S of states at a sampling instant t_k in [0, T]: |e1_j| <= (1 - m1) F1_j(t_k), |e2_j| <= (1 - m2) F2_j(t_k),
 x_esn in its invariant box |x_i| <= 1/leak, W_hat in a box (declared, or the simulated run's range widened), every
-parameter of the box (the dead zone's breakpoints and scales included). `SampledSet` is the seam: today S is declared
-(margins by option); a containment certificate can hand over its own S later.
+parameter of the box (the dead zone's breakpoints and scales included). `SampledSet` is the seam: S is declared
+(margins by option) or `containment_set`, the set a proven `certify.containment` shows invariant (W_hat then in its
+ball ||W_hat||_F <= w).
 
 In the normalised errors sigma_i = e_i / F_i (the region coordinates s of `region.region_signals` at m = 0) the plant
 under the held torque u_k is the non-autonomous ODE
@@ -15,11 +16,14 @@ sample states (t_k, sigma_k, p, controller states) and h:
 
 1. u_k: the enclosure of the C step's torque over K (`emit.step.step_core`'s tau: the design's torque, saturated at
    tau_max; the step's projection onto the funnels is the identity on S since m >= 1 - CLIP);
-2. a-priori enclosure (first-order Picard): a box Sigma with K_sigma + [0, h] sigma'([t_k, t_k + h], Sigma, u_k, p)
-   inside Sigma encloses sigma(t) on the whole period;
-3. (a) Sigma within |sigma| <= 1 - M (the funnels with the rate's margin M between the samples) and (b) the next
-   sample sigma_k + h sigma'(...) within S's margins; W_hat's exponential-Euler update stays in its box (an affine
-   update: W+ = b W + phi A, b = 1 - phi c in [0, 1], so A's enclosure inside c times the box suffices, whatever h);
+2. a-priori enclosure: in Taylor form around the rates at the sample (`OnePeriod._taylor`), else first-order
+   Picard -- a box Sigma with K_sigma + [0, h] sigma'([t_k, t_k + h], Sigma, u_k, p) inside Sigma; either encloses
+   sigma(t) on the whole period;
+3. (a) the funnels with the rate's margin M between the samples -- implied by (b) when S lies within them (the
+   convexity argument below), else Sigma within |sigma| <= 1 - M -- and (b) the next sample sigma_k + h sigma'(...)
+   (+ h^2/2 sigma'', on monotone faces where that pays) within S's margins; W_hat's exponential-Euler update stays in
+   its set (an affine update: W+ = b W + phi A, b = 1 - phi c in [0, 1], so A's enclosure inside c times the box, or
+   ||A||_F <= c w for containment's ball, suffices, whatever h);
    x_esn's update is the convex combination exp(-lambda h) x + (1 - exp(-lambda h)) tanh(.)/leak (emit.step's ETD
    lemma), inside its box at every h. With a projected law (`[adaptation] projection`) the step clips W_hat onto the
    ball ||W_hat||_F <= R (1 + eps) after its update, so a W_hat box containing that ball is kept at every h (S then
@@ -52,7 +56,9 @@ from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
 from .problem import Context, controller_state_boxes
-from .region import region_signals, structurally_zero, true_unknown
+from .region import region_signals, true_unknown
+from .sampled_graph import (_add_dn, _add_up, _continuous_rates, _dn, _imul, _nominal_de2, _sum_dn, _sum_up,
+                            _up)
 
 CID = "certify.sampled"
 #: S's margins (e1, e2) when none are given
@@ -83,6 +89,7 @@ class SampledSet:
     states: dict = field(default_factory=dict)        # controller-state boxes {name: (lo, hi)}
     source: str = "declared"
     notes: dict = field(default_factory=dict)
+    w_ball: float | None = None     # W_hat in the ball ||W_hat||_F <= w_ball (states["w_hat"] its bounding box)
 
     def describe(self, t_final: float) -> dict:
         """The contract's region dict of S."""
@@ -118,108 +125,32 @@ def declared_set(ctx: Context, m1: float, m2: float, w_box=None, w_source: str |
     return SampledSet(float(m1), float(m2), states, "declared", notes)
 
 
-def _nominal_de2(design) -> ca.SX:
-    """de2 = (v - W_hat^T Phi) - alpha2_dot of the nominal loop without the alpha2_dot - alpha2_dot cancellation
-    interval arithmetic cannot see: when v = alpha2_dot + g with g free of alpha2_dot (v affine in alpha2_dot with
-    the identity as coefficient, checked on the graph: alpha2_dot's nodes replaced by a symbol A, dv/dA = I),
-    de2 = g - W_hat^T Phi = v(A = 0) - W_hat^T Phi; else (a mutant that scales alpha2_dot) the design's de2."""
-    from ..sx.rewrite import replace_nodes
-    S = design.signals
-    n = design.n
-    A = ca.SX.sym("A", n)
-    vA = replace_nodes([S["v"]], S["alpha2_dot"], A)[0]
-    try:
-        J = np.asarray(ca.evalf(ca.jacobian(vA, A)), float)
-    except RuntimeError:
-        return S["de2"]
-    if not np.array_equal(J, np.eye(n)):
-        return S["de2"]
-    est = ca.mtimes(design.sym["w_hat"].T, S["Phi"]) if "w_hat" in design.sym else ca.SX.zeros(n)
-    if not structurally_zero(S["ddq"] - (S["v"] - est)):
-        return S["de2"]
-    return ca.substitute(vA, A, ca.SX.zeros(n)) - est
-
-
-_SWITCHING = ("OP_SIGN", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ", "OP_NE", "OP_NOT", "OP_AND", "OP_OR",
-              "OP_FLOOR", "OP_CEIL")
-
-
-def _switching_on(inputs: list, wrt: list, outputs: list) -> int:
-    """How many discontinuous operations (sign, comparisons, branches, floor) of the graph of `outputs` have an
-    argument that depends on the symbols `wrt` (the other inputs are held constant)."""
-    f = ca.Function("g", inputs, outputs)
-    codes = {getattr(ca, k) for k in _SWITCHING if hasattr(ca, k)}
-    op_input, op_output, op_const = ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST
-    wrt_ids = set()
-    for i, x in enumerate(inputs):
-        for k in range(x.nnz()):
-            if any(ca.depends_on(x.nz[k], w) for w in wrt):
-                wrt_ids.add((i, k))
-    dep: dict[int, bool] = {}
-    count = 0
-    for k in range(f.n_instructions()):
-        op = f.instruction_id(k)
-        o = f.instruction_output(k)
-        if op == op_input:
-            i, nz = f.instruction_input(k)
-            dep[o[0]] = (i, nz) in wrt_ids
-        elif op == op_output or op == op_const:
-            if op == op_const:
-                dep[o[0]] = False
-        else:
-            d = any(dep.get(a, False) for a in f.instruction_input(k) if a >= 0)
-            if op in codes and d:
-                count += 1
-            dep[o[0]] = d
-    return count
-
-
-def _continuous_rates(design, inputs, state, plant_ddq) -> tuple[bool, str]:
-    """Whether sigma' is continuous along a period (so the next sample's second-order form may use the Lipschitz
-    mean-value argument where its interval evaluation flags a sign that may switch): the plant's acceleration has no
-    discontinuous operation depending on the state (t, q, dq) -- the held torque's dead zone is constant -- and the
-    design's alpha2, F and F' have none, and the transformation's z is C^1 at e = 0 (proven by sympy: the
-    derivative of each branch of |s| agrees at 0), so alpha2_dot's sign(e1) from the AD of |e1| multiplies a jump 0."""
-    S = design.signals
-    if _switching_on(inputs, state, [plant_ddq]):
-        return False, "the plant's acceleration switches with the state (Coulomb friction, a branch)"
-    sym = design.sym
-    ins = [sym[k] for k in ("t", "q", "qd", "dqd", "ddqd")]
-    if _switching_on(ins, ins, [S["alpha2"], S["F1"], S["F2"], S["dF1"], S["dF2"]]):
-        return False, "alpha2 or a funnel has a discontinuous operation"
-    if not _transform_c1(design.variant.transform.name):
-        return False, "the transformation's z is not shown C^1 at e = 0"
-    return True, "sigma' is continuous along a period (checked)"
-
-
-_C1: dict = {}
-
-
-def _transform_c1(name: str) -> bool:
-    """sympy: z(s) of the registered transformation (F = 1) has equal one-sided derivatives at s = 0."""
-    if name in _C1:
-        return _C1[name]
-    import sympy
-
-    from ..family.transforms import TRANSFORMS
-    from ..sx.proof import _Timeout, time_limit
-    from ..sx.tosympy import sx_to_sympy
-    T = TRANSFORMS.get(name)()
-    s = ca.SX.sym("s")
-    z = T.build(s, ca.SX(1))["z"]
-    ok = False
-    try:
-        with time_limit(10.0):
-            S = sympy.Symbol("s", real=True)
-            e = sx_to_sympy(z, [s], [[S]])[0]
-            P = sympy.Symbol("P", positive=True)
-            right = sympy.diff(e.subs(S, P), P)
-            left = sympy.diff(e.subs(S, -P), P)         # d/ds at -P is -d/dP of z(-P)
-            ok = bool(sympy.simplify(sympy.limit(right, P, 0, "+") + sympy.limit(left, P, 0, "+")) == 0)
-    except (_Timeout, RecursionError, NotImplementedError, TypeError, ValueError):
-        ok = False
-    _C1[name] = ok
-    return ok
+def containment_set(ctx: Context, M: float) -> SampledSet | None:
+    """S from a proven `certify.containment` of this context (None otherwise): its margins (each raised to the
+    rate's margin M where it is below: the period's funnel check needs S within the margin M), W_hat in its ball
+    ||W_hat||_F <= w (boxes evaluate over the bounding box; the update is checked to keep the ball) and x_esn in its
+    invariant box. The sampled proof re-proves the return to this S itself; containment only proposes it."""
+    from .containment import proven_set
+    P = proven_set(ctx)
+    if P is None:
+        return None
+    m1, m2 = max(P["m1"], float(M)), max(P["m2"], float(M))
+    notes = {"containment_margin": {"e1": P["m1"], "e2": P["m2"]}}
+    if (m1, m2) != (P["m1"], P["m2"]):
+        notes["raised_to_rate_margin"] = float(M)
+    w = P["w"]
+    if ctx.design.n_regressor:
+        if w is None:
+            return None
+        W0 = np.zeros_like(np.asarray(ctx.design.variant.initial_states()["w_hat"], float))
+        states = controller_state_boxes(ctx, (W0 - w, W0 + w))
+        notes["w_hat"] = f"the containment certificate's ball ||W_hat||_F <= {w:.6g} (kept by the update: checked)"
+    else:
+        states = controller_state_boxes(ctx, None)
+    if "x_esn" in dict(ctx.design.states):
+        notes["x_esn"] = "the reservoir's invariant box |x_i| <= 1/leak"
+    return SampledSet(float(m1), float(m2), states, "certify.containment", notes,
+                      w_ball=None if w is None else float(w))
 
 
 def _check(f: ca.Function, file: str, what: str, wrt=None):
@@ -319,6 +250,11 @@ class OnePeriod:
         self.next_f = ca.Function("next_sample", base + [hs] + states, [nxt], bnames + ["h"] + self.state_names,
                                   ["next"], opts)
         self.next = _check(self.next_f, sc.file, "the next sample", ["t", "s1", "s2", "p"])
+        # the rates at the sample under the step's own torque, alone (the Taylor a-priori enclosure's centre)
+        self.ratek_f = ca.Function("sigma_rate_k", base + states, [o["rate_k"]], bnames + self.state_names,
+                                   ["rate_k"], opts)
+        self.ratek = _check(self.ratek_f, sc.file, "the normalised errors' rates at the sample",
+                            ["t", "s1", "s2", "p"])
         acc = ca.jacobian(o["rate"], t) + ca.mtimes(ca.jacobian(o["rate"], sig), o["rate"])
         self.acc_f = ca.Function("sigma_acc", base + [u] + states, [acc], bnames + ["u"] + self.state_names,
                                  ["acc"], opts)
@@ -344,6 +280,8 @@ class OnePeriod:
         self.st_lo = np.concatenate(st_lo) if st_lo else np.zeros(0)
         self.st_hi = np.concatenate(st_hi) if st_hi else np.zeros(0)
         self.dim = self.i_st                      # the split part: t, s1, s2, m, p (m is a point)
+        self.taylor = True                        # the Taylor a-priori enclosure first (`_taylor`)
+        self.monotone = True                      # the next sample's bounds on monotone faces (`_monotone`)
         self.lim_S = np.concatenate([np.full(n, 1 - S.m1), np.full(n, 1 - S.m2)])
 
     def box(self, t_final: float) -> tuple[np.ndarray, np.ndarray]:
@@ -378,6 +316,10 @@ class OnePeriod:
         sl = slice(1, 2 * n + 1)
         kl, kh = LO[:, sl], HI[:, sl]
         lim_M = 1.0 - M
+        # (a) follows from (b) when S lies within the funnels with margin M (`implied`, the module doc): then the
+        # a-priori box need only stay where the rates are defined (|sigma| < 1), not within the margin M
+        implied = bool(np.all(self.lim_S <= lim_M))
+        lim_P = 1.0 if implied else lim_M
         # Picard: Sigma_{j+1} = K + [0, h] f(T, Sigma_j); valid once Sigma_{j+1} is inside Sigma_j
         wl, wh = kl.copy(), kh.copy()
         valid = np.zeros(K, dtype=bool)
@@ -385,6 +327,16 @@ class OnePeriod:
         DH = np.full((K, 2 * n), np.inf)
         SL, SH = wl.copy(), wh.copy()
         tl, th = LO[:, 0], _up(HI[:, 0] + h)
+        if self.taylor and ok.any():
+            # the Taylor form first (the rates' correlation with the held torque kept), the first-order form where
+            # it fails
+            idx = np.flatnonzero(ok)
+            tv, tDL, tDH, tSL, tSH, tsw = self._taylor(FL[idx], FH[idx], kl[idx], kh[idx], tl[idx], th[idx],
+                                                       UL[idx], UH[idx], h, lim_P)
+            good = idx[tv]
+            valid[good] = True
+            DL[good], DH[good], SL[good], SH[good] = tDL[tv], tDH[tv], tSL[tv], tSH[tv]
+            switched[good] = tsw[tv]
         for it in range(PICARD_ITERATIONS):
             live = ok & ~valid
             if not live.any():
@@ -392,8 +344,8 @@ class OnePeriod:
             idx = np.flatnonzero(live)
             RL, RH, RS = self._rate_in(FL[idx], FH[idx], tl[idx], th[idx], wl[idx], wh[idx], UL[idx], UH[idx])
             fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
-            nl = _dn(kl[idx] + _dn(h * np.minimum(RL, 0.0)))
-            nh = _up(kh[idx] + _up(h * np.maximum(RH, 0.0)))
+            nl = _add_dn(kl[idx], h * np.minimum(RL, 0.0))
+            nh = _add_up(kh[idx], h * np.maximum(RH, 0.0))
             inside = fin & np.all((nl >= wl[idx]) & (nh <= wh[idx]), axis=1)
             good = idx[inside]
             valid[good] = True
@@ -405,19 +357,30 @@ class OnePeriod:
             ok[bad] = False
             grow = idx[fin & ~inside]
             g = np.flatnonzero(fin & ~inside)
-            # inflate: the new bounds, widened by a tenth of their width and an absolute 1e-9
+            # inflate, on the sides the new bounds leave only: widened by a tenth of their width and an absolute
+            # 1e-9 (a side that is contained stays where it is: at a face of S where the rate points inward the
+            # box then keeps the face's value exactly instead of crossing the margin by the inflation)
             w = nh[g] - nl[g]
-            wl[grow] = _dn(np.minimum(wl[grow], nl[g] - 0.1 * w - 1e-9))
-            wh[grow] = _up(np.maximum(wh[grow], nh[g] + 0.1 * w + 1e-9))
+            wl[grow] = np.where(nl[g] < wl[grow], _dn(nl[g] - 0.1 * w - 1e-9), wl[grow])
+            wh[grow] = np.where(nh[g] > wh[grow], _up(nh[g] + 0.1 * w + 1e-9), wh[grow])
             # an enclosure that leaves the funnels with margin M cannot pass (a): stop inflating it
-            out = np.any((wl[grow] < -lim_M) | (wh[grow] > lim_M), axis=1)
+            out = np.any((wl[grow] < -lim_P) | (wh[grow] > lim_P) if not implied else
+                         (wl[grow] <= -lim_P) | (wh[grow] >= lim_P), axis=1)
             why[grow[out][ok[grow[out]]]] = WHY.index("funnel")
             ok[grow[out]] = False
         why[ok & ~valid] = WHY.index("enclosure")
+        # a box whose enclosure left the funnels with margin M: split the normalised error that leaves (the layer
+        # of S at that face is what needs refining), unless the B&B finds it much thinner than the widest variable
+        out = np.flatnonzero(why == WHY.index("funnel"))
+        if out.size:
+            viol = np.maximum(wh[out] - lim_P, -lim_P - wl[out])
+            hint[out] = 1 + np.argmax(viol, axis=1)
         ok &= valid
         # (a) the funnels with margin M over the whole period
-        a = np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
-        why[ok & ~a] = WHY.index("funnel")
+        a = implied | np.all((SL >= -lim_M) & (SH <= lim_M), axis=1)
+        fa = np.flatnonzero(ok & ~a)
+        why[fa] = WHY.index("funnel")
+        hint[fa] = 1 + np.argmax(np.maximum(SH[fa] - lim_M, -lim_M - SL[fa]), axis=1)
         ok &= a
         # (b) the next sample in S: first order K + h D, and where that fails the second-order form
         el = _dn(kl + _dn(h * DL))
@@ -428,7 +391,10 @@ class OnePeriod:
         need = np.flatnonzero(ok & ~first & (self.continuous | ~switched))
         if need.size:
             i = need
-            NL, NH, _, J = self.next.eval_batch(*self._with_h(FL[i], FH[i], h), with_jacobian=True)
+            XL, XH = self._with_h(FL[i], FH[i], h)
+            NL, NH, nsw, J = self.next.eval_batch(XL, XH, with_jacobian=True)
+            if self.monotone:
+                NL, NH = self._monotone(XL, XH, NL, NH, np.asarray(nsw, bool))
             AL, AH = self._acc_in(FL[i], FH[i], tl[i], th[i], SL[i], SH[i], UL[i], UH[i])
             r = _up(_up(h * h) * 0.5)
             el2 = _dn(NL + _dn(r * np.minimum(AL, 0.0)))
@@ -440,13 +406,131 @@ class OnePeriod:
         ok &= first
         if self.w_f is not None and ok.any():
             idx = np.flatnonzero(ok)
-            AL, AH, _ = self.w_aff.eval_batch(FL[idx], FH[idx])
-            c = self.w_rate
-            wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
-            good = np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
+            good = self.w_kept(FL[idx], FH[idx])
             why[idx[~good]] = WHY.index("w_hat")
             ok[idx[~good]] = False
         return ok, {"why": why, "DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
+
+    def _taylor(self, FL, FH, kl, kh, tl, th, UL, UH, h, lim):
+        """The a-priori enclosure in Taylor (mean-value) form, per box K of sample states: the displacement
+        Delta = sigma(t) - sigma_k over the period satisfies Delta in [0, h] D with
+
+            D = R_k + J_t [0, h] + J_sigma Delta  (intersected with the rates over Sigma = K + Delta),
+
+        R_k the rates at the sample under the step's own torque (one function of the sample state: the torque's
+        cancellation against alpha2_dot is kept, where the first-order form holds the torque as an independent box)
+        and J the rates' Jacobian in (t, sigma) over [t_k, t_k + h] x Sigma with the torque held (interval AD:
+        Clarke's Jacobian where sigma' is Lipschitz along the period, which is required: `continuous`, or no
+        discontinuity switches on the box). If [0, h] D lies in Delta, the Picard operator maps the continuous
+        functions with sigma - sigma_k in Delta into themselves (Schauder; unique by Lipschitz), so the solution
+        stays in K + Delta and its rate in D. Returns (valid, DL, DH, SL, SH, switched) per box."""
+        n2 = 2 * self.n
+        K = FL.shape[0]
+        RL, RH, _ = self.ratek.eval_batch(FL, FH)
+        fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
+        gl = _dn(h * np.minimum(RL, 0.0))
+        gh = _up(h * np.maximum(RH, 0.0))
+        w = gh - gl
+        al, ah = _dn(gl - 0.1 * w - 1e-12), _up(gh + 0.1 * w + 1e-12)     # Delta
+        valid = np.zeros(K, dtype=bool)
+        live = fin.copy()
+        DL, DH = np.full((K, n2), -np.inf), np.full((K, n2), np.inf)
+        SL, SH = kl.copy(), kh.copy()
+        sw = np.ones(K, dtype=bool)
+        nw = self.rate.w_flat.size
+        for _ in range(PICARD_ITERATIONS):
+            idx = np.flatnonzero(live & ~valid)
+            if not idx.size:
+                break
+            sl, sh = _dn(kl[idx] + al[idx]), _up(kh[idx] + ah[idx])
+            inside = np.all((sl > -lim) & (sh < lim), axis=1) if lim >= 1.0 else \
+                np.all((sl >= -lim) & (sh <= lim), axis=1)
+            live[idx[~inside]] = False
+            idx, sl, sh = idx[inside], sl[inside], sh[inside]
+            if not idx.size:
+                break
+            n_ = self.n
+            RLo = np.concatenate([tl[idx, None], sl, FL[idx, 2 * n_ + 1:self.i_st], UL[idx], FL[idx, self.i_st:]], 1)
+            RHi = np.concatenate([th[idx, None], sh, FH[idx, 2 * n_ + 1:self.i_st], UH[idx], FH[idx, self.i_st:]], 1)
+            NL, NH, nsw = self.rate.eval_batch(RLo, RHi)
+            JL, JH, _ = self.rate.jac.eval_batch(RLo, RHi)
+            m = idx.size
+            JL = JL.reshape(m, nw, n2).transpose(0, 2, 1)
+            JH = JH.reshape(m, nw, n2).transpose(0, 2, 1)
+            # J_t [0, h]
+            tL = _dn(h * np.minimum(JL[:, :, 0], 0.0))
+            tH = _up(h * np.maximum(JH[:, :, 0], 0.0))
+            # J_sigma Delta, interval matrix times interval vector, outward
+            pl, ph = _imul(JL[:, :, 1:n2 + 1], JH[:, :, 1:n2 + 1], al[idx][:, None, :], ah[idx][:, None, :])
+            cl, ch = _sum_dn(pl, 2), _sum_up(ph, 2)
+            dl = _dn(_dn(RL[idx] + tL) + cl)
+            dh = _up(_up(RH[idx] + tH) + ch)
+            ok_ = np.isfinite(dl) & np.isfinite(dh)
+            dl = np.where(ok_, np.maximum(dl, NL), NL)
+            dh = np.where(ok_, np.minimum(dh, NH), NH)
+            smooth = self.continuous | ~np.asarray(nsw, bool)
+            fin2 = np.all(np.isfinite(dl) & np.isfinite(dh), axis=1) & smooth
+            live[idx[~fin2]] = False
+            nl, nh = _dn(h * np.minimum(dl, 0.0)), _up(h * np.maximum(dh, 0.0))
+            cont = fin2 & np.all((nl >= al[idx]) & (nh <= ah[idx]), axis=1)
+            g = idx[cont]
+            valid[g] = True
+            DL[g], DH[g], SL[g], SH[g] = dl[cont], dh[cont], sl[cont], sh[cont]
+            sw[g] = np.asarray(nsw, bool)[cont]
+            grow = fin2 & ~cont
+            gi = idx[grow]
+            ww = nh[grow] - nl[grow]
+            al[gi] = np.where(nl[grow] < al[gi], _dn(nl[grow] - 0.1 * ww - 1e-12), al[gi])
+            ah[gi] = np.where(nh[grow] > ah[gi], _up(nh[grow] + 0.1 * ww + 1e-12), ah[gi])
+        return valid, DL, DH, SL, SH, sw
+
+    def _monotone(self, XL, XH, NL, NH, sw):
+        """The next sample's bounds tightened by monotonicity: where next_o is provably nondecreasing in a variable
+        on the box (its Jacobian's interval >= 0, interval AD on a box where no discontinuity switches), its upper
+        bound is taken on the box's upper face in that variable (nonincreasing: the lower face), and conversely for
+        the lower bound; each output's bound is the centered form on its own reduced box."""
+        keep = np.flatnonzero(~sw)
+        if not keep.size:
+            return NL, NH
+        XL, XH = XL[keep], XH[keep]
+        m, n2 = XL.shape[0], 2 * self.n
+        wf = self.next.w_flat
+        JL, JH, _ = self.next.jac.eval_batch(XL, XH)
+        JL = JL.reshape(m, wf.size, n2).transpose(0, 2, 1)
+        JH = JH.reshape(m, wf.size, n2).transpose(0, 2, 1)
+        lo_w, hi_w = XL[:, wf][:, None, :], XH[:, wf][:, None, :]
+        up_pick = np.where(JL >= 0, hi_w, np.where(JH <= 0, lo_w, np.nan))       # (m, n2, nw): where max is
+        dn_pick = np.where(JL >= 0, lo_w, np.where(JH <= 0, hi_w, np.nan))
+        boxes_l, boxes_h = [], []
+        for pick in (up_pick, dn_pick):
+            BL = np.repeat(XL[:, None, :], n2, 1)
+            BH = np.repeat(XH[:, None, :], n2, 1)
+            BL[:, :, wf] = np.where(np.isnan(pick), BL[:, :, wf], pick)
+            BH[:, :, wf] = np.where(np.isnan(pick), BH[:, :, wf], pick)
+            boxes_l.append(BL.reshape(m * n2, -1))
+            boxes_h.append(BH.reshape(m * n2, -1))
+        L, H, _ = self.next.eval_batch(np.concatenate(boxes_l), np.concatenate(boxes_h))
+        o = np.tile(np.arange(n2), m)
+        r = np.arange(m * n2)
+        up = H[:m * n2][r, o].reshape(m, n2)
+        dn = L[m * n2:][r, o].reshape(m, n2)
+        NL, NH = NL.copy(), NH.copy()
+        NH[keep] = np.where(np.isfinite(up), np.minimum(NH[keep], up), NH[keep])
+        NL[keep] = np.where(np.isfinite(dn), np.maximum(NL[keep], dn), NL[keep])
+        return NL, NH
+
+    def w_kept(self, FL: np.ndarray, FH: np.ndarray) -> np.ndarray:
+        """Per box (full rows: the split part and the controller states), whether W_hat's exponential-Euler update
+        W+ = b W + (1 - b) A / c (b = 1 - phi c in [0, 1]) provably stays in S's W_hat set: its box when
+        c lo <= A <= c hi, its ball ||W_hat||_F <= w when ||A||_F <= c w (outward rounded)."""
+        AL, AH, _ = self.w_aff.eval_batch(FL, FH)
+        c = self.w_rate
+        if self.S.w_ball is not None:
+            a = np.maximum(np.abs(AL), np.abs(AH))
+            sq = _up(_up(np.sum(_up(a * a), axis=1)) * (1 + 4 * a.shape[1] * 2.0 ** -52))
+            return np.all(np.isfinite(a), axis=1) & (sq <= _dn(_dn(c * self.S.w_ball) ** 2))
+        wlo, whi = (np.asarray(v, float).reshape(-1, order="F") for v in self.S.states["w_hat"])
+        return np.all((AL >= _up(c * wlo)) & (AH <= _dn(c * whi)), axis=1)
 
     def _hint(self, LO, HI, el2, eh2, J) -> np.ndarray:
         """Per box, the split variable for the next sample's most violated component: the largest
@@ -490,17 +574,12 @@ class OnePeriod:
         return L, H, np.asarray(sw, bool)
 
 
-def _dn(x):
-    return np.nextafter(x, -np.inf)
-
-
-def _up(x):
-    return np.nextafter(x, np.inf)
-
-
 def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes: int, expiry=None,
-                 rng_seed: int = 20241205) -> dict:
-    """Branch and bound over S at period h: {"proven": bool, "boxes", "left": undecided volume fraction, "reason"}."""
+                 rng_seed: int = 20241205, warm: dict | None = None) -> dict:
+    """Branch and bound over S at period h: {"proven": bool, "boxes", "left": undecided volume fraction, "reason",
+    "queue": the boxes left when the budget ended it}. `warm`: such a result at a period >= h (a lower rate) -- its
+    boxes outside the queue are proven at that period, so at every shorter one (the module doc: the property is per
+    sample state), and the search starts from its queue."""
     lo, hi = op.box(t_final)
     split = op.split_vars(lo, hi)
     scale = np.where(hi - lo > 0, hi - lo, 1.0)
@@ -516,6 +595,10 @@ def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes
                 "failed": WHY[int(infop["why"][k])]}
     # breadth-first: the oldest (largest) boxes first, so what is left shrinks evenly over S
     LO, HI, V = lo[None, :].copy(), hi[None, :].copy(), np.array([1.0])
+    if warm is not None and warm.get("queue") is not None:
+        if not warm["h"] >= h:
+            raise ValueError(f"a warm start from period {warm['h']:g} s cannot serve the longer period {h:g} s")
+        LO, HI, V = (np.array(a, copy=True) for a in warm["queue"])
     boxes = 0
     while LO.shape[0]:
         take = min(BATCH, LO.shape[0])
@@ -532,8 +615,9 @@ def prove_period(op: OnePeriod, h: float, M: float, t_final: float, *, max_boxes
         if np.any(np.max(rel, axis=1) < THIN):
             return {"proven": False, "boxes": boxes, "left": left, "reason": "thin"}
         if boxes >= max_boxes or (expiry is not None and time.monotonic() >= expiry):
-            return {"proven": False, "boxes": boxes, "left": left,
-                    "reason": "boxes" if boxes >= max_boxes else "seconds"}
+            return {"proven": False, "boxes": boxes, "left": left, "h": h,
+                    "reason": "boxes" if boxes >= max_boxes else "seconds",
+                    "queue": (np.concatenate([BL, LO]), np.concatenate([BH, HI]), np.concatenate([BV, V]))}
         k = split[np.argmax(rel, axis=1)]
         # the sensitivity's choice, unless that variable is already much thinner (relative to S) than the widest
         hint = info["hint"][bad]

@@ -14,13 +14,20 @@ import numpy as np
 
 from .problem import Budget, Context
 from .result import Certificate
-from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, declared_set, prove_period
+from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, containment_set, declared_set, prove_period
 
 
 #: the highest rate tried (the simulated search's ceiling)
 MAX_RATE_HZ = 1e6
 #: the bracket [not proven, proven] ends below this ratio
 RATE_REL_TOL = 0.1
+#: a budget-ended search warm-starts the next (shorter period) one when its queue is at most 1/WARM_QUEUE of the
+#: box budget
+WARM_QUEUE = 4
+#: the work budget of certify.containment when certify.sampled computes it (its budget in `certify`)
+CONTAINMENT_WORK = 5e7
+#: the share of a wall-clock limit certify.containment may use when certify.sampled computes it
+CONTAINMENT_SHARE = 0.4
 #: boxes per period h tried (a deterministic budget; --wall-limit can only end a search earlier)
 BOXES_PER_RATE = 40000
 
@@ -79,19 +86,46 @@ def theory_rate(op: OnePeriod, S: SampledSet, M: float, t_final: float, max_boxe
             "binding": int(np.argmin(hs)), "converged": bool(all(e.converged for e in er))}
 
 
-def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=DEFAULT_SET_MARGIN, tau_max=None,
+def choose_set(ctx: Context, budget: Budget, margin: float, set_margin=None) -> tuple[SampledSet, dict]:
+    """S for certify.sampled: `set_margin` (E1, E2) declares it; else the set a proven `certify.containment`
+    shows invariant (computed here when this context has not computed it), else the declared default margins.
+    Returns S and a record of the choice ({"source", "containment": status, margins and W_hat radius})."""
+    if set_margin is not None:
+        return declared_set(ctx, float(set_margin[0]), float(set_margin[1])), {"source": "--set-margin"}
+    from .containment import CID as CONTAINMENT, certify_containment
+    c = ctx.results.get(CONTAINMENT)
+    if c is None:
+        # at most CONTAINMENT_SHARE of what is left of a wall-clock limit: the rate's own search keeps the rest
+        expiry = None if budget.expiry is None else \
+            time.monotonic() + CONTAINMENT_SHARE * max(0.0, budget.expiry - time.monotonic())
+        c = certify_containment(ctx, Budget(CONTAINMENT_WORK, expiry))
+        ctx.results[CONTAINMENT] = c
+    rec = {"containment": {"status": c.status, "margin": c.extra.get("margin"), "w_bound": c.extra.get("w_bound")}}
+    S = containment_set(ctx, margin)
+    if S is not None:
+        return S, {"source": "certify.containment", **rec}
+    S = declared_set(ctx, *DEFAULT_SET_MARGIN)
+    return S, {"source": f"the default margins (certify.containment is {c.status})", **rec}
+
+
+def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=None, tau_max=None,
                     start_hz: float | None = None, S: SampledSet | None = None, theory: bool = True,
                     progress=None) -> Certificate:
     """certify.sampled: the lowest rate (within RATE_REL_TOL) at which one period from S provably keeps the
-    funnels with margin `margin` and returns to S; undecided with what is left otherwise."""
+    funnels with margin `margin` and returns to S; undecided with what is left otherwise. S: given, else declared by
+    `set_margin`, else the containment certificate's (`choose_set`)."""
     t0 = time.monotonic()
     say = progress or (lambda s: None)
     sc, d = ctx.scenario, ctx.design
     T = float(ctx.t_final)
-    S = S or declared_set(ctx, float(set_margin[0]), float(set_margin[1]))
+    choice = {"source": S.source} if S is not None else None
+    if S is None:
+        S, choice = choose_set(ctx, budget, margin, set_margin)
     region = S.describe(T)
     region["parameters"] = ctx.params.describe()
-    base = {"rate_margin": margin, "set": region}
+    if S.w_ball is not None:
+        region["w_hat_ball"] = S.w_ball
+    base = {"rate_margin": margin, "set": region, "set_choice": choice}
     impl = getattr(sc, "implementation", None)
     if impl is not None and (impl.delay_samples or impl.noise_q or impl.noise_dq or impl.encoder_resolution):
         return Certificate(CID, "undecided", "the scenario's [implementation] has a delay, measurement noise or "
@@ -118,13 +152,23 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
     tried: list[dict] = []
     max_boxes = int(min(BOXES_PER_RATE, max(1000, budget.work // 2000)))
 
+    warm: dict = {}         # the last budget-ended search at the highest rate below the ones tried next
+
     def attempt(f: float) -> bool:
         if budget.expired():
             tried.append({"rate_hz": f, "proven": False, "reason": "seconds", "boxes": 0, "left": 1.0})
             return False
-        r = prove_period(op, 1.0 / f, margin, T, max_boxes=max_boxes, expiry=budget.expiry)
+        h = 1.0 / f
+        w = warm.get("r")
+        # a queue from a much longer period is most of S in many small boxes: re-checking it costs more than a
+        # cold search at the shorter period, whose large boxes pass whole (measured on certify_none)
+        w = w if w is not None and w["h"] >= h and len(w["queue"][2]) <= max_boxes // WARM_QUEUE else None
+        r = prove_period(op, h, margin, T, max_boxes=max_boxes, expiry=budget.expiry, warm=w)
+        if r.get("queue") is not None and (w is None or r["h"] <= w["h"]):
+            warm["r"] = r
         tried.append({"rate_hz": f, "proven": r["proven"], "reason": r["reason"], "boxes": r["boxes"],
-                      "left": r["left"], **({"failed": r["failed"]} if "failed" in r else {})})
+                      "left": r["left"], **({"failed": r["failed"]} if "failed" in r else {}),
+                      **({"warm_from_hz": 1.0 / w["h"]} if w is not None else {})})
         say(f"certify.sampled: {f:.6g} Hz {'proven' if r['proven'] else 'not proven (' + str(r['reason']) + ')'}"
             f" ({r['boxes']} boxes)")
         return r["proven"]
@@ -152,14 +196,14 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
             hi = mid
         else:
             lo = mid
-    th = theory_rate(op, S, margin, T) if theory else {"rate_hz": None, "reason": "not computed"}
+    th = _theory(ctx, op, S, margin, tau_max) if theory else {"rate_hz": None, "reason": "not computed"}
     boxes = sum(r["boxes"] for r in tried)
     extra = {**base, "proven_rate_hz": hi, "not_proven_below_hz": lo, "tried": tried, "initial_in_set": inside,
              "initial_e_over_F": sig0, "theory": th}
     secs = time.monotonic() - t0
     if hi is not None and inside:
         return Certificate(CID, "proven", f"at every rate >= {hi:.6g} Hz one period from any state of S (margins "
-                           f"e1 {S.m1:g}, e2 {S.m2:g}) keeps both funnels with margin {margin:g} and returns to S, "
+                           f"e1 {S.m1:g}, e2 {S.m2:g}{_source_words(S)}) keeps both funnels with margin {margin:g} and returns to S, "
                            f"for every parameter of the box; the initial state is in S, so the sampled loop keeps "
                            f"the funnels on [0, {T:g}] s", lower=hi, upper=lo, region=region, boxes=boxes,
                            seconds=secs, method=_METHOD, extra=extra)
@@ -176,8 +220,29 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
                        extra=extra)
 
 
-_METHOD = ("one-period validated enclosure (first-order Picard a-priori box, second-order Taylor form of the next "
-           "sample) by batched interval branch and bound over S; bisection in the period")
+def _theory(ctx: Context, op: OnePeriod, S: SampledSet, margin: float, tau_max) -> dict:
+    """The reach-time bound on S; when S's margins leave no gap above the rate's margin (a containment set at
+    m2 = M), on the declared default S instead, and the record says which set it is on."""
+    T = float(ctx.t_final)
+    if min(S.m1, S.m2) > margin:
+        return {**theory_rate(op, S, margin, T), "set": {"e1": S.m1, "e2": S.m2, "source": S.source}}
+    D = declared_set(ctx, *DEFAULT_SET_MARGIN, w_box=S.states.get("w_hat"), w_source="S's W_hat box")
+    out = theory_rate(OnePeriod(ctx, D, tau_max), D, margin, T)
+    return {**out, "set": {"e1": D.m1, "e2": D.m2, "source": "declared (S's margins leave no gap above the rate's "
+                                                              f"margin {margin:g})"}}
+
+
+def _source_words(S: SampledSet) -> str:
+    """Where S comes from, for the detail."""
+    if S.source == "certify.containment":
+        return ", the set certify.containment proves invariant" + (
+            f", W_hat in its ball ||W_hat||_F <= {S.w_ball:.4g}" if S.w_ball is not None else "")
+    return ", declared"
+
+
+_METHOD = ("one-period validated enclosure (Taylor-form a-priori box around the rates at the sample, the first-order "
+           "Picard box where it fails; second-order Taylor form of the next sample) by batched interval branch and "
+           "bound over S; bisection in the period, warm-started from the boxes left at a longer period")
 
 
 def simulated_w_hat_range(design, closed_loop, result):
@@ -191,7 +256,7 @@ def simulated_w_hat_range(design, closed_loop, result):
     return (np.min(wh, axis=0), np.max(wh, axis=0))
 
 
-def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=DEFAULT_SET_MARGIN,
+def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=None,
                     f_sim: float | None = None, w_hat_range=None, wall_limit: float | None = None,
                     work: float = 5e7, progress=None) -> dict:
     """`rate --certify`'s additions: {"proven_rate_hz", "theory_rate_hz", "ratio" (proven / simulated),

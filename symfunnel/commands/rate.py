@@ -20,7 +20,8 @@ def register(sub, common) -> None:
                     help="also prove a rate (certify.sampled: one sampling period from the set S, by interval "
                          "branch and bound) and evaluate the sampled-data funnel theory's bound; docs/certify.md")
     sp.add_argument("--set-margin", type=float, nargs=2, default=None, metavar=("E1", "E2"),
-                    help="with --certify: S's margins, |e_i| <= (1 - E_i) F_i at the samples (default 0.5 0.5)")
+                    help="with --certify: S's margins, |e_i| <= (1 - E_i) F_i at the samples (default: the set "
+                         "certify.containment proves invariant, else 0.5 0.5)")
     from ._common import add_plant_option
     add_plant_option(sp)
     sp.set_defaults(func=run)

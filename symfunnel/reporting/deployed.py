@@ -40,8 +40,8 @@ def fmu_entry(run, rate_hz: float | None, fmi: str = "2") -> dict:
 
 
 def rate_bracket(run, r: dict, *, wall_limit: float | None = None, progress=None) -> dict:
-    """`rate --certify`'s bracket for the report (same margin and horizon as the section's rate search `r`, S at
-    the default margins) with the proof limited to `wall_limit` seconds: the three rates, the certificate's status
+    """`rate --certify`'s bracket for the report (same margin and horizon as the section's rate search `r`, the
+    same S: certify.containment's when proven, else the default margins) with the proof limited to `wall_limit` seconds: the three rates, the certificate's status
     and detail, a sentence saying what is proven on which set, and the figure."""
     from ..certificates.sampled import DEFAULT_SET_MARGIN
     from ..certificates.sampled_rate import sampled_bracket, simulated_w_hat_range
@@ -51,7 +51,7 @@ def rate_bracket(run, r: dict, *, wall_limit: float | None = None, progress=None
     hz = (lambda v: "-" if v is None else f"{v:.6g}")      # the rates as `rate --certify` prints them
     try:
         b = sampled_bracket(run.scenario, run.design, t_final=run.t_final, margin=r["margin"],
-                            set_margin=DEFAULT_SET_MARGIN, f_sim=f_sim, wall_limit=wall_limit, progress=progress,
+                            set_margin=None, f_sim=f_sim, wall_limit=wall_limit, progress=progress,
                             w_hat_range=simulated_w_hat_range(run.design, run.closed_loop, run.simulation))
     except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
         return {"available": False, "reason": f"{type(exc).__name__}: {exc}"}
