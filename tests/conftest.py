@@ -84,10 +84,11 @@ def session_dir(tmp_path_factory) -> Path:
     return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
 
 
-def cli_once(tmp_path_factory, *args, timeout: float = 600) -> subprocess.CompletedProcess:
+def cli_once(tmp_path_factory, *args, timeout: float = 600, cwd=None) -> subprocess.CompletedProcess:
     """`python -m symfunnel ARGS` run once per test session, whichever worker asks first (an flock per command; the
     others wait and read its recorded exit code, stdout and stderr): for an expensive command whose result several
-    modules check, e.g. one `rate --certify` on the same scenario and horizon."""
+    modules check, e.g. one `rate --certify` on the same scenario and horizon. The command's directory (`cwd`, the
+    first caller's) is not part of the key: the caller makes sure the command reads and writes nothing there."""
     import fcntl
     import hashlib
     import json
@@ -100,7 +101,7 @@ def cli_once(tmp_path_factory, *args, timeout: float = 600) -> subprocess.Comple
     with open(d / f"{key}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not done.exists():
-            p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout)
+            p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, cwd=cwd)
             tmp = done.with_suffix(".tmp")
             tmp.write_text(json.dumps({"returncode": p.returncode, "stdout": p.stdout, "stderr": p.stderr}))
             tmp.replace(done)
