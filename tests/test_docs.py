@@ -92,15 +92,16 @@ def _symfunnel() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "symfunnel"]
 
 
-#: commands that read no file of their directory unless named and write none without --out
+#: commands that read no file of their directory unless named, and write none without one of WRITES
 READ_ONLY = {"derive", "audit", "simulate", "verify", "certify", "rate"}
+WRITES = ("--out", "--latex", "--figures")
 
 
 def _anywhere(argv: list[str], cwd: Path) -> bool:
-    """Whether the command line gives the same result in any directory: a READ_ONLY command without --out that names
+    """Whether the command line gives the same result in any directory: a READ_ONLY command without WRITES that names
     no path of `cwd` (the same line on several pages, e.g. `symfunnel verify --t-final 0.5`, then runs once)."""
-    return (len(argv) > 1 and argv[1] in READ_ONLY and not any(a.startswith("--out") for a in argv)
-            and not any((cwd / a).exists() for a in argv[2:] if not a.startswith("-")))
+    return (len(argv) > 1 and argv[1] in READ_ONLY and not any(a.startswith(WRITES) for a in argv)
+            and not any((cwd / a.split("=", 1)[-1]).exists() for a in argv[2:] if not a.startswith("-") or "=" in a))
 
 
 def run_shell(b: Block, cwd: Path, tmp_path_factory=None) -> None:

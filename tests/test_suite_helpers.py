@@ -37,6 +37,8 @@ def test_only_lines_that_touch_no_file_of_their_directory_run_once(tmp_path):
            ["symfunnel", "audit", "derivations"],                                # names a directory of it
            ["symfunnel", "simulate", "--t-final", "0.5", "--out", "run.npz"],   # writes one
            ["symfunnel", "simulate", "--out=run.npz"],
+           ["symfunnel", "derive", "--latex", "signals.tex"],                   # writes one too
+           ["symfunnel", "derive", "--eval=robot.toml"],                        # reads one, as --option=value
            ["symfunnel", "init", "--from", "arm7", "--out", "arm7.toml"],       # not a read-only command
            ["symfunnel", "report", "--t-final", "0.5"],                         # writes reports/ by default
            ["symfunnel", "codegen", "--lang", "c", "--rate", "2000"],
