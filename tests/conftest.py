@@ -77,6 +77,50 @@ def paper_design(paper_run):
     return paper_run.design
 
 
+def session_dir(tmp_path_factory) -> Path:
+    """A directory of this test session shared by its xdist workers (their base temp directories' parent, which
+    xdist makes per session), or this process's own base temp directory without xdist."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+def cli_once(tmp_path_factory, *args, timeout: float = 600, cwd=None) -> subprocess.CompletedProcess:
+    """`python -m symfunnel ARGS` run once per test session, whichever worker asks first (an flock per command; the
+    others wait and read its recorded exit code, stdout and stderr): for an expensive command whose result several
+    modules check, e.g. one `rate --certify` on the same scenario and horizon. The command's directory (`cwd`, the
+    first caller's) is not part of the key: the caller makes sure the command reads and writes nothing there."""
+    import fcntl
+    import hashlib
+    import json
+    import sys
+    argv = [sys.executable, "-m", "symfunnel", *map(str, args)]
+    key = hashlib.sha256(json.dumps(argv).encode()).hexdigest()[:16]
+    d = session_dir(tmp_path_factory) / "cli-once"
+    d.mkdir(exist_ok=True)
+    done = d / f"{key}.json"
+    with open(d / f"{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, cwd=cwd)
+            tmp = done.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"returncode": p.returncode, "stdout": p.stdout, "stderr": p.stderr}))
+            tmp.replace(done)
+        rec = json.loads(done.read_text())
+    return subprocess.CompletedProcess(argv, rec["returncode"], rec["stdout"], rec["stderr"])
+
+
+#: `rate --certify` on tests/data/certify_none.toml over a 2 s horizon: checked by test_report_deployed (against the
+#: report's bracket) and test_sampled_certificate (the proven rate against the simulated one), computed once
+CERTIFY_NONE_RATE = ("rate", REPO / "tests" / "data" / "certify_none.toml", "--certify", "--json", "--t-final", "2.0",
+                     "-q")
+
+
+@pytest.fixture
+def certify_none_rate(tmp_path_factory) -> subprocess.CompletedProcess:
+    """CERTIFY_NONE_RATE's run, once per session."""
+    return cli_once(tmp_path_factory, *CERTIFY_NONE_RATE)
+
+
 def private_cache(tmp_path_factory):
     """Generator for a module-scoped fixture: a fresh compile cache for the module (its hits and misses are its own),
     the previous $SYMFUNNEL_CACHE restored afterwards."""

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, cli_once
 
 SHELL = {"sh", "bash", "console", "shell"}
 NOT_RUN = re.compile(r"^<!--\s*not-run:\s*(\S.*?)\s*-->$")
@@ -92,7 +92,19 @@ def _symfunnel() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "symfunnel"]
 
 
-def run_shell(b: Block, cwd: Path) -> None:
+#: commands that read no file of their directory unless named, and write none without one of WRITES
+READ_ONLY = {"derive", "audit", "simulate", "verify", "certify", "rate"}
+WRITES = ("--out", "--latex", "--figures")
+
+
+def _anywhere(argv: list[str], cwd: Path) -> bool:
+    """Whether the command line gives the same result in any directory: a READ_ONLY command without WRITES that names
+    no path of `cwd` (the same line on several pages, e.g. `symfunnel verify --t-final 0.5`, then runs once)."""
+    return (len(argv) > 1 and argv[1] in READ_ONLY and not any(a.startswith(WRITES) for a in argv)
+            and not any((cwd / a.split("=", 1)[-1]).exists() for a in argv[2:] if not a.startswith("-") or "=" in a))
+
+
+def run_shell(b: Block, cwd: Path, tmp_path_factory=None) -> None:
     for n, line in enumerate(b.code.splitlines()):
         argv = _command(line)
         if argv is None:
@@ -101,8 +113,11 @@ def run_shell(b: Block, cwd: Path) -> None:
             f"{_where(b)}: line {n + 1} runs {argv[0]!r}; only `symfunnel ...` lines are run: change the example or "
             f"mark the block <!-- not-run: REASON -->")
         env = dict(os.environ, PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))
-        proc = subprocess.run([*_symfunnel(), *argv[1:]], cwd=cwd, capture_output=True, text=True, timeout=300,
-                              env=env)
+        if tmp_path_factory is not None and _anywhere(argv, cwd):
+            proc = cli_once(tmp_path_factory, *argv[1:], timeout=300, cwd=cwd)
+        else:
+            proc = subprocess.run([*_symfunnel(), *argv[1:]], cwd=cwd, capture_output=True, text=True, timeout=300,
+                                  env=env)
         assert proc.returncode == 0, (
             f"{_where(b)}: `{line.strip()}` exited {proc.returncode}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
 
@@ -132,13 +147,17 @@ def _file_params():
 
 
 @pytest.mark.parametrize("path", list(_file_params()))
-def test_examples_run(path, tmp_path):
-    """Each shell and Python example of one file, in order, in one directory that sees `derivations/`."""
+def test_examples_run(path, tmp_path, tmp_path_factory):
+    """Each shell and Python example of one file, in order, in one directory that sees `derivations/` (a command line
+    that reads and writes nothing there runs once for all files: `_anywhere`)."""
     (tmp_path / "derivations").symlink_to(REPO / "derivations", target_is_directory=True)
     for b in examples(path):
         if b.not_run is not None:
             continue
-        (run_python if b.lang == "python" else run_shell)(b, tmp_path)
+        if b.lang == "python":
+            run_python(b, tmp_path)
+        else:
+            run_shell(b, tmp_path, tmp_path_factory)
 
 
 def test_every_example_runs_or_says_why_not():

@@ -93,17 +93,26 @@ def test_guarantees_sort_each_fact_once():
 
 @pytest.mark.slow
 def test_a_third_party_urdf_from_init_passes_verify_and_its_report_opens_with_guarantees(tmp_path, capsys):
-    """Panda (example-robot-data, Apache-2.0) through `init --urdf`: verify passes as written."""
+    """Panda (example-robot-data, Apache-2.0) through `init --urdf`: verify passes as written.
+
+    One Run serves both, as in `symfunnel verify` (its `.verification`, exit 1 exactly when `unexpected`) and
+    `symfunnel report` (`build_report` of it): the 8-joint verification is computed once, not once per command."""
     import shutil
+
+    from symfunnel.pipeline import Run, RunOptions
+    from symfunnel.reporting import build_report
+    from symfunnel.scenario import load_scenario
     src = tmp_path / "panda.urdf"
     shutil.copy(PANDA, src)
     out = tmp_path / "panda.toml"
     assert main(["init", "--urdf", str(src), "--out", str(out), "-q"]) == 0
     capsys.readouterr()
-    code, res = _verify(capsys, out)
-    assert code == 0 and res["status"] == "pass", [c["id"] for c in res["checks"] if c["status"] == "fail"]
+    run = Run(load_scenario(out), RunOptions(samples=10000))     # verify's and report's defaults
+    v = run.verification
+    res = v.to_json()
+    assert not v.unexpected and res["status"] == "pass", [c["id"] for c in res["checks"] if c["status"] == "fail"]
     html = tmp_path / "panda.html"
-    assert main(["report", str(out), "--out", str(html), "-q"]) == 0
+    assert build_report(run, html) == html
     text = html.read_text()
     assert text.index('id="guarantees"') < text.index('id="overview"')
     section = re.sub("<[^>]+>", "", text[text.index('id="guarantees"'):text.index('id="overview"')])

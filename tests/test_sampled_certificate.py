@@ -146,10 +146,11 @@ def test_bad_set_margin_is_one_line_exit_2(args, key):
 
 
 @pytest.mark.slow
-def test_certify_none_proven_rate_is_not_below_the_simulated_one():
-    """The two-joint model-based scenario (horizon 1 s): a proven rate, never below the simulated minimum rate for
-    the same margin, and the C step's sampled run holds at it."""
-    r = _cli("rate", DATA / "certify_none.toml", "--certify", "--t-final", "1", "--json", "-q")
+def test_certify_none_proven_rate_is_not_below_the_simulated_one(certify_none_rate):
+    """The two-joint model-based scenario (horizon 2 s): a proven rate, never below the simulated minimum rate for
+    the same margin, and the C step's sampled run holds at it (the command's run is shared with test_report_deployed,
+    tests/conftest.py's CERTIFY_NONE_RATE)."""
+    r = certify_none_rate
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["certificate"]["status"] == "proven"

@@ -1,0 +1,47 @@
+"""The suite's own helpers that make it cheaper must not change what it checks: `cli_once` runs a command once per
+session and gives every later caller the first run's exit code and output; test_docs runs a documentation command
+line once for all pages only when no file of its directory is read or written."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from tests import conftest
+from tests.conftest import cli_once
+from tests.test_docs import _anywhere
+
+
+def test_cli_once_runs_a_command_once_and_replays_its_result(tmp_path_factory, monkeypatch):
+    args = ("derive", f"--suite-helpers-{id(tmp_path_factory)}")      # a key no other test uses; a usage error
+    first = cli_once(tmp_path_factory, *args)
+    assert first.returncode == 2 and "--suite-helpers-" in first.stderr
+    assert first.args == [sys.executable, "-m", "symfunnel", *args]
+
+    def no_second_run(*a, **k):
+        raise AssertionError("cli_once ran the command again")
+    monkeypatch.setattr(conftest.subprocess, "run", no_second_run)
+    again = cli_once(tmp_path_factory, *args)
+    assert (again.returncode, again.stdout, again.stderr) == (first.returncode, first.stdout, first.stderr)
+    with pytest.raises(AssertionError, match="ran the command again"):
+        cli_once(tmp_path_factory, "derive", f"--another-key-{id(tmp_path_factory)}")
+
+
+def test_only_lines_that_touch_no_file_of_their_directory_run_once(tmp_path):
+    (tmp_path / "robot.toml").write_text("", encoding="utf-8")
+    (tmp_path / "derivations").mkdir()
+    shared = [["symfunnel", "derive"], ["symfunnel", "verify", "--t-final", "0.5"],
+              ["symfunnel", "certify", "--only", "input_gain"], ["symfunnel", "rate", "arm7", "--plant", "mujoco"]]
+    own = [["symfunnel", "simulate", "robot.toml", "--t-final", "0.5"],          # reads a file of the directory
+           ["symfunnel", "audit", "derivations"],                                # names a directory of it
+           ["symfunnel", "simulate", "--t-final", "0.5", "--out", "run.npz"],   # writes one
+           ["symfunnel", "simulate", "--out=run.npz"],
+           ["symfunnel", "derive", "--latex", "signals.tex"],                   # writes one too
+           ["symfunnel", "derive", "--eval=robot.toml"],                        # reads one, as --option=value
+           ["symfunnel", "init", "--from", "arm7", "--out", "arm7.toml"],       # not a read-only command
+           ["symfunnel", "report", "--t-final", "0.5"],                         # writes reports/ by default
+           ["symfunnel", "codegen", "--lang", "c", "--rate", "2000"],
+           ["symfunnel"]]
+    assert [_anywhere(a, tmp_path) for a in shared] == [True] * len(shared)
+    assert [_anywhere(a, tmp_path) for a in own] == [False] * len(own)
