@@ -6,7 +6,9 @@ process; `extrapolated_10000_runs_s` says how long the issue's 10,000-run target
 `sweep.scaling_2_workers` (throughput of 2 workers over 1 worker, same campaign), `sweep.cpu_per_run` (process CPU
 seconds per campaign run, the figure to extrapolate from on a shared machine; baseline: the same runs with CVODES'
 step left free, `simulation.max_step = 0`, as campaigns ran before they capped it at dt/2) and `sweep.compile_time`
-(the one compilation of a campaign, in a fresh cache). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS (default 500 runs per
+(the one compilation of a campaign, in a fresh cache) and `sweep.batches` (2 workers, tasks of batches sized to
+about 1.5 s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and
+its workers, and the 10,000-run time of each). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS (default 500 runs per
 campaign: issue 24's 10,000-run target is extrapolated from at least that many), $SYMFUNNEL_BENCH_T_FINAL (default
 the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers, 2-worker scaling at least 1.8;
 both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU seconds per run over the cores)
@@ -79,6 +81,48 @@ def cpu_per_run(sc, runs: int) -> dict:
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+def _children_cpu() -> float:
+    import resource
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def timed_sweep(sc, out: Path, workers: int, chunk_size=None) -> dict:
+    """One campaign on a local pool, with the CPU seconds of this process and of its (reaped) workers."""
+    from ..campaigns.campaign import sweep
+    c, k = time.process_time(), _children_cpu()
+    s = sweep(sc, workers=workers, out=out, chunk_size=chunk_size).summary
+    parent, children = time.process_time() - c, _children_cpu() - k
+    rps = s["steady_runs_per_second"] or s["runs_per_second"]
+    return {"runs_per_second": rps, "extrapolated_10000_runs_s": 10000 / rps, "batches": s["batches"],
+            "parent_cpu_s_per_run": parent / s["runs"], "workers_cpu_s_per_run": children / s["runs"],
+            "cpu_s_per_run": (parent + children) / s["runs"], "wall_s": s["wall_time"],
+            "load_average_1min": os.getloadavg()[0]}
+
+
+def batches_vs_per_run(sc, tmp: Path, say) -> dict:
+    """`sweep.batches`: 2 workers with batched tasks and with one run per task (the path before), interleaved
+    twice (per-run, batched, batched, per-run) so that a drifting load falls on both alike."""
+    runs = {"per_run": [], "batched": []}
+    for i, kind in enumerate(("per_run", "batched", "batched", "per_run")):
+        say(f"sweep: {sc.campaign.sweep.runs} runs on 2 workers, {kind.replace('_', ' ')} tasks")
+        runs[kind].append(timed_sweep(sc, tmp / f"b{i}", 2, chunk_size=1 if kind == "per_run" else None))
+
+    def mean(kind, key):
+        return sum(r[key] for r in runs[kind]) / len(runs[kind])
+    b, p = mean("batched", "runs_per_second"), mean("per_run", "runs_per_second")
+    return result("sweep.batches", b, "runs/s", "one run per task (the same 2 workers)", p, b / p,
+                  extrapolated_10000_runs_s=10000 / b, extrapolated_10000_runs_per_run_s=10000 / p,
+                  target_10000_runs_s=250.0, cpu_s_per_run=mean("batched", "cpu_s_per_run"),
+                  cpu_s_per_run_per_run_tasks=mean("per_run", "cpu_s_per_run"),
+                  cpu_ratio=mean("per_run", "cpu_s_per_run") / mean("batched", "cpu_s_per_run"),
+                  paired_ratios=[x["runs_per_second"] / y["runs_per_second"]
+                                 for x, y in zip(runs["batched"], runs["per_run"])],
+                  batched=runs["batched"], per_run=runs["per_run"], runs=sc.campaign.sweep.runs,
+                  note="ratio = runs/s batched over one run per task (steady rates, after the first task came "
+                       "back); the CPU figures include the parent's and the workers' start-up")
+
+
 def run(progress=None) -> list[dict]:
     """Measure the campaign throughput (cores, 1 and 2 workers), the simulate loop and the one compile time."""
     from ..campaigns.campaign import sweep
@@ -99,6 +143,7 @@ def run(progress=None) -> list[dict]:
                 res = sweep(sc, workers=w, out=Path(tmp) / f"w{w}")
                 out[w] = res.summary
             compiled = len(list((Path(tmp) / "cache").rglob("*.so")))
+            batches = batches_vs_per_run(sc, Path(tmp), say)
         finally:
             if old_cache is None:
                 os.environ.pop("SYMFUNNEL_CACHE", None)
@@ -153,6 +198,7 @@ def run(progress=None) -> list[dict]:
                casadi_backend=via_casadi, ratio_vs_casadi_backend=via_casadi["cpu_s_per_run"] / one["cpu_s_per_run"],
                note="ratio = CPU per run free / capped (> 1: the campaign's cap is faster); casadi_backend: the "
                     "capped runs through casadi.integrator instead of the direct CVODES backend"),
+        batches,
         result("sweep.compile_time", first["compile_time"], "s", None, None, None,
                compilations=compiled, campaigns=len(out), runs_per_campaign=runs,
                cache_hit_first=first["compile_cache_hit"]),
