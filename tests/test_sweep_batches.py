@@ -72,3 +72,19 @@ def test_batched_rows_identical_to_one_run_per_task_on_a_local_pool(tmp_path):
     _same(_rows(tmp_path / "one" / "results.parquet"), ref)
     _same(_rows(tmp_path / "batched" / "results.parquet"), ref)
     assert {r["status"] for r in ref} == {"ok", "breach"}
+
+
+@pytest.mark.slow
+def test_bench_compares_batches_with_one_run_per_task_on_the_same_rows(tmp_path):
+    from symfunnel.bench.sweep import batches_vs_per_run, campaign
+
+    from .test_sweep import _rows, _same
+    r = batches_vs_per_run(campaign(12, 0.2), tmp_path, lambda s: None)
+    assert r["id"] == "sweep.batches" and r["ratio"] == pytest.approx(r["value"] / r["baseline_value"])
+    assert [x["batches"] for x in r["per_run"]] == [12, 12] and all(x["batches"] < 12 for x in r["batched"])
+    assert r["extrapolated_10000_runs_s"] == pytest.approx(10000 / r["value"])
+    assert all(x["workers_cpu_s_per_run"] > 0 and x["parent_cpu_s_per_run"] > 0 for x in r["per_run"] + r["batched"])
+    ref = _rows(tmp_path / "b0" / "results.parquet")
+    assert [x["run"] for x in ref] == list(range(12))
+    for i in (1, 2, 3):
+        _same(_rows(tmp_path / f"b{i}" / "results.parquet"), ref)

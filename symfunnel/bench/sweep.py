@@ -111,16 +111,25 @@ def batches_vs_per_run(sc, tmp: Path, say) -> dict:
     def mean(kind, key):
         return sum(r[key] for r in runs[kind]) / len(runs[kind])
     b, p = mean("batched", "runs_per_second"), mean("per_run", "runs_per_second")
+    # the parent's CPU per task: what a task costs beyond its runs (both paths run the same runs)
+    n = sc.campaign.sweep.runs
+    extra_tasks = mean("per_run", "batches") - mean("batched", "batches")
+    per_task = ((mean("per_run", "parent_cpu_s_per_run") - mean("batched", "parent_cpu_s_per_run")) * n
+                / extra_tasks if extra_tasks > 0 else None)
     return result("sweep.batches", b, "runs/s", "one run per task (the same 2 workers)", p, b / p,
                   extrapolated_10000_runs_s=10000 / b, extrapolated_10000_runs_per_run_s=10000 / p,
                   target_10000_runs_s=250.0, cpu_s_per_run=mean("batched", "cpu_s_per_run"),
                   cpu_s_per_run_per_run_tasks=mean("per_run", "cpu_s_per_run"),
                   cpu_ratio=mean("per_run", "cpu_s_per_run") / mean("batched", "cpu_s_per_run"),
+                  cpu_bound_10000_runs_s=10000 * mean("batched", "cpu_s_per_run") / 2,
+                  cpu_bound_10000_runs_per_run_tasks_s=10000 * mean("per_run", "cpu_s_per_run") / 2,
+                  parent_cpu_s_per_task=per_task,
                   paired_ratios=[x["runs_per_second"] / y["runs_per_second"]
                                  for x, y in zip(runs["batched"], runs["per_run"])],
                   batched=runs["batched"], per_run=runs["per_run"], runs=sc.campaign.sweep.runs,
                   note="ratio = runs/s batched over one run per task (steady rates, after the first task came "
-                       "back); the CPU figures include the parent's and the workers' start-up")
+                       "back); the CPU figures include the parent's and the workers' start-up; cpu_bound_*: "
+                       "10,000 runs at that CPU per run on 2 free cores")
 
 
 def run(progress=None) -> list[dict]:
