@@ -88,3 +88,22 @@ def test_bench_compares_batches_with_one_run_per_task_on_the_same_rows(tmp_path)
     assert [x["run"] for x in ref] == list(range(12))
     for i in (1, 2, 3):
         _same(_rows(tmp_path / f"b{i}" / "results.parquet"), ref)
+
+
+@pytest.mark.slow
+def test_bench_on_dask_compares_the_same_rows_and_stops_its_cluster(tmp_path):
+    import psutil
+
+    from symfunnel.bench.sweep import batches_on_dask, campaign
+
+    from .test_sweep import _rows, _same
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    r = batches_on_dask(campaign(12, 0.2), tmp_path, lambda s: None, 12)
+    assert r["id"] == "sweep.batches_dask" and [x["batches"] for x in r["per_run"]] == [12, 12]
+    assert all(x["batches"] < 12 for x in r["batched"])
+    assert all(x["scheduler_cpu_s_per_run"] > 0 and x["workers_cpu_s_per_run"] > 0 for x in r["batched"])
+    ref = _rows(tmp_path / "dask0" / "results.parquet")
+    assert [x["run"] for x in ref] == list(range(12))
+    for i in (1, 2, 3):
+        _same(_rows(tmp_path / f"dask{i}" / "results.parquet"), ref)
+    assert {p.pid for p in psutil.Process().children(recursive=True)} <= before     # scheduler and workers gone

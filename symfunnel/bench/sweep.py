@@ -8,9 +8,10 @@ seconds per campaign run, the figure to extrapolate from on a shared machine; ba
 step left free, `simulation.max_step = 0`, as campaigns ran before they capped it at dt/2) and `sweep.compile_time`
 (the one compilation of a campaign, in a fresh cache) and `sweep.batches` (2 workers, tasks of batches sized to
 about 1.5 s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and
-its workers, and the 10,000-run time of each). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS (default 500 runs per
-campaign: issue 24's 10,000-run target is extrapolated from at least that many), $SYMFUNNEL_BENCH_T_FINAL (default
-the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers, 2-worker scaling at least 1.8;
+its workers, and the 10,000-run time of each; `sweep.batches_dask` the same on a dask scheduler and 2 workers
+started on 127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers). Sizes:
+$SYMFUNNEL_BENCH_SWEEP_RUNS (default 500 runs per campaign: issue 24's 10,000-run target is extrapolated from at
+least that many), $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers, 2-worker scaling at least 1.8;
 both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU seconds per run over the cores)
 says what the CPU time alone allows on a shared machine.
 """
@@ -132,6 +133,74 @@ def batches_vs_per_run(sc, tmp: Path, say) -> dict:
                        "10,000 runs at that CPU per run on 2 free cores")
 
 
+def _process_cpu(proc) -> float:
+    import psutil           # a dependency of distributed
+    t = psutil.Process(proc.pid).cpu_times()
+    return t.user + t.system
+
+
+def batches_on_dask(sc, tmp: Path, say, runs: int) -> dict:
+    """`sweep.batches_dask`: the same comparison on a dask scheduler and 2 single-threaded workers started here on
+    127.0.0.1, with the CPU of the client, the scheduler and the workers per run (a dask task costs all three)."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    from ..campaigns.campaign import sweep
+    dask = str(Path(sys.executable).with_name("dask"))
+    sf = tmp / "scheduler.json"
+    log = open(tmp / "dask.log", "w")
+    procs = []
+    try:
+        procs.append(subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                                       "--scheduler-file", str(sf)], stdout=log, stderr=log,
+                                      start_new_session=True))
+        deadline = time.monotonic() + 60
+        while not sf.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(sf.read_text())["address"]
+        for _ in range(2):
+            procs.append(subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-nanny",
+                                           "--no-dashboard"], stdout=log, stderr=log, start_new_session=True))
+        sweep(sc, scheduler=address, out=tmp / "dask-warm", runs=4)      # each worker builds its loop once
+        got = {"per_run": [], "batched": []}
+        for i, kind in enumerate(("per_run", "batched", "batched", "per_run")):
+            say(f"sweep: {runs} runs on a dask scheduler + 2 workers, {kind.replace('_', ' ')} tasks")
+            c, p0 = time.process_time(), [_process_cpu(p) for p in procs]
+            s = sweep(sc, scheduler=address, out=tmp / f"dask{i}", runs=runs,
+                      chunk_size=1 if kind == "per_run" else None).summary
+            d = [_process_cpu(p) - a for p, a in zip(procs, p0)]
+            got[kind].append({"runs_per_second": s["steady_runs_per_second"] or s["runs_per_second"],
+                              "batches": s["batches"], "client_cpu_s_per_run": (time.process_time() - c) / runs,
+                              "scheduler_cpu_s_per_run": d[0] / runs, "workers_cpu_s_per_run": sum(d[1:]) / runs,
+                              "load_average_1min": os.getloadavg()[0]})
+            r = got[kind][-1]
+            r["cpu_s_per_run"] = r["client_cpu_s_per_run"] + r["scheduler_cpu_s_per_run"] + r["workers_cpu_s_per_run"]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=30)
+        log.close()
+
+    def mean(kind, key):
+        return sum(r[key] for r in got[kind]) / len(got[kind])
+    b, p = mean("batched", "runs_per_second"), mean("per_run", "runs_per_second")
+    cb, cp = mean("batched", "cpu_s_per_run"), mean("per_run", "cpu_s_per_run")
+    extra_tasks = mean("per_run", "batches") - mean("batched", "batches")
+    return result("sweep.batches_dask", b, "runs/s", "one run per task (the same dask workers)", p, b / p,
+                  extrapolated_10000_runs_s=10000 / b, extrapolated_10000_runs_per_run_s=10000 / p,
+                  cpu_s_per_run=cb, cpu_s_per_run_per_run_tasks=cp, cpu_ratio=cp / cb,
+                  cpu_bound_10000_runs_s=10000 * cb / 2, cpu_bound_10000_runs_per_run_tasks_s=10000 * cp / 2,
+                  cpu_s_per_task=(cp - cb) * runs / extra_tasks if extra_tasks > 0 else None,
+                  paired_ratios=[x["runs_per_second"] / y["runs_per_second"]
+                                 for x, y in zip(got["batched"], got["per_run"])],
+                  batched=got["batched"], per_run=got["per_run"], runs=runs,
+                  note="CPU of the client, the scheduler and the 2 workers together (psutil), per run; "
+                       "cpu_s_per_task: what one more task costs them")
+
+
 def run(progress=None) -> list[dict]:
     """Measure the campaign throughput (cores, 1 and 2 workers), the simulate loop and the one compile time."""
     from ..campaigns.campaign import sweep
@@ -153,6 +222,7 @@ def run(progress=None) -> list[dict]:
                 out[w] = res.summary
             compiled = len(list((Path(tmp) / "cache").rglob("*.so")))
             batches = batches_vs_per_run(sc, Path(tmp), say)
+            on_dask = batches_on_dask(sc, Path(tmp), say, max(8, runs // 4))
         finally:
             if old_cache is None:
                 os.environ.pop("SYMFUNNEL_CACHE", None)
@@ -207,7 +277,7 @@ def run(progress=None) -> list[dict]:
                casadi_backend=via_casadi, ratio_vs_casadi_backend=via_casadi["cpu_s_per_run"] / one["cpu_s_per_run"],
                note="ratio = CPU per run free / capped (> 1: the campaign's cap is faster); casadi_backend: the "
                     "capped runs through casadi.integrator instead of the direct CVODES backend"),
-        batches,
+        batches, on_dask,
         result("sweep.compile_time", first["compile_time"], "s", None, None, None,
                compilations=compiled, campaigns=len(out), runs_per_campaign=runs,
                cache_hit_first=first["compile_cache_hit"]),
