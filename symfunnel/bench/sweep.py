@@ -11,8 +11,8 @@ about 1.5 s each against one run per task, the same campaign back to back: runs/
 its workers, and the 10,000-run time of each; `sweep.batches_dask` the same on a dask scheduler and 2 workers
 started on 127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers). Sizes:
 $SYMFUNNEL_BENCH_SWEEP_RUNS (default 500 runs per campaign: issue 24's 10,000-run target is extrapolated from at
-least that many), $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers, 2-worker scaling at least 1.8;
-both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU seconds per run over the cores)
+least that many), $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s). Targets (issue 24): 10,000 runs in at most
+300 s on 2 workers, 2-worker scaling at least 1.8; both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU seconds per run over the cores)
 says what the CPU time alone allows on a shared machine.
 """
 
