@@ -1,5 +1,5 @@
-"""Bench area `sweep`: robustness campaigns of the paper's closed loop on one compiled loop, in the same run as a
-plain loop of `symfunnel.simulate` calls on scenario variants (what a user would otherwise write).
+"""Bench area `sweep`: robustness campaigns of the paper's closed loop on one compiled loop, in the same run as a plain
+loop of `symfunnel.simulate` calls on scenario variants (what a user would otherwise write).
 
 Ids: `sweep.runs_per_second` (campaign throughput with the machine's cores; baseline: the simulate loop in one
 process; `extrapolated_10000_runs_s` says how long the issue's 10,000-run target would take at that rate),
@@ -7,13 +7,13 @@ process; `extrapolated_10000_runs_s` says how long the issue's 10,000-run target
 seconds per campaign run, the figure to extrapolate from on a shared machine; baseline: the same runs with CVODES'
 step left free, `simulation.max_step = 0`, as campaigns ran before they capped it at dt/2) and `sweep.compile_time`
 (the one compilation of a campaign, in a fresh cache) and `sweep.batches` (2 workers, tasks of batches sized to
-about 1.5 s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and
-its workers, and the 10,000-run time of each; `sweep.batches_dask` the same on a dask scheduler and 2 workers
-started on 127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers). Sizes:
-$SYMFUNNEL_BENCH_SWEEP_RUNS (default 500 runs per campaign: issue 24's 10,000-run target is extrapolated from at
-least that many), $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s). Targets (issue 24): 10,000 runs in at most
-300 s on 2 workers, 2-worker scaling at least 1.8; both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU seconds per run over the cores)
-says what the CPU time alone allows on a shared machine.
+about 1.5 s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and its
+workers, and the 10,000-run time of each; `sweep.batches_dask` the same on a dask scheduler and 2 workers started on
+127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS
+(default 500 runs per campaign: issue 24's 10,000-run target is extrapolated from at least that many),
+$SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers,
+2-worker scaling at least 1.8; both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU
+seconds per run over the cores) says what the CPU time alone allows on a shared machine.
 """
 
 from __future__ import annotations
