@@ -7,7 +7,7 @@ process; `extrapolated_10000_runs_s` says how long the issue's 10,000-run target
 seconds per campaign run, the figure to extrapolate from on a shared machine; baseline: the same runs with CVODES'
 step left free, `simulation.max_step = 0`, as campaigns ran before they capped it at dt/2) and `sweep.compile_time`
 (the one compilation of a campaign, in a fresh cache) and `sweep.batches` (2 workers, tasks of batches sized to
-about 1.5 s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and its
+about 1.5 CPU-s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and its
 workers, and the 10,000-run time of each; `sweep.batches_dask` the same on a dask scheduler and 2 workers started on
 127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS
 (default 500 runs per campaign: issue 24's 10,000-run target is extrapolated from at least that many),

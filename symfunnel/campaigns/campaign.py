@@ -327,18 +327,19 @@ def _pool_worker_start() -> None:
 
 
 def run_batch(job: Job, run_ids, values=None) -> tuple[list[dict], float]:
-    """run_chunk's rows of a batch and the wall seconds they took in this worker, without its one build of the
-    closed loop (the task of the pool and of dask: the seconds size the next batches, `batches.BatchSizer`)."""
+    """run_chunk's rows of a batch and the CPU seconds they took in this worker's thread, without its one build of
+    the closed loop (the task of the pool and of dask: the seconds size the next batches, `batches.BatchSizer`).
+    CPU, not wall: a task's overhead is CPU, so batches amortise it alike on a loaded machine."""
     prepare(job)
-    t0 = time.perf_counter()
+    t0 = time.thread_time()
     rows = run_chunk(job, run_ids, values)
-    return rows, time.perf_counter() - t0
+    return rows, time.thread_time() - t0
 
 
 def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None, chunk_size=None,
             progress=None, campaign=None) -> dict:
     """Run `todo` (run ids) on a local process pool or a dask client in batches (`chunk_size` runs each, else
-    about `batches.TASK_SECONDS` of a worker's time each), calling on_rows(rows) as batches finish; with
+    about `batches.TASK_SECONDS` of a worker's CPU each), calling on_rows(rows) as batches finish; with
     `campaign` (the job's), each batch is sent with its drawn values."""
     from .batches import BatchSizer
     say = progress or (lambda s: None)
