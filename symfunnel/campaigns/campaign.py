@@ -2,9 +2,10 @@
 
 Each run's drawn values are a pure function of (seed, run id) (`symfunnel.scenario.uncertainty`) and its row a pure
 function of those values (fixed integration chunks, one compiled loop), so rows are identical whatever executes
-them: a local process pool or a dask.distributed cluster, with any number of workers. Finished chunks of rows are
-written at once as small Parquet files beside `results.parquet`, which is rewritten (atomically) from them every
-few seconds and at the end: a killed sweep loses at most its runs in flight and `resume` completes it.
+them: a local process pool or a dask.distributed cluster, with any number of workers, in batches of any size (a task
+is a batch of about 1.5 CPU-s, `batches`). Finished batches of rows are written at once as small Parquet files
+beside `results.parquet`, which is rewritten (atomically) from them every few seconds and at the end: a killed
+sweep loses at most its runs in flight and `resume` completes it.
 """
 
 from __future__ import annotations
