@@ -143,7 +143,6 @@ def batches_on_dask(sc, tmp: Path, say, runs: int) -> dict:
     """`sweep.batches_dask`: the same comparison on a dask scheduler and 2 single-threaded workers started here on
     127.0.0.1, with the CPU of the client, the scheduler and the workers per run (a dask task costs all three)."""
     import json
-    import signal
     import subprocess
     import sys
 
@@ -153,16 +152,17 @@ def batches_on_dask(sc, tmp: Path, say, runs: int) -> dict:
     log = open(tmp / "dask.log", "w")
     procs = []
     try:
+        # in this process's session, as the local pool's workers: the kernel's autogroup scheduling gives each
+        # session an equal share of a loaded machine, so workers in sessions of their own would run faster there
         procs.append(subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                                       "--scheduler-file", str(sf)], stdout=log, stderr=log,
-                                      start_new_session=True))
+                                       "--scheduler-file", str(sf)], stdout=log, stderr=log))
         deadline = time.monotonic() + 60
         while not sf.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
         address = json.loads(sf.read_text())["address"]
         for _ in range(2):
             procs.append(subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-nanny",
-                                           "--no-dashboard"], stdout=log, stderr=log, start_new_session=True))
+                                           "--no-dashboard"], stdout=log, stderr=log))
         sweep(sc, scheduler=address, out=tmp / "dask-warm", runs=4)      # each worker builds its loop once
         got = {"per_run": [], "batched": []}
         for i, kind in enumerate(("per_run", "batched", "batched", "per_run")):
@@ -178,9 +178,9 @@ def batches_on_dask(sc, tmp: Path, say, runs: int) -> dict:
             r = got[kind][-1]
             r["cpu_s_per_run"] = r["client_cpu_s_per_run"] + r["scheduler_cpu_s_per_run"] + r["workers_cpu_s_per_run"]
     finally:
-        for p in procs:
+        for p in procs:             # no nanny: each is one process
             if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
+                p.kill()
             p.wait(timeout=30)
         log.close()
 
