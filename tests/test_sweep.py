@@ -144,7 +144,8 @@ def test_killed_sweep_resumes_without_duplicates(tmp_path):
     assert {r["status"] for r in ref} == {"ok"}
     out = tmp_path / "k"
     cmd = [sys.executable, "-m", "symfunnel.cli", "sweep", str(f), "--out", str(out), "--workers", "1", "-q"]
-    # chunks of one run each (10 runs / (8 * 1 worker)), so some are on disk before the kill
+    # a one-run probe, then batches of at most the remaining runs over 2 x workers: several parts reach the disk
+    # before the kill
     p = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120

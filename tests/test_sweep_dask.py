@@ -98,3 +98,12 @@ def test_dask_rows_identical_and_lost_worker_retried(cluster, tmp_path):
     removed = [ln for ln in log.read_text().splitlines() if "Remove worker" in ln]
     assert removed and "name: w1" in removed[0]       # the scheduler lost w1 during the campaign
     assert (out / "worst.toml").exists()
+
+
+def test_dask_batches_give_the_rows_of_one_run_per_task(cluster, tmp_path):
+    address, procs, log = cluster
+    sc = load_scenario(_campaign_file(tmp_path, runs=16, t_final=0.4))
+    ref = run_chunk(make_job(sc), range(16))
+    res = sweep(sc, scheduler=address, out=tmp_path / "batched")
+    assert 2 <= res.summary["batches"] < 16               # a probe per worker, then batches of several runs
+    _same(pq.read_table(str(tmp_path / "batched" / "results.parquet")).to_pylist(), ref)

@@ -1,16 +1,19 @@
-"""Bench area `sweep`: robustness campaigns of the paper's closed loop on one compiled loop, in the same run as a
-plain loop of `symfunnel.simulate` calls on scenario variants (what a user would otherwise write).
+"""Bench area `sweep`: robustness campaigns of the paper's closed loop on one compiled loop, in the same run as a plain
+loop of `symfunnel.simulate` calls on scenario variants (what a user would otherwise write).
 
 Ids: `sweep.runs_per_second` (campaign throughput with the machine's cores; baseline: the simulate loop in one
 process; `extrapolated_10000_runs_s` says how long the issue's 10,000-run target would take at that rate),
 `sweep.scaling_2_workers` (throughput of 2 workers over 1 worker, same campaign), `sweep.cpu_per_run` (process CPU
 seconds per campaign run, the figure to extrapolate from on a shared machine; baseline: the same runs with CVODES'
 step left free, `simulation.max_step = 0`, as campaigns ran before they capped it at dt/2) and `sweep.compile_time`
-(the one compilation of a campaign, in a fresh cache). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS (default 500 runs per
-campaign: issue 24's 10,000-run target is extrapolated from at least that many), $SYMFUNNEL_BENCH_T_FINAL (default
-the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers, 2-worker scaling at least 1.8;
-both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU seconds per run over the cores)
-says what the CPU time alone allows on a shared machine.
+(the one compilation of a campaign, in a fresh cache) and `sweep.batches` (2 workers, tasks of batches sized to
+about 1.5 CPU-s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and its
+workers, and the 10,000-run time of each; `sweep.batches_dask` the same on a dask scheduler and 2 workers started on
+127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS
+(default 500 runs per campaign: issue 24's 10,000-run target is extrapolated from at least that many),
+$SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers,
+2-worker scaling at least 1.8; both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU
+seconds per run over the cores) says what the CPU time alone allows on a shared machine.
 """
 
 from __future__ import annotations
@@ -79,6 +82,125 @@ def cpu_per_run(sc, runs: int) -> dict:
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+def _children_cpu() -> float:
+    import resource
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def timed_sweep(sc, out: Path, workers: int, chunk_size=None) -> dict:
+    """One campaign on a local pool, with the CPU seconds of this process and of its (reaped) workers."""
+    from ..campaigns.campaign import sweep
+    c, k = time.process_time(), _children_cpu()
+    s = sweep(sc, workers=workers, out=out, chunk_size=chunk_size).summary
+    parent, children = time.process_time() - c, _children_cpu() - k
+    rps = s["steady_runs_per_second"] or s["runs_per_second"]
+    return {"runs_per_second": rps, "extrapolated_10000_runs_s": 10000 / rps, "batches": s["batches"],
+            "parent_cpu_s_per_run": parent / s["runs"], "workers_cpu_s_per_run": children / s["runs"],
+            "cpu_s_per_run": (parent + children) / s["runs"], "wall_s": s["wall_time"],
+            "load_average_1min": os.getloadavg()[0]}
+
+
+def batches_vs_per_run(sc, tmp: Path, say) -> dict:
+    """`sweep.batches`: 2 workers with batched tasks and with one run per task (the path before), interleaved
+    twice (per-run, batched, batched, per-run) so that a drifting load falls on both alike."""
+    runs = {"per_run": [], "batched": []}
+    for i, kind in enumerate(("per_run", "batched", "batched", "per_run")):
+        say(f"sweep: {sc.campaign.sweep.runs} runs on 2 workers, {kind.replace('_', ' ')} tasks")
+        runs[kind].append(timed_sweep(sc, tmp / f"b{i}", 2, chunk_size=1 if kind == "per_run" else None))
+
+    def mean(kind, key):
+        return sum(r[key] for r in runs[kind]) / len(runs[kind])
+    b, p = mean("batched", "runs_per_second"), mean("per_run", "runs_per_second")
+    # the parent's CPU per task: what a task costs beyond its runs (both paths run the same runs)
+    n = sc.campaign.sweep.runs
+    extra_tasks = mean("per_run", "batches") - mean("batched", "batches")
+    per_task = ((mean("per_run", "parent_cpu_s_per_run") - mean("batched", "parent_cpu_s_per_run")) * n
+                / extra_tasks if extra_tasks > 0 else None)
+    return result("sweep.batches", b, "runs/s", "one run per task (the same 2 workers)", p, b / p,
+                  extrapolated_10000_runs_s=10000 / b, extrapolated_10000_runs_per_run_s=10000 / p,
+                  target_10000_runs_s=250.0, cpu_s_per_run=mean("batched", "cpu_s_per_run"),
+                  cpu_s_per_run_per_run_tasks=mean("per_run", "cpu_s_per_run"),
+                  cpu_ratio=mean("per_run", "cpu_s_per_run") / mean("batched", "cpu_s_per_run"),
+                  cpu_bound_10000_runs_s=10000 * mean("batched", "cpu_s_per_run") / 2,
+                  cpu_bound_10000_runs_per_run_tasks_s=10000 * mean("per_run", "cpu_s_per_run") / 2,
+                  parent_cpu_s_per_task=per_task,
+                  paired_ratios=[x["runs_per_second"] / y["runs_per_second"]
+                                 for x, y in zip(runs["batched"], runs["per_run"])],
+                  batched=runs["batched"], per_run=runs["per_run"], runs=sc.campaign.sweep.runs,
+                  note="ratio = runs/s batched over one run per task (steady rates, after the first task came "
+                       "back); the CPU figures include the parent's and the workers' start-up; cpu_bound_*: "
+                       "10,000 runs at that CPU per run on 2 free cores")
+
+
+def _process_cpu(proc) -> float:
+    import psutil           # a dependency of distributed
+    t = psutil.Process(proc.pid).cpu_times()
+    return t.user + t.system
+
+
+def batches_on_dask(sc, tmp: Path, say, runs: int) -> dict:
+    """`sweep.batches_dask`: the same comparison on a dask scheduler and 2 single-threaded workers started here on
+    127.0.0.1, with the CPU of the client, the scheduler and the workers per run (a dask task costs all three)."""
+    import json
+    import subprocess
+    import sys
+
+    from ..campaigns.campaign import sweep
+    dask = str(Path(sys.executable).with_name("dask"))
+    sf = tmp / "scheduler.json"
+    log = open(tmp / "dask.log", "w")
+    procs = []
+    try:
+        # in this process's session, as the local pool's workers: the kernel's autogroup scheduling gives each
+        # session an equal share of a loaded machine, so workers in sessions of their own would run faster there
+        procs.append(subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                                       "--scheduler-file", str(sf)], stdout=log, stderr=log))
+        deadline = time.monotonic() + 60
+        while not sf.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(sf.read_text())["address"]
+        for _ in range(2):
+            procs.append(subprocess.Popen([dask, "worker", address, "--nthreads", "1", "--no-nanny",
+                                           "--no-dashboard"], stdout=log, stderr=log))
+        sweep(sc, scheduler=address, out=tmp / "dask-warm", runs=4)      # each worker builds its loop once
+        got = {"per_run": [], "batched": []}
+        for i, kind in enumerate(("per_run", "batched", "batched", "per_run")):
+            say(f"sweep: {runs} runs on a dask scheduler + 2 workers, {kind.replace('_', ' ')} tasks")
+            c, p0 = time.process_time(), [_process_cpu(p) for p in procs]
+            s = sweep(sc, scheduler=address, out=tmp / f"dask{i}", runs=runs,
+                      chunk_size=1 if kind == "per_run" else None).summary
+            d = [_process_cpu(p) - a for p, a in zip(procs, p0)]
+            got[kind].append({"runs_per_second": s["steady_runs_per_second"] or s["runs_per_second"],
+                              "batches": s["batches"], "client_cpu_s_per_run": (time.process_time() - c) / runs,
+                              "scheduler_cpu_s_per_run": d[0] / runs, "workers_cpu_s_per_run": sum(d[1:]) / runs,
+                              "load_average_1min": os.getloadavg()[0]})
+            r = got[kind][-1]
+            r["cpu_s_per_run"] = r["client_cpu_s_per_run"] + r["scheduler_cpu_s_per_run"] + r["workers_cpu_s_per_run"]
+    finally:
+        for p in procs:             # no nanny: each is one process
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=30)
+        log.close()
+
+    def mean(kind, key):
+        return sum(r[key] for r in got[kind]) / len(got[kind])
+    b, p = mean("batched", "runs_per_second"), mean("per_run", "runs_per_second")
+    cb, cp = mean("batched", "cpu_s_per_run"), mean("per_run", "cpu_s_per_run")
+    extra_tasks = mean("per_run", "batches") - mean("batched", "batches")
+    return result("sweep.batches_dask", b, "runs/s", "one run per task (the same dask workers)", p, b / p,
+                  extrapolated_10000_runs_s=10000 / b, extrapolated_10000_runs_per_run_s=10000 / p,
+                  cpu_s_per_run=cb, cpu_s_per_run_per_run_tasks=cp, cpu_ratio=cp / cb,
+                  cpu_bound_10000_runs_s=10000 * cb / 2, cpu_bound_10000_runs_per_run_tasks_s=10000 * cp / 2,
+                  cpu_s_per_task=(cp - cb) * runs / extra_tasks if extra_tasks > 0 else None,
+                  paired_ratios=[x["runs_per_second"] / y["runs_per_second"]
+                                 for x, y in zip(got["batched"], got["per_run"])],
+                  batched=got["batched"], per_run=got["per_run"], runs=runs,
+                  note="CPU of the client, the scheduler and the 2 workers together (psutil), per run; "
+                       "cpu_s_per_task: what one more task costs them")
+
+
 def run(progress=None) -> list[dict]:
     """Measure the campaign throughput (cores, 1 and 2 workers), the simulate loop and the one compile time."""
     from ..campaigns.campaign import sweep
@@ -99,6 +221,8 @@ def run(progress=None) -> list[dict]:
                 res = sweep(sc, workers=w, out=Path(tmp) / f"w{w}")
                 out[w] = res.summary
             compiled = len(list((Path(tmp) / "cache").rglob("*.so")))
+            batches = batches_vs_per_run(sc, Path(tmp), say)
+            on_dask = batches_on_dask(sc, Path(tmp), say, max(8, runs // 4))
         finally:
             if old_cache is None:
                 os.environ.pop("SYMFUNNEL_CACHE", None)
@@ -153,6 +277,7 @@ def run(progress=None) -> list[dict]:
                casadi_backend=via_casadi, ratio_vs_casadi_backend=via_casadi["cpu_s_per_run"] / one["cpu_s_per_run"],
                note="ratio = CPU per run free / capped (> 1: the campaign's cap is faster); casadi_backend: the "
                     "capped runs through casadi.integrator instead of the direct CVODES backend"),
+        batches, on_dask,
         result("sweep.compile_time", first["compile_time"], "s", None, None, None,
                compilations=compiled, campaigns=len(out), runs_per_campaign=runs,
                cache_hit_first=first["compile_cache_hit"]),

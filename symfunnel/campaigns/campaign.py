@@ -2,9 +2,10 @@
 
 Each run's drawn values are a pure function of (seed, run id) (`symfunnel.scenario.uncertainty`) and its row a pure
 function of those values (fixed integration chunks, one compiled loop), so rows are identical whatever executes
-them: a local process pool or a dask.distributed cluster, with any number of workers. Finished chunks of rows are
-written at once as small Parquet files beside `results.parquet`, which is rewritten (atomically) from them every
-few seconds and at the end: a killed sweep loses at most its runs in flight and `resume` completes it.
+them: a local process pool or a dask.distributed cluster, with any number of workers, in batches of any size (a task
+is a batch of about 1.5 CPU-s, `batches`). Finished batches of rows are written at once as small Parquet files
+beside `results.parquet`, which is rewritten (atomically) from them every few seconds and at the end: a killed
+sweep loses at most its runs in flight and `resume` completes it.
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ import shutil
 import threading
 import time
 import warnings
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -327,26 +327,33 @@ def _pool_worker_start() -> None:
     pin_blas_threads()
 
 
-def _chunks(ids: list[int], size: int) -> list[list[int]]:
-    return [ids[i:i + size] for i in range(0, len(ids), size)]
+def run_batch(job: Job, run_ids, values=None) -> tuple[list[dict], float]:
+    """run_chunk's rows of a batch and the CPU seconds they took in this worker's thread, without its one build of
+    the closed loop (the task of the pool and of dask: the seconds size the next batches, `batches.BatchSizer`).
+    CPU, not wall: a task's overhead is CPU, so batches amortise it alike on a loaded machine."""
+    prepare(job)
+    t0 = time.thread_time()
+    rows = run_chunk(job, run_ids, values)
+    return rows, time.thread_time() - t0
 
 
 def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None, chunk_size=None,
             progress=None, campaign=None) -> dict:
-    """Run `todo` (run ids) on a local process pool or a dask client, calling on_rows(rows) as chunks finish;
-    with `campaign` (the job's), each chunk is sent with its drawn values."""
+    """Run `todo` (run ids) on a local process pool or a dask client in batches (`chunk_size` runs each, else
+    about `batches.TASK_SECONDS` of a worker's CPU each), calling on_rows(rows) as batches finish; with
+    `campaign` (the job's), each batch is sent with its drawn values."""
+    from .batches import BatchSizer
     say = progress or (lambda s: None)
 
     def work(chunk):
         return (job, chunk) if campaign is None else (job, chunk, campaign.values(chunk, job.runs))
     if client is not None:
         workers = max(1, len(client.scheduler_info().get("workers", {})))
-    size = chunk_size or int(min(32, max(1, len(todo) // (8 * workers))))
-    chunks = _chunks(todo, size)
+    sizer = BatchSizer(todo, workers, fixed=chunk_size)
     total, done = len(todo), 0
     t0 = time.perf_counter()
     last = 0.0
-    first = None            # (time, runs) when the first chunk came back: the workers had started by then
+    first = None            # (time, runs) when the first batch came back: the workers had started by then
 
     def tick(k):
         nonlocal done, last, first
@@ -360,42 +367,48 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
             say(f"sweep: {done}/{total} runs, {rate:.2f} runs/s, about {eta:.0f} s left")
             last = now
 
-    window = 4 * workers
+    def finished(result):
+        rows, seconds = result
+        sizer.record(len(rows), seconds)
+        on_rows(rows)
+        tick(len(rows))
+
+    window = 2 * workers            # batches in flight: each worker has its next one queued
     if client is not None:
         from distributed import as_completed
-        pending = deque(chunks)
-        futs = [client.submit(run_chunk, *work(pending.popleft()), pure=False, retries=3)
-                for _ in range(min(window, len(pending)))]
-        ac = as_completed(futs, loop=client.loop)
+
+        def submit():
+            return client.submit(run_batch, *work(sizer.next()), pure=False, retries=3)
+        ac = as_completed([], loop=client.loop)
+        while sizer.ready() and ac.count() < window:
+            ac.add(submit())
         for fut in ac:
-            rows = fut.result()
-            on_rows(rows)
-            tick(len(rows))
-            if pending:
-                ac.add(client.submit(run_chunk, *work(pending.popleft()), pure=False, retries=3))
-    elif chunks:
+            finished(fut.result())
+            while sizer.ready() and ac.count() < window:
+                ac.add(submit())
+    elif todo:
         import concurrent.futures as cf
         import multiprocessing as mp
         from ..core import lifecycle
         pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
                                       initializer=_pool_worker_start)
         try:
-            pending = deque(chunks)
-            running = {pool.submit(run_chunk, *work(pending.popleft()))
-                       for _ in range(min(window, len(pending)))}
+            running = set()
+
+            def fill():
+                while sizer.ready() and len(running) < window:
+                    running.add(pool.submit(run_batch, *work(sizer.next())))
+            fill()
             for pid in list(getattr(pool, "_processes", {}) or {}):
                 lifecycle.register_child(pid)
             while running:
-                finished, running = cf.wait(running, timeout=0.5, return_when=cf.FIRST_COMPLETED)
+                done_now, running = cf.wait(running, timeout=0.5, return_when=cf.FIRST_COMPLETED)
                 lifecycle.check()
-                for fut in finished:
-                    rows = fut.result()
-                    on_rows(rows)
-                    tick(len(rows))
-                    if pending:
-                        running.add(pool.submit(run_chunk, *work(pending.popleft())))
+                for fut in done_now:
+                    finished(fut.result())
+                fill()
         except BaseException:
-            # a signal, a limit or a failed chunk: the workers stop now, not after their chunks
+            # a signal, a limit or a failed batch: the workers stop now, not after their batches
             procs = list((getattr(pool, "_processes", {}) or {}).values())
             for proc in procs:
                 with contextlib.suppress(Exception):
@@ -417,7 +430,8 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
         steady = (done - first[1]) / (end - first[0])
     return {"wall": wall, "runs": total, "workers": workers,
             "runs_per_second": total / wall if wall > 0 and total else None,
-            "steady_runs_per_second": steady}
+            "steady_runs_per_second": steady, "batches": len(sizer.sizes),
+            "max_batch": max(sizer.sizes, default=0), "seconds_per_run": sizer.seconds_per_run}
 
 
 # --- worst case ------------------------------------------------------------------------------------------
@@ -570,7 +584,7 @@ def _sweep_locked(scenario, job, camp, out: Path, *, resume, workers, scheduler,
     from .results_csv import column_units
     summary["units"] = column_units(list(table.column_names), scenario.model.joint_types, scenario.n)
     summary.update({"runs_per_second": ex["runs_per_second"], "workers": ex["workers"],
-                    "steady_runs_per_second": ex["steady_runs_per_second"],
+                    "steady_runs_per_second": ex["steady_runs_per_second"], "batches": ex["batches"],
                     "scenario": scenario.name, "design": camp.sweep.design, "seed": camp.sweep.seed,
                     "t_final": job.t_final, "failed": s["failed"], "compile_time": info["compile_time"],
                     "compile_cache_hit": info["cache_hit"], "wall_time": time.perf_counter() - t0,
