@@ -44,8 +44,9 @@ import casadi as ca
 import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes
+from .face_forms import _drop_cancelled, with_alpha2_dot_through_e1
 from .projection_face import projection_face
-from .region import structurally_zero, true_unknown
+from .region import true_unknown
 from .result import Certificate
 from ..sx.rewrite import replace_nodes
 from ..sx.search import extrema
@@ -64,51 +65,6 @@ W_BOXES = 256
 W_SAFETY = 1.01
 
 
-def _drop_cancelled(expr: ca.SX, nodes: ca.SX, restore: tuple[ca.SX, ca.SX] | None = None) -> tuple[ca.SX, bool]:
-    """`expr` with the nodes set to 0 when it provably does not depend on them: the nodes are replaced by fresh
-    symbols A and the Jacobian of expr in A must be structurally zero (a graph identity, no numbers). `restore`
-    (symbol, node): a placeholder symbol of `expr` replaced by its node afterwards (e.g. e2, kept opaque so that
-    alpha2 + (dq - alpha2) is not simplified to dq before the cancellation is seen)."""
-    A = ca.SX.sym("A", nodes.numel())
-    e = replace_nodes([expr], ca.vec(nodes), A)[0]
-    # CasADi differentiates sign, floor, comparisons as 0: the Jacobian shows independence only where A enters
-    # through none of them
-    ok = _enters_smoothly(e, A) and structurally_zero(ca.jacobian(e, A))
-    e = ca.substitute(e, A, ca.DM.zeros(A.numel())) if ok else expr
-    if restore is not None:
-        e = ca.substitute(e, restore[0], restore[1])
-    return e, ok
-
-
-#: operations CasADi differentiates as 0 (or as a step) although they are not constant: jumps and kinks
-_IRREGULAR = {getattr(ca, k): k[3:].lower() for k in ("OP_SIGN", "OP_FABS", "OP_FMIN", "OP_FMAX", "OP_FLOOR",
-                                                    "OP_CEIL", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ",
-                                                    "OP_NE", "OP_NOT", "OP_AND", "OP_OR", "OP_FMOD",
-                                                    "OP_REMAINDER", "OP_COPYSIGN")}
-
-
-def _enters_smoothly(e: ca.SX, A: ca.SX) -> bool:
-    """Whether no operation CasADi differentiates as 0 although it is not constant (sign, floor, a comparison,
-    min/max, abs...) takes an argument that depends on the symbols A, in the graph of e (a pass over its tape)."""
-    rest = [v for v in ca.symvar(e) if not ca.depends_on(v, A)]
-    f = ca.Function("dependency", [A, ca.vertcat(*rest) if rest else ca.SX(0, 1)], [e])
-    dep: dict[int, bool] = {}
-    for k in range(f.n_instructions()):
-        op = f.instruction_id(k)
-        ins, outs = f.instruction_input(k), f.instruction_output(k)
-        if op == ca.OP_INPUT:
-            d = ins[0] == 0
-        elif op == ca.OP_OUTPUT:
-            continue
-        else:
-            d = any(dep.get(i, False) for i in ins) if op != ca.OP_CONST else False
-        if d and op in _IRREGULAR:
-            return False
-        for o in outs:
-            dep[o] = d
-    return True
-
-
 def face_expressions(design, p: ca.SX) -> tuple[dict[str, ca.SX], dict]:
     """The normal components n1 = de1 - (e1/F1) dF1 and n2 = de2 - (e2/F2) dF2 along the true plant (parameters
     p), and ||G||_F^2 of the adaptive law's forcing where the design has adaptive weights."""
@@ -120,8 +76,11 @@ def face_expressions(design, p: ca.SX) -> tuple[dict[str, ca.SX], dict]:
     nominal = S["ddq"] - S["alpha2_dot"] - S["e2"] / S["F2"] * S["dF2"]
     nominal, c2 = _drop_cancelled(nominal, S["alpha2_dot"])
     tu = true_unknown(design, p)
-    exprs = {"n1": n1, "n2": nominal + tu["f_true"]}
-    info = {"cancelled": {"dqd in de1": c1, "alpha2_dot in de2": c2}, "f_true": tu["form"], "adaptation": None}
+    # alpha2_dot (in tau and the nominal ddq inside f_true) through de1 = g + e2, not dq and dq_d apart
+    n2, c3 = with_alpha2_dot_through_e1(design, nominal + tu["f_true"])
+    exprs = {"n1": n1, "n2": n2}
+    info = {"cancelled": {"dqd in de1": c1, "alpha2_dot in de2": c2, "dqd in alpha2_dot": c3}, "f_true": tu["form"],
+            "adaptation": None}
     if design.n_regressor:
         W = sym["w_hat"]
         Wd = S["w_hat_dot"]
