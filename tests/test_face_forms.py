@@ -80,3 +80,28 @@ def test_e2_face_boxes_are_proven_with_alpha2_dot_through_e1():
     after = _proven_share(ctx, True)
     before = _proven_share(ctx, False)
     assert before < 0.2 and after > 0.5, (before, after)
+
+
+def test_alpha2_not_of_the_form_dqd_plus_g_of_e1_is_left_alone():
+    """alpha2 with dq_d entering twice, or q beyond e1 = q - q_d, is not rewritten (the identity would not hold)."""
+    from types import SimpleNamespace
+    sym = {k: ca.SX.sym(k, 1) for k in ("t", "q", "dq", "qd", "dqd", "ddqd")}
+    e1 = sym["q"] - sym["qd"]
+    F1 = 0.1 + ca.exp(-sym["t"])
+    for alpha2, why in ((2 * sym["dqd"] - 5 * e1 / F1, "depends on dq_d"),
+                        (sym["dqd"] - 5 * e1 / F1 + 0.1 * sym["q"], "beyond e1"),
+                        (sym["dqd"] - 5 * e1 / F1 + 0.1 * sym["dq"], "more than t and e1")):
+        S = {"alpha2": alpha2, "e1": e1, "e2": sym["dq"] - alpha2}
+        S["alpha2_dot"] = ca.jtimes(alpha2, ca.vertcat(sym["t"], sym["q"], sym["qd"], sym["dqd"]),
+                                    ca.vertcat(1, sym["dq"], sym["dqd"], sym["ddqd"]))
+        d = SimpleNamespace(signals=S, sym=sym, n=1)
+        adot, reason = alpha2_dot_through_e1(d)
+        assert adot is None and why in reason, reason
+    # the form itself: alpha2 = dq_d + g(t, e1) is rewritten, and equals the AD form at a point
+    alpha2 = sym["dqd"] - 5 * e1 / F1 + e1 * ca.sin(sym["t"])
+    S = {"alpha2": alpha2, "e1": e1, "e2": sym["dq"] - alpha2}
+    S["alpha2_dot"] = ca.jtimes(alpha2, ca.vertcat(sym["t"], sym["q"], sym["qd"], sym["dqd"]),
+                                ca.vertcat(1, sym["dq"], sym["dqd"], sym["ddqd"]))
+    adot, _ = alpha2_dot_through_e1(SimpleNamespace(signals=S, sym=sym, n=1))
+    f = ca.Function("f", list(sym.values()), [adot - S["alpha2_dot"]])
+    assert abs(float(f(0.7, 0.3, -1.2, 0.25, 0.4, 2.0))) < 1e-12
