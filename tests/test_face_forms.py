@@ -1,7 +1,7 @@
 """The e2 faces of `certify.containment` with alpha2_dot written through de1 = g + e2 (issue 45): the same function
 as the design's forward-AD alpha2_dot (checked at random states against the design's own graph), and on boxes 3 %
 wide of face e2 joint 1 + of paper_small_dead_zone (projection = 2) the interval bound proves most boxes, where the
-AD form (dq and dq_d apart) proved 6 %.
+AD form (dq and dq_d apart) proved 6 %; f_true's M_p^-1 by the adjugate proves more of them again.
 """
 
 from __future__ import annotations
@@ -46,23 +46,24 @@ def test_alpha2_dot_through_e1_is_the_designs_alpha2_dot():
         assert np.allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(b))), (a, b)
 
 
-def _proven_share(ctx, rewrite: bool) -> float:
-    """The share of 200 random boxes (3 % of the face's width in every split coordinate) of face e2 joint 1 + at
-    m1 = 0.9, m2 = 0.05 on which the interval bound proves sign n < 0."""
-    saved = C.with_alpha2_dot_through_e1
+def _proven_share(ctx, rewrite: bool, adjugate: bool = False, face: str = "e2 joint 1 +") -> float:
+    """The share of 200 random boxes (3 % of the face's width in every split coordinate) of the face at m1 = 0.9,
+    m2 = 0.05 on which the interval bound proves sign n < 0."""
+    saved = C.with_alpha2_dot_through_e1, C.ADJUGATE
     if not rewrite:
         C.with_alpha2_dot_through_e1 = lambda design, e: (e, False)
+    C.ADJUGATE = adjugate
     try:
         fc = C._Faces(ctx)
     finally:
-        C.with_alpha2_dot_through_e1 = saved
+        C.with_alpha2_dot_through_e1, C.ADJUGATE = saved
     d = ctx.design
     w, phi = projection_face(d)["w"], 7.15                    # sup ||Phi|| <= sqrt(51) (tanh states and a bias)
     W0 = np.zeros_like(d.variant.initial_states()["w_hat"])
     lw, hw = W0.copy(), W0.copy()
     lw[0, :], hw[0, :] = -w * phi, w * phi
     lo, hi = fc.box(0.1, 0.95, controller_state_boxes(ctx, (lw, hw)))
-    f = next(f for f in fc.faces(lo, hi) if f["name"] == "e2 joint 1 +")
+    f = next(f for f in fc.faces(lo, hi) if f["name"] == face)
     split = fc.split_indices(f["lo"], f["hi"])
     rng = np.random.default_rng(1)
     LO, HI = np.repeat(f["lo"][None], 200, 0), np.repeat(f["hi"][None], 200, 0)
@@ -80,6 +81,21 @@ def test_e2_face_boxes_are_proven_with_alpha2_dot_through_e1():
     after = _proven_share(ctx, True)
     before = _proven_share(ctx, False)
     assert before < 0.2 and after > 0.5, (before, after)
+    # M_p^-1 by the adjugate: more of the boxes again, on both joints
+    adj = _proven_share(ctx, True, adjugate=True)
+    two = _proven_share(ctx, True, face="e2 joint 2 +"), _proven_share(ctx, True, adjugate=True, face="e2 joint 2 +")
+    assert adj > after + 0.05 and two[1] > two[0] + 0.05, (after, adj, two)
+
+
+def test_solve2_is_the_inverse():
+    from symfunnel.sx.linalg import solve2
+    rng = np.random.default_rng(5)
+    M, b = ca.SX.sym("M", 2, 2), ca.SX.sym("b", 2)
+    f = ca.Function("f", [M, b], [solve2(M, b)])
+    for _ in range(50):
+        A = rng.normal(size=(2, 2)) + 3 * np.eye(2)
+        v = rng.normal(size=2)
+        assert np.allclose(np.asarray(f(A, v), float).ravel(), np.linalg.solve(A, v), rtol=1e-12, atol=1e-12)
 
 
 def test_alpha2_not_of_the_form_dqd_plus_g_of_e1_is_left_alone():

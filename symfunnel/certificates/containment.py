@@ -52,6 +52,8 @@ from ..sx.rewrite import replace_nodes
 from ..sx.search import extrema
 
 CID = "certify.containment"
+#: with two joints, f_true's M_p^-1 by the adjugate (`sx.linalg.solve2`) rather than LDL^T: narrower face bounds
+ADJUGATE = True
 #: the margins tried, in this order (the first proven is reported): e1's, then e2's
 M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
 M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.002, 0.1, 0.2, 0.5)
@@ -75,7 +77,7 @@ def face_expressions(design, p: ca.SX) -> tuple[dict[str, ca.SX], dict]:
     n1, c1 = _drop_cancelled(n1, sym["dqd"], restore=(E2, S["e2"]))
     nominal = S["ddq"] - S["alpha2_dot"] - S["e2"] / S["F2"] * S["dF2"]
     nominal, c2 = _drop_cancelled(nominal, S["alpha2_dot"])
-    tu = true_unknown(design, p)
+    tu = true_unknown(design, p, adjugate=ADJUGATE)
     # alpha2_dot (in tau and the nominal ddq inside f_true) through de1 = g + e2, not dq and dq_d apart
     n2, c3 = with_alpha2_dot_through_e1(design, nominal + tu["f_true"])
     exprs = {"n1": n1, "n2": n2}

@@ -34,3 +34,12 @@ def ldl_solve(M: ca.SX, b: ca.SX) -> ca.SX:
             s = s - L[k][i] * x[k]
         x[i] = s
     return ca.vertcat(*x)
+
+
+def solve2(M: ca.SX, b: ca.SX) -> ca.SX:
+    """x = M^{-1} b for a 2 x 2 SX matrix by its adjugate, adj(M) b / det(M): every entry of M enters once per term,
+    so an interval evaluation over a box is narrower than the LDL^T one (whose pivot and multiplier share M's
+    entries); where det's enclosure contains 0 the enclosure is unbounded, never wrong."""
+    det = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
+    return ca.vertcat(M[1, 1] * b[0] - M[0, 1] * b[1], M[0, 0] * b[1] - M[1, 0] * b[0]) / det
+
