@@ -121,3 +121,59 @@ def test_alpha2_not_of_the_form_dqd_plus_g_of_e1_is_left_alone():
     adot, _ = alpha2_dot_through_e1(SimpleNamespace(signals=S, sym=sym, n=1))
     f = ca.Function("f", list(sym.values()), [adot - S["alpha2_dot"]])
     assert abs(float(f(0.7, 0.3, -1.2, 0.25, 0.4, 2.0))) < 1e-12
+
+
+def test_face_enclosures_contain_the_plant_computed_directly():
+    """The e2 faces' enclosures (alpha2_dot through e1, M_p^-1 by the adjugate, the estimate, Filippov signs)
+    contain de2 - (e2/F2) dF2 computed the plain way at points of small boxes: the plant's own ddq
+    (`plant_acceleration`, M_p solved by numpy) minus the design's forward-AD alpha2_dot."""
+    from symfunnel.plant.equations import plant_acceleration, plant_parameters
+    sc, d = _design({"esn.size": 6})
+    ctx = Context(sc, d, 3.0, parameter_box(sc), None, None, w_star_info={}, breach=None)
+    fc = C._Faces(ctx)
+    F = fc.F
+    names, p0 = plant_parameters(sc)
+    p = ca.SX.sym("p", len(names))
+    sym, S = d.sym, d.signals
+    pl = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], S["tau"], 0.0, p=p)
+    ins = [sym[k] for k in ("t", "q", "dq", "qd", "dqd", "ddqd", "x_esn", "w_hat")] + [p]
+    plain = ca.Function("plain", ins, [pl["M"], pl["tau_applied"] - ca.mtimes(pl["C"], sym["dq"]) - pl["G"]
+                                       - pl["friction"] - pl["disturbance"], S["alpha2_dot"], S["e2"] / S["F2"] * S["dF2"]])
+    alpha2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+    bounds = d.function("funnel_bounds", ["t"], ["F1", "F2"])
+    phi = d.function("Phi", ["x_esn"])
+    wide = ctx.params.lo < ctx.params.hi
+    W0 = np.zeros_like(d.variant.initial_states()["w_hat"])
+    lw, hw = W0.copy(), W0.copy()
+    lw[0, :], hw[0, :] = -2.0, 2.0
+    lo, hi = fc.box(0.9, 0.95, controller_state_boxes(ctx, (lw, hw)))
+    i = {k: (F.in_off[F.in_names.index(k)], F.in_off[F.in_names.index(k) + 1]) for k in F.in_names}
+    rng = np.random.default_rng(7)
+    pos = np.arange(fc.pos["n2"], fc.pos["n2"] + 2)
+    for _ in range(40):
+        c = lo + rng.random(lo.size) * (hi - lo)
+        half = np.zeros(lo.size)                   # tiny boxes (the reservoir and the estimate at a point): an
+        half[i["t"][0]] = 1e-6                     # error of the rewritten forms would show beyond their width
+        half[slice(*i["s1"])] = half[slice(*i["s2"])] = 1e-6
+        half[slice(*i["p"])] = 1e-6
+        blo, bhi = np.maximum(c - half, lo), np.minimum(c + half, hi)
+        for k in ("sgn", "m"):
+            blo[slice(*i[k])], bhi[slice(*i[k])] = lo[slice(*i[k])], hi[slice(*i[k])]
+        L, H, _ = F.eval_batch(blo[None, :], bhi[None, :])[:3]
+        for _ in range(10):
+            u = blo + rng.random(lo.size) * (bhi - blo)
+            t = u[i["t"][0]]
+            qd, dqd, ddqd = (np.asarray(v, float).ravel() for v in d.reference(t))
+            F1, F2 = (np.asarray(v, float).ravel() for v in bounds(t))
+            q = qd + u[slice(*i["s1"])] * F1
+            dq = np.asarray(alpha2(t, q, qd, dqd), float).ravel() + u[slice(*i["s2"])] * F2
+            pp = p0.copy()
+            pp[wide] = u[slice(*i["p"])]
+            x = u[slice(*i["x_esn"])]
+            est = u[slice(*i["w_hat"])].reshape(W0.shape, order="F")[0, :]
+            Phi = np.asarray(phi(x), float).ravel()
+            W = np.outer(Phi, est) / (Phi @ Phi)
+            Mp, rhs, adot, ff = (np.asarray(v, float) for v in plain(t, q, dq, qd, dqd, ddqd, x, W, pp))
+            got = np.linalg.solve(Mp, rhs.ravel()) - adot.ravel() - ff.ravel()
+            tol = 1e-9 * np.maximum(1.0, np.abs(got))
+            assert np.all(L[0, pos] - tol <= got) and np.all(got <= H[0, pos] + tol), (got, L[0, pos], H[0, pos])
