@@ -8,6 +8,7 @@ import copy
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from symfunnel.cli import main
@@ -23,6 +24,10 @@ def sampled_paper(tmp_path, t_final: float = 0.5):
     raw["simulation"]["t_final"] = t_final
     raw["implementation"] = {"rate_hz": 1000.0, "tau_max": 200.0}
     raw["tune"] = {"objective": "peak_torque", "parameters": ["controller.k2", "funnel.e2.phi_inf"]}
+    return _write(tmp_path, raw)
+
+
+def _write(tmp_path, raw: dict):
     p = tmp_path / "s.toml"
     p.write_text(dumps(raw), encoding="utf-8")
     return p
@@ -71,3 +76,21 @@ def test_a_search_the_wall_limit_ends_says_so_and_is_marked_timing_dependent(tmp
     code = main(["tune", str(src), "--json", "-q", "--max-evals", "2", "--wall-limit", "120"])
     res = json.loads(capsys.readouterr().out)
     assert res["evaluations"] == 2 and res["ended_by"] == "evaluations" and res["timing_dependent"] is False
+
+
+def test_an_ipopt_pass_its_wall_time_ended_marks_the_result_timing_dependent(tmp_path, capsys, monkeypatch):
+    from symfunnel.synthesis import gradient as G, search
+    raw = copy.deepcopy(load_scenario("paper").raw)
+    raw["simulation"]["t_final"] = 0.3
+    raw.pop("implementation", None)
+    raw["tune"] = {"tau_max": 200.0, "parameters": ["controller.k2"]}
+
+    def timed_out(self, z0, **kw):         # IPOPT's answer when its max_wall_time ended the pass (a timing)
+        return {"z": np.asarray(z0, float), "status": "Maximum_WallTime_Exceeded", "success": False,
+                "iterations": 3, "f": 1.0, "coarse": None}
+    monkeypatch.setattr(G.GradientProblem, "solve", timed_out)
+    sc = load_scenario(_write(tmp_path, raw))
+    r = search.tune(sc, max_evaluations=2, gate=False, method="gradient", wall_limit=120.0)
+    assert r.method.startswith("gradient")          # (the stand-in runs in IPOPT's forked child)
+    assert r.timing_dependent is True and r.ended_by == "evaluations"
+    assert any("IPOPT's pass of start 1" in n and "timing-dependent" in n for n in r.notes), r.notes

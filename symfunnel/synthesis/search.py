@@ -242,6 +242,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
     method, why = METHOD, WHY
     stopped, ended_by = None, "completed"
+    ipopt_timed: list[int] = []                    # IPOPT starts whose pass its own wall-time limit ended
     if scenario.implementation is None and requested != "derivative-free":
         use, reason = _gradient_sound()
         gp, sized = None, False
@@ -266,7 +267,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
             failed = None
             try:
                 _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, deadline=search_end,
-                                 max_evaluations=max_evaluations)
+                                 max_evaluations=max_evaluations, timed=ipopt_timed)
             except _OutOfTime as exc:
                 stopped, ended_by = str(exc), exc.by
                 say(stopped + ": the best design so far is the result")
@@ -313,9 +314,11 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
             say(stopped + ": the best design so far is the result")
     b = best[0] or before
     notes = [stopped] if stopped else []
-    timing = ended_by == "wall-limit"
-    if timing:
+    timing = ended_by == "wall-limit" or bool(ipopt_timed)
+    if ended_by == "wall-limit":
         notes.append(TIMING_NOTE.format(what="the search"))
+    elif ipopt_timed:
+        notes.append(TIMING_NOTE.format(what="IPOPT's pass of start " + ", ".join(map(str, ipopt_timed))))
     gate_info = {"status": "skipped"}
     status = "ok" if b.feasible else "infeasible"
     binding = b.binding()
@@ -458,10 +461,11 @@ def _gradient_sound() -> tuple[bool, str]:
 
 
 def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
-                     max_evaluations: int | None) -> None:
+                     max_evaluations: int | None, timed: list | None = None) -> None:
     """IPOPT from the user's values, then from Sobol points, while time remains; every result is judged by `f`
     (the full simulation of the Evaluator), which records the best candidate. Each IPOPT run is a child process
-    killed at the deadline (its best grid-feasible iterate so far is then the result)."""
+    killed at the deadline (its best grid-feasible iterate so far is then the result). The starts (1-based) whose
+    pass IPOPT's own wall-time limit ended (a timing, not a count) are appended to `timed`."""
     from scipy.stats import qmc
     say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
         "points)")
@@ -492,6 +496,8 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
             say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
             continue
         say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
+        if timed is not None and any("WallTime" in str(p.get("status", "")) for p in (r, r.get("coarse") or {})):
+            timed.append(i + 1)
         f(r["z"], final=True)
 
 
