@@ -94,3 +94,17 @@ def test_an_ipopt_pass_its_wall_time_ended_marks_the_result_timing_dependent(tmp
     assert r.method.startswith("gradient")          # (the stand-in runs in IPOPT's forked child)
     assert r.timing_dependent is True and r.ended_by == "evaluations"
     assert any("IPOPT's pass of start 1" in n and "timing-dependent" in n for n in r.notes), r.notes
+
+
+@needs_gcc
+def test_verify_gate_ended_by_the_wall_limit_marks_the_result_timing_dependent(tmp_path, monkeypatch):
+    from symfunnel.core import deadline as DL
+    from symfunnel.synthesis import search
+
+    def gate_past_the_limit(scenario, progress=None):      # the gate interrupted by the command's limit
+        raise DL.WallLimitReached(120.0, "verify's gate", 120.0)
+    monkeypatch.setattr(search, "verify_gate", gate_past_the_limit)
+    r = search.tune(load_scenario(sampled_paper(tmp_path)), max_evaluations=12, wall_limit=120.0)
+    assert r.ended_by == "evaluations"                        # the search itself ended on its count
+    assert r.gate["status"] == "not completed" and r.status == "infeasible"
+    assert r.timing_dependent is True and any("ended verify's gate" in n for n in r.notes), r.notes
