@@ -236,6 +236,8 @@ def test_tune_keeps_its_wall_limit_even_when_an_evaluation_is_long(tmp_path, cap
     res = json.loads(capsys.readouterr().out)
     assert code in (0, 1) and wall <= limit + 5.0, wall
     assert any("wall-clock limit" in n for n in res["notes"])
+    # the limit, not a count, ended it: the result says it is timing-dependent (issue 43)
+    assert res["timing_dependent"] is True and any("timing-dependent" in n for n in res["notes"])
 
 
 # --- the numpy step against the C step ----------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """Bench area `tune`: `symfunnel tune` on the paper deployed at 1 kHz with |tau| <= 200 N m, beside one verify.
 
 Ids: `tune.wall_s` (wall time of the whole tune: search plus verify's gate on the result, at the default 240 s
-limit; target <= 300 s). Baseline, measured in the same run: one `verify --rate 1000` of the paper's own design
+limit; target <= 300 s; the derivative-free search, ended by its default evaluation budget: `ended_by`). Baseline, measured in the same run: one `verify --rate 1000` of the paper's own design
 (the check a user runs by hand per guess). `tune.gradient_wall_s`: the same without `[implementation]`
 (`tune.tau_max = 200`: the gradient path forced, IPOPT with CVODES sensitivities), beside one continuous-time
 simulation of the printed design; target <= 60 s, with the CPU time of the process and its children beside.
@@ -62,7 +62,8 @@ def run(progress) -> list[dict]:
     r = tune(sc, progress=progress)
     out = [result("tune.wall_s", r.wall_s, "s", "one verify --rate 1000 of the printed design", one, one / r.wall_s,
                    target_s=TARGET_S, meets_target=bool(r.wall_s <= TARGET_S), status=r.status,
-                   evaluations=r.evaluations, objective=r.objective, gate=r.gate["status"],
+                   evaluations=r.evaluations, ended_by=r.ended_by, timing_dependent=r.timing_dependent,
+                   objective=r.objective, gate=r.gate["status"],
                    baseline_status=v.status, scenario=sc.name, t_final=sc.simulation.t_final)]
     sc = scenario(float(tf) if tf else None, sampled=False)
     progress("tune: baseline, one continuous-time simulation of the printed design")

@@ -19,15 +19,24 @@ def register(sub, common) -> None:
                                                        "change)")
     sp.add_argument("--json", action="store_true", help="machine-readable output")
     sp.add_argument("--wall-limit", type=float, default=240.0, metavar="S",
-                    help="the whole command's wall time: the search stops at 80 %% of it, the rest is kept for the "
-                         "re-check of the rounded gains and verify's gate (default 240)")
+                    help="the whole command's wall time, a safety net: the search stops at 80 %% of it, the rest is "
+                         "kept for the re-check of the rounded gains and verify's gate (default 240); a result it "
+                         "ended is marked timing-dependent")
     sp.add_argument("--t-final", type=float, metavar="T", help="horizon of each candidate's runs (default: the "
                                                              "scenario's)")
-    sp.add_argument("--max-evals", type=int, metavar="K", help="stop the search after K candidate evaluations")
+    sp.add_argument("--max-evals", type=int, metavar="K",
+                    help="stop the search after K candidate evaluations (the derivative-free search's default: "
+                         f"{_budget()}, a count, so the same scenario gives the same file)")
     sp.add_argument("--method", choices=("auto", "gradient", "derivative-free"), default="auto",
                     help="auto (default): IPOPT without [implementation] when a timed forward solve says it fits "
                          "the wall-clock limit, else derivative-free")
     sp.set_defaults(func=run)
+
+
+def _budget() -> int:
+    """The derivative-free search's default evaluation budget (for the help text)."""
+    from ..synthesis.choice import DERIVATIVE_FREE_EVALUATIONS
+    return DERIVATIVE_FREE_EVALUATIONS
 
 
 @contextlib.contextmanager

@@ -12,7 +12,9 @@ each result is judged by the full simulation above. With `[implementation]` the 
 saturation, the stop at a breach) makes the constraints piecewise constant in the parameters, so gradients are
 meaningless; the search is derivative-free: the user's values and a few Sobol points are evaluated, then Nelder-Mead
 (on a penalty: any infeasible candidate ranks behind every feasible one) runs from the best starts over log-scaled
-parameters until it converges or the wall-clock limit is reached. It is also the fallback when IPOPT is missing or
+parameters until it converges or has spent its evaluation budget (--max-evals, by default DERIVATIVE_FREE_EVALUATIONS):
+a count, so the same scenario gives the same file on any machine and under any load; the wall-clock limit is only a
+safety net, and a search it ends is reported as timing-dependent. It is also the fallback when IPOPT is missing or
 finds nothing that holds. The best feasible designs then go through verify's gate in turn.
 """
 
@@ -29,10 +31,11 @@ import numpy as np
 from ..core.errors import InputError
 from ..scenario.tune import TuneSpec
 from .candidates import Candidate, Evaluator, apply, scenario_confidence, variables
+from .choice import DERIVATIVE_FREE_EVALUATIONS
 from .records import _record_deviations, original_document, tune_records, tuned_toml
 
 __all__ = ["tune", "TuneResult", "Candidate", "scenario_confidence", "METHOD", "GRADIENT_METHOD", "tune_records",
-           "original_document"]
+           "original_document", "DERIVATIVE_FREE_EVALUATIONS"]
 
 METHOD = ("derivative-free: Nelder-Mead on a feasibility-first penalty over log-scaled parameters, multi-start from "
           "the user's values and Sobol points")
@@ -48,6 +51,8 @@ SOBOL_STARTS = 8
 #: Sobol starting points of the gradient path besides the user's values
 GRADIENT_SOBOL_STARTS = 2
 INFEASIBLE = 1e3
+#: why the search ended (`ended_by` in --json): all its passes ran, the evaluation count, or the wall-clock limit
+ENDED_BY = ("completed", "evaluations", "wall-limit")
 #: feasible designs (best first) that go through verify's gate before tune reports infeasible
 GATE_TRIES = 3
 #: share of --wall-limit the search may use; the rest is kept for the re-check after rounding and verify's gate
@@ -59,7 +64,18 @@ METHODS = ("auto", "gradient", "derivative-free")
 
 
 class _OutOfTime(Exception):
-    """Raised inside the objective when the wall-clock limit or the evaluation budget is reached."""
+    """Raised inside the objective when the wall-clock limit or the evaluation budget is reached (`by`: which,
+    one of ENDED_BY)."""
+
+    def __init__(self, message: str, by: str = "wall-limit"):
+        super().__init__(message)
+        self.by = by
+
+
+#: the note of a search the wall-clock limit ended: its result is not reproducible
+TIMING_NOTE = ("timing-dependent: the wall-clock limit, not an evaluation count, ended {what}, so this result "
+               "depends on the machine's speed and load (the same scenario may give another file); raise --wall-limit "
+               "or lower --max-evals for a reproducible result")
 
 
 def _score(c: Candidate, objective: str, ref: dict) -> float:
@@ -97,6 +113,8 @@ class TuneResult:
     notes: list[str]
     tuned_text: str = ""
     rechecks: int = 0
+    ended_by: str = "completed"
+    timing_dependent: bool = False
     comparison: dict = field(default_factory=dict)
     at_bounds: list[dict] = field(default_factory=list)
 
@@ -112,6 +130,7 @@ class TuneResult:
                           "objective": self.objective, "changes": self.changes, "binding": self.binding,
                           "at_bounds": self.at_bounds,
                           "wall_s": self.wall_s, "evaluations": self.evaluations, "rechecks": self.rechecks,
+                          "ended_by": self.ended_by, "timing_dependent": self.timing_dependent,
                           "constraints": self.constraints,
                           "uncertainty_samples": self.samples, "confidence_eps_0.05": self.confidence,
                           "gate": self.gate, "notes": self.notes, "comparison": self.comparison})
@@ -124,7 +143,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
 
     The whole call keeps `wall_limit` seconds (the search stops at SEARCH_SHARE of it, an evaluation in progress
     is interrupted at the limit, IPOPT runs in a child process that is killed at the limit) and at most
-    `max_evaluations` full-simulation evaluations of candidates. `method`: "auto" (the gradient path without
+    `max_evaluations` full-simulation evaluations of candidates (the derivative-free search: by default
+    DERIVATIVE_FREE_EVALUATIONS, so that a count, not the limit, ends it). `method`: "auto" (the gradient path without
     `[implementation]` when the sensitivity problem's size says enough IPOPT iterations fit the search's share of
     the limit, `synthesis.choice`, else derivative-free), "gradient" or "derivative-free". Gains are rounded to
     DIGITS significant digits and the rounded design is re-checked.
@@ -162,6 +182,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     ref = {k: (v if math.isfinite(v) and v > 0 else 1.0) for k, v in before.figures.items()}
     seen: dict[tuple, Candidate] = {}
     best: list[Candidate | None] = [None]          # the best candidate inside the bounds
+    cap = [max_evaluations]                        # the evaluation budget of the running search (None: none)
 
     def record(c: Candidate) -> float:
         s = _score(c, spec.objective, ref)
@@ -183,8 +204,10 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         if not final and now >= search_end:
             raise _OutOfTime(f"search stopped at the wall-clock limit ({SEARCH_SHARE:.0%} of --wall-limit "
                              f"{wall_limit:g} s; the rest is kept for the checks of the result)")
-        if not final and max_evaluations and ev.count >= max_evaluations:
-            raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
+        if not final and cap[0] and ev.count >= cap[0]:
+            raise _OutOfTime(f"search stopped after {cap[0]} evaluations ("
+                             + ("--max-evals" if max_evaluations else "the derivative-free search's default budget; "
+                                "--max-evals changes it") + ")", by="evaluations")
         # an evaluation in progress is interrupted at the limit (a simulation stops there, a compile is killed)
         end = m0 + (search_end - t0) if not final else m0 + wall_limit
         try:
@@ -201,9 +224,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         elapsed = time.perf_counter() - t0
         per = elapsed / max(ev.count, 1)
         left = search_end - time.perf_counter()
-        if max_evaluations:
-            left = min(left, per * max(max_evaluations - ev.count, 0))
-        say(f"eval {ev.count}{f' of at most {max_evaluations}' if max_evaluations else ''}: "
+        if cap[0]:
+            left = min(left, per * max(cap[0] - ev.count, 0))
+        say(f"eval {ev.count}{f' of at most {cap[0]}' if cap[0] else ''}: "
             f"{'feasible' if c.feasible else 'infeasible'} "
             + ", ".join(f"{k} {g:+.3g}" for k, g in c.constraints.items())
             + (f", {spec.objective} {c.figures.get(spec.objective, math.nan):.4g}" if c.figures else f" ({c.note})")
@@ -218,7 +241,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         say("the user's values lie outside the bounds: the search starts from them clipped into the bounds")
     z_user = np.array([v.z_of(x) for v, x in zip(vars_, user)])
     method, why = METHOD, WHY
-    stopped = None
+    stopped, ended_by = None, "completed"
+    ipopt_timed: list[int] = []                    # IPOPT starts whose pass its own wall-time limit ended
     if scenario.implementation is None and requested != "derivative-free":
         use, reason = _gradient_sound()
         gp, sized = None, False
@@ -243,9 +267,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
             failed = None
             try:
                 _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, deadline=search_end,
-                                 max_evaluations=max_evaluations)
+                                 max_evaluations=max_evaluations, timed=ipopt_timed)
             except _OutOfTime as exc:
-                stopped = str(exc)
+                stopped, ended_by = str(exc), exc.by
                 say(stopped + ": the best design so far is the result")
             except RuntimeError as exc:            # CasADi/IPOPT failed to build or run the problem
                 from ..core.lifecycle import reraise_interrupt
@@ -269,6 +293,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     if method.endswith(METHOD) and stopped is None:
         if method == METHOD:
             say(f"method: {method} ({why})")
+        cap[0] = max_evaluations or DERIVATIVE_FREE_EVALUATIONS
         starts = [z_user]
         sob = qmc.Sobol(d, scramble=True, seed=0).random(SOBOL_STARTS)
         starts.extend(sob)
@@ -285,10 +310,15 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                          options={"initial_simplex": np.array(simplex), "xatol": 2e-3, "fatol": 1e-4,
                                   "maxfev": 60 * d})
         except _OutOfTime as exc:
-            stopped = str(exc)
+            stopped, ended_by = str(exc), exc.by
             say(stopped + ": the best design so far is the result")
     b = best[0] or before
     notes = [stopped] if stopped else []
+    timing = ended_by == "wall-limit" or bool(ipopt_timed)
+    if ended_by == "wall-limit":
+        notes.append(TIMING_NOTE.format(what="the search"))
+    elif ipopt_timed:
+        notes.append(TIMING_NOTE.format(what="IPOPT's pass of start " + ", ".join(map(str, ipopt_timed))))
     gate_info = {"status": "skipped"}
     status = "ok" if b.feasible else "infeasible"
     binding = b.binding()
@@ -309,6 +339,9 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                     raise
                 gate_info = {"status": "not completed", "unexpected": []}
                 notes.append(f"verify's gate on design {i + 1} did not finish within --wall-limit {wall_limit:g} s")
+                if not timing:
+                    timing = True
+                    notes.append(TIMING_NOTE.format(what="verify's gate"))
                 status = "infeasible"
                 binding = binding + ["verify.gate (not completed within --wall-limit)"]
                 break
@@ -353,7 +386,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
         samples=len(ev.samples), confidence=scenario_confidence(len(ev.samples)) if ev.samples else None,
         gate=gate_info, tuned_raw=tuned, notes=notes,
         tuned_text=tuned_toml(scenario, tuned, sorted({v.key for v in vars_})), rechecks=ev.rechecks,
-        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)}, at_bounds=bounds_hit)
+        comparison={"original": _side(before, spec, ev), "tuned": _side(b, spec, ev)}, at_bounds=bounds_hit,
+        ended_by=ended_by, timing_dependent=timing)
 
 
 @contextlib.contextmanager
@@ -427,10 +461,11 @@ def _gradient_sound() -> tuple[bool, str]:
 
 
 def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
-                     max_evaluations: int | None) -> None:
+                     max_evaluations: int | None, timed: list | None = None) -> None:
     """IPOPT from the user's values, then from Sobol points, while time remains; every result is judged by `f`
     (the full simulation of the Evaluator), which records the best candidate. Each IPOPT run is a child process
-    killed at the deadline (its best grid-feasible iterate so far is then the result)."""
+    killed at the deadline (its best grid-feasible iterate so far is then the result). The starts (1-based) whose
+    pass IPOPT's own wall-time limit ended (a timing, not a count) are appended to `timed`."""
     from scipy.stats import qmc
     say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
         "points)")
@@ -441,7 +476,7 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
         if left <= 1.0:
             raise _OutOfTime("search stopped at the wall-clock limit")
         if max_evaluations and ev.count >= max_evaluations:
-            raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)")
+            raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)", by="evaluations")
         say(f"IPOPT start {i + 1} of {len(starts)} (at most {left:.0f} s)")
         # IPOPT gets the time left but what the full simulation of its result needs
         try:
@@ -461,6 +496,8 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
             say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
             continue
         say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
+        if timed is not None and any("WallTime" in str(p.get("status", "")) for p in (r, r.get("coarse") or {})):
+            timed.append(i + 1)
         f(r["z"], final=True)
 
 
