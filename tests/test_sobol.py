@@ -86,3 +86,13 @@ def test_callers_give_scipys_points():
     ids = np.array([5, 0, 1, 2, 9, 10])
     full = _scipy(3, 11, 9)
     assert np.array_equal(_sobol(3, 9, ids), full[ids])
+
+
+def test_without_the_data_file_scipys_engine_gives_the_points(monkeypatch):
+    from symfunnel.core import sobol as S
+
+    def missing():
+        raise ImportError("no file")
+    monkeypatch.setattr(S, "_table", missing)
+    g_ref, g = np.random.default_rng(2), np.random.default_rng(2)
+    assert np.array_equal(S.sobol(3, 10, g, skip=4), _scipy(3, 10, g_ref, 4)) and g.random() == g_ref.random()

@@ -93,6 +93,18 @@ def _scrambled(d: int, rng) -> tuple[np.ndarray, np.ndarray]:
 def sobol(d: int, n: int, seed=None, *, skip: int = 0) -> np.ndarray:
     """Points skip .. skip+n-1 (rows, in [0, 1)^d) of the scrambled Sobol sequence scipy draws for (d, seed):
     `qmc.Sobol(d, scramble=True, seed=seed)`, fast-forwarded by `skip`, then `.random(n)`."""
+    try:
+        _table()
+    except ImportError:                          # a scipy without the data file there: its own engine, same points
+        import warnings
+
+        from scipy.stats import qmc
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")      # balance of non-power-of-2 sizes: the callers' concern, not ours
+            eng = qmc.Sobol(d, scramble=True, seed=seed)
+            if skip:
+                eng.fast_forward(skip)
+            return eng.random(n)
     rng = _rng(seed)
     sv, shift = _scrambled(d, rng)
     idx = np.arange(skip, skip + n, dtype=np.uint64)
