@@ -20,7 +20,7 @@ def _scipy(d, n, seed, skip=0):
         return eng.random(n)
 
 
-@pytest.mark.parametrize("d", [1, 2, 5, 23])
+@pytest.mark.parametrize("d", [0, 1, 2, 5, 23])
 @pytest.mark.parametrize("seed", [0, 7, 2024])
 def test_int_seed_points_and_fast_forward(d, seed):
     for n, skip in ((1, 0), (16, 0), (13, 0), (9, 5), (40, 100)):

@@ -35,7 +35,7 @@ def _direction(d: int) -> np.ndarray:
     if d > poly.size:
         raise ValueError(f"Sobol dimension {d} > {poly.size}")
     v = np.zeros((d, BITS), dtype=np.int64)
-    v[0, :] = 1
+    v[:1, :] = 1                                 # the first dimension (none when d = 0)
     for i in range(1, d):
         p = int(poly[i])
         m = p.bit_length() - 1
