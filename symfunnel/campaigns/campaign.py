@@ -278,7 +278,8 @@ def _engine_chunk(job: Job, ids: list[int], values) -> list[dict]:
 def run_chunk(job: Job, run_ids, values=None) -> list[dict]:
     """Rows of the given runs (the unit of work of the pool and of dask); `values` are their drawn values
     (`Campaign.values`), when the submitting process has them: drawing them here would import scipy.stats into
-    every worker (a second of start-up each) for a few numbers."""
+    every worker (a second of start-up each) for a few numbers (normal or Latin-hypercube draws; Sobol draws no
+    longer need it, `core.sobol`)."""
     if values is not None:
         values = np.asarray(values, dtype=float)
         if values.shape[0] != len(run_ids):

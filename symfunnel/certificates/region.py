@@ -239,7 +239,7 @@ def homogeneity_proven(transform_name: str) -> tuple[str, ...]:
     import sympy
 
     from ..family.transforms import TRANSFORMS
-    from ..sx.proof import time_limit, _Timeout
+    from ..sx.proof import _Timeout, simplify, time_limit
     from ..sx.tosympy import sx_to_sympy
     T = TRANSFORMS.get(transform_name)()
     degrees = getattr(T, "HOMOGENEITY", {})
@@ -253,7 +253,7 @@ def homogeneity_proven(transform_name: str) -> tuple[str, ...]:
         try:
             with time_limit(10.0):
                 e = sx_to_sympy(a[k] - F ** deg * b[k], [s, F], [[S], [FF]])[0]
-                if sympy.simplify(e) == 0:
+                if simplify(e) == 0:
                     out.append(k)
         except (_Timeout, RecursionError, NotImplementedError):
             continue

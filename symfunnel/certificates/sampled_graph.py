@@ -94,7 +94,7 @@ def _transform_c1(name: str) -> bool:
     import sympy
 
     from ..family.transforms import TRANSFORMS
-    from ..sx.proof import _Timeout, time_limit
+    from ..sx.proof import _Timeout, simplify, time_limit
     from ..sx.tosympy import sx_to_sympy
     T = TRANSFORMS.get(name)()
     s = ca.SX.sym("s")
@@ -107,7 +107,7 @@ def _transform_c1(name: str) -> bool:
             P = sympy.Symbol("P", positive=True)
             right = sympy.diff(e.subs(S, P), P)
             left = sympy.diff(e.subs(S, -P), P)         # d/ds at -P is -d/dP of z(-P)
-            ok = bool(sympy.simplify(sympy.limit(right, P, 0, "+") + sympy.limit(left, P, 0, "+")) == 0)
+            ok = bool(simplify(sympy.limit(right, P, 0, "+") + sympy.limit(left, P, 0, "+")) == 0)
     except (_Timeout, RecursionError, NotImplementedError, TypeError, ValueError):
         ok = False
     _C1[name] = ok

@@ -105,7 +105,7 @@ def check_coriolis(design: Design, rng) -> CheckResult:
 
 def check_M_pd(design: Design, rng) -> CheckResult:
     """model.M_positive_definite: exact where M is constant, else sampled over the joint range with local refinement."""
-    from scipy.optimize import minimize
+    from ..core.neldermead import minimize       # scipy's Nelder-Mead iterates without importing scipy.optimize
 
     sc = design.scenario
     m = sc.model
@@ -131,8 +131,7 @@ def check_M_pd(design: Design, rng) -> CheckResult:
     constant = not ca.depends_on(Mn, m.q)
     if not constant:
         for j in np.argsort(lmin)[:3]:
-            res = minimize(fmin_eig, q[:, j], method="Nelder-Mead",
-                           options={"xatol": 1e-10, "fatol": 1e-14, "maxiter": 400 * m.n})
+            res = minimize(fmin_eig, q[:, j], xatol=1e-10, fatol=1e-14, maxiter=400 * m.n)
             if res.fun < best_val:
                 best_val, best_q = float(res.fun), np.clip(res.x, lo, hi)
     method = "exact (M is constant)" if constant else f"sampled ({k} states over the joint range) + local refinement"

@@ -10,10 +10,9 @@ from . import Design
 def unit_samples(k: int, dim: int, rng: np.random.Generator, method: str = "random") -> np.ndarray:
     """k points in [0, 1]^dim (rows), plain random or scrambled Sobol ('sobol')."""
     if method == "sobol":
-        from scipy.stats import qmc
+        from ..core.sobol import sobol           # scipy's points without importing scipy.stats
         m = int(np.ceil(np.log2(max(k, 2))))
-        pts = qmc.Sobol(d=dim, scramble=True, seed=rng).random_base2(m)
-        return pts[:k]
+        return sobol(dim, 2 ** m, rng)[:k]
     return rng.random((k, dim))
 
 

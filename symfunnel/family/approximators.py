@@ -200,12 +200,8 @@ def rbf_centres(spec: RBFSpec, dims: int) -> tuple[np.ndarray, float]:
         axis = np.linspace(0.0, 1.0, spec.per_dim)
         mesh = np.meshgrid(*[axis] * dims, indexing="ij")
         return np.stack([m.ravel() for m in mesh], axis=1), 1.0 / (spec.per_dim - 1)
-    import warnings
-
-    from scipy.stats import qmc
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")          # balance of non-power-of-2 sample sizes: irrelevant for centres
-        pts = qmc.Sobol(dims, scramble=True, seed=spec.seed).random(spec.size)
+    from ..core.sobol import sobol               # scipy's points without importing scipy.stats
+    pts = sobol(dims, spec.size, spec.seed)
     return pts, float(spec.size) ** (-1.0 / dims)
 
 

@@ -60,14 +60,14 @@ def _sympy_differs(M, q, pairs) -> bool:
     import sympy
 
     from ..sx.tosympy import sx_to_sympy
-    from ..sx.proof import _Timeout, time_limit
+    from ..sx.proof import _Timeout, simplify, time_limit
     diffs = ca.vertcat(*[M[i, j] - M[j, i] for i, j in pairs])
     if ca.Function("d", [q], [diffs]).n_instructions() > 2000:
         return False
     try:
         with time_limit(SYMPY_SECONDS):
             m = sx_to_sympy(diffs, [q])
-            simp = [sympy.simplify(sympy.expand_trig(e)) for e in m]
+            simp = [simplify(sympy.expand_trig(e)) for e in m]
     except (_Timeout, RecursionError, MemoryError, NotImplementedError):
         return False
     return any(e.is_number and e != 0 for e in simp)

@@ -10,7 +10,6 @@ function of (seed, i) (and, for a Latin hypercube, of the campaign's size), so a
 from __future__ import annotations
 
 import functools
-import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -145,21 +144,15 @@ def _lhs(d: int, seed: int, runs: int) -> np.ndarray:
 
 def _sobol(d: int, seed: int, ids: np.ndarray) -> np.ndarray:
     """Points `ids` of the scrambled Sobol sequence of (d, seed): contiguous blocks are drawn by fast-forwarding."""
-    from scipy.stats import qmc
+    from ..core.sobol import sobol               # scipy's points without importing scipy.stats
     out = np.empty((ids.size, d))
     if ids.size == 0:
         return out
     order = np.argsort(ids, kind="stable")
     s = ids[order]
     breaks = np.flatnonzero(np.diff(s) != 1) + 1
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")          # balance properties need 2^m points: not our concern per run
-        for block in np.split(np.arange(s.size), breaks):
-            eng = qmc.Sobol(d, scramble=True, seed=seed)
-            first = int(s[block[0]])
-            if first:
-                eng.fast_forward(first)
-            out[order[block]] = eng.random(block.size)
+    for block in np.split(np.arange(s.size), breaks):
+        out[order[block]] = sobol(d, block.size, seed, skip=int(s[block[0]]))
     return out
 
 

@@ -150,7 +150,8 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     DIGITS significant digits and the rounded design is re-checked.
     """
     from scipy.optimize import minimize
-    from scipy.stats import qmc
+
+    from ..core.sobol import sobol
     say = progress or (lambda s: None)
     spec = scenario.tune or TuneSpec()
     if spec.objective == "min_rate" and scenario.implementation is None:
@@ -295,7 +296,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
             say(f"method: {method} ({why})")
         cap[0] = max_evaluations or DERIVATIVE_FREE_EVALUATIONS
         starts = [z_user]
-        sob = qmc.Sobol(d, scramble=True, seed=0).random(SOBOL_STARTS)
+        sob = sobol(d, SOBOL_STARTS, 0)
         starts.extend(sob)
         scored = []
         try:
@@ -466,10 +467,10 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
     (the full simulation of the Evaluator), which records the best candidate. Each IPOPT run is a child process
     killed at the deadline (its best grid-feasible iterate so far is then the result). The starts (1-based) whose
     pass IPOPT's own wall-time limit ended (a timing, not a count) are appended to `timed`."""
-    from scipy.stats import qmc
+    from ..core.sobol import sobol
     say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
         "points)")
-    starts = [z_user, *qmc.Sobol(len(vars_), scramble=True, seed=0).random(GRADIENT_SOBOL_STARTS)]
+    starts = [z_user, *sobol(len(vars_), GRADIENT_SOBOL_STARTS, 0)]
     obj = spec.objective
     for i, z0 in enumerate(starts):
         left = deadline - time.perf_counter()
