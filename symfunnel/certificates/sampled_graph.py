@@ -7,6 +7,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from ..sx.batch_rules import _dn, _up
 from .region import structurally_zero
 
 
@@ -112,14 +113,6 @@ def _transform_c1(name: str) -> bool:
         ok = False
     _C1[name] = ok
     return ok
-
-
-def _dn(x):
-    return np.nextafter(x, -np.inf)
-
-
-def _up(x):
-    return np.nextafter(x, np.inf)
 
 
 def _imul(al, ah, bl, bh):
