@@ -240,6 +240,33 @@ def test_tune_keeps_its_wall_limit_even_when_an_evaluation_is_long(tmp_path, cap
     assert res["timing_dependent"] is True and any("timing-dependent" in n for n in res["notes"])
 
 
+@pytest.mark.slow
+def test_tune_returns_its_result_before_the_limit_when_the_gate_is_long(paper, monkeypatch):
+    """A gate that runs until it is stopped ends TAIL before --wall-limit, so tune has its result in hand before the
+    limit (the CLI's watchdog stops a process 1 s after it: on a loaded machine the unwinding took longer and the
+    command ended with nothing written, or, in-process, took the caller's process with it)."""
+    from symfunnel.core import deadline as DL
+    from symfunnel.synthesis import search
+    limit = 15.0
+    stopped = []
+
+    def endless_gate(scenario, progress=None):
+        try:
+            while True:
+                time.sleep(0.02)
+                DL.check()
+        finally:
+            stopped.append(time.monotonic())
+    monkeypatch.setattr(search, "verify_gate", endless_gate)
+    m0 = time.monotonic()
+    r = search.tune(paper, wall_limit=limit, method="derivative-free", max_evaluations=1, started=m0)
+    done = time.monotonic()
+    tail = min(search.TAIL_S, search.TAIL_SHARE * limit)
+    assert len(stopped) == 1 and stopped[0] >= m0 + limit - tail - 0.05, (stopped, m0)
+    assert done < m0 + limit, done - m0
+    assert r.gate["status"] == "not completed" and r.timing_dependent is True
+
+
 # --- the numpy step against the C step ----------------------------------------------------------------------
 
 def _python_module(design, tmp_path, **kw):

@@ -58,6 +58,10 @@ GATE_TRIES = 3
 #: share of --wall-limit the search may use; the rest is kept for the re-check after rounding and verify's gate
 #: (the gate of the paper takes 11 s of a 240 s limit here, a new design's first compile adds about 7 s)
 SEARCH_SHARE = 0.8
+#: seconds kept at the very end of --wall-limit (at most this share of it) to assemble and write the result: the
+#: gate and the last evaluations end that much before the limit, so a loaded machine's slower unwinding does not
+#: meet the watchdog's hard stop (1 s after the limit) and lose a result the search already has
+TAIL_S, TAIL_SHARE = 2.0, 0.05
 #: significant digits of the gains tune writes (re-checked after rounding; more digits when rounding breaks them)
 DIGITS = 4
 METHODS = ("auto", "gradient", "derivative-free")
@@ -164,6 +168,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
     m0 = time.monotonic() if started is None else min(float(started), time.monotonic())
     t0 = time.perf_counter() - (time.monotonic() - m0)
     search_end = t0 + SEARCH_SHARE * wall_limit
+    last = m0 + wall_limit - min(TAIL_S, TAIL_SHARE * wall_limit)     # the gate and final judgements end here
     ev = Evaluator(scenario, spec, t_final=t_final, progress=say)
     vars_ = variables(scenario, spec)
     d = len(vars_)
@@ -210,7 +215,7 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                              + ("--max-evals" if max_evaluations else "the derivative-free search's default budget; "
                                 "--max-evals changes it") + ")", by="evaluations")
         # an evaluation in progress is interrupted at the limit (a simulation stops there, a compile is killed)
-        end = m0 + (search_end - t0) if not final else m0 + wall_limit
+        end = m0 + (search_end - t0) if not final else last
         try:
             with DL.until(end, wall_limit, m0):
                 c = ev.evaluate(vars_, xs)
@@ -331,12 +336,12 @@ def tune(scenario, *, wall_limit: float = 240.0, t_final: float | None = None, p
                         key=lambda c: _score(c, spec.objective, ref))
         for i, c in enumerate(ranked[:GATE_TRIES]):
             try:
-                with DL.until(m0 + wall_limit, wall_limit, m0):
+                with DL.until(last, wall_limit, m0):
                     c = _rounded(c, vars_, ev, say)
                     say(f"verify's gate on the tuned scenario (design {i + 1} of the ranking)")
                     gate_info = verify_gate(ev.scenario(apply(scenario.raw, vars_, c.xs)), progress=say)
             except (DL.WallLimitReached, SystemError, RuntimeError) as exc:
-                if not (isinstance(exc, DL.WallLimitReached) or _expired(m0 + wall_limit, exc)):
+                if not (isinstance(exc, DL.WallLimitReached) or _expired(last, exc)):
                     raise
                 gate_info = {"status": "not completed", "unexpected": []}
                 notes.append(f"verify's gate on design {i + 1} did not finish within --wall-limit {wall_limit:g} s")
