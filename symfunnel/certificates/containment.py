@@ -54,6 +54,9 @@ from ..sx.search import extrema
 CID = "certify.containment"
 #: with two joints, f_true's M_p^-1 by the adjugate (`sx.linalg.solve2`) rather than LDL^T: narrower face bounds
 ADJUGATE = True
+#: the order of the faces' mean-value form (2: its Jacobian enclosed by a mean-value form of its own, see
+#: `sx.batch.BatchCenteredForm`)
+FACE_ORDER = 1
 #: the margins tried, in this order (the first proven is reported): e1's, then e2's
 M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
 M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.002, 0.1, 0.2, 0.5)
@@ -138,7 +141,7 @@ class _Faces:
             exprs = dict(zip(names, replace_nodes([exprs[k] for k in names], ca.vertcat(*nodes), sgn)))
             inputs = {"sgn": sgn}
         centered = (("w_hat",) if self.info.get("estimate") else ()) + tuple(inputs)
-        self.prob = RegionProblem(ctx, exprs, p, "containment", centered=centered, extra=inputs)
+        self.prob = RegionProblem(ctx, exprs, p, "containment", centered=centered, extra=inputs, order=FACE_ORDER)
         F = self.prob.F
         if inputs:
             args = ca.vertcat(*[v.dep(0) for v in nodes])
