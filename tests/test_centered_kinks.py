@@ -43,6 +43,12 @@ def test_kink_quotients_keep_every_value_and_bound_the_undecided_quotient():
     L, H, _ = BatchIntervalFunction(ca.Function("r", [a, b], [r])).eval_batch(np.array([[-1.0, 0.0]]),
                                                                                np.array([[1.0, 0.0]]))
     assert -1e-15 <= L[0, 0] <= 0.0 and 1.0 <= H[0, 0] <= 1.0 + 1e-15      # [0, 1], outward rounded
+    # a quotient of two comparisons that are not the swapped pair (0/0 possible) is left as it is
+    c = ca.SX.sym("c")
+    other = (a <= b) / ((a <= b) + (c <= a))
+    kept = kink_quotients([other])[0]
+    h = ca.Function("h", [a, b, c], [kept])
+    assert np.isnan(float(h(1.0, 0.0, 2.0)))             # both comparisons false: 0/0 as before
 
 
 def test_the_mean_value_form_is_finite_across_a_kink_and_contains_the_values():

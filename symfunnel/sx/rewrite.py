@@ -119,13 +119,13 @@ def kink_quotients(exprs: Sequence[ca.SX]) -> list[ca.SX]:
         return list(exprs)
 
     def swapped(x, y):
-        return (x.is_op(ca.OP_LE) and y.is_op(ca.OP_LE) and ca.is_equal(x.dep(0), y.dep(1), 2)
-                and ca.is_equal(x.dep(1), y.dep(0), 2))
+        return (x.is_op(ca.OP_LE) and y.is_op(ca.OP_LE) and ca.is_equal(x.dep(0), y.dep(1), 0)
+                and ca.is_equal(x.dep(1), y.dep(0), 0))
 
     def rule(name, _tags, vals):
         if name == "DIV":
             a, s_ = vals
-            if a.is_op(ca.OP_LE) and s_.is_op(ca.OP_ADD) and ca.is_equal(s_.dep(0), a, 2) \
+            if a.is_op(ca.OP_LE) and s_.is_op(ca.OP_ADD) and ca.is_equal(s_.dep(0), a, 0) \
                     and swapped(a, s_.dep(1)):
                 return 0.5 * (1 + a - s_.dep(1)), True
         op = getattr(ca, "OP_" + name)
