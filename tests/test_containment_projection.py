@@ -167,3 +167,44 @@ def test_certify_sampled_takes_the_projection_ball_and_refuses_a_box_without_it(
     assert c.status == "undecided" and "projection's ball" in c.detail
     c = certify_sampled(ctx, Budget(2e6, time.monotonic() + 60), S=S, theory=False)
     assert c.status in ("proven", "undecided") and "not affine" not in c.detail, c.detail
+
+
+def test_pieces_of_the_e2_faces_across_the_dead_zones_kink_close():
+    """Two pieces of the e2 faces of paper_small_dead_zone with projection = 2 (m1 = 0.9, m2 = 0.05; t 0.5 % of its
+    range, the other split coordinates 10 %) on which the torque's dead-zone branch is undecided in some sub-boxes:
+    with CasADi's derivative of fmax the mean-value form's Jacobian was infinite there and 20,000 boxes proved
+    nothing of either piece; with `kink_quotients` each closes in a few hundred. Where the pieces are drawn from is
+    a seed; what the search must show about them is independent of it: they are inside the face."""
+    from symfunnel.certificates.containment import _decide
+    from symfunnel.certificates.projection_face import projection_face
+    from symfunnel.sx.search import extrema
+    sc = load_scenario(str(SMALL_DZ)).replace({"adaptation.projection": 2.0})
+    d = derive(sc)
+    ctx = Context(sc, d, sc.simulation.t_final, parameter_box(sc), None, None, w_star_info={}, breach=None)
+    fc = _Faces(ctx)
+    w = projection_face(d)["w"]
+    init = d.variant.initial_states()
+    W0 = np.zeros_like(np.asarray(init["w_hat"], float))
+    lo, hi = fc.box(0.9, 0.95, controller_state_boxes(ctx, (W0, W0)), fc.gprob)
+    GF = fc.gprob.F
+    k = GF.out_names.index("P2")
+    phi = np.sqrt(-extrema(GF, lo, hi, fc.gprob.split_indices(lo, hi), [(GF.out_off[k], -1.0)], max_boxes=256,
+                           rel_tol=0.2)[0].bound)
+    lw, hw = W0.copy(), W0.copy()
+    lw[0, :], hw[0, :] = -w * phi, w * phi
+    lo, hi = fc.box(0.1, 0.95, controller_state_boxes(ctx, (lw, hw)))
+    faces = {f["name"]: f for f in fc.faces(lo, hi)}
+    for name, draws in (("e2 joint 1 +", 1), ("e2 joint 2 -", 3)):
+        rng = np.random.default_rng(5)
+        f = dict(faces[name])
+        split = fc.split_indices(f["lo"], f["hi"])
+        for _ in range(draws):
+            u = rng.random(split.size)
+        widths = np.full(split.size, 0.1)
+        widths[0] = 0.005
+        ext = f["hi"][split] - f["lo"][split]
+        a = f["lo"][split] + u * ext * (1 - widths)
+        f["lo"], f["hi"] = f["lo"].copy(), f["hi"].copy()
+        f["lo"][split], f["hi"][split] = a, a + widths * ext
+        res = _decide(fc.F, [f], [split], 5000, None)
+        assert res["status"] == "proven", (name, res)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
+from collections import deque
 
 import casadi as ca
 import numpy as np
@@ -54,6 +55,9 @@ from ..sx.search import extrema
 CID = "certify.containment"
 #: with two joints, f_true's M_p^-1 by the adjugate (`sx.linalg.solve2`) rather than LDL^T: narrower face bounds
 ADJUGATE = True
+#: the order of the faces' mean-value form (2: its Jacobian enclosed by a mean-value form of its own, see
+#: `sx.batch.BatchCenteredForm`)
+FACE_ORDER = 1
 #: the margins tried, in this order (the first proven is reported): e1's, then e2's
 M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
 M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.002, 0.1, 0.2, 0.5)
@@ -138,7 +142,7 @@ class _Faces:
             exprs = dict(zip(names, replace_nodes([exprs[k] for k in names], ca.vertcat(*nodes), sgn)))
             inputs = {"sgn": sgn}
         centered = (("w_hat",) if self.info.get("estimate") else ()) + tuple(inputs)
-        self.prob = RegionProblem(ctx, exprs, p, "containment", centered=centered, extra=inputs)
+        self.prob = RegionProblem(ctx, exprs, p, "containment", centered=centered, extra=inputs, order=FACE_ORDER)
         F = self.prob.F
         if inputs:
             args = ca.vertcat(*[v.dep(0) for v in nodes])
@@ -258,9 +262,9 @@ def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | Non
     """Batched branch and bound: sign * n < 0 on every face (proven), a point where it is >= 0 (failed), or the
     budget ends with boxes left (undecided: the face with the largest fraction left)."""
     t0 = time.monotonic()
-    queue = []
-    for k, f in enumerate(faces):
-        queue.append((f["lo"], f["hi"], k, 1.0))
+    # a box is its face's box but in the split coordinates: only those are stored (about a tenth of the inputs;
+    # at 10x the default budget the queue held ~1 GB), in a deque (slicing a list copied it at every batch)
+    queue = deque((f["lo"][split_of[k]].copy(), f["hi"][split_of[k]].copy(), k, 1.0) for k, f in enumerate(faces))
     boxes = 0
     while queue:
         if boxes >= max_boxes or (seconds is not None and time.monotonic() - t0 > seconds):
@@ -271,9 +275,12 @@ def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | Non
             return {"status": "undecided", "boxes": boxes, "face": faces[k]["name"], "fraction": float(left[k]),
                     "fractions": {faces[i]["name"]: float(v) for i, v in enumerate(left) if v > 0},
                     "proven_faces": [f["name"] for i, f in enumerate(faces) if left[i] == 0]}
-        batch, queue = queue[:1024], queue[1024:]
-        LO = np.array([b[0] for b in batch])
-        HI = np.array([b[1] for b in batch])
+        batch = [queue.popleft() for _ in range(min(1024, len(queue)))]
+        LO = np.array([faces[b[2]]["lo"] for b in batch])
+        HI = np.array([faces[b[2]]["hi"] for b in batch])
+        for i, (slo, shi, k, _) in enumerate(batch):
+            LO[i, split_of[k]] = slo
+            HI[i, split_of[k]] = shi
         L, H, _, J = F.eval_batch(LO, HI, with_jacobian=True)
         boxes += len(batch)
         pos = np.array([faces[b[2]]["pos"] for b in batch])
@@ -292,22 +299,21 @@ def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | Non
         for k in np.flatnonzero(~proven):
             lo, hi, fk, vol = batch[k]
             split = split_of[fk]
-            width = hi[split] - lo[split]
+            width = hi - lo
             wi = [wpos.get(int(j), -1) for j in split]
             sens = np.array([J[k][pos[k], w] * wd if w >= 0 else np.nan for w, wd in zip(wi, width)])
             rel = width / np.where(faces[fk]["hi"][split] > faces[fk]["lo"][split],
                                    faces[fk]["hi"][split] - faces[fk]["lo"][split], 1.0)
             score = np.where(np.isfinite(sens) & (sens > 0), sens, 0.0)
             s = int(np.argmax(score)) if np.any(score > 0) else int(np.argmax(rel))
-            v = int(split[s])
-            m = 0.5 * lo[v] + 0.5 * hi[v]
-            if not (lo[v] < m < hi[v]):
+            m = 0.5 * lo[s] + 0.5 * hi[s]
+            if not (lo[s] < m < hi[s]):
                 # too thin to split: stays open for good
                 return {"status": "undecided", "boxes": boxes, "face": faces[fk]["name"], "fraction": vol,
                         "fractions": {faces[fk]["name"]: vol}}
             h1, l2 = hi.copy(), lo.copy()
-            h1[v] = m
-            l2[v] = m
+            h1[s] = m
+            l2[s] = m
             queue.append((lo, h1, fk, vol / 2))
             queue.append((l2, hi, fk, vol / 2))
     return {"status": "proven", "boxes": boxes}

@@ -59,11 +59,11 @@ class Context:
     breach: dict | None = None                    # the simulated run's breach from the initial state, if any
 
 
-def check_rules(f: ca.Function, what: str, file: str, wrt=None):
-    """The batched interval evaluator of f (centered in `wrt` when given), or exit 2 naming the signal and the
-    operation without an interval rule."""
+def check_rules(f: ca.Function, what: str, file: str, wrt=None, order: int = 1):
+    """The batched interval evaluator of f (centered in `wrt` when given, of that `order`), or exit 2 naming the
+    signal and the operation without an interval rule."""
     try:
-        return BatchCenteredForm(f, wrt) if wrt is not None else BatchIntervalFunction(f)
+        return BatchCenteredForm(f, wrt, order) if wrt is not None else BatchIntervalFunction(f)
     except IntervalError as exc:
         raise InputError(f"cannot be certified: {exc}", file=file, key=what,
                          expected="signals built from operations with interval rules") from None
@@ -74,10 +74,10 @@ class RegionProblem:
     the others are the scenario's numbers) and the controller states."""
 
     def __init__(self, ctx: Context, exprs: dict[str, ca.SX], p: ca.SX, name: str = "region",
-                 centered: tuple[str, ...] = (), extra: dict[str, ca.SX] | None = None):
+                 centered: tuple[str, ...] = (), extra: dict[str, ca.SX] | None = None, order: int = 1):
         """`centered`: inputs the mean-value form is taken in too (besides t, s1, s2, p); `extra`: symbols of the
         expressions that are inputs of their own, after the controller states (e.g. Coulomb friction's Filippov
-        value in place of sign(dq))."""
+        value in place of sign(dq)); `order` 2: the form's Jacobian enclosed by its own mean-value form."""
         d = ctx.design
         self.ctx = ctx
         self.design = d
@@ -97,7 +97,7 @@ class RegionProblem:
         self.function = ca.Function(name, ins + [pu] + states + list(extra.values()), outs, self.in_names, names,
                                     {"cse": True, "allow_duplicate_io_names": True})
         self.F = check_rules(self.function, f"signal {', '.join(names)}", ctx.scenario.file,
-                             wrt=["t", "s1", "s2", "p", *centered])
+                             wrt=["t", "s1", "s2", "p", *centered], order=order)
         # the ordinary twin: the same expressions in the design's own symbols (no rewriting), for re-checks
         sym = d.sym
         base = [sym[k] for k in ("t", "q", "dq", "qd", "dqd", "ddqd")] + [pu] + states
@@ -132,11 +132,17 @@ class RegionProblem:
         return np.array(idx, dtype=int)
 
     def work_per_box(self) -> int:
-        """Tape operations one box costs the centered form: the function twice (box, center) and its Jacobian."""
+        """Tape operations one box costs the centered form: the function twice (box, center) and its Jacobian (of
+        a second-order form: the Jacobian twice and its own Jacobian)."""
         from ..sx.tape import count_ops
-        f = count_ops(self.F.natural.function)["operations"]
-        j = count_ops(self.F.jac.function)["operations"]
-        return 2 * f + j
+        from ..sx.batch import BatchCenteredForm
+
+        def cost(F):
+            f = count_ops(F.natural.function)["operations"]
+            jac = getattr(F.jac, "inner", F.jac)
+            return 2 * f + (cost(jac) if isinstance(jac, BatchCenteredForm)
+                            else count_ops(jac.function)["operations"])
+        return cost(self.F)
 
     def initial_boxes(self, lo: np.ndarray, hi: np.ndarray, limit: int = 4096):
         """(LO, HI) of the first boxes: the region cut at the normalised errors where the transformation switches

@@ -104,3 +104,30 @@ _UNARY = frozenset(getattr(ca, "OP_" + n) for n in (
     "ASSIGN", "NEG", "SQ", "TWICE", "INV", "EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN", "ACOS", "ATAN",
     "SINH", "COSH", "TANH", "ATANH", "FABS", "SIGN", "FLOOR", "CEIL", "NOT", "ERF", "ERFINV", "LOG1P", "EXPM1")
     if hasattr(ca, "OP_" + n))
+
+
+
+def kink_quotients(exprs: Sequence[ca.SX]) -> list[ca.SX]:
+    """`exprs` with every quotient (a <= b) / ((a <= b) + (b <= a)) -- CasADi's derivative of fmax and fmin --
+    written (1 + (a <= b) - (b <= a)) / 2: the same value for every real a, b (1, 0, or 1/2 at a = b) and the same
+    floating-point value, but enclosed in [0, 1] by interval arithmetic where the box does not decide the branch,
+    where the quotient's denominator [0, 2] contains 0 (an infinite enclosure: a mean-value form over such a box
+    had an infinite Jacobian). [0, 1] is the hull of the two branches' slopes (Clarke's gradient at the kink)."""
+    exprs = _scalars(exprs)
+    syms = ca.vertcat(*ca.symvar(ca.vertcat(*[ca.vec(e) for e in exprs])))
+    if syms.numel() == 0:
+        return list(exprs)
+
+    def swapped(x, y):
+        return (x.is_op(ca.OP_LE) and y.is_op(ca.OP_LE) and ca.is_equal(x.dep(0), y.dep(1), 0)
+                and ca.is_equal(x.dep(1), y.dep(0), 0))
+
+    def rule(name, _tags, vals):
+        if name == "DIV":
+            a, s_ = vals
+            if a.is_op(ca.OP_LE) and s_.is_op(ca.OP_ADD) and ca.is_equal(s_.dep(0), a, 0) \
+                    and swapped(a, s_.dep(1)):
+                return 0.5 * (1 + a - s_.dep(1)), True
+        op = getattr(ca, "OP_" + name)
+        return (ca.SX.unary(op, vals[0]) if len(vals) == 1 else ca.SX.binary(op, vals[0], vals[1])), True
+    return replace_nodes(exprs, syms, syms, tags=[{True}] * syms.numel(), rule=rule)
