@@ -53,10 +53,10 @@ from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
 from .problem import Context
-from .region import region_signals, true_unknown
+from .face_forms import normal_components
+from .region import region_signals
 from .sampled_set import SampledSet, containment_set, declared_set  # noqa: F401 (their home before)
-from .sampled_graph import (_add_dn, _add_up, _continuous_rates, _dn, _imul, _nominal_de2, _sum_dn, _sum_up,
-                            _up)
+from .sampled_graph import _add_dn, _add_up, _continuous_rates, _dn, _imul, _sum_dn, _sum_up, _up
 
 CID = "certify.sampled"
 #: S's margins (e1, e2) when none are given
@@ -73,6 +73,9 @@ HINT_RATIO = 4.0
 WHY = ("", "torque", "rates", "enclosure", "funnel", "next sample", "w_hat")
 #: a failing box thinner than this (relative to S) in every split variable ends the search at that h
 THIN = 1e-4
+#: containment's exact rewrites applied to the one-period map (`face_forms.normal_components`); each falls back to
+#: the design's own form where the graph does not have the form it needs
+REWRITES = ("alpha2_dot through e1", "adjugate", "pivot order")
 #: random sample points screened (as degenerate boxes) before a branch and bound at one h
 SCREEN_POINTS = 128
 
@@ -89,7 +92,7 @@ class OnePeriod:
     """The one-period map's interval pieces for one design and parameter box: the held torque over a box of sample
     states, the normalised errors' rates under a held torque, and W_hat's update (see the module doc)."""
 
-    def __init__(self, ctx: Context, S: SampledSet, tau_max=None):
+    def __init__(self, ctx: Context, S: SampledSet, tau_max=None, rewrites=REWRITES):
         d, sc = ctx.design, ctx.scenario
         n = d.n
         self.ctx, self.S, self.n = ctx, S, n
@@ -113,19 +116,20 @@ class OnePeriod:
         ddq = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], u, 0.0, p=p)["ddq"]
         self.continuous, self.continuity = _continuous_rates(
             d, [sym["t"], sym["q"], sym["dq"], u, pu], [sym["t"], sym["q"], sym["dq"]], ddq)
-        de1 = sym["dq"] - sym["dqd"]
-        de2 = ddq - Sg["alpha2_dot"]
-        rates = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
-                           (de2 - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
+        # the normal components in containment's exact rewrites (`face_forms.normal_components`: dq_d dropped from
+        # de1, alpha2_dot through e1, M_p^-1 by the adjugate for two joints, and for more the LDL^T elimination
+        # order with the larger pivots), each checked on the graph
+        adj, e1, piv = ("adjugate" in rewrites, "alpha2_dot through e1" in rewrites,
+                        "pivot order" in rewrites)
+        n1, n2u, self.forms = normal_components(d, p, adj, u=u, through_e1=e1, pivots=piv)
+        rates = ca.vertcat(n1 / Sg["F1"], n2u / Sg["F2"])
         # the rates at the sample itself, under the step's own torque: there the plant's acceleration minus
         # alpha2_dot is f_true + de2 (f_true in the inverse-dynamics residual form where the design's torque is the
-        # model's inverse dynamics: no M_p^-1 tau - alpha2_dot cancellation); with saturation the direct form
-        if tau_max is None:
-            de2_k = true_unknown(d, p)["f_true"] + _nominal_de2(d)
-        else:
-            de2_k = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], tau, 0.0, p=p)["ddq"] - Sg["alpha2_dot"]
-        rates_k = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
-                             (de2_k - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
+        # model's inverse dynamics: no M_p^-1 tau - alpha2_dot cancellation); with saturation the held form at the
+        # saturated torque
+        _, n2k, self.forms_k = normal_components(d, p, adj, u=None if tau_max is None else tau, through_e1=e1,
+                                                 pivots=piv)
+        rates_k = ca.vertcat(n1 / Sg["F1"], n2k / Sg["F2"])
         exprs = {"tau": tau, "rate": rates, "rate_k": rates_k}
         self.w_rate = None
         # a projected law: the deployed step clips W_hat radially onto ||W_hat||_F <= R (1 + eps) after its update

@@ -5,8 +5,17 @@ from __future__ import annotations
 import casadi as ca
 
 
-def ldl_solve(M: ca.SX, b: ca.SX) -> ca.SX:
-    """x = M^{-1} b for a symmetric positive definite SX matrix, by an LDL^T factorisation written out in SX."""
+def ldl_solve(M: ca.SX, b: ca.SX, order=None) -> ca.SX:
+    """x = M^{-1} b for a symmetric positive definite SX matrix, by an LDL^T factorisation written out in SX;
+    `order` (a permutation of the rows, e.g. reversed: the tip joint's pivot first, as the articulated-body
+    factorisation of a serial arm) eliminates in that order -- the same x, other interval enclosures."""
+    if order is not None:
+        P = [int(i) for i in order]
+        y = ldl_solve(M[P, P], b[P])
+        x = [None] * len(P)
+        for k, i in enumerate(P):
+            x[i] = y[k]
+        return ca.vertcat(*x)
     n = M.shape[0]
     L = [[None] * n for _ in range(n)]
     D = [None] * n
@@ -42,4 +51,5 @@ def solve2(M: ca.SX, b: ca.SX) -> ca.SX:
     entries); where det's enclosure contains 0 the enclosure is unbounded, never wrong."""
     det = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
     return ca.vertcat(M[1, 1] * b[0] - M[0, 1] * b[1], M[0, 0] * b[1] - M[1, 0] * b[0]) / det
+
 

@@ -1,0 +1,184 @@
+"""certify.sampled's one-period map in containment's exact forms (alpha2_dot through e1, M_p^-1 by the adjugate for
+two joints, tip-first LDL^T for a planar arm of three): the enclosures of the rates sigma' (held torque) and of the
+rates at the sample (the step's own torque) contain sigma' computed the plain way -- the plant's M and forces
+solved by numpy, the design's forward-AD alpha2_dot, the design's torque -- at points of small boxes, and a mutant
+of each rewrite (e2's sign flipped, M^-1 scaled by 0.99) is caught by the same check."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+DATA = Path(__file__).parent / "data"
+UNCERTAIN = """
+[[uncertainty]]
+key = "plant.parameters.c"
+dist = "uniform"
+low = 0.7
+high = 0.9
+
+[[uncertainty]]
+key = "plant.viscous"
+dist = "uniform"
+low = 0.0
+high = 0.3
+"""
+
+
+def _two_joints(tmp_path):
+    text = (DATA / "certify_none.toml").read_text().replace("[simulation]",
+                                                             "[plant.parameters]\nc = 0.8\n[simulation]")
+    p = tmp_path / "uncertain.toml"
+    p.write_text(text + UNCERTAIN)
+    return p
+
+
+def _planar(n):
+    from symfunnel.bench._sampled import planar_text
+    from symfunnel.scenario import load_scenario
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / f"planar{n}.toml"
+        p.write_text(planar_text(n))
+        return load_scenario(str(p))
+
+
+def _ctx(sc):
+    from symfunnel.certificates.problem import Context
+    from symfunnel.certificates.region import parameter_box
+    from symfunnel.design import derive
+    return Context(sc, derive(sc), float(sc.simulation.t_final), parameter_box(sc), None, None)
+
+
+def _plain(ctx):
+    """sigma'(t, s, p_wide, u) the plain way, from the design's functions and the plant's own M and forces (numpy
+    solve); u None: the design's torque at the state."""
+    from symfunnel.plant.equations import plant_acceleration, plant_parameters
+    d, sc = ctx.design, ctx.scenario
+    n = d.n
+    q, dq, t, u = ca.SX.sym("q", n), ca.SX.sym("dq", n), ca.SX.sym("t"), ca.SX.sym("u", n)
+    names, _ = plant_parameters(sc)
+    p = ca.SX.sym("p", len(names))
+    pl = plant_acceleration(sc, q, dq, t, u, 0.0, p=p)
+    parts = ca.Function("parts", [t, q, dq, u, p], [pl["M"], pl["tau_applied"] - ca.mtimes(pl["C"], dq) - pl["G"]
+                                                     - pl["friction"] - pl["disturbance"]])
+    F = d.function("funnel_bounds", ["t"], ["F1", "F2", "dF1", "dF2"])
+    a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+    a2dot = d.function("alpha2_dot", ["t", "q", "dq", "qd", "dqd", "ddqd"])
+    tau = d.function("tau", ["t", "q", "dq", "qd", "dqd", "ddqd"])
+    wide = np.flatnonzero(ctx.params.lo < ctx.params.hi)
+    p0 = np.asarray(ctx.params.nominal, float)
+
+    def rate(tt, s, pw, uu=None):
+        qd, dqd, ddqd = (np.asarray(v, float).ravel() for v in d.reference(tt))
+        F1, F2, dF1, dF2 = (np.asarray(v, float).ravel() for v in F(tt))
+        qq = qd + s[:n] * F1
+        dqq = np.asarray(a2(tt, qq, qd, dqd), float).ravel() + s[n:] * F2
+        if uu is None:
+            uu = np.asarray(tau(tt, qq, dqq, qd, dqd, ddqd), float).ravel()
+        pp = p0.copy()
+        pp[wide] = pw
+        M, rhs = (np.asarray(v, float) for v in parts(tt, qq, dqq, uu, pp))
+        ddq = np.linalg.solve(M, rhs.ravel())
+        de1, de2 = dqq - dqd, ddq - np.asarray(a2dot(tt, qq, dqq, qd, dqd, ddqd), float).ravel()
+        return np.concatenate([(de1 - s[:n] * dF1) / F1, (de2 - s[n:] * dF2) / F2]), uu
+    return rate
+
+
+def _escapes(op, ctx, boxes=25, points=6, half=1e-5, seed=4) -> int:
+    """How many sampled points lie outside the enclosures of op's rates (held torque, and at the sample) on small
+    boxes of S (t, s, the wide parameters drawn here; the held torque a tiny box around a drawn value)."""
+    n = op.n
+    rate = _plain(ctx)
+    lo, hi = op.box(ctx.t_final)
+    rng = np.random.default_rng(seed)
+    i_s, i_p = slice(1, 2 * n + 1), slice(op.i_p, op.i_st)
+    bad = 0
+    for _ in range(boxes):
+        c = lo + rng.random(lo.size) * (hi - lo)
+        w = np.full(lo.size, half) * np.maximum(hi - lo, 1e-300)
+        w[2 * n + 1] = 0.0
+        BL, BH = np.maximum(c - w, lo)[None], np.minimum(c + w, hi)[None]
+        _, u0 = rate(c[0], c[i_s], c[i_p])
+        uw = 1e-6 * (1 + np.abs(u0))
+        FL, FH = op._full(BL, BH)
+        KL, KH, _ = op.ratek.eval_batch(FL, FH)
+        RL, RH, _ = op.rate.eval_batch(*(np.concatenate([A[:, :op.i_st], U[None], A[:, op.i_st:]], axis=1)
+                                         for A, U in ((FL, u0 - uw), (FH, u0 + uw))))
+        for _ in range(points):
+            x = BL[0] + rng.random(lo.size) * (BH[0] - BL[0])
+            uu = u0 + (2 * rng.random(n) - 1) * uw
+            for (L, H), val in (((KL, KH), rate(x[0], x[i_s], x[i_p])[0]), ((RL, RH), rate(x[0], x[i_s], x[i_p], uu)[0])):
+                tol = 1e-9 * (1 + np.abs(val))
+                bad += int(np.any(val < L[0] - tol) or np.any(val > H[0] + tol))
+    return bad
+
+
+def _op(ctx, **kw):
+    from symfunnel.certificates.sampled import OnePeriod, declared_set
+    return OnePeriod(ctx, declared_set(ctx, 0.5, 0.5), **kw)
+
+
+def _flip_e2(monkeypatch):
+    """The mutant of alpha2_dot through e1: de1 = g - e2 instead of g + e2."""
+    from symfunnel.certificates import face_forms
+    from symfunnel.sx.rewrite import replace_nodes
+    orig = face_forms.alpha2_dot_through_e1
+
+    def flipped(design):
+        adot, why = orig(design)
+        e2 = ca.vec(design.signals["e2"])
+        return (replace_nodes([adot], e2, -e2)[0] if adot is not None else None), why
+    monkeypatch.setattr(face_forms, "alpha2_dot_through_e1", flipped)
+
+
+def test_two_joint_rates_in_the_exact_forms_contain_the_plain_plant(tmp_path, monkeypatch):
+    from symfunnel.scenario import load_scenario
+    ctx = _ctx(load_scenario(str(_two_joints(tmp_path))))
+    op = _op(ctx)
+    assert op.forms["solve"] == "adjugate" and op.forms["cancelled"]["dqd in alpha2_dot"]
+    assert op.forms_k["solve"] == "adjugate" and op.forms_k["f_true"] == "inverse dynamics"
+    assert op.np == 3                                   # c and the viscous coefficient of each joint
+    assert _escapes(op, ctx) == 0
+    # the mutants: e2's sign flipped in alpha2_dot through e1; the adjugate's solve scaled by 0.99
+    with monkeypatch.context() as m:
+        _flip_e2(m)
+        assert _escapes(_op(ctx), ctx) > 0
+    import symfunnel.sx.linalg as L
+    orig = L.solve2
+    monkeypatch.setattr(L, "solve2", lambda M, b: 0.99 * orig(M, b))
+    assert _escapes(_op(ctx), ctx) > 0
+
+
+def test_one_joint_rates_through_e1_contain_the_plain_plant(monkeypatch):
+    from symfunnel.scenario import load_scenario
+    ctx = _ctx(load_scenario(str(DATA / "sampled_1dof.toml")))
+    op = _op(ctx)
+    assert op.forms["cancelled"]["dqd in alpha2_dot"]
+    assert _escapes(op, ctx) == 0
+    _flip_e2(monkeypatch)
+    assert _escapes(_op(ctx), ctx) > 0
+
+
+def test_planar_three_joints_tip_first_ldl_contains_the_plain_plant(monkeypatch):
+    ctx = _ctx(_planar(3))
+    op = _op(ctx)
+    assert op.forms["solve"] == "LDL^T tip-first" and op.forms_k["solve"] == "LDL^T tip-first"
+    assert _escapes(op, ctx, boxes=15) == 0
+    import symfunnel.sx.linalg as L
+    orig = L.ldl_solve
+    monkeypatch.setattr(L, "ldl_solve", lambda M, b, order=None: orig(M, b, order) * (0.99 if order else 1.0))
+    assert _op(ctx).forms["solve"] == "LDL^T tip-first"
+    assert _escapes(_op(ctx), ctx, boxes=15) > 0
+
+
+@pytest.mark.parametrize("n,form", [(3, "LDL^T tip-first"), (2, "LDL^T")])
+def test_the_elimination_order_is_picked_on_the_enclosures(n, form):
+    """tip-first where its interval enclosure of M^-1 is finite on more boxes (planar 3); two joints without the
+    adjugate keep base-first LDL^T (the choice is for three or more)."""
+    from symfunnel.certificates.face_forms import solver_form
+    d = _ctx(_planar(n)).design
+    assert solver_form(d, adjugate=False, pivots=True)[1] == form
