@@ -89,10 +89,15 @@ def _plain(ctx):
 
 
 def _escapes(op, ctx, boxes=25, points=6, half=1e-5, seed=4) -> int:
-    """How many sampled points lie outside the enclosures of op's rates (held torque, and at the sample) on small
-    boxes of S (t, s, the wide parameters drawn here; the held torque a tiny box around a drawn value)."""
+    """How many sampled points lie outside the enclosures of op's rates (held torque, and at the sample) and of its
+    held torque (against the generated C step's) on small boxes of S (t, s, the wide parameters drawn here; the
+    held torque a tiny box around a drawn value)."""
+    from symfunnel.emit.step import step_function
+
+    from .test_sampled_set import state_at
     n = op.n
     rate = _plain(ctx)
+    step = step_function(ctx.design, 1000.0)
     lo, hi = op.box(ctx.t_final)
     rng = np.random.default_rng(seed)
     i_s, i_p = slice(1, 2 * n + 1), slice(op.i_p, op.i_st)
@@ -106,11 +111,16 @@ def _escapes(op, ctx, boxes=25, points=6, half=1e-5, seed=4) -> int:
         uw = 1e-6 * (1 + np.abs(u0))
         FL, FH = op._full(BL, BH)
         KL, KH, _ = op.ratek.eval_batch(FL, FH)
+        TL, TH, _ = op.tau.eval_batch(FL, FH)
         RL, RH, _ = op.rate.eval_batch(*(np.concatenate([A[:, :op.i_st], U[None], A[:, op.i_st:]], axis=1)
                                          for A, U in ((FL, u0 - uw), (FH, u0 + uw))))
         for _ in range(points):
             x = BL[0] + rng.random(lo.size) * (BH[0] - BL[0])
             uu = u0 + (2 * rng.random(n) - 1) * uw
+            q, dq = state_at(ctx.design, x[0], x[i_s])
+            tc = np.asarray(step(x[0], q, dq, np.zeros(1), np.zeros((1, 1)))[0], float).ravel()
+            tol = 1e-9 * (1 + np.abs(tc))
+            bad += int(np.any(tc < TL[0] - tol) or np.any(tc > TH[0] + tol))
             for (L, H), val in (((KL, KH), rate(x[0], x[i_s], x[i_p])[0]), ((RL, RH), rate(x[0], x[i_s], x[i_p], uu)[0])):
                 tol = 1e-9 * (1 + np.abs(val))
                 bad += int(np.any(val < L[0] - tol) or np.any(val > H[0] + tol))

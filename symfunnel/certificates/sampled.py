@@ -53,7 +53,7 @@ from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
 from .problem import Context
-from .face_forms import normal_components
+from .face_forms import normal_components, with_alpha2_dot_through_e1
 from .region import region_signals
 from .sampled_set import SampledSet, containment_set, declared_set  # noqa: F401 (their home before)
 from .sampled_graph import _add_dn, _add_up, _continuous_rates, _dn, _imul, _sum_dn, _sum_up, _up
@@ -75,7 +75,7 @@ WHY = ("", "torque", "rates", "enclosure", "funnel", "next sample", "w_hat")
 THIN = 1e-4
 #: containment's exact rewrites applied to the one-period map (`face_forms.normal_components`); each falls back to
 #: the design's own form where the graph does not have the form it needs
-REWRITES = ("alpha2_dot through e1", "adjugate", "pivot order")
+REWRITES = ("alpha2_dot through e1", "adjugate", "pivot order", "tau through e1")
 #: random sample points screened (as degenerate boxes) before a branch and bound at one h
 SCREEN_POINTS = 128
 
@@ -130,7 +130,9 @@ class OnePeriod:
         _, n2k, self.forms_k = normal_components(d, p, adj, u=None if tau_max is None else tau, through_e1=e1,
                                                  pivots=piv)
         rates_k = ca.vertcat(n1 / Sg["F1"], n2k / Sg["F2"])
-        exprs = {"tau": tau, "rate": rates, "rate_k": rates_k}
+        # the held torque's enclosure with alpha2_dot through e1 too (the same function: the C step's torque)
+        tau_e = with_alpha2_dot_through_e1(d, tau)[0] if "tau through e1" in rewrites else tau
+        exprs = {"tau": tau_e, "rate": rates, "rate_k": rates_k}
         self.w_rate = None
         # a projected law: the deployed step clips W_hat radially onto ||W_hat||_F <= R (1 + eps) after its update
         # (emit.step), so W_hat's next sample lies in that ball whatever the period -- a box containing the ball is
