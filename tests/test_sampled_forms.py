@@ -173,7 +173,26 @@ def test_one_joint_rates_through_e1_contain_the_plain_plant(monkeypatch):
     assert _escapes(_op(ctx), ctx) > 0
 
 
+def test_planar_three_joints_preconditioned_solve_contains_the_plain_plant(monkeypatch):
+    """Three joints: M_p^-1 as (C M)^-1 C b with C the model's M^-1 at each box's centre (a point per box set by
+    OnePeriod._full); the enclosures contain the plain plant, and a solve scaled by 0.99 is caught."""
+    ctx = _ctx(_planar(3))
+    op = _op(ctx)
+    assert op.forms["solve"].startswith("preconditioned") and op.forms_k["solve"] == op.forms["solve"]
+    assert op.state_names[-1] == "qc"
+    assert _escapes(op, ctx, boxes=15) == 0
+    import symfunnel.sx.linalg as L
+    orig = L.preconditioned_solve
+    monkeypatch.setattr(L, "preconditioned_solve", lambda M, b, C: 0.99 * orig(M, b, C))
+    assert _op(ctx).forms["solve"].startswith("preconditioned")
+    assert _escapes(_op(ctx), ctx, boxes=15) > 0
+
+
 def test_planar_three_joints_tip_first_ldl_contains_the_plain_plant(monkeypatch):
+    """Without the preconditioner (no per-box point), three joints take LDL^T tip-first; the same check."""
+    from symfunnel.certificates import face_forms
+    orig_form = face_forms.solver_form
+    monkeypatch.setattr(face_forms, "solver_form", lambda d, a, p, qc=None: orig_form(d, a, p, None))
     ctx = _ctx(_planar(3))
     op = _op(ctx)
     assert op.forms["solve"] == "LDL^T tip-first" and op.forms_k["solve"] == "LDL^T tip-first"
@@ -185,10 +204,15 @@ def test_planar_three_joints_tip_first_ldl_contains_the_plain_plant(monkeypatch)
     assert _escapes(_op(ctx), ctx, boxes=15) > 0
 
 
-@pytest.mark.parametrize("n,form", [(3, "LDL^T tip-first"), (2, "LDL^T")])
-def test_the_elimination_order_is_picked_on_the_enclosures(n, form):
-    """tip-first where its interval enclosure of M^-1 is finite on more boxes (planar 3); two joints without the
-    adjugate keep base-first LDL^T (the choice is for three or more)."""
+@pytest.mark.parametrize("n,with_point,form", [(3, True, "preconditioned at the box's centre"),
+                                               (3, False, "LDL^T tip-first"), (4, True,
+                                                                               "preconditioned at the box's centre"),
+                                               (2, True, "LDL^T")])
+def test_the_form_of_m_inverse_is_picked_on_the_enclosures(n, with_point, form):
+    """The preconditioned solve where a point per box is available (its enclosure of M^-1 is finite on the most
+    boxes), else tip-first LDL^T (finite on more boxes than base-first: planar 3); two joints without the adjugate
+    keep base-first LDL^T (the choice is for three or more)."""
     from symfunnel.certificates.face_forms import solver_form
     d = _ctx(_planar(n)).design
-    assert solver_form(d, adjugate=False, pivots=True)[1] == form
+    qc = ca.SX.sym("qc", n) if with_point else None
+    assert solver_form(d, adjugate=False, pivots=True, qc=qc)[1] == form

@@ -100,51 +100,61 @@ def with_alpha2_dot_through_e1(design, expr: ca.SX) -> tuple[ca.SX, bool]:
 PIVOT_WIDTHS = (0.01, 0.03, 0.1)
 
 
-def solver_form(design, adjugate: bool, pivots: bool):
+def solver_form(design, adjugate: bool, pivots: bool, qc: ca.SX | None = None):
     """(solve(M, b) or None for the default LDL^T, its name): M_p^-1 by the adjugate for two joints (if `adjugate`);
-    for three or more (if `pivots`) LDL^T eliminating tip-first (the articulated-body order of a serial arm) where
-    the interval enclosure of M^-1 1 over boxes of q around the reference's start (`PIVOT_WIDTHS`, the design's
-    model M) is finite on more of them, or as often and narrower, than base-first. Either order is the same
-    M^-1 b, so the choice, made on numbers, changes how tight an enclosure is, never whether it is right."""
+    for three or more (if `pivots`) the form whose interval enclosure of M^-1 1 over boxes of q around the
+    reference's start (`PIVOT_WIDTHS`, the design's model M) is finite on most of them, then narrowest, among
+    LDL^T base-first, LDL^T tip-first (the articulated-body order of a serial arm) and, given the symbols `qc` (a
+    point per box: the box's centre), (C M)^-1 C b with C = M_model(qc)^-1 (`sx.linalg.preconditioned_solve`).
+    Each is the same M^-1 b, so the choice, made on numbers, changes how tight an enclosure is, never whether it
+    is right."""
     import numpy as np
 
     from ..sx.batch import BatchIntervalFunction
     from ..sx.interval import IntervalError
-    from ..sx.linalg import ldl_solve, solve2
+    from ..sx.linalg import ldl_solve, preconditioned_solve, solve2
     n, M, q = design.n, design.signals["M"], design.sym["q"]
     if n == 2 and adjugate:
         return solve2, "adjugate"
     others = [ca.vec(v) for k, v in design.sym.items() if k != "q"]
     if n < 3 or not pivots or ca.depends_on(M, ca.vertcat(*others)):
         return None, "LDL^T"
-    q0 = np.asarray(design.reference(0.0)[0], float).ravel()
     tip = list(reversed(range(n)))
-    b = ca.DM.ones(n)
-    score = []
-    for order in (None, tip):
+    forms = {"LDL^T": None, "LDL^T tip-first": lambda A, rhs: ldl_solve(A, rhs, tip)}
+    Q = ca.SX.sym("Q", n)
+    if qc is not None:
+        Mc = ca.substitute(M, q, qc)
+        C = ca.horzcat(*[ldl_solve(Mc, ca.DM.eye(n)[:, j]) for j in range(n)])
+        forms["preconditioned at the box's centre"] = lambda A, rhs: preconditioned_solve(A, rhs, C)
+    q0 = np.asarray(design.reference(0.0)[0], float).ravel()
+    w = np.asarray(PIVOT_WIDTHS, float)[:, None]
+    best, pick = None, "LDL^T"
+    for name, f in forms.items():
+        x = (f or ldl_solve)(M, ca.DM.ones(n))
         try:
-            F = BatchIntervalFunction(ca.Function("Minv", [q], [ldl_solve(M, b, order)]))
-        except IntervalError:
-            return None, "LDL^T"
-        w = np.asarray(PIVOT_WIDTHS, float)[:, None]
-        L, H, _ = F.eval_batch(q0 - w / 2, q0 + w / 2)
+            F = BatchIntervalFunction(ca.Function("Minv", [q, qc if qc is not None else Q], [x]))
+        except (IntervalError, RuntimeError):
+            continue
+        L, H, _ = F.eval_batch(np.c_[q0 - w / 2, np.repeat(q0[None], w.size, 0)],
+                               np.c_[q0 + w / 2, np.repeat(q0[None], w.size, 0)])
         width = np.max(H - L, axis=1)
         fin = np.isfinite(width)
-        score.append((int(fin.sum()), -float(np.sum(np.log(width[fin]))) if fin.any() else 0.0))
-    if score[1] > score[0]:
-        return (lambda A, rhs: ldl_solve(A, rhs, tip)), "LDL^T tip-first"
-    return None, "LDL^T"
+        score = (int(fin.sum()), -float(np.sum(np.log(width[fin]))) if fin.any() else 0.0)
+        if best is None or score > best:
+            best, pick = score, name
+    return forms[pick], pick
 
 
 def normal_components(design, p: ca.SX, adjugate: bool, u: ca.SX | None = None,
-                      through_e1: bool = True, pivots: bool = False) -> tuple[ca.SX, ca.SX, dict]:
+                      through_e1: bool = True, pivots: bool = False, qc: ca.SX | None = None
+                      ) -> tuple[ca.SX, ca.SX, dict]:
     """(n1, n2, which rewrites applied): the normal components n1 = de1 - (e1/F1) dF1 and n2 = de2 - (e2/F2) dF2
     along the true plant (parameters p) in their exact rewrites -- de1 = alpha2 + e2 - dq_d with dq_d dropped where
     it cancels, alpha2_dot through e1, and under the design's own torque (`u` None) de2 = nominal de2 + f_true
     (`region.true_unknown`, M_p^-1 by the adjugate for two joints if `adjugate`); under a torque `u` held apart
     (the sampled loop's zero-order hold) de2 = ddq_plant(u) - alpha2_dot. `through_e1` False keeps the design's
     forward-AD alpha2_dot (for measuring what the rewrite buys); `pivots`: M_p^-1 for three or more joints in the
-    elimination order of `solver_form`. Shared by `certify.containment`'s faces
+    form of `solver_form` (`qc`: the symbols of its preconditioner's point). Shared by `certify.containment`'s faces
     and `certify.sampled`'s one-period map."""
     from ..plant.equations import plant_acceleration
     from .region import true_unknown
@@ -152,7 +162,7 @@ def normal_components(design, p: ca.SX, adjugate: bool, u: ca.SX | None = None,
     E2 = ca.SX.sym("E2", design.n)                 # e2 = dq - alpha2, as a placeholder (see _drop_cancelled)
     n1 = S["alpha2"] + E2 - sym["dqd"] - S["e1"] / S["F1"] * S["dF1"]      # de1 = dq - dqd = alpha2 + e2 - dqd
     n1, c1 = _drop_cancelled(n1, sym["dqd"], restore=(E2, S["e2"]))
-    solve, how = solver_form(design, adjugate, pivots)
+    solve, how = solver_form(design, adjugate, pivots, qc)
     if u is None:
         nominal = S["ddq"] - S["alpha2_dot"] - S["e2"] / S["F2"] * S["dF2"]
         nominal, c2 = _drop_cancelled(nominal, S["alpha2_dot"])

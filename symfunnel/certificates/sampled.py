@@ -121,14 +121,17 @@ class OnePeriod:
         # order with the larger pivots), each checked on the graph
         adj, e1, piv = ("adjugate" in rewrites, "alpha2_dot through e1" in rewrites,
                         "pivot order" in rewrites)
-        n1, n2u, self.forms = normal_components(d, p, adj, u=u, through_e1=e1, pivots=piv)
+        # for three or more joints M_p^-1 may be preconditioned at a point per box (its centre's q: `_full`)
+        qc = ca.SX.sym("qc", n) if n >= 3 and piv else None
+        n1, n2u, self.forms = normal_components(d, p, adj, u=u, through_e1=e1, pivots=piv, qc=qc)
+        qc = qc if self.forms["solve"].startswith("preconditioned") else None
         rates = ca.vertcat(n1 / Sg["F1"], n2u / Sg["F2"])
         # the rates at the sample itself, under the step's own torque: there the plant's acceleration minus
         # alpha2_dot is f_true + de2 (f_true in the inverse-dynamics residual form where the design's torque is the
         # model's inverse dynamics: no M_p^-1 tau - alpha2_dot cancellation); with saturation the held form at the
         # saturated torque
         _, n2k, self.forms_k = normal_components(d, p, adj, u=None if tau_max is None else tau, through_e1=e1,
-                                                 pivots=piv)
+                                                 pivots=piv, qc=qc)
         rates_k = ca.vertcat(n1 / Sg["F1"], n2k / Sg["F2"])
         # the held torque's enclosure with alpha2_dot through e1 too (the same function: the C step's torque)
         tau_e = with_alpha2_dot_through_e1(d, tau)[0] if "tau through e1" in rewrites else tau
@@ -162,6 +165,13 @@ class OnePeriod:
         ins, outs, onames, states, _ = region_signals(d, exprs)
         self.state_names = [k for k, _ in d.states]
         t, s1, s2, m = ins
+        self.qc_f = None
+        if qc is not None:
+            # the preconditioner's point, carried like a controller state (last), set per box by `_full`
+            states = states + [qc]
+            self.state_names = self.state_names + ["qc"]
+            self.qc_f = ca.Function("qc", [t, s1], [d.reference_t["qd"] + s1 * Sg["F1"]])
+            self._qc_maps = {}
         opts = {"cse": True, "allow_duplicate_io_names": True}
         o = dict(zip(onames, outs))
         base = [t, s1, s2, m, pu]
@@ -201,6 +211,11 @@ class OnePeriod:
         st_lo, st_hi = [], []
         F = self.tau.natural
         for k in self.state_names:
+            if k == "qc":           # any point serves (the solve is exact for every C): the reference's start
+                q0 = np.asarray(self.qc_f(0.0, np.zeros(n)), float).ravel()
+                st_lo.append(q0)
+                st_hi.append(q0)
+                continue
             lo, hi = S.states[k]
             i = F.in_names.index(k)
             a, b = np.asarray(lo, float).reshape(-1, order="F"), np.asarray(hi, float).reshape(-1, order="F")
@@ -229,8 +244,18 @@ class OnePeriod:
 
     def _full(self, LO, HI):
         K = LO.shape[0]
-        return (np.concatenate([LO, np.repeat(self.st_lo[None, :], K, 0)], axis=1),
-                np.concatenate([HI, np.repeat(self.st_hi[None, :], K, 0)], axis=1))
+        FL = np.concatenate([LO, np.repeat(self.st_lo[None, :], K, 0)], axis=1)
+        FH = np.concatenate([HI, np.repeat(self.st_hi[None, :], K, 0)], axis=1)
+        if self.qc_f is not None and K:
+            # the preconditioner's point: q at the box's centre (t and s1 at their midpoints), the same in FL, FH
+            n = self.n
+            if K not in self._qc_maps:
+                self._qc_maps[K] = self.qc_f.map(K)
+            c = 0.5 * LO + 0.5 * HI
+            q = np.asarray(self._qc_maps[K](c[:, 0][None, :], c[:, 1:n + 1].T), float).T
+            FL[:, -n:] = q
+            FH[:, -n:] = q
+        return FL, FH
 
     def check(self, LO: np.ndarray, HI: np.ndarray, h: float, M: float) -> tuple[np.ndarray, dict]:
         """Per box (rows of the flat split part), whether both funnels with margin M on the period and the return
