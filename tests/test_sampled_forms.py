@@ -216,3 +216,53 @@ def test_the_form_of_m_inverse_is_picked_on_the_enclosures(n, with_point, form):
     d = _ctx(_planar(n)).design
     qc = ca.SX.sym("qc", n) if with_point else None
     assert solver_form(d, adjugate=False, pivots=True, qc=qc)[1] == form
+
+
+def _period_escapes(ctx, op, h=1.0 / 20000.0, tries=8) -> tuple[int, int]:
+    """(points outside, states checked): from states of S drawn here (the design's funnels and alpha2), the plant
+    integrated by scipy over one period under the generated step's held torque, against op's a-priori enclosure
+    (7 times) and its bound sigma_k + h D of the end."""
+    from scipy.integrate import solve_ivp
+
+    from symfunnel.emit.step import step_function
+
+    from .test_sampled_set import plant_and_sigma, state_at
+    d, n = ctx.design, ctx.design.n
+    step = step_function(d, 1.0 / h)
+    acc, sigma = plant_and_sigma(ctx)
+    rng = np.random.default_rng(2)
+    bad = checked = 0
+    for _ in range(tries):
+        tk = float(rng.uniform(0, 1.0))
+        s = rng.uniform(-0.5, 0.5, 2 * n)
+        q0, dq0 = state_at(d, tk, s)
+        tau = np.asarray(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0], float).ravel()
+        X = np.concatenate([[tk], s, [0.0]])[None, :]
+        _, info = op.check(X, X, h, 0.05)
+        if not np.all(np.isfinite(info["DL"])):
+            continue
+        sol = solve_ivp(lambda tt, x: np.concatenate([x[n:], np.asarray(acc(tt, x[:n], x[n:], tau), float).ravel()]),
+                        (tk, tk + h), np.concatenate([q0, dq0]), rtol=1e-11, atol=1e-13, dense_output=True)
+        for tt in np.linspace(tk, tk + h, 7):
+            sg = sigma(tt, sol.sol(tt))
+            bad += int(np.any(sg < info["SL"][0] - 1e-9) or np.any(sg > info["SH"][0] + 1e-9))
+        end = sigma(tk + h, sol.sol(tk + h))
+        bad += int(np.any(end < s + h * info["DL"][0] - 1e-9) or np.any(end > s + h * info["DH"][0] + 1e-9))
+        checked += 1
+    return bad, checked
+
+
+def test_planar_three_joints_one_period_contains_the_integrated_plant(monkeypatch):
+    """The whole one-period map with the preconditioned solve, against scipy (planar 3, S 0.5 / 0.5, 20 kHz): the
+    integrated plant stays in the a-priori enclosure and ends in sigma_k + h D; with the solve scaled by 0.99 it
+    does not."""
+    ctx = _ctx(_planar(3))
+    op = _op(ctx)
+    assert op.forms["solve"].startswith("preconditioned")
+    bad, checked = _period_escapes(ctx, op)
+    assert bad == 0 and checked >= 6
+    import symfunnel.sx.linalg as L
+    orig = L.preconditioned_solve
+    monkeypatch.setattr(L, "preconditioned_solve", lambda M, b, C: 0.99 * orig(M, b, C))
+    bad, checked = _period_escapes(ctx, _op(ctx))
+    assert bad > 0
