@@ -10,7 +10,9 @@ q_d enter, dq_d entering with coefficient 1), the same function is
 in which t enters only through the funnels (and ddq_d): over a box of t its enclosure is the width of what
 actually changes, not of dq and dq_d separately.
 
-Also the graph-identity test these rewrites rest on (`_drop_cancelled`: a node provably not entering).
+Also the graph-identity test these rewrites rest on (`_drop_cancelled`: a node provably not entering), the form of
+M_p^-1 whose enclosure is tightest (`solver_form`), and the normal components n1, n2 in all these forms
+(`normal_components`), which `certify.containment`'s faces and `certify.sampled`'s one-period map share.
 """
 
 from __future__ import annotations
