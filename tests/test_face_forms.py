@@ -49,14 +49,13 @@ def test_alpha2_dot_through_e1_is_the_designs_alpha2_dot():
 def _proven_share(ctx, rewrite: bool, adjugate: bool = False, face: str = "e2 joint 1 +") -> float:
     """The share of 200 random boxes (3 % of the face's width in every split coordinate) of the face at m1 = 0.9,
     m2 = 0.05 on which the interval bound proves sign n < 0."""
-    saved = C.with_alpha2_dot_through_e1, C.ADJUGATE
-    if not rewrite:
-        C.with_alpha2_dot_through_e1 = lambda design, e: (e, False)
+    saved = C.THROUGH_E1, C.ADJUGATE
+    C.THROUGH_E1 = rewrite
     C.ADJUGATE = adjugate
     try:
         fc = C._Faces(ctx)
     finally:
-        C.with_alpha2_dot_through_e1, C.ADJUGATE = saved
+        C.THROUGH_E1, C.ADJUGATE = saved
     d = ctx.design
     w, phi = projection_face(d)["w"], 7.15                    # sup ||Phi|| <= sqrt(51) (tanh states and a bias)
     W0 = np.zeros_like(d.variant.initial_states()["w_hat"])

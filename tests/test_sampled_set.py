@@ -287,6 +287,7 @@ def test_the_scaling_bench_generates_planar_arms_and_its_n2_period_is_proven():
         assert sc.n == n
     row = period_scaling(2, max_boxes=4000)
     assert row["proven"] and row["left"] == 0.0 and row["split_dims"] == 5 and row["boxes"] <= 4000
+    assert row["solve"] == "adjugate"
 
 
 UNCERTAIN = """

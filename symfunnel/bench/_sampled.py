@@ -58,7 +58,8 @@ def planar_text(n: int) -> str:
 
 def period_scaling(n: int, *, rate_hz: float = SCALING_RATE_HZ, max_boxes: int = SCALING_BOXES) -> dict:
     """One period's branch and bound at `rate_hz` over S (SCALING_SET) of the generated planar arm of n joints:
-    CPU seconds of building the one-period map and of the search, boxes, whether proven, the fraction of S left."""
+    CPU seconds of building the one-period map and of the search, boxes, whether proven, the fraction of S left,
+    and the form of M_p^-1 the map uses (`face_forms.solver_form`)."""
     from ..certificates.problem import Context
     from ..certificates.region import parameter_box
     from ..certificates.sampled import OnePeriod, declared_set, prove_period
@@ -78,7 +79,8 @@ def period_scaling(n: int, *, rate_hz: float = SCALING_RATE_HZ, max_boxes: int =
     cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     return {"n": n, "build_cpu_s": build, "cpu_s": cpu, "wall_s": wall, "boxes": int(r["boxes"]),
             "proven": bool(r["proven"]), "left": float(r["left"]), "reason": r["reason"],
-            "ms_per_box": 1e3 * cpu / max(int(r["boxes"]), 1), "split_dims": int(op.split_vars(*op.box(1.0)).size)}
+            "ms_per_box": 1e3 * cpu / max(int(r["boxes"]), 1), "split_dims": int(op.split_vars(*op.box(1.0)).size),
+            "solve": op.forms["solve"]}
 
 
 def run(progress) -> list[dict]:

@@ -45,9 +45,8 @@ import casadi as ca
 import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes
-from .face_forms import _drop_cancelled, with_alpha2_dot_through_e1
+from .face_forms import normal_components
 from .projection_face import projection_face
-from .region import true_unknown
 from .result import Certificate
 from ..sx.rewrite import replace_nodes
 from ..sx.search import extrema
@@ -58,6 +57,8 @@ ADJUGATE = True
 #: the order of the faces' mean-value form (2: its Jacobian enclosed by a mean-value form of its own, see
 #: `sx.batch.BatchCenteredForm`)
 FACE_ORDER = 1
+#: alpha2_dot through e1 (`face_forms.alpha2_dot_through_e1`) where the design's alpha2 has that form
+THROUGH_E1 = True
 #: the margins tried, in this order (the first proven is reported): e1's, then e2's
 M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
 M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.002, 0.1, 0.2, 0.5)
@@ -76,17 +77,10 @@ def face_expressions(design, p: ca.SX) -> tuple[dict[str, ca.SX], dict]:
     p), and ||G||_F^2 of the adaptive law's forcing where the design has adaptive weights."""
     S = design.signals
     sym = design.sym
-    E2 = ca.SX.sym("E2", design.n)                 # e2 = dq - alpha2, as a placeholder (see _drop_cancelled)
-    n1 = S["alpha2"] + E2 - sym["dqd"] - S["e1"] / S["F1"] * S["dF1"]      # de1 = dq - dqd = alpha2 + e2 - dqd
-    n1, c1 = _drop_cancelled(n1, sym["dqd"], restore=(E2, S["e2"]))
-    nominal = S["ddq"] - S["alpha2_dot"] - S["e2"] / S["F2"] * S["dF2"]
-    nominal, c2 = _drop_cancelled(nominal, S["alpha2_dot"])
-    tu = true_unknown(design, p, adjugate=ADJUGATE)
-    # alpha2_dot (in tau and the nominal ddq inside f_true) through de1 = g + e2, not dq and dq_d apart
-    n2, c3 = with_alpha2_dot_through_e1(design, nominal + tu["f_true"])
+    n1, n2, info = normal_components(design, p, ADJUGATE, through_e1=THROUGH_E1)
     exprs = {"n1": n1, "n2": n2}
-    info = {"cancelled": {"dqd in de1": c1, "alpha2_dot in de2": c2, "dqd in alpha2_dot": c3}, "f_true": tu["form"],
-            "adaptation": None}
+    info = {**info, "adaptation": None}
+    info.pop("solve")
     if design.n_regressor:
         W = sym["w_hat"]
         Wd = S["w_hat_dot"]

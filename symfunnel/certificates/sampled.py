@@ -53,10 +53,10 @@ from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
 from .problem import Context
-from .region import region_signals, true_unknown
+from .face_forms import normal_components, with_alpha2_dot_through_e1
+from .region import region_signals
 from .sampled_set import SampledSet, containment_set, declared_set  # noqa: F401 (their home before)
-from .sampled_graph import (_add_dn, _add_up, _continuous_rates, _dn, _imul, _nominal_de2, _sum_dn, _sum_up,
-                            _up)
+from .sampled_graph import _add_dn, _add_up, _continuous_rates, _dn, _imul, _sum_dn, _sum_up, _up
 
 CID = "certify.sampled"
 #: S's margins (e1, e2) when none are given
@@ -73,6 +73,9 @@ HINT_RATIO = 4.0
 WHY = ("", "torque", "rates", "enclosure", "funnel", "next sample", "w_hat")
 #: a failing box thinner than this (relative to S) in every split variable ends the search at that h
 THIN = 1e-4
+#: containment's exact rewrites applied to the one-period map (`face_forms.normal_components`); each falls back to
+#: the design's own form where the graph does not have the form it needs
+REWRITES = ("alpha2_dot through e1", "adjugate", "pivot order", "tau through e1")
 #: random sample points screened (as degenerate boxes) before a branch and bound at one h
 SCREEN_POINTS = 128
 
@@ -89,7 +92,7 @@ class OnePeriod:
     """The one-period map's interval pieces for one design and parameter box: the held torque over a box of sample
     states, the normalised errors' rates under a held torque, and W_hat's update (see the module doc)."""
 
-    def __init__(self, ctx: Context, S: SampledSet, tau_max=None):
+    def __init__(self, ctx: Context, S: SampledSet, tau_max=None, rewrites=REWRITES):
         d, sc = ctx.design, ctx.scenario
         n = d.n
         self.ctx, self.S, self.n = ctx, S, n
@@ -113,20 +116,26 @@ class OnePeriod:
         ddq = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], u, 0.0, p=p)["ddq"]
         self.continuous, self.continuity = _continuous_rates(
             d, [sym["t"], sym["q"], sym["dq"], u, pu], [sym["t"], sym["q"], sym["dq"]], ddq)
-        de1 = sym["dq"] - sym["dqd"]
-        de2 = ddq - Sg["alpha2_dot"]
-        rates = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
-                           (de2 - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
+        # the normal components in containment's exact rewrites (`face_forms.normal_components`: dq_d dropped from
+        # de1, alpha2_dot through e1, M_p^-1 by the adjugate for two joints, and for more the LDL^T elimination
+        # order with the larger pivots), each checked on the graph
+        adj, e1, piv = ("adjugate" in rewrites, "alpha2_dot through e1" in rewrites,
+                        "pivot order" in rewrites)
+        # for three or more joints M_p^-1 may be preconditioned at a point per box (its centre's q: `_full`)
+        qc = ca.SX.sym("qc", n) if n >= 3 and piv else None
+        n1, n2u, self.forms = normal_components(d, p, adj, u=u, through_e1=e1, pivots=piv, qc=qc)
+        qc = qc if self.forms["solve"].startswith("preconditioned") else None
+        rates = ca.vertcat(n1 / Sg["F1"], n2u / Sg["F2"])
         # the rates at the sample itself, under the step's own torque: there the plant's acceleration minus
         # alpha2_dot is f_true + de2 (f_true in the inverse-dynamics residual form where the design's torque is the
-        # model's inverse dynamics: no M_p^-1 tau - alpha2_dot cancellation); with saturation the direct form
-        if tau_max is None:
-            de2_k = true_unknown(d, p)["f_true"] + _nominal_de2(d)
-        else:
-            de2_k = plant_acceleration(sc, sym["q"], sym["dq"], sym["t"], tau, 0.0, p=p)["ddq"] - Sg["alpha2_dot"]
-        rates_k = ca.vertcat((de1 - Sg["e1"] / Sg["F1"] * Sg["dF1"]) / Sg["F1"],
-                             (de2_k - Sg["e2"] / Sg["F2"] * Sg["dF2"]) / Sg["F2"])
-        exprs = {"tau": tau, "rate": rates, "rate_k": rates_k}
+        # model's inverse dynamics: no M_p^-1 tau - alpha2_dot cancellation); with saturation the held form at the
+        # saturated torque
+        _, n2k, self.forms_k = normal_components(d, p, adj, u=None if tau_max is None else tau, through_e1=e1,
+                                                 pivots=piv, qc=qc)
+        rates_k = ca.vertcat(n1 / Sg["F1"], n2k / Sg["F2"])
+        # the held torque's enclosure with alpha2_dot through e1 too (the same function: the C step's torque)
+        tau_e = with_alpha2_dot_through_e1(d, tau)[0] if "tau through e1" in rewrites else tau
+        exprs = {"tau": tau_e, "rate": rates, "rate_k": rates_k}
         self.w_rate = None
         # a projected law: the deployed step clips W_hat radially onto ||W_hat||_F <= R (1 + eps) after its update
         # (emit.step), so W_hat's next sample lies in that ball whatever the period -- a box containing the ball is
@@ -156,6 +165,13 @@ class OnePeriod:
         ins, outs, onames, states, _ = region_signals(d, exprs)
         self.state_names = [k for k, _ in d.states]
         t, s1, s2, m = ins
+        self.qc_f = None
+        if qc is not None:
+            # the preconditioner's point, carried like a controller state (last), set per box by `_full`
+            states = states + [qc]
+            self.state_names = self.state_names + ["qc"]
+            self.qc_f = ca.Function("qc", [t, s1], [d.reference_t["qd"] + s1 * Sg["F1"]])
+            self._qc_maps = {}
         opts = {"cse": True, "allow_duplicate_io_names": True}
         o = dict(zip(onames, outs))
         base = [t, s1, s2, m, pu]
@@ -195,6 +211,11 @@ class OnePeriod:
         st_lo, st_hi = [], []
         F = self.tau.natural
         for k in self.state_names:
+            if k == "qc":           # any point serves (the solve is exact for every C): the reference's start
+                q0 = np.asarray(self.qc_f(0.0, np.zeros(n)), float).ravel()
+                st_lo.append(q0)
+                st_hi.append(q0)
+                continue
             lo, hi = S.states[k]
             i = F.in_names.index(k)
             a, b = np.asarray(lo, float).reshape(-1, order="F"), np.asarray(hi, float).reshape(-1, order="F")
@@ -223,8 +244,18 @@ class OnePeriod:
 
     def _full(self, LO, HI):
         K = LO.shape[0]
-        return (np.concatenate([LO, np.repeat(self.st_lo[None, :], K, 0)], axis=1),
-                np.concatenate([HI, np.repeat(self.st_hi[None, :], K, 0)], axis=1))
+        FL = np.concatenate([LO, np.repeat(self.st_lo[None, :], K, 0)], axis=1)
+        FH = np.concatenate([HI, np.repeat(self.st_hi[None, :], K, 0)], axis=1)
+        if self.qc_f is not None and K:
+            # the preconditioner's point: q at the box's centre (t and s1 at their midpoints), the same in FL, FH
+            n = self.n
+            if K not in self._qc_maps:
+                self._qc_maps[K] = self.qc_f.map(K)
+            c = 0.5 * LO + 0.5 * HI
+            q = np.asarray(self._qc_maps[K](c[:, 0][None, :], c[:, 1:n + 1].T), float).T
+            FL[:, -n:] = q
+            FH[:, -n:] = q
+        return FL, FH
 
     def check(self, LO: np.ndarray, HI: np.ndarray, h: float, M: float) -> tuple[np.ndarray, dict]:
         """Per box (rows of the flat split part), whether both funnels with margin M on the period and the return

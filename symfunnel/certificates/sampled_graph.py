@@ -1,5 +1,5 @@
 """What `certify.sampled`'s one-period map needs beyond the design's signals: facts read off the design's graph
-(the nominal de2 without the alpha2_dot cancellation, whether sigma' is continuous along a period) and the outward
+(whether sigma' is continuous along a period) and the outward
 rounded interval helpers of its enclosures."""
 
 from __future__ import annotations
@@ -8,29 +8,6 @@ import casadi as ca
 import numpy as np
 
 from ..sx.batch_rules import _dn, _up
-from .region import structurally_zero
-
-
-def _nominal_de2(design) -> ca.SX:
-    """de2 = (v - W_hat^T Phi) - alpha2_dot of the nominal loop without the alpha2_dot - alpha2_dot cancellation
-    interval arithmetic cannot see: when v = alpha2_dot + g with g free of alpha2_dot (v affine in alpha2_dot with
-    the identity as coefficient, checked on the graph: alpha2_dot's nodes replaced by a symbol A, dv/dA = I),
-    de2 = g - W_hat^T Phi = v(A = 0) - W_hat^T Phi; else (a mutant that scales alpha2_dot) the design's de2."""
-    from ..sx.rewrite import replace_nodes
-    S = design.signals
-    n = design.n
-    A = ca.SX.sym("A", n)
-    vA = replace_nodes([S["v"]], S["alpha2_dot"], A)[0]
-    try:
-        J = np.asarray(ca.evalf(ca.jacobian(vA, A)), float)
-    except RuntimeError:
-        return S["de2"]
-    if not np.array_equal(J, np.eye(n)):
-        return S["de2"]
-    est = ca.mtimes(design.sym["w_hat"].T, S["Phi"]) if "w_hat" in design.sym else ca.SX.zeros(n)
-    if not structurally_zero(S["ddq"] - (S["v"] - est)):
-        return S["de2"]
-    return ca.substitute(vA, A, ca.SX.zeros(n)) - est
 
 
 _SWITCHING = ("OP_SIGN", "OP_IF_ELSE_ZERO", "OP_LT", "OP_LE", "OP_EQ", "OP_NE", "OP_NOT", "OP_AND", "OP_OR",

@@ -76,11 +76,12 @@ def plant_parameters(scenario) -> tuple[list[str], np.ndarray]:
     return names, np.array(vals, dtype=float)
 
 
-def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
+def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None, solve=None) -> dict:
     """The true plant's ddq under commanded torque tau, with its parts (SX in q, dq, t, tau, and p if given).
 
     `p` (SX, laid out as `plant_parameters`) makes the plant's uncertain quantities symbols; without it they are
-    the scenario's numbers.
+    the scenario's numbers. `solve(M, rhs)`: how M^-1 rhs is written (the same function; a certificate picks the
+    form whose interval enclosure is narrowest), by default LDL^T.
     """
     model = scenario.model
     pl = scenario.plant
@@ -100,7 +101,7 @@ def plant_acceleration(scenario, q, dq, t, tau, width: float, p=None) -> dict:
     parts = plant_forces(scenario, q, dq, t, tau, width, p)
     rhs = parts["tau_applied"] - ca.mtimes(C, dq) - G - parts["friction"] - parts["disturbance"]
     n = model.n
-    ddq = ca.solve(M, rhs) if n == 1 else ldl_solve(M, rhs)
+    ddq = ca.solve(M, rhs) if n == 1 else (solve or ldl_solve)(M, rhs)
     return {"ddq": ddq, "M": M, "C": C, "G": G, **parts}
 
 
