@@ -1,5 +1,6 @@
 """The suite's own helpers that make it cheaper must not change what it checks: `cli_once` runs a command once per
-session and gives every later caller the first run's exit code and output; test_docs runs a documentation command
+session and gives every later caller the first run's exit code and output, `text_once` the same for a text built in
+the process (a report); test_docs runs a documentation command
 line once for all pages only when no file of its directory is read or written."""
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import sys
 import pytest
 
 from tests import conftest
-from tests.conftest import cli_once
+from tests.conftest import cli_once, text_once
 from tests.test_docs import _anywhere
 
 
@@ -26,6 +27,28 @@ def test_cli_once_runs_a_command_once_and_replays_its_result(tmp_path_factory, m
     assert (again.returncode, again.stdout, again.stderr) == (first.returncode, first.stdout, first.stderr)
     with pytest.raises(AssertionError, match="ran the command again"):
         cli_once(tmp_path_factory, "derive", f"--another-key-{id(tmp_path_factory)}")
+
+
+def test_text_once_builds_once_per_key_and_a_failed_build_is_tried_again(tmp_path_factory):
+    key = f"suite-helpers {id(tmp_path_factory)}"                      # a key no other test uses
+    calls = []
+
+    def build(text):
+        def b():
+            calls.append(text)
+            return text
+        return b
+    assert text_once(tmp_path_factory, key, build("r\u00e9port 1")) == "r\u00e9port 1"
+    assert text_once(tmp_path_factory, key, build("report 2")) == "r\u00e9port 1"    # the first build's text
+    assert text_once(tmp_path_factory, key + " other", build("report 3")) == "report 3"
+    assert calls == ["r\u00e9port 1", "report 3"]
+
+    def fails():
+        raise RuntimeError("build failed")
+    with pytest.raises(RuntimeError):
+        text_once(tmp_path_factory, key + " fails", fails)
+    assert text_once(tmp_path_factory, key + " fails", build("report 4")) == "report 4"   # nothing half-written
+    assert calls[-1] == "report 4"
 
 
 def test_only_lines_that_touch_no_file_of_their_directory_run_once(tmp_path):
