@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from tests import conftest
-from tests.conftest import cli_once, text_once
+from tests.conftest import cli_once, module_order, text_once
 from tests.test_docs import _anywhere
 
 
@@ -68,3 +68,26 @@ def test_only_lines_that_touch_no_file_of_their_directory_run_once(tmp_path):
            ["symfunnel"]]
     assert [_anywhere(a, tmp_path) for a in shared] == [True] * len(shared)
     assert [_anywhere(a, tmp_path) for a in own] == [False] * len(own)
+
+
+class _Item:
+    """What module_order reads of a pytest item: its node id and its closest `slow` marker."""
+
+    def __init__(self, nodeid, slow=None):
+        self.nodeid, self.slow = nodeid, slow
+
+    def get_closest_marker(self, name):
+        return pytest.mark.slow(**self.slow).mark if name == "slow" and self.slow is not None else None
+
+
+def test_a_module_with_a_test_marked_first_starts_the_run_and_modules_stay_whole():
+    items = [_Item("a.py::x"), _Item("a.py::y", {}), _Item("b.py::x"), _Item("b.py::y", {"first": True}),
+             _Item("c.py::x", {}), _Item("c.py::y", {}), _Item("d.py::x")]
+    got = [it.nodeid for it in module_order(items)]
+    # b first (its test marked first, its other test kept beside it), then by slow count: c (2), a (1), d (0)
+    assert got == ["b.py::x", "b.py::y", "c.py::x", "c.py::y", "a.py::x", "a.py::y", "d.py::x"]
+    # without the mark, b is a module with one slow test: after c, in collection order with a
+    items[3] = _Item("b.py::y", {})
+    assert [it.nodeid for it in module_order(items)] == ["c.py::x", "c.py::y", "a.py::x", "a.py::y", "b.py::x",
+                                                         "b.py::y", "d.py::x"]
+
