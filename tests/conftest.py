@@ -43,18 +43,33 @@ def pytest_collection_finish(session):
     gc.set_threshold(*GC_THRESHOLDS)
 
 
-def pytest_collection_modifyitems(session, config, items):
-    """Modules with more `slow` tests run first (each module kept whole, in its own order): xdist hands tests out in
-    collection order, and alphabetical order put the long tune and twin tests last, where one worker could be left
-    running them alone (in a profiled run the workers finished 20 s apart). A module stays contiguous so that its
-    module-scoped fixtures are built no more often."""
+def module_order(items) -> list:
+    """The items in the order xdist hands them out: modules with a test marked `slow(first=True)` first, then modules
+    with more `slow` tests, each module kept whole in its own order (else in collection order). xdist hands tests out
+    in collection order, and alphabetical order put the long tune and twin tests last, where one worker could be left
+    running them alone; a module stays contiguous so that its module-scoped fixtures are built no more often. A test
+    that takes a fifth of a worker's share of the run (test_guarantees' Panda, 276 of 1250 worker-seconds in a loaded
+    run) is marked first: replaying xdist's scheduler on that run's durations, it started at 848 s and ended the run
+    (1300 s); started first, the run ends at 1246 s."""
     slow: dict[str, int] = {}
     first: dict[str, int] = {}
+    lead: dict[str, bool] = {}
     for i, item in enumerate(items):
         mod = item.nodeid.split("::", 1)[0]
         first.setdefault(mod, i)
-        slow[mod] = slow.get(mod, 0) + (item.get_closest_marker("slow") is not None)
-    items.sort(key=lambda it: (-slow[it.nodeid.split("::", 1)[0]], first[it.nodeid.split("::", 1)[0]]))
+        mark = item.get_closest_marker("slow")
+        slow[mod] = slow.get(mod, 0) + (mark is not None)
+        lead[mod] = lead.get(mod, False) or bool(mark is not None and mark.kwargs.get("first"))
+
+    def key(it):
+        mod = it.nodeid.split("::", 1)[0]
+        return (not lead[mod], -slow[mod], first[mod])
+    return sorted(items, key=key)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """module_order, in place."""
+    items[:] = module_order(items)
 
 
 @pytest.fixture(scope="session")
@@ -84,29 +99,49 @@ def session_dir(tmp_path_factory) -> Path:
     return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
 
 
+def _session_once(tmp_path_factory, kind: str, key_parts, produce) -> Path:
+    """The file of `key_parts` in the session directory, written by produce(path) on the first call of the test session
+    (whichever xdist worker asks first; an flock per key, the others wait) and only read by every later call. A
+    produce that raises leaves no file, so the next caller tries again (and fails in its own test)."""
+    import fcntl
+    import hashlib
+    import json
+    key = hashlib.sha256(json.dumps(key_parts).encode()).hexdigest()[:16]
+    d = session_dir(tmp_path_factory) / kind
+    d.mkdir(exist_ok=True)
+    done = d / f"{key}.out"
+    with open(d / f"{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            tmp = done.with_suffix(".tmp")
+            produce(tmp)
+            tmp.replace(done)
+    return done
+
+
 def cli_once(tmp_path_factory, *args, timeout: float = 600, cwd=None) -> subprocess.CompletedProcess:
     """`python -m symfunnel ARGS` run once per test session, whichever worker asks first (an flock per command; the
     others wait and read its recorded exit code, stdout and stderr): for an expensive command whose result several
     modules check, e.g. one `rate --certify` on the same scenario and horizon. The command's directory (`cwd`, the
     first caller's) is not part of the key: the caller makes sure the command reads and writes nothing there."""
-    import fcntl
-    import hashlib
     import json
     import sys
     argv = [sys.executable, "-m", "symfunnel", *map(str, args)]
-    key = hashlib.sha256(json.dumps(argv).encode()).hexdigest()[:16]
-    d = session_dir(tmp_path_factory) / "cli-once"
-    d.mkdir(exist_ok=True)
-    done = d / f"{key}.json"
-    with open(d / f"{key}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not done.exists():
-            p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, cwd=cwd)
-            tmp = done.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"returncode": p.returncode, "stdout": p.stdout, "stderr": p.stderr}))
-            tmp.replace(done)
-        rec = json.loads(done.read_text())
+
+    def run(path: Path) -> None:
+        p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, cwd=cwd)
+        path.write_text(json.dumps({"returncode": p.returncode, "stdout": p.stdout, "stderr": p.stderr}))
+    rec = json.loads(_session_once(tmp_path_factory, "cli-once", argv, run).read_text())
     return subprocess.CompletedProcess(argv, rec["returncode"], rec["stdout"], rec["stderr"])
+
+
+def text_once(tmp_path_factory, key: str, build) -> str:
+    """build() (a text, e.g. a report several modules check) computed once per test session across the xdist
+    workers, as cli_once runs a command: a module-scoped fixture is built once per worker that runs the module's
+    tests. `key` names what build computes: one key, one text."""
+    def write(path: Path) -> None:
+        path.write_text(build(), encoding="utf-8")
+    return _session_once(tmp_path_factory, "text-once", key, write).read_text(encoding="utf-8")
 
 
 #: `rate --certify` on tests/data/certify_none.toml over a 2 s horizon: checked by test_report_deployed (against the
@@ -119,6 +154,25 @@ CERTIFY_NONE_RATE = ("rate", REPO / "tests" / "data" / "certify_none.toml", "--c
 def certify_none_rate(tmp_path_factory) -> subprocess.CompletedProcess:
     """CERTIFY_NONE_RATE's run, once per session."""
     return cli_once(tmp_path_factory, *CERTIFY_NONE_RATE)
+
+
+#: the paper scenario's report as test_report_layout measures it (issue 22's height was measured on this one) and
+#: test_report_deployed reads its rate bracket: 2 s, 200 samples, the generated code and the deployed section, no
+#: mutants
+PAPER_REPORT_2S = "report paper t_final=2.0 samples=200 codegen deployed no-mutants"
+
+
+@pytest.fixture
+def paper_report_2s(tmp_path_factory) -> str:
+    """PAPER_REPORT_2S's HTML, written once per session (text_once)."""
+    def build() -> str:
+        from symfunnel.pipeline import Run, RunOptions
+        from symfunnel.reporting import build_report
+        from symfunnel.scenario import load_scenario
+        run = Run(load_scenario("paper"), RunOptions(t_final=2.0, samples=200))
+        out = tmp_path_factory.mktemp("paper-report") / "paper.html"
+        return build_report(run, out, codegen=True, mutants=False, deployed=True).read_text(encoding="utf-8")
+    return text_once(tmp_path_factory, PAPER_REPORT_2S, build)
 
 
 def private_cache(tmp_path_factory):

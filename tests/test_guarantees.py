@@ -91,7 +91,7 @@ def test_guarantees_sort_each_fact_once():
     assert any("max |tau| <= 2" in html.unescape(str(p["head"])) for p in g["proven"])
 
 
-@pytest.mark.slow
+@pytest.mark.slow(first=True)          # the suite's longest test: started first (tests/conftest.py, module_order)
 def test_a_third_party_urdf_from_init_passes_verify_and_its_report_opens_with_guarantees(tmp_path, capsys):
     """Panda (example-robot-data, Apache-2.0) through `init --urdf`: verify passes as written.
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import text_once
+
 DATA = Path(__file__).parent / "data"
 T_FINAL = 2.0
 
@@ -44,12 +46,15 @@ def _classes(el) -> dict:
 
 @pytest.fixture(scope="module")
 def certify_none_report(tmp_path_factory) -> str:
+    """The report on certify_none, written once per session whichever worker runs this module's tests first."""
     # the proof's wall-clock budget raised from the report's 10 s: on a loaded CI machine 10 s may end it undecided,
     # which the report says honestly but this test (which checks the proven case) cannot use
-    with pytest.MonkeyPatch.context() as mp:
-        import symfunnel.reporting.deployed as D
-        mp.setattr(D, "BRACKET_WALL_LIMIT", 120.0)
-        return _report(DATA / "certify_none.toml", tmp_path_factory.mktemp("report") / "certify_none.html")
+    def build() -> str:
+        with pytest.MonkeyPatch.context() as mp:
+            import symfunnel.reporting.deployed as D
+            mp.setattr(D, "BRACKET_WALL_LIMIT", 120.0)
+            return _report(DATA / "certify_none.toml", tmp_path_factory.mktemp("report") / "certify_none.html")
+    return text_once(tmp_path_factory, f"report certify_none t_final={T_FINAL} samples=200 bracket_wall=120", build)
 
 
 def test_fmu_line_describes_the_fmu_codegen_writes(certify_none_report, tmp_path):
@@ -143,10 +148,11 @@ def test_bracket_on_certify_none_is_proven_and_agrees_with_rate_certify(certify_
 
 
 @pytest.mark.slow
-def test_bracket_on_paper_is_undecided_and_shows_f_sim_and_f_theory(tmp_path):
+def test_bracket_on_paper_is_undecided_and_shows_f_sim_and_f_theory(paper_report_2s):
     """On paper the one-period proof fails at a point of S at every rate (undecided): the figure shows f_sim and
-    f_theory only and the text says why; both numbers equal the command's."""
-    text = _report(Path("paper"), tmp_path / "paper.html")
+    f_theory only and the text says why; both numbers equal the command's. The report is conftest's PAPER_REPORT_2S
+    (this module's horizon and samples; test_report_layout measures the same one)."""
+    text = paper_report_2s
     f, line, svg = _bracket(text)
     cli = _cli_bracket("paper")
     assert cli["certificate"]["status"] == "undecided" and cli["proven_rate_hz"] is None

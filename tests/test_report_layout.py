@@ -180,9 +180,9 @@ def without_added(text: str) -> str:
 
 
 def _report(which: str, tmp_path: Path) -> str:
-    """The report the layout is measured on, one per robot: paper as the height was measured before issue 22
-    (t_final 2, 200 samples, codegen and the deployed section); arm7 as a user writes it, through the CLI with the
-    generated code and the mutation score; the URDF gantry short and bare."""
+    """The report the layout is measured on, for arm7 and the URDF gantry (paper's, as the height was measured
+    before issue 22, is conftest's `paper_report_2s`): arm7 as a user writes it, through the CLI with the generated
+    code and the mutation score; the URDF gantry short and bare."""
     from symfunnel.pipeline import Run, RunOptions
     from symfunnel.reporting import build_report
     from symfunnel.scenario import load_scenario
@@ -199,16 +199,17 @@ def _report(which: str, tmp_path: Path) -> str:
         (tmp_path / "gantry.toml").write_text(URDF_SCENARIO, encoding="utf-8")
         run = Run(load_scenario(tmp_path / "gantry.toml"), RunOptions(t_final=0.3, samples=20))
         return build_report(run, out, codegen=False, mutants=False, deployed=False).read_text(encoding="utf-8")
-    run = Run(load_scenario("paper"), RunOptions(t_final=2.0, samples=200))
-    return build_report(run, out, codegen=True, mutants=False, deployed=True).read_text(encoding="utf-8")
+    raise ValueError(which)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("which", ["paper", "arm7", "urdf"])
-def test_no_formula_wider_than_the_page(which, tmp_path):
+def test_no_formula_wider_than_the_page(which, tmp_path, request):
     if _chromium() is None and which != "arm7":
         pytest.skip(NO_CHROMIUM)
-    text = _report(which, tmp_path)            # arm7's is the CLI's full report, checked without Chromium too
+    # arm7's is the CLI's full report, checked without Chromium too; paper's is written once per session
+    # (tests/conftest.py, PAPER_REPORT_2S: test_report_deployed reads its rate bracket)
+    text = request.getfixturevalue("paper_report_2s") if which == "paper" else _report(which, tmp_path)
     if _chromium() is None:
         pytest.skip(NO_CHROMIUM)
     widths = (1280, 1024) if which == "paper" else (1280,)

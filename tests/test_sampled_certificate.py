@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.conftest import cli_once
+
 DATA = Path(__file__).parent / "data"
 ONE = DATA / "sampled_1dof.toml"
 
@@ -22,8 +24,9 @@ def _cli(*args):
 
 
 @pytest.fixture(scope="module")
-def bracket():
-    r = _cli("rate", ONE, "--certify", "--json", "-q")
+def bracket(tmp_path_factory):
+    """`rate sampled_1dof --certify --json`, run once per session (cli_once) for this module's tests on any worker."""
+    r = cli_once(tmp_path_factory, "rate", ONE, "--certify", "--json", "-q")
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout)
 
