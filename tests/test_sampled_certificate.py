@@ -113,11 +113,11 @@ def test_the_certificate_holds_the_c_step_torque():
         t = float(rng.uniform(0, 2))
         s1, s2 = rng.uniform(-0.5, 0.5, 2)
         qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(t))
-        F1, F2 = (float(np.ravel(v)[0]) for v in F(t))
+        F1, F2 = (float(np.asarray(v, float).ravel()[0]) for v in F(t))
         q = qd + s1 * F1
         dq = np.asarray(a2(t, q, qd, dqd), float).ravel() + s2 * F2
         mine = float(op.tau_f(t, s1, s2, 0.0, np.zeros(0)))
-        theirs = float(np.ravel(step(t, q, dq, np.zeros(1), np.zeros((1, 1)))[0])[0])
+        theirs = float(np.asarray(step(t, q, dq, np.zeros(1), np.zeros((1, 1)))[0], float).ravel()[0])
         assert mine == pytest.approx(theirs, rel=1e-9, abs=1e-9)
 
 
@@ -228,7 +228,7 @@ def test_one_period_enclosure_contains_the_integrated_plant():
     for _ in range(12):
         tk, s1, s2 = rng.uniform(0, 2.0), rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5)
         q0, dq0 = state_at(d, tk, [s1, s2])
-        tau = float(np.ravel(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0])[0])
+        tau = float(np.asarray(step(tk, q0, dq0, np.zeros(1), np.zeros((1, 1)))[0], float).ravel()[0])
         X = np.array([[tk, s1, s2, 0.0]])
         ok, info = op.check(X, X, h, 0.05)
         if not np.all(np.isfinite(info["DL"])):

@@ -157,7 +157,7 @@ def test_a_face_of_s_on_the_rate_margin_is_proven_where_the_flow_points_inward()
     ok, info = op.check(X, X, h, 0.05)
     assert ok[0]
     q0, dq0 = (float(v[0]) for v in state_at(d, t0, [s1, s2]))
-    tau = float(np.ravel(step_function(d, 1000.0)(t0, [q0], [dq0], np.zeros(1), np.zeros((1, 1)))[0])[0])
+    tau = float(np.asarray(step_function(d, 1000.0)(t0, [q0], [dq0], np.zeros(1), np.zeros((1, 1)))[0], float).ravel()[0])
     acc, sigma = plant_and_sigma(ctx)
     sol = solve_ivp(lambda tt, x: [x[1], float(acc(tt, x[:1], x[1:], [tau]))], (t0, t0 + h), [q0, dq0],
                     rtol=1e-11, atol=1e-13, dense_output=True)
