@@ -89,7 +89,8 @@ def test_longdouble_reference_is_correctly_rounded_to_double_precision():
         hi = float(ld)
         lo = float(ld - np.longdouble(hi))
         exact = mpmath.tanh(mpmath.mpf(float(v)))
-        worst = max(worst, float(abs(mpmath.mpf(hi) + mpmath.mpf(lo) - exact) / mpmath.ldexp(1, int(np.frexp(ld)[1]) - 53)))
+        ulp = mpmath.ldexp(1, int(np.frexp(ld)[1]) - 53)
+        worst = max(worst, float(abs(mpmath.mpf(hi) + mpmath.mpf(lo) - exact) / ulp))
     assert worst < 0.01
 
 

@@ -7,8 +7,9 @@ with `_timing.bench_cflags`; baseline: the same step with the controller and ste
 each, built and timed the same way in the same run; the strict -O2 build of both and the step on CasADi's VM from
 Python beside, and the previous path -- the same pair with the reservoir's W x as loops over arrays instead of
 straight-line code -- built and timed the same way in the same run, `w_loops_ns`; and the previous tanh, three
-divisions per lane (templates/sf_tanh3div.h) in place of the one-division one, `tanh3div_ns`) and `implementation.rate_search_s` (wall time of `symfunnel rate` on the paper; baseline: one 20 s
-sampled run at the rate it finds).
+divisions per lane (templates/sf_tanh3div.h) in place of the one-division one, `tanh3div_ns`) and
+`implementation.rate_search_s` (wall time of `symfunnel rate` on the paper; baseline: one 20 s sampled run at the
+rate it finds).
 """
 
 from __future__ import annotations
