@@ -49,8 +49,8 @@ def test_tanh_as_3div_is_the_previous_tanh_and_computes_the_same_step(paper_desi
         return
     flags = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-fPIC", "-shared", "-O2", "-DSYMFUNNEL_FAST_TANH")
     names = ("arm_controller.c", "arm_controller.h")
-    libs = [CLibrary(compile_cached({k: f[k] for k in names}, ["arm_controller.c"],
-                                    "libarm_controller.so", flags).path).function("arm_step_core") for f in (files, old)]
+    libs = [CLibrary(compile_cached({k: f[k] for k in names}, ["arm_controller.c"], "libarm_controller.so",
+                                    flags).path).function("arm_step_core") for f in (files, old)]
     etd = np.array(etd_factors(paper_design.scenario, 2000.0))
     rng = np.random.default_rng(0)
     N, nr, n = paper_design.sym["x_esn"].numel(), paper_design.sym["w_hat"].shape[0], paper_design.n

@@ -78,6 +78,13 @@ def _errors(y: np.ndarray, x: np.ndarray) -> tuple[float, float]:
     return float(np.max(err / ulp)), float(np.max(err))
 
 
+def test_the_roundoff_analysis_factor_covers_the_stated_bound():
+    """sx.roundoff multiplies u |r| by ROUNDOFF_SAFETY per operation; the C tanh's stated bound in relative terms
+    (an ulp of r is at most 2 u |r|) must stay inside it, or that analysis understates the generated code."""
+    from symfunnel.sx.roundoff import ROUNDOFF_SAFETY
+    assert 2.0 * TANH_EXACT_ULP <= ROUNDOFF_SAFETY
+
+
 def test_longdouble_reference_is_correctly_rounded_to_double_precision():
     """The reference itself: numpy's longdouble tanh within 0.01 double ulp of mpmath's at 2,000 seeded points."""
     rng = np.random.default_rng(3)
@@ -127,3 +134,16 @@ def test_a_mutated_tanh_fails_the_bound(tmp_path, old, new):
     x = _points(k=20_000)
     ulps, _ = _errors(f(x), x)
     assert ulps > TANH_EXACT_ULP
+
+
+@pytest.mark.slow
+def test_tanh_bound_over_ten_million_points(tmp_path):
+    """The header's measurement: >= 10^7 points (both signs, all seams), native build, the stated bound."""
+    if subprocess.run([GCC, "-march=native", "-E", "-x", "c", "-", "-o", "/dev/null"], input="",
+                      capture_output=True, text=True).returncode:
+        pytest.skip("gcc does not take -march=native here")
+    f = _compiled(tmp_path, template("sf_tanh.h"), ("-O3", "-march=native"), "big")
+    x = _points(seed=7, k=1_700_000)
+    assert x.size >= 10_000_000
+    ulps, ab = _errors(f(x), x)
+    assert ulps <= TANH_EXACT_ULP and ab <= TANH_EXACT_ABS, (ulps, ab)
