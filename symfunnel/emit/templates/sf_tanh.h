@@ -63,7 +63,7 @@ static double @P@tanh(double x) {
   /* large |x|: e = exp(-2a) = 2^k (qx + px)/(qx - px) = B/A (Cephes exp.c's Pade form, its quotient not taken),
      1 - 2e/(1 + e) = 1 - 2B/(A + B): c = 1, n = -2B, d = A + B */
   y = -2.0 * a;
-  v = @P@ma(LOG2E, y, MAGIC);
+  v = @P@ma(-2.0 * LOG2E, a, MAGIC);              /* = LOG2E y + MAGIC, y off the critical path */
   k = v - MAGIC;
   memcpy(&bits, &v, sizeof bits);               /* the low 12 bits of v's pattern are k mod 2^12 */
   t = @P@ma(-k, C1, y);                         /* exact: k C1 has <= 21 significant bits, Sterbenz */
