@@ -2,7 +2,8 @@
 
 bench.simulate.against_previous runs this path and the previous one in fresh processes on the same trajectory (the
 same CVODES step counts: the changes they compare are copies and heap settings, not arithmetic);
-bench.implementation.w_as_loops generates the C pair with W x as loops, and leaves the generator as it was."""
+bench.implementation.w_as_loops generates the C pair with W x as loops, and leaves the generator as it was;
+bench.implementation.tanh_as_3div swaps in the previous tanh (three divisions per lane), the rest unchanged."""
 
 import pytest
 
@@ -25,6 +26,40 @@ def test_w_as_loops_is_the_loop_form_and_restores_the_generator(paper_design):
     now = generate(paper_design, "c", rate_hz=1000.0)["symfunnel_controller.c"]
     assert ESN.UNROLL_W_MAX == before
     assert "sk_xdot_Wx[247]" in loops and "sk_xdot_Wx[" not in now
+
+
+def test_tanh_as_3div_is_the_previous_tanh_and_computes_the_same_step(paper_design):
+    """The baseline of `tanh3div_ns`: only the tanh differs (three divisions per lane in its loop instead of one), and
+    the step built from it agrees with the current one to the tanh's rounding."""
+    import shutil
+    import numpy as np
+    from symfunnel.bench.implementation import tanh_as_3div
+    from symfunnel.core.ccompile import compile_cached
+    from symfunnel.emit.check import CLibrary
+    from symfunnel.emit.files import generate
+    from symfunnel.emit.step import etd_factors
+    files = generate(paper_design, "c", prefix="arm_", rate_hz=2000.0)
+    old = tanh_as_3div(files)
+    c_new, c_old = files["arm_controller.c"], old["arm_controller.c"]
+    body = lambda c: c[c.index("static double arm_sk_tanh("):c.index("#endif", c.index("static double arm_sk_tanh("))]
+    assert body(c_new).count(" / ") == 1 and body(c_old).count(" / ") == 2     # + the exp's Pade quotient
+    assert "arm_sk_exp_neg(" in c_old and "arm_sk_exp_neg(" not in c_new
+    assert all(old[k] == v for k, v in files.items() if k != "arm_controller.c")
+    if shutil.which("gcc") is None:
+        return
+    flags = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-fPIC", "-shared", "-O2", "-DSYMFUNNEL_FAST_TANH")
+    names = ("arm_controller.c", "arm_controller.h")
+    libs = [CLibrary(compile_cached({k: f[k] for k in names}, ["arm_controller.c"], "libarm_controller.so",
+                                    flags).path).function("arm_step_core") for f in (files, old)]
+    etd = np.array(etd_factors(paper_design.scenario, 2000.0))
+    rng = np.random.default_rng(0)
+    N, nr, n = paper_design.sym["x_esn"].numel(), paper_design.sym["w_hat"].shape[0], paper_design.n
+    for _ in range(16):
+        args = (rng.uniform(0, 20), rng.normal(0, 0.5, n), rng.normal(0, 1, n), rng.uniform(-1, 1, N),
+                rng.normal(0, 3, (nr, n)), etd)
+        for a, b in zip(*(f(*args) for f in libs)):
+            a, b = np.asarray(a), np.asarray(b)
+            assert np.max(np.abs(a - b)) <= 1e-13 * max(1.0, float(np.max(np.abs(a))))
 
 
 @pytest.mark.slow

@@ -6,8 +6,10 @@ s per wall s; baseline: the same loop with the step evaluated by CasADi's VM fro
 with `_timing.bench_cflags`; baseline: the same step with the controller and step core unrolled as one SX function
 each, built and timed the same way in the same run; the strict -O2 build of both and the step on CasADi's VM from
 Python beside, and the previous path -- the same pair with the reservoir's W x as loops over arrays instead of
-straight-line code -- built and timed the same way in the same run, `w_loops_ns`) and `implementation.rate_search_s` (wall time of `symfunnel rate` on the paper; baseline: one 20 s
-sampled run at the rate it finds).
+straight-line code -- built and timed the same way in the same run, `w_loops_ns`; and the previous tanh, three
+divisions per lane (templates/sf_tanh3div.h) in place of the one-division one, `tanh3div_ns`) and
+`implementation.rate_search_s` (wall time of `symfunnel rate` on the paper; baseline: one 20 s sampled run at the
+rate it finds).
 """
 
 from __future__ import annotations
@@ -38,6 +40,22 @@ def w_as_loops(design, rate: float) -> dict:
     finally:
         ESN.UNROLL_W_MAX = old
         step._RATE_FREE.clear()
+
+
+def tanh_as_3div(files: dict) -> dict:
+    """The generated C pair with the previous vectorised tanh (three divisions per lane) in place of the current one."""
+    import re
+    from ..emit.c import template
+    pattern = re.compile(re.escape(template("sf_tanh.h")).replace(re.escape("@P@"), r"(\w*)"))
+    old = template("sf_tanh3div.h")
+    out, hits = dict(files), 0
+    for name, text in files.items():
+        if name.endswith(".c"):
+            out[name], n = pattern.subn(lambda m: old.replace("@P@", m.group(1)), text)
+            hits += n
+    if hits != 1:
+        raise RuntimeError(f"the vectorised tanh was found {hits} times in the generated C, expected once")
+    return out
 
 
 class VMStep:
@@ -97,9 +115,11 @@ def run(progress) -> list[dict]:
     fast, strict = bench_cflags(), tuple(STRICT_CFLAGS)
     t = {(k, fl): run_c_bench(f, fl, 100000, on_build=progress)["step_ns"]
          for k, f in (("loops", files), ("unrolled", unrolled)) for fl in (fast, strict)}
-    w_ns = []                                  # the previous path and this one, interleaved
+    tanh3 = tanh_as_3div(files)
+    w_ns, tanh_ns = [], []                     # the previous paths and this one, interleaved
     for _ in range(3):
         w_ns.append((run_c_bench(w_loops, fast, 100000)["step_ns"], run_c_bench(files, fast, 100000)["step_ns"]))
+        tanh_ns.append((run_c_bench(tanh3, fast, 100000)["step_ns"], run_c_bench(files, fast, 100000)["step_ns"]))
     step_ns, base_ns = t[("loops", fast)], t[("unrolled", fast)]
     f = step_function(design, rate)
     vm_step = VMStep(design, rate)
@@ -115,7 +135,10 @@ def run(progress) -> list[dict]:
                       unrolled_lines=unrolled["symfunnel_controller.c"].count("\n"), scenario=sc.name,
                       w_loops_ns=min(a for a, _ in w_ns), w_straight_ns=min(b for _, b in w_ns),
                       w_paired_ratio=float(np.median([a / b for a, b in w_ns])),
-                      w_note="the previous path: W x as loops over arrays (ESN.UNROLL_W_MAX = 0), interleaved"))
+                      w_note="the previous path: W x as loops over arrays (ESN.UNROLL_W_MAX = 0), interleaved",
+                      tanh3div_ns=min(a for a, _ in tanh_ns), tanh1div_ns=min(b for _, b in tanh_ns),
+                      tanh_paired_ratio=float(np.median([a / b for a, b in tanh_ns])),
+                      tanh_note="the previous tanh: three divisions per lane (templates/sf_tanh3div.h), interleaved"))
 
     progress("implementation: symfunnel rate on the paper")
     t0 = time.perf_counter()

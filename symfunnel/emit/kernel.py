@@ -21,8 +21,8 @@ the SX function at random points to 1e-12. The SX scalar part (s, yhat) -> (tau,
 the C loops compute yhat = W^T Phi, x_dot(x, u) and c W + Phi p^T (the step then x + etd[0] x_dot and
 W + etd[1] W_dot). `codegen --check` compares the generated functions with the SX ones like every other function.
 
-tanh in the loops is `<P>sk_tanh` (templates/sf_tanh.h: branch-free, vectorisable, within 2 ulp of glibc's), or
-libm's with -DSYMFUNNEL_LIBM_TANH (and where no vector unit can run it).
+tanh in the loops is `<P>sk_tanh` (templates/sf_tanh.h: branch-free, vectorisable, one division per lane, within
+1.8 ulp of the exact tanh), or libm's with -DSYMFUNNEL_LIBM_TANH (and where no vector unit can run it).
 """
 
 from __future__ import annotations
