@@ -136,3 +136,18 @@ def test_regressor_enclosure_contains_finite_difference_jacobians_and_mutants_fa
         bad = RegressorColumns(fc.prob, mutant, N2, p, pos)
         inside, checked = _check(setup, bad, boxes=10, points=3)
         assert inside < checked / 2, (inside, checked)
+
+
+def test_the_work_budget_counts_the_regressor_tape(setup):
+    """The certificate's box budget is work / tape operations per box: the hook's tape is part of a box's cost."""
+    from symfunnel.sx.tape import count_ops
+    _, _, _, fc = setup
+    F = fc.prob.F
+    hook = F.refine
+    with_hook = fc.prob.work_per_box()
+    F.refine = None
+    try:
+        without = fc.prob.work_per_box()
+    finally:
+        F.refine = hook
+    assert with_hook - without == count_ops(hook.F.function)["operations"] > 0
