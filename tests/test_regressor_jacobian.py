@@ -151,3 +151,50 @@ def test_the_work_budget_counts_the_regressor_tape(setup):
     finally:
         F.refine = hook
     assert with_hook - without == count_ops(hook.F.function)["operations"] > 0
+
+
+@pytest.mark.slow
+def test_small_dead_zone_with_projection_is_proven_at_m2_0002_and_boundary_runs_keep_s(monkeypatch):
+    """With D(tau) - tau written with tau once and the regressor columns, the e2 faces of paper_small_dead_zone
+    (projection = 2) close at m1 = 0.9, m2 = 0.002 (~100,000 boxes; the default budget, split over three margins,
+    does not reach it). The proven S, rebuilt from the design's own funnels and virtual control, is checked by runs
+    started on its boundary (corners of (s1, s2)) at the 16 corners of the mass box: none leaves S."""
+    import itertools
+
+    from symfunnel import api
+    from symfunnel.certificates import containment as C
+    from symfunnel.certificates import run_certificates
+    monkeypatch.setattr(C, "M1_GRID", (0.9,))
+    monkeypatch.setattr(C, "M2_GRID", (0.002,))
+    monkeypatch.setattr(C, "PROOF_ATTEMPTS", 1)
+    sc = load_scenario(str(SMALL_DZ)).replace({"adaptation.projection": 2.0})
+    d = derive(sc)
+    cert = run_certificates(sc, d, t_final=sc.simulation.t_final, only=("certify.containment",),
+                            work={"certify.containment": 2e8}).certificates[0]
+    assert cert.status == "proven", cert.detail
+    assert cert.extra["margin"] == {"e1": 0.9, "e2": 0.002}
+    c1, c2 = 0.1, 0.998
+    alpha2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+    bounds = d.function("funnel_bounds", ["t"], ["F1", "F2"])
+    F1_0, F2_0 = (np.asarray(v, float).ravel() for v in bounds(0.0))
+    qd0, dqd0, _ = (np.asarray(v, float).ravel() for v in d.reference(0.0))
+    corners = list(itertools.product((-1.0, 1.0), repeat=4))
+    masses = {"m1": (0.95, 1.05), "m2": (1.425, 1.575), "m3": (1.9, 2.1), "m4": (1.425, 1.575)}
+    worst = 0.0
+    for k, mc in enumerate(itertools.product((0, 1), repeat=4)):
+        s = np.array(corners[(5 * k) % 16])
+        q0 = qd0 + s[:2] * c1 * F1_0
+        dq0 = np.asarray(alpha2(0.0, q0, qd0, dqd0), float).ravel() + s[2:] * c2 * F2_0
+        ch = {f"plant.parameters.{m}": masses[m][b] for m, b in zip(masses, mc)}
+        ch.update({"uncertainty": None, "initial.q": q0.tolist(), "initial.dq": dq0.tolist(),
+                   "adaptation.projection": 2.0})
+        res = api.simulate(load_scenario(str(SMALL_DZ)).replace(ch), t_final=2.0)
+        assert res.status == "ok", res.message
+        q, dq = res.signals["q"], res.signals["dq"]
+        for i, ti in enumerate(res.t):
+            qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(ti))
+            F1, F2 = (np.asarray(v, float).ravel() for v in bounds(ti))
+            e2 = dq[i] - np.asarray(alpha2(ti, q[i], qd, dqd), float).ravel()
+            worst = max(worst, float(np.max(np.abs(q[i] - qd) / (c1 * F1))), float(np.max(np.abs(e2) / (c2 * F2))))
+    assert worst <= 1 + 1e-6, worst          # none leaves S, so none leaves the funnels
+    assert worst > 0.99                      # the runs did start on the boundary
