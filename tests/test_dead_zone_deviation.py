@@ -31,7 +31,9 @@ def _numpy_deviation(u, b_l, b_r, left, right):
 def test_the_deviation_equals_the_dead_zone_minus_tau_on_every_branch():
     cases = [("0.98*(u - b_l)", "1.02*(u - b_r)", lambda u: 0.98 * (u + 1.5), lambda u: 1.02 * (u - 1.0)),
              ("(u - b_l) + 0.0008*(u - b_l)^3", "1.1*(u - b_r) - 0.001*(u - b_r)^2",
-              lambda u: (u + 1.5) + 0.0008 * (u + 1.5) ** 3, lambda u: 1.1 * (u - 1.0) - 0.001 * (u - 1.0) ** 2)]
+              lambda u: (u + 1.5) + 0.0008 * (u + 1.5) ** 3, lambda u: 1.1 * (u - 1.0) - 0.001 * (u - 1.0) ** 2),
+             ("0.98*(u - b_l)", "(u - b_r) + 0.01*(1 - exp(-(u - b_r)))", lambda u: 0.98 * (u + 1.5),
+              lambda u: (u - 1.0) + 0.01 * (1 - np.exp(-(u - 1.0))))]
     rng = np.random.default_rng(2)
     for left, right, fl, fr in cases:
         sc = _scenario(left, right)
@@ -40,7 +42,7 @@ def test_the_deviation_equals_the_dead_zone_minus_tau_on_every_branch():
         g = ca.Function("direct", [tau], [plant_forces(sc, ca.SX.zeros(2), ca.SX.zeros(2), 0.0, tau, 0.0)
                                            ["tau_applied"] - tau])
         U = np.concatenate([rng.uniform(-50, 50, (200, 2)), rng.uniform(-1.5, 1.0, (50, 2)),
-                            rng.uniform(-4000, 4000, (50, 2))])
+                            rng.uniform(-400, 400, (50, 2))])
         for u in U:
             got = np.asarray(f(u), float).ravel()
             want = _numpy_deviation(u, -1.5, 1.0, fl, fr)
