@@ -59,7 +59,7 @@ def test_the_deviation_is_enclosed_without_taus_width_twice():
     lo, hi = np.array([[3000.0, -3100.0]]), np.array([[3100.0, -3000.0]])
     NL, NH, _ = new.eval_batch(lo, hi)
     OL, OH, _ = old.eval_batch(lo, hi)
-    # the true ranges: right branch 1.02 (tau - 1) - tau = 0.02 tau - 1.02; left 0.98 (tau + 1.5) - tau = 1.47 - 0.02 tau
+    # the true ranges: right 1.02 (tau - 1) - tau = 0.02 tau - 1.02; left 0.98 (tau + 1.5) - tau = 1.47 - 0.02 tau
     want_lo, want_hi = np.array([58.98, 61.47]), np.array([60.98, 63.47])
     assert np.all(NL[0] <= want_lo + 1e-9) and np.all(want_hi - 1e-9 <= NH[0])
     assert np.all(NH[0] - NL[0] <= 2.0 + 1e-9), (NL, NH)             # the true width 0.02 * 100

@@ -31,7 +31,8 @@ IDENTITY_RTOL = 1e-7
 IDENTITY_POINTS = 24
 
 
-def regressor_form(design, p: ca.SX, wide, adjugate: bool, through_e1: bool, t_final: float) -> tuple[ca.SX | None, ca.SX, str]:
+def regressor_form(design, p: ca.SX, wide, adjugate: bool, through_e1: bool,
+                   t_final: float) -> tuple[ca.SX | None, ca.SX, str]:
     """(Jp, N2, why): Jp (n x len(wide)) the regressor form of d n2/dp_wide (the uncertain parameters' columns) in
     the design's symbols, p and a symbol N2 (n) standing for n2 itself; (None, N2, why not) where the plant's applied
     torque depends on those parameters or the form does not reproduce AD's Jacobian of n2 at random points."""
@@ -59,9 +60,9 @@ def regressor_form(design, p: ca.SX, wide, adjugate: bool, through_e1: bool, t_f
 
 
 def _identity(design, p: ca.SX, wide, n2: ca.SX, Jp: ca.SX, N2: ca.SX, T: float) -> str:
-    """'' if AD's d n2/dp_wide equals the regressor form (N2 = n2) at random points of the funnel region (states
-    inside the funnels on [0, T], the uncertain parameters in [0.5, 1.5] times their nominal, the others nominal), else why
-    not."""
+    """'' if AD's d n2/dp_wide equals the regressor form (N2 = n2) at random points of the funnel region
+    (states inside the funnels on [0, T], the uncertain parameters in [0.5, 1.5] times their nominal, the others
+    nominal), else why not."""
     from ..plant.equations import plant_parameters
     sym = design.sym
     names = [k for k in sym]
