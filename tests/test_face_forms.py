@@ -46,16 +46,20 @@ def test_alpha2_dot_through_e1_is_the_designs_alpha2_dot():
         assert np.allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(b))), (a, b)
 
 
-def _proven_share(ctx, rewrite: bool, adjugate: bool = False, face: str = "e2 joint 1 +") -> float:
+def _proven_share(ctx, rewrite: bool, adjugate: bool = False, face: str = "e2 joint 1 +",
+                  deviation: bool = False) -> float:
     """The share of 200 random boxes (3 % of the face's width in every split coordinate) of the face at m1 = 0.9,
-    m2 = 0.05 on which the interval bound proves sign n < 0."""
-    saved = C.THROUGH_E1, C.ADJUGATE
+    m2 = 0.05 on which the interval bound proves sign n < 0 (`deviation`: D(tau) - tau in the form where tau
+    enters once, `region.DEAD_ZONE_DEVIATION`; off, each rewrite is measured on its own)."""
+    from symfunnel.certificates import region
+    saved = C.THROUGH_E1, C.ADJUGATE, region.DEAD_ZONE_DEVIATION
     C.THROUGH_E1 = rewrite
     C.ADJUGATE = adjugate
+    region.DEAD_ZONE_DEVIATION = deviation
     try:
         fc = C._Faces(ctx)
     finally:
-        C.THROUGH_E1, C.ADJUGATE = saved
+        C.THROUGH_E1, C.ADJUGATE, region.DEAD_ZONE_DEVIATION = saved
     d = ctx.design
     w, phi = projection_face(d)["w"], 7.15                    # sup ||Phi|| <= sqrt(51) (tanh states and a bias)
     W0 = np.zeros_like(d.variant.initial_states()["w_hat"])
@@ -84,6 +88,9 @@ def test_e2_face_boxes_are_proven_with_alpha2_dot_through_e1():
     adj = _proven_share(ctx, True, adjugate=True)
     two = _proven_share(ctx, True, face="e2 joint 2 +"), _proven_share(ctx, True, adjugate=True, face="e2 joint 2 +")
     assert adj > after + 0.05 and two[1] > two[0] + 0.05, (after, adj, two)
+    # D(tau) - tau with tau entering once: the e2 joint 2 boxes of 3 % too (25 % -> 99.5 % when written)
+    dev = _proven_share(ctx, True, adjugate=True, face="e2 joint 2 +", deviation=True)
+    assert dev > 0.9 and dev > two[1] + 0.3, (two, dev)
 
 
 def test_solve2_is_the_inverse():

@@ -47,6 +47,7 @@ import numpy as np
 from .problem import Budget, Context, RegionProblem, controller_state_boxes
 from .face_forms import normal_components
 from .projection_face import projection_face
+from .regressor_jacobian import RegressorColumns, regressor_form
 from .result import Certificate
 from ..sx.rewrite import replace_nodes
 from ..sx.search import extrema
@@ -59,6 +60,11 @@ ADJUGATE = True
 FACE_ORDER = 1
 #: alpha2_dot through e1 (`face_forms.alpha2_dot_through_e1`) where the design's alpha2 has that form
 THROUGH_E1 = True
+#: the e2 faces' p-columns of the mean-value Jacobian also by the regressor identity (`regressor_jacobian`): tighter
+#: boxes, but once D(tau) - tau is written with tau once, the sensitivity-driven splits then bisect the masses less
+#: and a whole proof takes more boxes (paper_small_dead_zone, projection 2, m2 = 0.002: 100,955 against 72,555), so
+#: it is available, not the default
+REGRESSOR = False
 #: the margins tried, in this order (the first proven is reported): e1's, then e2's
 M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
 M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.002, 0.1, 0.2, 0.5)
@@ -137,6 +143,13 @@ class _Faces:
             inputs = {"sgn": sgn}
         centered = (("w_hat",) if self.info.get("estimate") else ()) + tuple(inputs)
         self.prob = RegionProblem(ctx, exprs, p, "containment", centered=centered, extra=inputs, order=FACE_ORDER)
+        self.info["regressor"] = None
+        if REGRESSOR and self.prob.wide.size:
+            Jp, N2, why = regressor_form(d, p, self.prob.wide, ADJUGATE, THROUGH_E1, ctx.t_final)
+            self.info["regressor"] = why or "p-columns of n2 by -M_p^-1 (dM_p/dp ddq + dh_p/dp)"
+            if Jp is not None:
+                G = self.prob.F
+                G.refine = RegressorColumns(self.prob, Jp, N2, p, G.out_off[G.out_names.index("n2")])
         F = self.prob.F
         if inputs:
             args = ca.vertcat(*[v.dep(0) for v in nodes])

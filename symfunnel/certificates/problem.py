@@ -133,15 +133,18 @@ class RegionProblem:
 
     def work_per_box(self) -> int:
         """Tape operations one box costs the centered form: the function twice (box, center) and its Jacobian (of
-        a second-order form: the Jacobian twice and its own Jacobian)."""
+        a second-order form: the Jacobian twice and its own Jacobian), and a refine hook's tape per pass."""
         from ..sx.tape import count_ops
         from ..sx.batch import BatchCenteredForm
 
         def cost(F):
             f = count_ops(F.natural.function)["operations"]
             jac = getattr(F.jac, "inner", F.jac)
-            return 2 * f + (cost(jac) if isinstance(jac, BatchCenteredForm)
-                            else count_ops(jac.function)["operations"])
+            # a refine hook's own tape (e.g. the regressor columns) per pass
+            hook = getattr(getattr(F, "refine", None), "F", None)
+            extra = F.refine_passes * count_ops(hook.function)["operations"] if hook is not None else 0
+            return 2 * f + extra + (cost(jac) if isinstance(jac, BatchCenteredForm)
+                                    else count_ops(jac.function)["operations"])
         return cost(self.F)
 
     def initial_boxes(self, lo: np.ndarray, hi: np.ndarray, limit: int = 4096):

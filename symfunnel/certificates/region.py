@@ -25,7 +25,7 @@ import casadi as ca
 import numpy as np
 
 from ..core.errors import InputError
-from ..plant.equations import plant_acceleration, plant_parameters
+from ..plant.equations import dead_zone_deviation, plant_acceleration, plant_parameters
 from ..sx.branch import rigorous_range
 from ..sx.interval import IntervalFunction
 from ..sx.rewrite import replace_nodes
@@ -345,6 +345,10 @@ def structurally_zero(e: ca.SX) -> bool:
     return bool(replace_nodes([e], ca.SX(0, 1), ca.SX(0, 1))[0].is_zero())
 
 
+#: f_true's bracket with D(tau) - tau in the form where tau enters once (`plant.equations.dead_zone_deviation`)
+DEAD_ZONE_DEVIATION = True
+
+
 def true_unknown(design, p: ca.SX, width: float = 0.0, adjugate: bool = False, solve=None) -> dict[str, ca.SX]:
     """f_true = ddq_plant - ddq_nominal in the design's symbols and the plant's p (exact nonlinearities at width 0):
     what the plant adds to the nominal model under the design's torque, and the applied torque.
@@ -366,7 +370,9 @@ def true_unknown(design, p: ca.SX, width: float = 0.0, adjugate: bool = False, s
     pl = plant_acceleration(sc, q, dq, design.sym["t"], S["tau"], width, p=p)
     resid = S["tau"] - (ca.mtimes(S["M"], S["ddq"]) + ca.mtimes(S["C"], dq) + S["G"])
     if structurally_zero(resid):
-        rhs = ((pl["tau_applied"] - S["tau"]) + ca.mtimes(S["M"] - pl["M"], S["ddq"])
+        # D(tau) - tau in the form where tau enters once (`dead_zone_deviation`), at width 0
+        dev = dead_zone_deviation(sc, S["tau"], p) if DEAD_ZONE_DEVIATION and width == 0 else None
+        rhs = ((pl["tau_applied"] - S["tau"] if dev is None else dev) + ca.mtimes(S["M"] - pl["M"], S["ddq"])
                + ca.mtimes(S["C"] - pl["C"], dq) + (S["G"] - pl["G"]) - pl["friction"] - pl["disturbance"])
         f = (ca.solve(pl["M"], rhs) if design.n == 1 else solve(pl["M"], rhs) if solve is not None
              else solve2(pl["M"], rhs) if adjugate and design.n == 2 else ldl_solve(pl["M"], rhs))

@@ -271,6 +271,11 @@ class BatchCenteredForm:
         jac = BatchCenteredForm(jf, self.wrt, self.order - 1, prune=True) if self.order >= 2 \
             else BatchIntervalFunction(jf)
         self.jac = jac if cols.size == self.w_flat.size else _Columns(jac, cols, self.w_flat.size, self.n_out)
+        #: refine(LO, HI, L, H, JL, JH) -> (JL, JH): a hook that narrows entries of the Jacobian's enclosure
+        #: (K, n_w, n_out) given the outputs' enclosure (L, H) on the box (e.g. `certificates.regressor_jacobian`);
+        #: it must return a valid enclosure of df/dw on the box, which the form then uses `refine_passes` times
+        self.refine = None
+        self.refine_passes = 1
 
     def __getattr__(self, name):
         if name == "natural":
@@ -289,7 +294,7 @@ class BatchCenteredForm:
         if nw == 0:
             return (L, H, sw, np.zeros((K, self.n_out, 0))) if with_jacobian else (L, H, sw)
         JL, JH, _ = self.jac.eval_batch(LO, HI)
-        Jabs = np.maximum(np.abs(JL), np.abs(JH)).reshape(K, nw, self.n_out).transpose(0, 2, 1)   # column-major
+        JL, JH = JL.reshape(K, nw, self.n_out), JH.reshape(K, nw, self.n_out)      # column-major
         wl, wh = LO[:, self.w_flat], HI[:, self.w_flat]
         wm = np.where(wl == wh, wl, 0.5 * wl + 0.5 * wh)
         r = np.maximum(_up(wh - wm), _up(wm - wl))          # |w - w_m| <= r on the box, rounded up
@@ -297,15 +302,22 @@ class BatchCenteredForm:
         MLO[:, self.w_flat] = wm
         MHI[:, self.w_flat] = wm
         CL, CH, _ = F.eval_batch(MLO, MHI)
-        with np.errstate(all="ignore"):
-            spread = np.einsum("kij,kj->ki", Jabs, r)
-            spread = _up(spread * (1.0 + 4.0 * nw * 2.0 ** -52))      # the sum's rounding, outward
-            ML, MH = _dn(CL - spread), _up(CH + spread)
-        ok = (~sw)[:, None] & np.isfinite(L) & np.isfinite(H) & np.isfinite(ML) & np.isfinite(MH)
-        L2 = np.where(ok, np.maximum(L, ML), L)
-        H2 = np.where(ok, np.minimum(H, MH), H)
-        if np.any(L2 > H2):
-            raise IntervalError(f"{F.name!r}: the centered and natural enclosures are disjoint -- a rule is wrong")
+        L2, H2 = L, H
+        for k in range(1 + (self.refine_passes if self.refine is not None else 0)):
+            if k:
+                # another valid enclosure of some Jacobian entries, given the outputs' enclosure on the box
+                JL, JH = self.refine(LO, HI, L2, H2, JL, JH)
+            Jabs = np.maximum(np.abs(JL), np.abs(JH)).transpose(0, 2, 1)
+            with np.errstate(all="ignore"):
+                spread = np.einsum("kij,kj->ki", Jabs, r)
+                spread = _up(spread * (1.0 + 4.0 * nw * 2.0 ** -52))      # the sum's rounding, outward
+                ML, MH = _dn(CL - spread), _up(CH + spread)
+            ok = (~sw)[:, None] & np.isfinite(L) & np.isfinite(H) & np.isfinite(ML) & np.isfinite(MH)
+            L2 = np.where(ok, np.maximum(L2, ML), L2)
+            H2 = np.where(ok, np.minimum(H2, MH), H2)
+            if np.any(L2 > H2):
+                raise IntervalError(f"{F.name!r}: the centered and natural enclosures are disjoint -- a rule is "
+                                    "wrong")
         if with_jacobian:
             return L2, H2, sw, Jabs
         return L2, H2, sw
