@@ -25,7 +25,7 @@ CERTIFICATES = CERTIFY_CHECKS
 #: the deterministic work budget of each certificate, in tape operations x boxes (a certificate with a 600-operation
 #: tape gets ~80,000 boxes; a wall-clock limit can only stop a search earlier)
 DEFAULT_WORK = {"certify.input_gain": 4e7, "certify.bounds": 5e7, "certify.invariance": 5e7,
-                "certify.containment": 5e7, "certify.sampled": 5e7}     # containment's: sampled_rate.CONTAINMENT_WORK
+                "certify.containment": 1.5e8, "certify.sampled": 5e7}     # containment's: sampled_rate.CONTAINMENT_WORK
 #: the order they are computed in (bounds uses the set a containment or invariance certificate proves)
 _ORDER = ("certify.input_gain", "certify.invariance", "certify.containment", "certify.bounds")
 

@@ -36,7 +36,6 @@ of the simulated closed loop from its initial state; undecided otherwise (the fa
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections import deque
@@ -409,13 +408,16 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
     tried, attempts, boxes = [], 0, 0
     last_undecided = None
     w_of: dict[float, float] = {}          # the W_hat radius per c2 (sup ||G|| over S depends on the e2 margin)
-    for m1, m2 in itertools.product(M1_GRID, M2_GRID):
+    def screened(m1, m2):
+        """The row of (m1, m2) and, when S contains the initial state and the screen finds no outward point, what
+        a proof there needs (faces, W_hat radius, the screen's worst sampled values)."""
+        nonlocal boxes
         c1, c2 = 1.0 - m1, 1.0 - m2
         row = {"m1": m1, "m2": m2}
         tried.append(row)
         if not (np.all(r1 < c1) and np.all(r2 < c2)):
             row["result"] = f"the initial state is not in S ({note}: |e/F| up to {max(r1.max(), r2.max()):.4g})"
-            continue
+            return None
         states = controller_state_boxes(ctx, (np.zeros_like(init["w_hat"]), np.zeros_like(init["w_hat"]))
                                         if d.n_regressor else None)
         w = None
@@ -437,10 +439,10 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
             row["w"] = w
             if not math.isfinite(w):
                 row["result"] = "no finite bound of ||G|| on S"
-                continue
+                return None
             if not w0 < w:
                 row["result"] = f"||W_hat(0)|| = {w0:.4g} is not inside the W_hat ball of radius {w:.4g}"
-                continue
+                return None
             W0 = np.zeros_like(np.asarray(init["w_hat"], float))
             if fc.info.get("estimate"):        # W_hat's first row carries the estimate W_hat^T Phi
                 lo_w, hi_w = W0.copy(), W0.copy()
@@ -455,25 +457,55 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
         if bad is not None:
             row["result"] = f"outward at a sampled point of face {bad['face']['name']} (sign n = {bad['value']:.4g})"
             row["why"] = _why(fc, bad, w, w_what)
+            return None
+        return {"m1": m1, "m2": m2, "row": row, "faces": faces, "w": w, "sampled": sampled}
+
+    for m1 in M1_GRID:
+        cands = [c for c in (screened(m1, m2) for m2 in M2_GRID) if c is not None]
+        if not cands:
             continue
-        if attempts >= PROOF_ATTEMPTS or budget.expired():
-            row["result"] = "not attempted (budget)"
+        # the guarantee first: the smallest e2 margin the screen leaves (the faces nearest the funnel's edge, where
+        # its gain points the flow inward hardest) with all that is left of the budget; then, with what its proof
+        # left, the stronger margins in grid order -- the strongest proven is reported
+        easiest = min(cands, key=lambda c: c["m2"])
+        order = [easiest] + [c for c in cands if c is not easiest]
+        best = None
+        for k, c in enumerate(order):
+            row = c["row"]
+            if best is not None and c["m2"] <= best["m2"]:
+                row["result"] = f"not attempted (m2 = {best['m2']:g} is proven)"
+                continue
+            if attempts >= PROOF_ATTEMPTS or budget.expired() or budget.boxes - boxes < 256:
+                row["result"] = "not attempted (budget)"
+                continue
+            if k > 0 and best is None:
+                row["result"] = f"not attempted (the easiest margin m2 = {easiest['m2']:g} is not proven)"
+                continue
+            attempts += 1
+            faces = c["faces"]
+            split_of = [fc.split_indices(f["lo"], f["hi"]) for f in faces]
+            left = (budget.boxes - boxes) // (1 if k == 0 else max(1, PROOF_ATTEMPTS - attempts + 1))
+            res = _decide(F, faces, split_of, left, budget.seconds(0.5))
+            boxes += res["boxes"]
+            if res["status"] == "failed":
+                row["result"] = (f"outward at a point of face {res['face']['name']} found by the search (sign n = "
+                                 f"{res['value']:.4g})")
+                row["why"] = _why(fc, {"face": res["face"], "x": res["x"], "value": res["value"]}, c["w"], w_what)
+                continue
+            if res["status"] == "undecided":
+                row["result"] = f"undecided: {res['fraction']:.3g} of face {res['face']} left"
+                res["sampled_max"] = c["sampled"].get(res["face"])
+                if best is None and (last_undecided is None or res["fraction"] < last_undecided[3]["fraction"]):
+                    last_undecided = (c["m1"], c["m2"], c["w"], res)      # the attempt that got furthest
+                continue
+            row["result"] = f"proven ({res['boxes']} boxes)"
+            best = dict(c, boxes=res["boxes"], n_faces=len(faces))
+            if k > 0:
+                break
+        if best is None:
             continue
-        attempts += 1
-        split_of = [fc.split_indices(f["lo"], f["hi"]) for f in faces]
-        left = max(256, (budget.boxes - boxes) // max(1, PROOF_ATTEMPTS - attempts + 1))
-        res = _decide(F, faces, split_of, left, budget.seconds(0.5))
-        boxes += res["boxes"]
-        if res["status"] == "failed":
-            row["result"] = (f"outward at a point of face {res['face']['name']} found by the search (sign n = "
-                             f"{res['value']:.4g})")
-            row["why"] = _why(fc, {"face": res["face"], "x": res["x"], "value": res["value"]}, w, w_what)
-            continue
-        if res["status"] == "undecided":
-            row["result"] = f"undecided: {res['fraction']:.3g} of face {res['face']} left"
-            res["sampled_max"] = sampled.get(res["face"])
-            last_undecided = (m1, m2, w, res)
-            continue
+        m1, m2, w = best["m1"], best["m2"], best["w"]
+        c1, c2 = 1.0 - m1, 1.0 - m2
         region = {"kind": "proven_invariant", "t": [0.0, float(ctx.t_final)],
                   "e1": f"|e1| <= (1 - {m1:g}) F1(t)", "e2": f"|e2| <= (1 - {m2:g}) F2(t)",
                   "margin": {"e1": m1, "e2": m2}, "parameters": ctx.params.describe(),
@@ -482,7 +514,7 @@ def certify_containment(ctx: Context, budget: Budget) -> Certificate:
         detail = (f"the funnels are kept with margins m1 = {m1:g}, m2 = {m2:g} on [0, {ctx.t_final:g}] s for every "
                   f"plant of the parameter box: S = {{|e1| <= {c1:g} F1, |e2| <= {c2:g} F2"
                   + (f", ||W_hat||_F <= {w:.4g}" if w is not None else "") + "} is forward invariant "
-                  f"(every one of its {len(faces)} e-faces points inward, {res['boxes']} boxes) and contains "
+                  f"(every one of its {best['n_faces']} e-faces points inward, {best['boxes']} boxes) and contains "
                   f"{note}")
         return done("proven", detail, region=region, boxes=boxes, undecided_fraction=0.0,
                     extra={"margin": {"e1": m1, "e2": m2}, "w_bound": w, "horizon": "finite", "tried": tried,

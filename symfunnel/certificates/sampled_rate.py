@@ -25,7 +25,7 @@ RATE_REL_TOL = 0.1
 #: box budget
 WARM_QUEUE = 4
 #: the work budget of certify.containment when certify.sampled computes it (its budget in `certify`)
-CONTAINMENT_WORK = 5e7
+CONTAINMENT_WORK = 1.5e8
 #: the share of a wall-clock limit certify.containment may use when certify.sampled computes it
 CONTAINMENT_SHARE = 0.4
 #: boxes per period h tried (a deterministic budget; --wall-limit can only end a search earlier)
