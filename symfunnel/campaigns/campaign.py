@@ -397,11 +397,15 @@ def execute(job: Job, todo: list[int], on_rows, *, workers: int = 1, client=None
             running = set()
 
             def fill():
-                while sizer.ready() and len(running) < window:
-                    running.add(pool.submit(run_batch, *work(sizer.next())))
+                # submit starts worker processes (spawn: the parent writes each child's start-up data into a pipe);
+                # a signal landing there would close that pipe under a child that then dies printing a traceback,
+                # unregistered: deferred until the children are registered
+                with lifecycle.signals_deferred():
+                    while sizer.ready() and len(running) < window:
+                        running.add(pool.submit(run_batch, *work(sizer.next())))
+                    for pid in list(getattr(pool, "_processes", {}) or {}):
+                        lifecycle.register_child(pid)
             fill()
-            for pid in list(getattr(pool, "_processes", {}) or {}):
-                lifecycle.register_child(pid)
             while running:
                 done_now, running = cf.wait(running, timeout=0.5, return_when=cf.FIRST_COMPLETED)
                 lifecycle.check()
