@@ -28,7 +28,8 @@ Each face is one dimension lower than S (one normalised coordinate fixed); a bat
 (mean-value form in t, s, p; controller states as boxes, never split) proves sigma n < 0 on it or finds a point
 where the flow points outward (a failed certificate at that margin, not a counterexample of the loop). The initial
 state must lie in S (interval evaluation of e_i(0)/F_i(0), ||W_hat(0)||, x_esn(0)). Margins are tried in a fixed
-order (M_GRID) within a deterministic budget; a cheap screen of sampled face points discards margins first.
+order within a deterministic budget: a cheap screen of sampled face points discards margins first; then, per e1
+margin, the smallest surviving e2 margin (the guarantee) with all that is left, then the stronger ones.
 
 Outcomes: proven (m1, m2, w, the horizon [0, T] -- "finite" --, the parameter box); refuted only by a real breach
 of the simulated closed loop from its initial state; undecided otherwise (the face left and the fraction of it).
@@ -64,7 +65,8 @@ THROUGH_E1 = True
 #: and a whole proof takes more boxes (paper_small_dead_zone, projection 2, m2 = 0.002: 100,955 against 72,555), so
 #: it is available, not the default
 REGRESSOR = False
-#: the margins tried, in this order (the first proven is reported): e1's, then e2's
+#: the margins: e1's in this order; per e1 margin the smallest e2 margin the screen leaves is attempted first, then
+#: the others in this order with what its proof left (the strongest proven is reported)
 M1_GRID = (0.9, 0.8, 0.5, 0.3, 0.1)
 M2_GRID = (0.05, 0.02, 0.01, 0.005, 0.002, 0.1, 0.2, 0.5)
 #: sampled points per face in the screen that discards a margin before any branch and bound
