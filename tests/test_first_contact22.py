@@ -225,19 +225,30 @@ def test_the_gradient_path_is_chosen_by_the_problems_size_not_a_timing():
 
 
 @pytest.mark.slow
-def test_tune_keeps_its_wall_limit_even_when_an_evaluation_is_long(tmp_path, capsys):
+def test_tune_keeps_its_wall_limit_even_when_an_evaluation_is_long(tmp_path):
+    """`tune --wall-limit 12` ends within the limit and a few seconds, as its own process: where the main thread is
+    inside a call it cannot leave when the limit comes (a loaded machine), the watchdog stops the process 1 s after
+    it with its one line -- in-process that took the test worker down with it. When the command unwinds itself, its
+    JSON says the limit ended it and that the result is timing-dependent (issue 43); the tail kept for that before
+    the limit is tested deterministically below."""
     import json
-    from symfunnel.cli import main
+    import subprocess
+    import sys
     limit = 12.0
+    out = tmp_path / "t.toml"
     t0 = time.monotonic()
-    code = main(["tune", "paper", "--wall-limit", str(limit), "--json", "--method", "derivative-free",
-                 "--out", str(tmp_path / "t.toml")])
+    p = subprocess.run([sys.executable, "-m", "symfunnel", "tune", "paper", "--wall-limit", str(limit), "--json",
+                        "--method", "derivative-free", "--out", str(out)], capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)
     wall = time.monotonic() - t0
-    res = json.loads(capsys.readouterr().out)
-    assert code in (0, 1) and wall <= limit + 5.0, wall
-    assert any("wall-clock limit" in n for n in res["notes"])
-    # the limit, not a count, ended it: the result says it is timing-dependent (issue 43)
-    assert res["timing_dependent"] is True and any("timing-dependent" in n for n in res["notes"])
+    assert p.returncode in (0, 1) and wall <= limit + 5.0, (wall, p.stderr[-300:])
+    if p.stdout.strip():
+        res = json.loads(p.stdout)
+        assert any("wall-clock limit" in n for n in res["notes"])
+        assert res["timing_dependent"] is True and any("timing-dependent" in n for n in res["notes"])
+    else:
+        assert p.returncode == 1 and p.stderr.strip().splitlines()[-1].startswith("symfunnel: timeout"), p.stderr
+        assert not out.exists() and not list(tmp_path.glob("*.tmp"))
 
 
 @pytest.mark.slow
