@@ -349,7 +349,7 @@ def structurally_zero(e: ca.SX) -> bool:
 DEAD_ZONE_DEVIATION = True
 
 
-def true_unknown(design, p: ca.SX, width: float = 0.0, adjugate: bool = False, solve=None) -> dict[str, ca.SX]:
+def true_unknown(design, p: ca.SX, width: float = 0.0, solve=None) -> dict[str, ca.SX]:
     """f_true = ddq_plant - ddq_nominal in the design's symbols and the plant's p (exact nonlinearities at width 0):
     what the plant adds to the nominal model under the design's torque, and the applied torque.
 
@@ -359,11 +359,10 @@ def true_unknown(design, p: ca.SX, width: float = 0.0, adjugate: bool = False, s
     same function is
         f_true = M_p^-1 ((D(tau) - tau) + (M - M_p) ddq_nom + (C - C_p) dq + (G - G_p) - friction - d),
     whose terms are small where the plant is close to the model (exactly 0 where it equals it); otherwise (a mutant
-    design, another variant) the direct form is used. `form` says which. `adjugate`: for two joints, M_p^-1 by its
-    adjugate (`sx.linalg.solve2`; narrower enclosures than LDL^T on the faces of `certify.containment`); `solve`:
-    another form of M_p^-1 rhs (for three or more joints).
+    design, another variant) the direct form is used. `form` says which. `solve`: another form of M_p^-1 rhs than
+    LDL^T (`face_forms.solver_form`: the adjugate for two joints, a pivot order or a preconditioner for more).
     """
-    from ..sx.linalg import ldl_solve, solve2
+    from ..sx.linalg import ldl_solve
     sc = design.scenario
     S = design.signals
     q, dq = design.sym["q"], design.sym["dq"]
@@ -374,7 +373,6 @@ def true_unknown(design, p: ca.SX, width: float = 0.0, adjugate: bool = False, s
         dev = dead_zone_deviation(sc, S["tau"], p) if DEAD_ZONE_DEVIATION and width == 0 else None
         rhs = ((pl["tau_applied"] - S["tau"] if dev is None else dev) + ca.mtimes(S["M"] - pl["M"], S["ddq"])
                + ca.mtimes(S["C"] - pl["C"], dq) + (S["G"] - pl["G"]) - pl["friction"] - pl["disturbance"])
-        f = (ca.solve(pl["M"], rhs) if design.n == 1 else solve(pl["M"], rhs) if solve is not None
-             else solve2(pl["M"], rhs) if adjugate and design.n == 2 else ldl_solve(pl["M"], rhs))
+        f = ca.solve(pl["M"], rhs) if design.n == 1 else (solve or ldl_solve)(pl["M"], rhs)
         return {"f_true": f, "tau_applied": pl["tau_applied"], "form": "inverse dynamics"}
     return {"f_true": pl["ddq"] - S["ddq"], "tau_applied": pl["tau_applied"], "form": "direct"}

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..sx.batch import BatchIntervalFunction
 from ..sx.interval import IntervalError
-from .face_forms import alpha2_dot_through_e1, normal_components
+from .face_forms import alpha2_dot_through_e1, normal_components, solver_form
 from .region import region_signals
 
 #: relative tolerance of the identity check at random points (the two forms differ by rounding only)
@@ -37,7 +37,7 @@ def regressor_form(design, p: ca.SX, wide, adjugate: bool, through_e1: bool,
     the design's symbols, p and a symbol N2 (n) standing for n2 itself; (None, N2, why not) where the plant's applied
     torque depends on those parameters or the form does not reproduce AD's Jacobian of n2 at random points."""
     from ..plant.equations import plant_acceleration
-    from ..sx.linalg import ldl_solve, solve2
+    from ..sx.linalg import ldl_solve
     S, sym, n = design.signals, design.sym, design.n
     N2 = ca.SX.sym("N2", n)
     pl = plant_acceleration(design.scenario, sym["q"], sym["dq"], sym["t"], S["tau"], 0.0, p=p)
@@ -50,7 +50,7 @@ def regressor_form(design, p: ca.SX, wide, adjugate: bool, through_e1: bool,
     A = ca.SX.sym("A", n)
     Y = ca.jacobian(ca.mtimes(pl["M"], A) + ca.mtimes(pl["C"], sym["dq"]) + pl["G"] + pl["friction"]
                     + pl["disturbance"], pw)
-    solve = solve2 if (n == 2 and adjugate) else ldl_solve
+    solve = solver_form(design, adjugate, pivots=False)[0] or ldl_solve      # the faces' own form of M_p^-1
     Jp = -ca.horzcat(*[(ca.solve(pl["M"], Y[:, k]) if n == 1 else solve(pl["M"], Y[:, k]))
                        for k in range(pw.numel())])
     Jp = ca.substitute(Jp, A, ddq)
