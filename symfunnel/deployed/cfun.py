@@ -44,3 +44,14 @@ def _compiled(f: ca.Function, on_build=None) -> _CFun:
     built = compile_cached({f.name() + ".c": src}, [f.name() + ".c"], f"lib{f.name()}.so", SHARED_FLAGS,
                            on_build=on_build)
     return _CFun(built.path, f.name(), f)
+
+
+def link_step(core: str, api: str, header: tuple[str, str], output: str, on_build=None):
+    """Compile (cached) a generated C pair split at the step API: `core` (the CasADi part, which no rate changes)
+    to an object once, then `api` with the header (name, text) linked against it into the shared library `output`;
+    the `Built` of that library."""
+    from ..core.ccompile import SHARED_FLAGS, compile_cached
+    obj = compile_cached({"core.c": core}, ["core.c"], "core.o",
+                         tuple(f for f in SHARED_FLAGS if f != "-shared") + ("-c",), libs=(), on_build=on_build)
+    return compile_cached({"api.c": api, header[0]: header[1], "core.o": obj.path.read_bytes()},
+                          ["api.c", "core.o"], output, SHARED_FLAGS, on_build=on_build)

@@ -33,6 +33,7 @@ import numpy as np
 from ..core.errors import InputError
 from ..core.text import reached
 from .cfun import _CFun, _compiled
+from .step_lib import MARK, StepLibrary, step_library
 from ..simulation.between import margin_function
 
 if TYPE_CHECKING:
@@ -44,9 +45,6 @@ if TYPE_CHECKING:
 __all__ = ["SampledResult", "StepLibrary", "simulate_sampled", "plant_step_function", "step_library",
            "plant_substeps"]
 
-_dp = ctypes.POINTER(ctypes.c_double)
-#: First line of the step API's part of a generated .c file (templates/step.c).
-MARK = "/* ---- The deployed controller (see"
 
 
 @dataclass
@@ -160,78 +158,6 @@ class SampledResult:
                 "t_min_margin_e1_after_transient": t1, "t_min_margin_e2_after_transient": t2}
 
 
-class StepLibrary:
-    """The compiled step API (`<P>state_size`, `<P>init`, `<P>step`) of generated C, called through ctypes."""
-
-    def __init__(self, path, prefix: str, n: int, n_esn: int, n_w: int):
-        self.lib = ctypes.CDLL(str(path))
-        self.n, self.n_esn, self.n_w = n, n_esn, n_w
-        self._size = getattr(self.lib, prefix + "state_size")
-        self._init = getattr(self.lib, prefix + "init")
-        self._step = getattr(self.lib, prefix + "step")
-        self._size.restype = ctypes.c_int
-        self._init.restype = ctypes.c_int
-        self._step.restype = ctypes.c_int
-        self._step.argtypes = [ctypes.c_void_p, ctypes.c_double, _dp, _dp, _dp]
-        self.state = np.zeros((self._size() + 7) // 8)            # doubles first: aligned storage
-        self._state_p = self.state.ctypes.data
-        self.q, self.dq, self.tau = np.zeros(n), np.zeros(n), np.zeros(n)
-        self._ptrs = tuple(a.ctypes.data_as(_dp) for a in (self.q, self.dq, self.tau))
-        self.init()
-
-    def init(self) -> int:
-        """Pinit: the scenario's initial controller state."""
-        return self._init(ctypes.c_void_p(self._state_p))
-
-    @property
-    def x_esn(self) -> np.ndarray:
-        """A view of the state's reservoir (writable)."""
-        return self.state[:self.n_esn]
-
-    @property
-    def w_hat(self) -> np.ndarray:
-        """A view of the state's weights, column-major (writable)."""
-        return self.state[self.n_esn:self.n_esn + self.n_w]
-
-    @property
-    def margin(self) -> np.ndarray:
-        """The margins of the last step: e1 then e2 per joint."""
-        o = self.n_esn + self.n_w
-        return self.state[o:o + 2 * self.n]
-
-    def raw(self):
-        """(function, state pointer, (q, dq, tau) pointers): rc = function(state, t, *pointers) on the buffers."""
-        return self._step, self._state_p, self._ptrs
-
-    def step(self, t: float, q, dq) -> tuple[int, np.ndarray]:
-        """Pstep at (t, q, dq): (return code, tau)."""
-        self.q[:] = q
-        self.dq[:] = dq
-        rc = self._step(self._state_p, t, *self._ptrs)
-        return rc, self.tau.copy()
-
-
-def step_library(design, files: dict[str, str], on_build=None) -> StepLibrary:
-    """Compile (cached) the generated C pair of `files` as a shared library and wrap its step API."""
-    import json
-
-    from ..emit.files import c_names
-    from ..core.ccompile import SHARED_FLAGS, compile_cached
-    base = c_names(files)[0]
-    api = json.loads(files["manifest.json"])["c_api"]["step"]
-    # The file's CasADi part does not depend on the rate (only the step API's constants after MARK do): compile
-    # it once to an object, then link the rest, so a rate search compiles the big part once.
-    text, hdr = files[base + ".c"], files[base + ".h"]
-    cut = text.index(MARK)
-    obj = compile_cached({"core.c": text[:cut]}, ["core.c"], "core.o",
-                         tuple(f for f in SHARED_FLAGS if f != "-shared") + ("-c",), libs=(), on_build=on_build)
-    built = compile_cached({"api.c": text[cut:], base + ".h": hdr, "core.o": obj.path.read_bytes()},
-                           ["api.c", "core.o"], f"lib{base}_step.so", SHARED_FLAGS, on_build=on_build)
-    from ..emit.step import step_states
-    x_esn, w_hat = step_states(design)        # the design's, or the placeholders the step API keeps at 0
-    return StepLibrary(built.path, api["prefix"], design.n, int(x_esn.numel()), int(w_hat.numel()))
-
-
 def plant_substeps(scenario, h: float) -> int:
     """RK4 steps per period (a power of 2): h / substeps inside RK4's stability interval for the stiffest term.
 
@@ -315,13 +241,14 @@ def plant_step_function(scenario, substeps: int, name: str = "sfs_plant", design
 def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | None = None,
                      t_final: float | None = None, progress: Callable[[str], None] | None = None,
                      stop_on_breach: bool = True, controller=None, engine: str | None = None,
-                     plant=None) -> SampledResult:
+                     plant=None, search_build: bool = False) -> SampledResult:
     """Run the sampled-data loop (see the module doc) to t_final; stops at the first sample outside a funnel.
 
     `controller` replaces the compiled C step by any object with `init()`, buffers `q`, `dq`, `tau` and
     `raw()` like StepLibrary's (the bench's CasADi-VM baseline; symfunnel's plant only). `engine` chooses the plant
     ("symfunnel" or "mujoco", default the scenario's `[plant] engine`; `deployed.engine` for MuJoCo), `plant` (an
     `engine.EngineRunPlant`) overrides an engine run's plant quantities and initial state (a sweep's run).
+    `search_build` runs the rate searches' build of the same C (`deployed.rate_step`: compiled once for every rate).
     """
     from ..emit.files import generate
     from ..scenario.implementation import implementation_of
@@ -342,7 +269,10 @@ def simulate_sampled(scenario: Scenario, design: Design, *, rate_hz: float | Non
                      key=("--t-final" if t_final is not None else "simulation.t_final")
                      + f" at {impl.rate_hz:g} Hz", file=None if t_final is not None else sc.file)
     K = int(math.floor(T * impl.rate_hz + 1e-9))
-    if controller is None:
+    if controller is None and search_build:
+        from .rate_step import search_step
+        controller = search_step(design, impl.rate_hz, impl.tau_max, on_build=say)
+    elif controller is None:
         files = generate(design, "c", rate_hz=impl.rate_hz, tau_max=impl.tau_max)
         controller = step_library(design, files, on_build=say)
     controller.init()

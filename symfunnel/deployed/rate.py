@@ -50,7 +50,8 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
                          key="plant.mujoco.timestep", expected="plant.mujoco.substeps (steps per period) for `rate`")
 
     def holds(rate: float) -> bool:
-        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, **on_engine)
+        # the search build: the generated C once for every rate, the period's weights set per run (rate_step)
+        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, search_build=True, **on_engine)
         # holds: the run reaches the horizon inside both funnels with margin >= M after the transient (the margin
         # at t = 0 is the initial condition's, the same at every rate)
         mt = res.min_margin_after_transient

@@ -162,9 +162,13 @@ def _c_array(values) -> str:
     return ", ".join(repr(float(v)) for v in np.ravel(values)) or "0.0"
 
 
-def c_step_files(design, *, prefix: str, fprefix: str, basename: str, rate_hz: float, tau_max,
+def c_step_files(design, *, prefix: str, fprefix: str, basename: str, rate_hz: float | None, tau_max,
                  x0: np.ndarray, w0: np.ndarray) -> tuple[str, str]:
-    """(C source, header section) of the Pstep API around the generated `<fprefix>step_core`."""
+    """(C source, header section) of the Pstep API around the generated `<fprefix>step_core`.
+
+    rate_hz None gives the rate searches' build (`deployed.rate_step`): the same text except that the weights
+    `<prefix>etd_` are a writable global the caller sets per rate (not a static const baked at one rate) and the
+    rate's places (a comment, `<P>RATE_HZ`, which no code uses) read 0.0, so that one object serves every rate."""
     from .c import template
     n = design.n
     x_esn, w_hat = step_states(design)
@@ -175,21 +179,27 @@ def c_step_files(design, *, prefix: str, fprefix: str, basename: str, rate_hz: f
         "@N@": str(n), "@NESN@": str(N), "@NREG@": str(nr), "@NW@": str(nr * n),
         "@RESN@": str(int(design.sym["x_esn"].numel()) if "x_esn" in design.sym else 0),
         "@RREG@": str(int(design.sym["w_hat"].shape[0]) if "w_hat" in design.sym else 0),
-        "@RATE@": repr(float(rate_hz)), "@SCENARIO@": design.scenario.name,
+        "@RATE@": repr(float(rate_hz)) if rate_hz is not None else "0.0", "@SCENARIO@": design.scenario.name,
         "@X0@": _c_array(x0), "@W0@": _c_array(np.asarray(w0).reshape(-1, order="F")),
         "@TAUMAX@": ("no saturation (the scenario sets no tau_max)" if tau_max is None else
                      "saturated at tau_max = [" + ", ".join(f"{v:g}" for v in
                                                              np.broadcast_to(np.asarray(tau_max, float), (n,)))
                      + "] N m"),
         "@CLIP@": repr(CLIP),
-        "@ETD@": _c_array(etd_factors(design.scenario, rate_hz)),
+        "@ETD@": _c_array(etd_factors(design.scenario, rate_hz) if rate_hz is not None else (0.0, 0.0)),
     }
 
     def fill(text: str) -> str:
         for k, v in sub.items():
             text = text.replace(k, v)
         return text
-    return fill(template("step.c")), fill(template("step.h"))
+    src = fill(template("step.c"))
+    if rate_hz is None:
+        baked = f"static const double {prefix}etd_[2] = "
+        if src.count(baked) != 1:
+            raise AssertionError(f"templates/step.c: expected one '{baked}'")
+        src = src.replace(baked, f"double {prefix}etd_[2] = ")
+    return src, fill(template("step.h"))
 
 
 #: Unit of every named input/output of the generated functions (revolute joints; prismatic: m for rad).

@@ -1,0 +1,91 @@
+"""The rate searches' build of the step API (deployed.rate_step): the shipped C text with the period's weights set
+at run time, compiled once for every rate of a search. Its runs must be the shipped build's bit for bit at each rate,
+its text the shipped text but for the rate's own lines, and a search must compile the step API once."""
+
+from __future__ import annotations
+
+import difflib
+
+import numpy as np
+import pytest
+
+from symfunnel.core import ccompile
+from symfunnel.deployed import rate as R
+from symfunnel.deployed.loop import simulate_sampled
+from symfunnel.deployed.rate_step import RateStep, search_sources, search_step
+from symfunnel.emit.files import generate
+from symfunnel.deployed import rate_step
+from symfunnel.emit.step import etd_factors, step_settings
+
+T = 0.6           # a short horizon: a few hundred periods of the paper's 2-joint loop
+
+
+def _arrays(res):
+    return {k: getattr(res, k) for k in ("t", "q", "dq", "tau", "margins", "between_margins", "e1")}
+
+
+@pytest.mark.parametrize("rate", [400.0, 1733.3])
+def test_the_search_build_runs_the_shipped_build_bit_for_bit(paper, paper_design, rate):
+    shipped = simulate_sampled(paper, paper_design, rate_hz=rate, t_final=T)
+    # another rate's step of the same build first: the weights are one global of the library, set per instance
+    other = search_step(paper_design, 3 * rate, None)
+    searched = simulate_sampled(paper, paper_design, rate_hz=rate, t_final=T, search_build=True)
+    simulate_sampled(paper, paper_design, rate_hz=3 * rate, t_final=T, controller=other)
+    again = simulate_sampled(paper, paper_design, rate_hz=rate, t_final=T, search_build=True)
+    assert shipped.tau.shape[0] == int(T * rate + 1e-9)
+    for name, a in _arrays(shipped).items():
+        for run in (searched, again):
+            np.testing.assert_array_equal(getattr(run, name), a, err_msg=name)    # NaN where NaN, else equal bits
+    assert (searched.status, searched.breach) == (shipped.status, shipped.breach)
+
+
+def test_the_weights_decide_the_run_so_the_comparison_above_can_fail(paper, paper_design):
+    """The same build at 400 Hz with the weights of 1200 Hz: another x_esn / W_hat update, another torque."""
+    wrong = search_step(paper_design, 1200.0, None)
+    wrong.etd = etd_factors(paper, 1200.0)
+    right = simulate_sampled(paper, paper_design, rate_hz=400.0, t_final=T, search_build=True)
+    bad = simulate_sampled(paper, paper_design, rate_hz=400.0, t_final=T, controller=wrong)
+    assert not np.array_equal(right.tau, bad.tau)
+    assert isinstance(wrong, RateStep) and wrong.etd != etd_factors(paper, 400.0)
+
+
+def test_the_search_text_is_the_shipped_text_but_for_the_rates_lines(paper_design):
+    rate_hz, tau_max = step_settings(paper_design)           # the scenario's, else the defaults: what ships
+    src = search_sources(paper_design, tau_max)
+    files = generate(paper_design, "c", rate_hz=rate_hz, tau_max=tau_max)
+    hdr = next(k for k in src if k.endswith(".h"))
+    base = hdr[:-2]
+    assert files[base + ".c"] == src["core.c"] + src["shipped_api.c"]          # the shipped text, split
+    rate = repr(float(rate_hz))
+    for shipped, searched in ((src["shipped_api.c"], src["api.c"]), (files[hdr], src[hdr])):
+        diff = [d for d in difflib.ndiff(shipped.splitlines(), searched.splitlines()) if d[:2] in ("- ", "+ ")]
+        removed = [d[2:] for d in diff if d.startswith("- ")]
+        added = [d[2:] for d in diff if d.startswith("+ ")]
+        assert removed and len(removed) == len(added)
+        # every changed line of the shipped text carries the rate or its weights; the search's reads 0.0 there
+        phi = [repr(v) for v in etd_factors(paper_design.scenario, rate_hz)]
+        assert all(rate in line or all(p in line for p in phi) for line in removed), removed
+        assert all(rate not in line for line in added), added
+    etd = [line for line in src["api.c"].splitlines() if "etd_[2] =" in line]
+    assert etd == ["double symfunnel_etd_[2] = {0.0, 0.0};"]
+
+
+def test_a_rate_search_compiles_the_step_api_once(paper, paper_design, tmp_path, monkeypatch):
+    """A fresh compile cache: the old search linked the step API once per rate tried."""
+    monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path))
+    monkeypatch.setattr(rate_step, "_BUILT", [])           # nor this process's earlier search builds
+    runs = []
+    real = ccompile.run_compiler
+
+    def counted(cmd, **kw):
+        runs.append(cmd)
+        return real(cmd, **kw)
+    monkeypatch.setattr(ccompile, "run_compiler", counted)
+    r = R.min_rate(paper, paper_design, t_final=T, start=3000.0)
+    api = [c for c in runs if "api.c" in c]
+    assert len(r["tried"]) >= 4 and r["min_rate_hz"] is not None
+    assert len(api) == 1, [c[c.index("-o") + 1] for c in api]
+    # and the rates it found are those of the shipped build at each rate it tried
+    for d in r["tried"][:2]:
+        res = simulate_sampled(paper, paper_design, rate_hz=d["rate_hz"], t_final=T)
+        assert res.min_margin == d["min_margin"] and res.status == d["status"]
