@@ -74,7 +74,7 @@ def run_certificates(scenario, design, *, t_final: float, W_star=None, w_star_in
         ctx.results[cid] = done[cid]
         say(f"{cid}: {done[cid].status} ({done[cid].seconds:.1f} s, {done[cid].boxes} boxes)")
     certs = [done[c] for c in CERTIFICATES + CERTIFY_ON_DEMAND if c in done]
-    return Certification(scenario.name, certs, seconds=time.monotonic() - t0, wall_limit=wall_limit)
+    return Certification(scenario.name, certs, seconds=time.monotonic() - t0, wall_limit=wall_limit, context=ctx)
 
 
 def _regular_on(scenario, t_final: float) -> None:

@@ -96,6 +96,8 @@ class Certification:
     certificates: list[Certificate]
     seconds: float = 0.0
     wall_limit: float | None = None
+    #: the problem.Context they were computed in (not serialised): what a later certificate may reuse them for
+    context: object = field(default=None, repr=False, compare=False)
 
     def checks(self, scenario=None) -> list[CheckResult]:
         """The certificates as checks (findings about an argument demoted to warn unless the scenario declares

@@ -256,15 +256,44 @@ def simulated_w_hat_range(design, closed_loop, result):
     return (np.min(wh, axis=0), np.max(wh, axis=0))
 
 
+def same_problem(a: Context, b: Context) -> bool:
+    """Whether two contexts pose certify.containment the same problem: the same scenario and design (objects), the
+    same horizon and the same parameter and initial-state box, value for value (W* and the W_hat range, which
+    containment does not read, may differ)."""
+    def eq(x, y):
+        if x is None or y is None:
+            return x is None and y is None
+        return all(np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(x, y)) and len(x) == len(y)
+    p, q = a.params, b.params
+    return (a.scenario is b.scenario and a.design is b.design and float(a.t_final) == float(b.t_final)
+            and list(p.names) == list(q.names) and list(p.uncertain) == list(q.uncertain)
+            and eq((p.nominal, p.lo, p.hi), (q.nominal, q.lo, q.hi)) and eq(p.q0, q.q0) and eq(p.dq0, q.dq0))
+
+
+def reuse_containment(ctx: Context, prior: Context | None) -> bool:
+    """Put `prior`'s certify.containment into ctx when it is proven or undecided for the same problem
+    (`same_problem`), so that choose_set does not compute it again; a refutation (from `prior`'s simulated breach,
+    which ctx does not hold) is not reused. True when reused."""
+    from .containment import CID as CONTAINMENT
+    c = None if prior is None else prior.results.get(CONTAINMENT)
+    if c is None or c.status not in ("proven", "undecided") or not same_problem(ctx, prior):
+        return False
+    ctx.results[CONTAINMENT] = c
+    return True
+
+
 def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=None,
                     f_sim: float | None = None, w_hat_range=None, wall_limit: float | None = None,
-                    work: float = 5e7, progress=None) -> dict:
+                    work: float = 5e7, progress=None, prior: Context | None = None) -> dict:
     """`rate --certify`'s additions: {"proven_rate_hz", "theory_rate_hz", "ratio" (proven / simulated),
     "certificate", "sampled_run_at_proven"} -- the last a sampled run of the generated C step at f_proven from the
-    scenario's initial state, which a proof must never contradict (a breach there would refute the certificate)."""
+    scenario's initial state, which a proof must never contradict (a breach there would refute the certificate).
+    `prior`: the context of certificates already computed (a report's), whose containment is reused when it poses
+    the same problem (`reuse_containment`)."""
     from ..deployed.loop import simulate_sampled
     from .region import parameter_box
     ctx = Context(scenario, design, float(t_final), parameter_box(scenario), None, w_hat_range)
+    reuse_containment(ctx, prior)
     expiry = None if wall_limit is None else time.monotonic() + float(wall_limit)
     impl = getattr(scenario, "implementation", None)
     tau_max = impl.tau_max if impl is not None else None

@@ -49,10 +49,14 @@ def rate_bracket(run, r: dict, *, wall_limit: float | None = None, progress=None
     wall_limit = BRACKET_WALL_LIMIT if wall_limit is None else wall_limit
     f_sim = r.get("min_rate_hz")
     hz = (lambda v: "-" if v is None else f"{v:.6g}")      # the rates as `rate --certify` prints them
+    # the certificates the report already computed (not computed here when it did not): their containment is
+    # reused when it is for the same problem (sampled_rate.reuse_containment)
+    prior = getattr(run.__dict__.get("certification"), "context", None)
     try:
         b = sampled_bracket(run.scenario, run.design, t_final=run.t_final, margin=r["margin"],
                             set_margin=None, f_sim=f_sim, wall_limit=wall_limit, progress=progress,
-                            w_hat_range=simulated_w_hat_range(run.design, run.closed_loop, run.simulation))
+                            w_hat_range=simulated_w_hat_range(run.design, run.closed_loop, run.simulation),
+                            prior=prior)
     except Exception as exc:  # noqa: BLE001 - the report says why, instead of failing as a whole
         return {"available": False, "reason": f"{type(exc).__name__}: {exc}"}
     c = b["certificate"]
