@@ -9,12 +9,9 @@ import difflib
 import numpy as np
 import pytest
 
-from symfunnel.core import ccompile
-from symfunnel.deployed import rate as R
 from symfunnel.deployed.loop import simulate_sampled
 from symfunnel.deployed.rate_step import RateStep, search_sources, search_step
 from symfunnel.emit.files import generate
-from symfunnel.deployed import rate_step
 from symfunnel.emit.step import etd_factors, step_settings
 
 T = 0.6           # a short horizon: a few hundred periods of the paper's 2-joint loop
@@ -70,22 +67,14 @@ def test_the_search_text_is_the_shipped_text_but_for_the_rates_lines(paper_desig
     assert etd == ["double symfunnel_etd_[2] = {0.0, 0.0};"]
 
 
-def test_a_rate_search_compiles_the_step_api_once(paper, paper_design, tmp_path, monkeypatch):
-    """A fresh compile cache: the old search linked the step API once per rate tried."""
-    monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path))
-    monkeypatch.setattr(rate_step, "_BUILT", [])           # nor this process's earlier search builds
-    runs = []
-    real = ccompile.run_compiler
-
-    def counted(cmd, **kw):
-        runs.append(cmd)
-        return real(cmd, **kw)
-    monkeypatch.setattr(ccompile, "run_compiler", counted)
-    r = R.min_rate(paper, paper_design, t_final=T, start=3000.0)
-    api = [c for c in runs if "api.c" in c]
-    assert len(r["tried"]) >= 4 and r["min_rate_hz"] is not None
-    assert len(api) == 1, [c[c.index("-o") + 1] for c in api]
-    # and the rates it found are those of the shipped build at each rate it tried
-    for d in r["tried"][:2]:
-        res = simulate_sampled(paper, paper_design, rate_hz=d["rate_hz"], t_final=T)
-        assert res.min_margin == d["min_margin"] and res.status == d["status"]
+def test_a_rate_search_compiles_the_step_api_once_and_finds_what_the_per_rate_build_finds(paper, paper_design):
+    """From an empty compile cache each (bench.rate_search.cold_search): the previous search linked the step API
+    once per rate tried; the search build links it once, and every rate, status and margin is the same."""
+    from symfunnel.bench.rate_search import cold_search
+    _, old_runs, old = cold_search(paper, paper_design, search_build=False, t_final=T)
+    _, new_runs, new = cold_search(paper, paper_design, search_build=True, t_final=T)
+    api = [[c for c in runs if "api.c" in c] for runs in (old_runs, new_runs)]
+    assert len(new["tried"]) >= 4 and new["min_rate_hz"] is not None
+    assert len(api[0]) == len(old["tried"]) and len(api[1]) == 1
+    assert len(new_runs) == len(old_runs) - len(old["tried"]) + 1        # nothing else compiled more or less
+    assert new == old                                                     # every number of every rate tried

@@ -32,9 +32,11 @@ VARIATIONS = (("funnel.e2.phi_inf", 2.0), ("controller.k2", 0.5), ("funnel.e2.a"
 
 def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_final: float | None = None,
              rel_tol: float = 0.05, start: float | None = None,
-             progress: Callable[[str], None] | None = None, engine: str | None = None) -> dict:
+             progress: Callable[[str], None] | None = None, engine: str | None = None,
+             search_build: bool = True) -> dict:
     """{"min_rate_hz": float | None, "margin", "tried": [{"rate_hz", "status", "min_margin", "holds"}], "engine"}
-    on the plant `engine` (default the scenario's `[plant] engine`)."""
+    on the plant `engine` (default the scenario's `[plant] engine`). `search_build` False builds the shipped step
+    at each rate tried instead of the search build compiled once (`deployed.rate_step`; the bench's baseline)."""
     from ..core.text import number
     from .loop import simulate_sampled
     if not (isinstance(margin, (int, float)) and 0 <= margin < 1):
@@ -51,7 +53,8 @@ def min_rate(scenario: Scenario, design: Design, *, margin: float = 0.05, t_fina
 
     def holds(rate: float) -> bool:
         # the search build: the generated C once for every rate, the period's weights set per run (rate_step)
-        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, search_build=True, **on_engine)
+        res = simulate_sampled(scenario, design, rate_hz=rate, t_final=t_final, search_build=search_build,
+                               **on_engine)
         # holds: the run reaches the horizon inside both funnels with margin >= M after the transient (the margin
         # at t = 0 is the initial condition's, the same at every rate)
         mt = res.min_margin_after_transient
