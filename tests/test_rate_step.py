@@ -78,3 +78,20 @@ def test_a_rate_search_compiles_the_step_api_once_and_finds_what_the_per_rate_bu
     assert len(api[0]) == len(old["tried"]) and len(api[1]) == 1
     assert len(new_runs) == len(old_runs) - len(old["tried"]) + 1        # nothing else compiled more or less
     assert new == old                                                     # every number of every rate tried
+
+
+def test_a_removed_compile_cache_is_built_again(paper, paper_design, tmp_path, monkeypatch):
+    """The process keeps its search builds' paths; one whose cache directory is gone is compiled again."""
+    import shutil
+
+    from symfunnel.deployed import rate_step
+    monkeypatch.setattr(rate_step, "_BUILT", [])
+    monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path / "a"))
+    first = search_step(paper_design, 500.0, None)
+    assert str(first.lib._name).startswith(str(tmp_path / "a"))
+    shutil.rmtree(tmp_path / "a")
+    monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path / "b"))
+    again = search_step(paper_design, 500.0, None)
+    assert str(again.lib._name).startswith(str(tmp_path / "b")) and len(rate_step._BUILT) == 1
+    res = simulate_sampled(paper, paper_design, rate_hz=500.0, t_final=0.1, controller=again)
+    assert res.tau.shape[0] == 50 and np.all(np.isfinite(res.tau))

@@ -77,6 +77,7 @@ def search_step(design, rate_hz: float, tau_max, on_build=None) -> RateStep:
     from ..emit.step import etd_factors, step_states
     from .cfun import link_step
     tm = None if tau_max is None else tuple(np.broadcast_to(np.asarray(tau_max, float), (design.n,)).tolist())
+    _BUILT[:] = [e for e in _BUILT if e[1].exists()]         # (a compile cache removed since: built again)
     path = next((p for (d, t), p in _BUILT if d is design and t == tm), None)
     if path is None:
         src = search_sources(design, tau_max)
