@@ -95,3 +95,21 @@ def test_a_removed_compile_cache_is_built_again(paper, paper_design, tmp_path, m
     assert str(again.lib._name).startswith(str(tmp_path / "b")) and len(rate_step._BUILT) == 1
     res = simulate_sampled(paper, paper_design, rate_hz=500.0, t_final=0.1, controller=again)
     assert res.tau.shape[0] == 50 and np.all(np.isfinite(res.tau))
+
+
+def test_on_the_physics_engine_the_search_build_runs_the_shipped_build_bit_for_bit(tmp_path):
+    """The same comparison with MuJoCo as the plant (deployed.engine drives the step through its raw pointers)."""
+    pytest.importorskip("mujoco")
+    from symfunnel.cli import main
+    from symfunnel.design import derive
+    from symfunnel.scenario import load_scenario
+    out = tmp_path / "s.toml"
+    assert main(["init", "--out", str(out), "--force", "-q"]) == 0         # the 2-link planar arm of `init`
+    sc = load_scenario(out)
+    design = derive(sc)
+    for rate in (300.0, 900.0):
+        shipped = simulate_sampled(sc, design, rate_hz=rate, t_final=0.3, engine="mujoco")
+        searched = simulate_sampled(sc, design, rate_hz=rate, t_final=0.3, engine="mujoco", search_build=True)
+        assert shipped.stats["engine"] == "mujoco" and shipped.tau.shape[0] == int(0.3 * rate + 1e-9)
+        for name, a in _arrays(shipped).items():
+            np.testing.assert_array_equal(getattr(searched, name), a, err_msg=name)
