@@ -25,8 +25,8 @@ def _cpu() -> float:
 
 
 def cold_search(scenario, design, *, search_build: bool, t_final: float | None = None) -> tuple[float, list, dict]:
-    """(CPU seconds, the compiler's command lines, result) of one min_rate from an empty compile cache (and no search build of this
-    process reused)."""
+    """(CPU seconds, the compiler's command lines, result) of one min_rate from an empty compile cache (and no
+    search build of this process reused)."""
     from ..core import ccompile
     from ..deployed import rate_step
     from ..deployed.rate import min_rate
@@ -71,6 +71,7 @@ def run(progress) -> list[dict]:
     return [result("rate_search.cpu_s", cpu_new, "s CPU",
                    "the same search building the shipped step at every rate (the previous path), interleaved",
                    cpu_old, float(np.median([o[0] / n[0] for o, n in zip(old, new)])),
-                   compiler_runs=len(new[0][1]), baseline_compiler_runs=len(old[0][1]), rates_tried=len(new[0][2]["tried"]),
+                   compiler_runs=len(new[0][1]), baseline_compiler_runs=len(old[0][1]),
+                   rates_tried=len(new[0][2]["tried"]),
                    min_rate_hz=new[0][2]["min_rate_hz"], same_result=bool(same), rounds=ROUNDS, scenario=sc.name,
                    clock="CPU time of the process and its compilers (os.times)")]
