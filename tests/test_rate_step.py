@@ -113,3 +113,21 @@ def test_on_the_physics_engine_the_search_build_runs_the_shipped_build_bit_for_b
         assert shipped.stats["engine"] == "mujoco" and shipped.tau.shape[0] == int(0.3 * rate + 1e-9)
         for name, a in _arrays(shipped).items():
             np.testing.assert_array_equal(getattr(searched, name), a, err_msg=name)
+
+
+def test_a_saturated_step_searched_is_the_shipped_one_bit_for_bit(tmp_path):
+    """With [implementation] tau_max the step core clamps the torque: the search build runs the shipped build's
+    numbers; another limit is another build."""
+    from symfunnel.design import derive
+    from symfunnel.scenario import load_scenario
+    from tests.test_sampled import paper_with
+    sc = load_scenario(paper_with(tmp_path, "rate_hz = 2000.0\ntau_max = [400.0, 1000.0]"))
+    design = derive(sc)
+    shipped = simulate_sampled(sc, design, rate_hz=1500.0, t_final=T)
+    searched = simulate_sampled(sc, design, rate_hz=1500.0, t_final=T, search_build=True)
+    assert np.max(np.abs(shipped.tau[:, 0])) == 400.0                  # the limit is reached: the clamp matters
+    for name, a in _arrays(shipped).items():
+        np.testing.assert_array_equal(getattr(searched, name), a, err_msg=name)
+    mine = search_step(design, 1500.0, [400.0, 1000.0]).lib._name
+    assert search_step(design, 1500.0, [500.0, 1000.0]).lib._name != mine
+    assert search_step(design, 1500.0, None).lib._name == mine          # None: the scenario's, as `generate` reads it
