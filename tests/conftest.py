@@ -150,6 +150,11 @@ CERTIFY_NONE_RATE = ("rate", REPO / "tests" / "data" / "certify_none.toml", "--c
                      "-q")
 
 
+#: `rate --certify` on tests/data/sampled_1dof.toml: test_sampled_certificate checks its bracket, test_api_contract
+#: compares it with `symfunnel.rate(certify=True)`, computed once
+SAMPLED_1DOF_RATE = ("rate", REPO / "tests" / "data" / "sampled_1dof.toml", "--certify", "--json", "-q")
+
+
 @pytest.fixture
 def certify_none_rate(tmp_path_factory) -> subprocess.CompletedProcess:
     """CERTIFY_NONE_RATE's run, once per session."""
