@@ -135,6 +135,35 @@ def cli_once(tmp_path_factory, *args, timeout: float = 600, cwd=None) -> subproc
     return subprocess.CompletedProcess(argv, rec["returncode"], rec["stdout"], rec["stderr"])
 
 
+def main_once(tmp_path_factory, *args) -> subprocess.CompletedProcess:
+    """`symfunnel ARGS` run once per test session as cli_once runs it, but in this process (symfunnel.cli.main, its
+    stdout and stderr captured): for a command several modules check whose own start-up would cost more than a
+    subprocess saves, e.g. `certify SCENARIO --json` (certify_once)."""
+    import contextlib
+    import io
+    import json
+    argv = [str(a) for a in args]
+
+    def run(path: Path) -> None:
+        from symfunnel.cli import main
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(argv)
+        path.write_text(json.dumps({"returncode": code, "stdout": out.getvalue(), "stderr": err.getvalue()}))
+    rec = json.loads(_session_once(tmp_path_factory, "main-once", argv, run).read_text())
+    return subprocess.CompletedProcess(["symfunnel", *argv], rec["returncode"], rec["stdout"], rec["stderr"])
+
+
+def certify_once(tmp_path_factory, scenario) -> tuple[int, dict]:
+    """`symfunnel certify SCENARIO --json -q` (the full work budget) once per session: its exit code and its JSON.
+    test_certify reads paper's and certify_none's certificates from it, test_certify_pinned every shipped scenario's
+    outcomes; each computed them again before (paper's full certification three times in a session)."""
+    import json
+    p = main_once(tmp_path_factory, "certify", scenario, "--json", "-q")
+    assert p.stdout.strip(), f"certify {scenario}: exit {p.returncode}, no JSON: {p.stderr[-500:]}"
+    return p.returncode, json.loads(p.stdout)
+
+
 def text_once(tmp_path_factory, key: str, build) -> str:
     """build() (a text, e.g. a report several modules check) computed once per test session across the xdist
     workers, as cli_once runs a command: a module-scoped fixture is built once per worker that runs the module's
