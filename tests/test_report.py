@@ -20,13 +20,15 @@ from pathlib import Path
 
 import pytest
 
-T_FINAL = 5.0          # shortened horizon for the test; `symfunnel report` itself runs the scenario's 20 s
+T_FINAL = 2.0          # shortened horizon for the test; `symfunnel report` itself runs the scenario's 20 s
+SAMPLES = 200          # the falsification's sampled states (the report's default is 10000); every section is there
 SECTIONS = ["overview", "gate", "findings", "scenario", "model", "derivation", "alpha2-dot", "simulation",
             "verification", "deployed", "codegen", "timings"]
 
 
 #: the report the module checks: the paper scenario over T_FINAL with every section (codegen, mutants, deployed)
-PAPER_REPORT_FULL = f"report paper t_final={T_FINAL} codegen mutants deployed + verify json, counts line, verdicts"
+PAPER_REPORT_FULL = (f"report paper t_final={T_FINAL} samples={SAMPLES} codegen mutants deployed + verify json, counts "
+                     "line, verdicts")
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +45,7 @@ def report_bundle(tmp_path_factory) -> dict:
         from symfunnel.pipeline import Run, RunOptions
         from symfunnel.reporting import build_report
         from symfunnel.scenario import load_scenario
-        run = Run(load_scenario("paper"), RunOptions(t_final=T_FINAL))
+        run = Run(load_scenario("paper"), RunOptions(t_final=T_FINAL, samples=SAMPLES))
         out = tmp_path_factory.mktemp("report") / "paper.html"
         assert build_report(run, out) == out
         v = run.verification
