@@ -119,20 +119,61 @@ def _session_once(tmp_path_factory, kind: str, key_parts, produce) -> Path:
     return done
 
 
+def _command_once(tmp_path_factory, kind: str, argv: list, call) -> subprocess.CompletedProcess:
+    """call() -> (exit code, stdout, stderr) of the command `argv`, run once per test session (_session_once, keyed
+    by `argv` in the directory `kind`) and recorded; every caller gets the record as a CompletedProcess."""
+    import json
+
+    def run(path: Path) -> None:
+        code, out, err = call()
+        path.write_text(json.dumps({"returncode": code, "stdout": out, "stderr": err}))
+    rec = json.loads(_session_once(tmp_path_factory, kind, argv, run).read_text())
+    return subprocess.CompletedProcess(argv, rec["returncode"], rec["stdout"], rec["stderr"])
+
+
 def cli_once(tmp_path_factory, *args, timeout: float = 600, cwd=None) -> subprocess.CompletedProcess:
     """`python -m symfunnel ARGS` run once per test session, whichever worker asks first (an flock per command; the
     others wait and read its recorded exit code, stdout and stderr): for an expensive command whose result several
     modules check, e.g. one `rate --certify` on the same scenario and horizon. The command's directory (`cwd`, the
     first caller's) is not part of the key: the caller makes sure the command reads and writes nothing there."""
-    import json
     import sys
     argv = [sys.executable, "-m", "symfunnel", *map(str, args)]
 
-    def run(path: Path) -> None:
+    def call():
         p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, cwd=cwd)
-        path.write_text(json.dumps({"returncode": p.returncode, "stdout": p.stdout, "stderr": p.stderr}))
-    rec = json.loads(_session_once(tmp_path_factory, "cli-once", argv, run).read_text())
-    return subprocess.CompletedProcess(argv, rec["returncode"], rec["stdout"], rec["stderr"])
+        return p.returncode, p.stdout, p.stderr
+    return _command_once(tmp_path_factory, "cli-once", argv, call)
+
+
+def main_once(tmp_path_factory, *args) -> subprocess.CompletedProcess:
+    """`symfunnel ARGS` run once per test session as cli_once runs it, but in this process (symfunnel.cli.main, its
+    stdout and stderr captured): for a command several modules check whose own start-up would cost more than a
+    subprocess saves, e.g. `certify SCENARIO --json` (certify_once)."""
+    import contextlib
+    import io
+    argv = [str(a) for a in args]
+
+    def call():
+        from symfunnel.cli import main
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(argv)
+            except SystemExit as exc:           # argparse's usage errors end the process, as they would the CLI
+                code = exc.code if isinstance(exc.code, int) else 1
+        return code, out.getvalue(), err.getvalue()
+    return _command_once(tmp_path_factory, "main-once", ["symfunnel", *argv], call)
+
+
+def certify_once(tmp_path_factory, scenario) -> tuple[int, dict]:
+    """`symfunnel certify SCENARIO --json -q` (the full work budget) once per session: its exit code and its JSON.
+    test_certify reads paper's and certify_none's certificates from it, test_certify_pinned every shipped scenario's
+    outcomes, test_containment_projection and test_regressor_jacobian the projection file's containment; each module
+    computed them again on its own xdist worker before (the in-process certificate cache is per worker)."""
+    import json
+    p = main_once(tmp_path_factory, "certify", scenario, "--json", "-q")
+    assert p.stdout.strip(), f"certify {scenario}: exit {p.returncode}, no JSON: {p.stderr[-500:]}"
+    return p.returncode, json.loads(p.stdout)
 
 
 def text_once(tmp_path_factory, key: str, build) -> str:
@@ -148,6 +189,11 @@ def text_once(tmp_path_factory, key: str, build) -> str:
 #: report's bracket) and test_sampled_certificate (the proven rate against the simulated one), computed once
 CERTIFY_NONE_RATE = ("rate", REPO / "tests" / "data" / "certify_none.toml", "--certify", "--json", "--t-final", "2.0",
                      "-q")
+
+
+#: `rate --certify` on tests/data/sampled_1dof.toml: test_sampled_certificate checks its bracket, test_api_contract
+#: compares it with `symfunnel.rate(certify=True)`, computed once
+SAMPLED_1DOF_RATE = ("rate", REPO / "tests" / "data" / "sampled_1dof.toml", "--certify", "--json", "-q")
 
 
 @pytest.fixture

@@ -168,13 +168,13 @@ def test_verify_with_mutants_is_a_verification_with_the_score():
     assert f"mutation_score={v.mutation_score:.3f}" in repr(v)
 
 
-def test_rate_with_certify_gives_the_cli_bracket():
+def test_rate_with_certify_gives_the_cli_bracket(tmp_path_factory):
     """`certify=True` is `rate --certify`: the same keys and the same proven rate (sampled_1dof, proven in ~1 s);
-    only the certificate's own wall time differs between the two runs."""
-    from pathlib import Path
-    one = Path(__file__).parent / "data" / "sampled_1dof.toml"
-    r = sf.rate(one, certify=True, wall_limit=60)
-    p = _cli("rate", one, "--certify", "--json", "-q", "--wall-limit", "60")
+    only the certificate's own wall time differs between the two runs. The command's run is test_sampled_certificate's
+    `bracket` (cli_once: the same command line runs once per session)."""
+    from tests.conftest import SAMPLED_1DOF_RATE, cli_once
+    r = sf.rate(SAMPLED_1DOF_RATE[1], certify=True, wall_limit=60)
+    p = cli_once(tmp_path_factory, *SAMPLED_1DOF_RATE)
     assert p.returncode == 0, p.stderr
     cli, api = json.loads(p.stdout), r.to_json()
     assert set(api) == set(cli) >= {"min_rate_hz", "proven_rate_hz", "theory_rate_hz", "ratio", "certificate"}

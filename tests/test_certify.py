@@ -31,6 +31,7 @@ from symfunnel.sx.batch import BatchIntervalFunction
 from symfunnel.sx.interval import IntervalFunction
 from symfunnel.sx.rewrite import replace_nodes
 
+from .conftest import certify_once
 from .pins import pins
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,6 +50,13 @@ def run_of(name):
         from symfunnel.scenario import load_scenario
         _RUNS[name] = Run(load_scenario(name), RunOptions(certify_work=1.0))
     return _RUNS[name]
+
+
+def _certificate(tmp_path_factory, name, cid) -> dict:
+    """Certificate `cid` of `symfunnel certify NAME --json` at the full work budget (run_of's options), as computed
+    once per session for this module and test_certify_pinned (conftest's certify_once)."""
+    _, out = certify_once(tmp_path_factory, name)
+    return next(c for c in out["certificates"] if c["id"] == cid)
 
 
 def context(name, w_box=True):
@@ -322,23 +330,23 @@ def _ordinary_batch(prob, X, names):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["paper", NONE], ids=["paper", "certify_none"])
-def test_bounds_enclosures_contain_1e5_random_points(name):
+def test_bounds_enclosures_contain_1e5_random_points(name, tmp_path_factory):
     r = run_of(name)
-    cert = r.certification.by_id("certify.bounds")
-    assert cert.status == "proven"
+    cert = _certificate(tmp_path_factory, name, "certify.bounds")
+    assert cert["status"] == "proven"
     ctx = context(name)
     d = ctx.design
     p = ca.SX.sym("p", len(ctx.params.names))
     exprs = {"mu2": d.signals["mu2"], "tau": d.signals["tau"]}
-    enc = cert.extra["enclosures"]
+    enc = cert["enclosures"]
     if "eps" in enc:
         exprs["eps"] = unknown_exprs(ctx, p, ctx.W_star)["eps"]
     prob = RegionProblem(ctx, exprs, p)
-    m = cert.region["margin"]
+    m = cert["region"]["margin"]
     states = {}
     for k in prob.state_names:
-        lo_, hi_ = cert.region[k]["lo"], cert.region[k]["hi"]
-        shape = tuple(cert.region[k]["shape"])
+        lo_, hi_ = cert["region"][k]["lo"], cert["region"][k]["hi"]
+        shape = tuple(cert["region"][k]["shape"])
         if k == "w_hat":      # the box itself (per entry), not its hull: rebuild it as bounds did
             from symfunnel.certificates.bounds import w_hat_box
             W = r.closed_loop.unpack(r.simulation.x)["w_hat"]
@@ -406,13 +414,13 @@ def test_saturation_refuted_below_the_attained_torque_and_proven_above_the_enclo
 # --- certify.invariance -------------------------------------------------------------------------------------
 
 @pins("certify.invariance", "pass", "fail")
-def test_invariance_proven_and_the_simulation_stays_where_it_says(tmp_path):
+def test_invariance_proven_and_the_simulation_stays_where_it_says(tmp_path, tmp_path_factory):
     """certify_none closes the barrier argument; the simulated run (any trajectory must) keeps |e| <= usage F,
     the bound the certificate proves; a disturbance 1000x larger makes the guarantee provably vacuous."""
     r = run_of(NONE)
-    c = r.certification.by_id("certify.invariance")
-    assert c.status == "proven"
-    m, cc = c.extra["m"], c.extra["c"]
+    c = _certificate(tmp_path_factory, NONE, "certify.invariance")
+    assert c["status"] == "proven"
+    m, cc = c["m"], c["c"]
     T = r.design.variant.transform
     usage = float(T.usage(math.sqrt(2 * cc)))
     assert usage < 1 - m
@@ -427,12 +435,12 @@ def test_invariance_proven_and_the_simulation_stays_where_it_says(tmp_path):
 
 
 @pins("certify.invariance", "fail")
-def test_invariance_refuted_on_the_paper_and_says_which_term():
-    c = run_of("paper").certification.by_id("certify.invariance")
-    assert c.status == "refuted"
-    outcomes = {s["outcome"] for s in c.extra["margins"]}
+def test_invariance_refuted_on_the_paper_and_says_which_term(tmp_path_factory):
+    c = _certificate(tmp_path_factory, "paper", "certify.invariance")
+    assert c["status"] == "refuted"
+    outcomes = {s["outcome"] for s in c["margins"]}
     assert outcomes <= {"V(0)", "sigma", "eps"} and "V(0)" in outcomes
-    assert c.extra["V0"][0] > 0 and c.counterexample is not None
+    assert c["V0"][0] > 0 and c["counterexample"] is not None
 
 
 # --- codac, arb and the batched backend agree -----------------------------------------------------------------
@@ -478,8 +486,8 @@ def _json(capsys, argv):
     return code, json.loads(capsys.readouterr().out)
 
 
-def test_certify_paper_json_contract_and_gate(capsys):
-    code, out = _json(capsys, ["certify", "paper", "--json", "-q"])
+def test_certify_paper_json_contract_and_gate(tmp_path_factory):
+    code, out = certify_once(tmp_path_factory, "paper")
     assert code == 0 and out["scenario"] == "paper" and out["status"] == "pass"
     ids = [c["id"] for c in out["certificates"]]
     assert ids == ["certify.input_gain", "certify.bounds", "certify.invariance", "certify.containment"]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-import symfunnel as sf
+from tests.conftest import certify_once
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -40,9 +40,11 @@ PINNED = {
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(PINNED))
-def test_shipped_certificate_outcomes_are_pinned(name):
+def test_shipped_certificate_outcomes_are_pinned(name, tmp_path_factory):
+    """`symfunnel certify NAME --json` (conftest's certify_once: the run test_certify reads for paper and
+    certify_none, computed once per session)."""
     path = str(ROOT / name) if (ROOT / name).exists() else name
-    cert = sf.certify(path).certification
-    got = {c.id: c.status for c in cert.certificates if c.id in PINNED[name]}
-    assert got == PINNED[name], {k: (c.status, c.detail[:200]) for k in PINNED[name]
-                                 for c in [cert.by_id(k)] if c is not None and c.status != PINNED[name][k]}
+    _, out = certify_once(tmp_path_factory, path)
+    got = {c["id"]: c["status"] for c in out["certificates"] if c["id"] in PINNED[name]}
+    assert got == PINNED[name], {c["id"]: (c["status"], c["detail"][:200]) for c in out["certificates"]
+                                 if c["id"] in PINNED[name] and c["status"] != PINNED[name][c["id"]]}

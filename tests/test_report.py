@@ -20,38 +20,56 @@ from pathlib import Path
 
 import pytest
 
-T_FINAL = 5.0          # shortened horizon for the test; `symfunnel report` itself runs the scenario's 20 s
+T_FINAL = 2.0          # shortened horizon for the test; `symfunnel report` itself runs the scenario's 20 s
+SAMPLES = 200          # the falsification's sampled states (the report's default is 10000); every section is there
 SECTIONS = ["overview", "gate", "findings", "scenario", "model", "derivation", "alpha2-dot", "simulation",
             "verification", "deployed", "codegen", "timings"]
 
 
-@pytest.fixture(scope="module")
-def report_run(paper):
-    """The Run the module's report is written from (its verification is what `verify --json` prints)."""
-    from symfunnel.pipeline import Run, RunOptions
-    return Run(paper, RunOptions(t_final=T_FINAL))
+#: the report the module checks: the paper scenario over T_FINAL with every section (codegen, mutants, deployed)
+PAPER_REPORT_FULL = (f"report paper t_final={T_FINAL} samples={SAMPLES} codegen mutants deployed + verify json, counts "
+                     "line, verdicts")
 
 
 @pytest.fixture(scope="module")
-def report_path(report_run, tmp_path_factory):
-    """The paper scenario's report, written once per module."""
-    from symfunnel.reporting import build_report
+def report_bundle(tmp_path_factory) -> dict:
+    """The paper scenario's report and what `verify --json` says of the same Run (its counts line and each check's
+    verdict label), built once per test session (conftest's text_once): xdist hands this module's tests to several
+    workers, and each built its own module-scoped report before (15-26 s each)."""
+    import json
+
+    from tests.conftest import text_once
+
+    def build() -> str:
+        from symfunnel.checks.gate import counts_line, verdict
+        from symfunnel.pipeline import Run, RunOptions
+        from symfunnel.reporting import build_report
+        from symfunnel.scenario import load_scenario
+        run = Run(load_scenario("paper"), RunOptions(t_final=T_FINAL, samples=SAMPLES))
+        out = tmp_path_factory.mktemp("report") / "paper.html"
+        assert build_report(run, out) == out
+        v = run.verification
+        return json.dumps({"html": out.read_text(encoding="utf-8"), "verify": v.to_json(),
+                           "counts_line": counts_line(v.checks), "verdicts": {c.id: verdict(c)[0] for c in v.checks}})
+    return json.loads(text_once(tmp_path_factory, PAPER_REPORT_FULL, build))
+
+
+@pytest.fixture(scope="module")
+def report_path(report_bundle, tmp_path_factory):
+    """The report's HTML as a file of this worker (Chromium opens it)."""
     out = tmp_path_factory.mktemp("report") / "paper.html"
-    p = build_report(report_run, out)
-    assert p == out
+    out.write_text(report_bundle["html"], encoding="utf-8")
     return out
 
 
-def test_overview_counts_and_tables_agree_with_verify_json(report_run, report_text, tree):
+def test_overview_counts_and_tables_agree_with_verify_json(report_bundle, report_text, tree):
     """Every check of `verify --json` appears exactly once in the report's tables, with the verdict label of its
     status against its declaration; the overview's counts are verify's."""
-    from symfunnel.checks.gate import counts_line, verdict
-    v = report_run.verification
-    js = v.to_json()
+    js = report_bundle["verify"]
     k = js["counts"]
     warnings = f"{k['warn']} warning" + ("" if k["warn"] == 1 else "s")
     line = f"{k['pass']} passed, {k['fail']} failed ({k['expected_fail']} expected), {warnings}, {k['skip']} skipped"
-    assert line == counts_line(v.checks)
+    assert line == report_bundle["counts_line"]
     gate = next(el for el in tree.iter() if el.get("id") == "gate")
     assert line in "".join(gate.itertext())
     assert js["status"].upper() in "".join(gate.itertext())
@@ -66,7 +84,7 @@ def test_overview_counts_and_tables_agree_with_verify_json(report_run, report_te
             seen.setdefault(first, []).append("".join(r.itertext()))
     for c in js["checks"]:
         assert len(seen.get(c["id"], [])) == 1, (c["id"], len(seen.get(c["id"], [])))
-        label = verdict(next(x for x in v.checks if x.id == c["id"]))[0]
+        label = report_bundle["verdicts"][c["id"]]
         assert label in seen[c["id"]][0], (c["id"], label)
     assert "skipped</span>" not in report_text or k["skip"]
 
@@ -92,8 +110,8 @@ def test_a_report_of_the_users_own_arm_says_nothing_about_a_paper(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def report_text(report_path):
-    return report_path.read_text(encoding="utf-8")
+def report_text(report_bundle):
+    return report_bundle["html"]
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import cli_once
+from tests.conftest import SAMPLED_1DOF_RATE, cli_once
 
 DATA = Path(__file__).parent / "data"
 ONE = DATA / "sampled_1dof.toml"
@@ -25,8 +25,9 @@ def _cli(*args):
 
 @pytest.fixture(scope="module")
 def bracket(tmp_path_factory):
-    """`rate sampled_1dof --certify --json`, run once per session (cli_once) for this module's tests on any worker."""
-    r = cli_once(tmp_path_factory, "rate", ONE, "--certify", "--json", "-q")
+    """`rate sampled_1dof --certify --json`, run once per session (cli_once) for this module's tests on any worker and
+    test_api_contract's."""
+    r = cli_once(tmp_path_factory, *SAMPLED_1DOF_RATE)
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout)
 

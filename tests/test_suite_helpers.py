@@ -1,6 +1,6 @@
 """The suite's own helpers that make it cheaper must not change what it checks: `cli_once` runs a command once per
-session and gives every later caller the first run's exit code and output, `text_once` the same for a text built in
-the process (a report); test_docs runs a documentation command
+session and gives every later caller the first run's exit code and output, `main_once` the same for the command run in
+the process (what the subprocess would have said), `text_once` the same for a text built in the process (a report); test_docs runs a documentation command
 line once for all pages only when no file of its directory is read or written."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from tests import conftest
-from tests.conftest import cli_once, module_order, text_once
+from tests.conftest import cli_once, main_once, module_order, text_once
 from tests.test_docs import _anywhere
 
 
@@ -27,6 +27,24 @@ def test_cli_once_runs_a_command_once_and_replays_its_result(tmp_path_factory, m
     assert (again.returncode, again.stdout, again.stderr) == (first.returncode, first.stdout, first.stderr)
     with pytest.raises(AssertionError, match="ran the command again"):
         cli_once(tmp_path_factory, "derive", f"--another-key-{id(tmp_path_factory)}")
+
+
+def test_main_once_says_what_the_cli_says_runs_once_and_replays_it(tmp_path_factory, monkeypatch):
+    args = ("derive", f"--suite-helpers-main-{id(tmp_path_factory)}")  # a key no other test uses; a usage error
+    first = main_once(tmp_path_factory, *args)
+    sub = cli_once(tmp_path_factory, *args)                              # the same command as its own process
+    assert first.returncode == sub.returncode == 2 and first.args == ["symfunnel", *args]
+    assert first.stderr.strip() == sub.stderr.strip() and "--suite-helpers-main-" in first.stderr
+    assert first.stdout == sub.stdout
+
+    def no_second_run(argv):
+        raise AssertionError("main_once ran the command again")
+    import symfunnel.cli
+    monkeypatch.setattr(symfunnel.cli, "main", no_second_run)
+    again = main_once(tmp_path_factory, *args)
+    assert (again.returncode, again.stdout, again.stderr) == (first.returncode, first.stdout, first.stderr)
+    with pytest.raises(AssertionError, match="ran the command again"):
+        main_once(tmp_path_factory, "derive", f"--another-main-key-{id(tmp_path_factory)}")
 
 
 def test_text_once_builds_once_per_key_and_a_failed_build_is_tried_again(tmp_path_factory):
