@@ -68,6 +68,9 @@ def test_proven_rate_is_never_below_the_simulated_one(bracket):
     assert fp >= fs
     assert bracket["sampled_run_at_proven"]["holds"] is True
     assert bracket["certificate"]["initial_in_set"] is True
+    # a state of S that leaves S within a period refutes every rate at or below its floor for this S
+    floor = bracket["certificate"]["set_floor"]
+    assert floor is None or floor["rate_hz"] < fp
 
 
 def test_sampled_loop_at_the_proven_rate_from_the_corners_of_S(bracket):
@@ -160,6 +163,8 @@ def test_certify_none_proven_rate_is_not_below_the_simulated_one(certify_none_ra
     assert out["certificate"]["status"] == "proven"
     assert out["proven_rate_hz"] >= out["min_rate_hz"]
     assert out["sampled_run_at_proven"]["holds"] is True
+    floor = out["certificate"]["set_floor"]
+    assert floor is None or floor["rate_hz"] < out["proven_rate_hz"]
 
 
 def test_continuity_is_claimed_only_without_a_state_switch(tmp_path):

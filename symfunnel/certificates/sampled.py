@@ -52,19 +52,20 @@ from ..family.projection import outer_radius
 from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
+from ..sx.rewrite import replace_nodes
 from .problem import Context
+from .ball_form import BallForm
 from .face_forms import normal_components, with_alpha2_dot_through_e1
 from .region import region_signals
 from .sampled_set import SampledSet, containment_set, declared_set  # noqa: F401 (their home before)
-from .sampled_graph import _add_dn, _add_up, _continuous_rates, _dn, _imul, _sum_dn, _sum_up, _up
+from .sampled_graph import _add_dn, _add_up, _continuous_rates, _dn, _switching_on, _up
+from .sampled_taylor import PICARD_ITERATIONS, taylor
 
 CID = "certify.sampled"
 #: S's margins (e1, e2) when none are given
 DEFAULT_SET_MARGIN = (0.5, 0.5)
 #: boxes evaluated per batch
 BATCH = 256
-#: Picard iterations before a box's a-priori enclosure counts as not found
-PICARD_ITERATIONS = 8
 #: the sensitivity's split variable is used while its relative width is at least the widest's / HINT_RATIO
 HINT_RATIO = 4.0
 #: why a box fails, by the first check it fails: no finite torque enclosure, no finite rate, no a-priori box within the
@@ -136,6 +137,21 @@ class OnePeriod:
         # the held torque's enclosure with alpha2_dot through e1 too (the same function: the C step's torque)
         tau_e = with_alpha2_dot_through_e1(d, tau)[0] if "tau through e1" in rewrites else tau
         exprs = {"tau": tau_e, "rate": rates, "rate_k": rates_k}
+        # Coulomb friction's sign(dq) as inputs sw: where it is what makes sigma' jump along a period, the rates with
+        # sw held are smooth in (t, sigma), and the Taylor a-priori form takes sw in its hull over the box (`_taylor`)
+        self.n_sw = 0
+        sgn, swv = ca.vertcat(*[ca.sign(sym["dq"][j]) for j in range(n)]), ca.SX.sym("sw", n)
+        if not self.continuous:
+            ddq_s = replace_nodes([ddq], sgn, swv)[0]
+            state = [sym["t"], sym["q"], sym["dq"]]
+            ins = state + [u, pu]
+            rs, rks = replace_nodes([rates, rates_k], sgn, swv)
+            before, after = ([ca.vec(x) for x in xs] for xs in ((rates, rates_k), (rs, rks)))
+            if _continuous_rates(d, ins + [swv], state, ddq_s)[0] and \
+                    _switching_on(ca.symvar(ca.vertcat(*after, swv)), state, after) < \
+                    _switching_on(ca.symvar(ca.vertcat(*before)), state, before):
+                exprs.update(rate_s=rs, rate_k_s=rks, sw_arg=sym["dq"])
+                self.n_sw, self._swv = n, swv
         self.w_rate = None
         # a projected law: the deployed step clips W_hat radially onto ||W_hat||_F <= R (1 + eps) after its update
         # (emit.step), so W_hat's next sample lies in that ball whatever the period -- a box containing the ball is
@@ -199,6 +215,12 @@ class OnePeriod:
         self.acc_f = ca.Function("sigma_acc", base + [u] + states, [acc], bnames + ["u"] + self.state_names,
                                  ["acc"], opts)
         self.acc = _check(self.acc_f, sc.file, "the normalised errors' second derivative", None)
+        self._switch_free(base, bnames, u, states, o, opts)
+        # W_hat in containment's ball: the torque and the rates at the sample enclosed over the ball, not its box
+        self.ball = S.w_ball if (S.w_ball is not None and "w_hat" in self.state_names) else None
+        if self.ball is not None:
+            self.tau_ball, self.ratek_ball = BallForm(self.tau), BallForm(self.ratek)
+            self.ratek_s_ball = BallForm(self.ratek_s) if self.n_sw else None
         self.w_f = None
         if self.w_rate is not None:
             self.w_f = ca.Function("w_affine", base + states, [o["w_affine"]], bnames + self.state_names, ["A"],
@@ -228,6 +250,32 @@ class OnePeriod:
         self.taylor = True                        # the Taylor a-priori enclosure first (`_taylor`)
         self.monotone = True                      # the next sample's bounds on monotone faces (`_monotone`)
         self.lim_S = np.concatenate([np.full(n, 1 - S.m1), np.full(n, 1 - S.m2)])
+
+    def _switch_free(self, base, bnames, u, states, o, opts):
+        """The rates with Coulomb friction's sign(dq) as inputs `sw` and the signs' arguments (dq in the region's
+        coordinates), where the constructor found that replacing them leaves sigma' continuous along a period."""
+        if not self.n_sw:
+            return
+        sw, rs, rks = self._swv, o["rate_s"], o["rate_k_s"]
+        F = ca.Function("sigma_rate_sw", base + [u] + states + [sw], [rs], bnames + ["u"] + self.state_names +
+                        ["sw"], ["rate"], opts)
+        self.rate_s = _check(F, self.ctx.scenario.file, "the normalised errors' rates",
+                             ["t", "s1", "s2", "p", "u", "sw"])
+        F = ca.Function("sigma_rate_k_sw", base + states + [sw], [rks], bnames + self.state_names + ["sw"],
+                        ["rate_k"], opts)
+        self.ratek_s = _check(F, self.ctx.scenario.file, "the normalised errors' rates at the sample",
+                              ["t", "s1", "s2", "p"])
+        F = ca.Function("switch_arguments", base + [u] + states, [o["sw_arg"]], bnames + ["u"] + self.state_names,
+                        ["x"], opts)
+        self.sw_args = _check(F, self.ctx.scenario.file, "the rates' sign arguments", None)
+
+    def _signs(self, L, H):
+        """The hull of each switched sign over boxes of its arguments' inputs (rows laid out as the held-torque
+        rates' inputs, u included): [1, 1] where its argument is > 0, [-1, -1] where < 0, else [-1, 1]."""
+        AL, AH, _ = self.sw_args.eval_batch(L, H)
+        lo = np.where(np.isfinite(AL) & (AL > 0), 1.0, -1.0)
+        hi = np.where(np.isfinite(AH) & (AH < 0), -1.0, 1.0)
+        return lo, hi
 
     def box(self, t_final: float) -> tuple[np.ndarray, np.ndarray]:
         """The flat box of S (without the controller states)."""
@@ -263,7 +311,8 @@ class OnePeriod:
         n = self.n
         K = LO.shape[0]
         FL, FH = self._full(LO, HI)
-        UL, UH, _ = self.tau.eval_batch(FL, FH)
+        UL, UH, _ = self.tau_ball.eval_batch(FL, FH, self.ball) if self.ball is not None else \
+            self.tau.eval_batch(FL, FH)
         ok = np.all(np.isfinite(UL) & np.isfinite(UH), axis=1)
         why = np.where(ok, 0, WHY.index("torque"))           # the first check a box fails (WHY), 0 = none
         hint = np.full(K, -1, dtype=int)
@@ -367,77 +416,9 @@ class OnePeriod:
         return ok, {"why": why, "DL": DL, "DH": DH, "SL": SL, "SH": SH, "UL": UL, "UH": UH, "hint": hint}
 
     def _taylor(self, FL, FH, kl, kh, tl, th, UL, UH, h, lim):
-        """The a-priori enclosure in Taylor (mean-value) form, per box K of sample states: the displacement
-        Delta = sigma(t) - sigma_k over the period satisfies Delta in [0, h] D with
-
-            D = R_k + J_t [0, h] + J_sigma Delta  (intersected with the rates over Sigma = K + Delta),
-
-        R_k the rates at the sample under the step's own torque (one function of the sample state: the torque's
-        cancellation against alpha2_dot is kept, where the first-order form holds the torque as an independent box)
-        and J the rates' Jacobian in (t, sigma) over [t_k, t_k + h] x Sigma with the torque held (interval AD:
-        Clarke's Jacobian where sigma' is Lipschitz along the period, which is required: `continuous`, or no
-        discontinuity switches on the box). If [0, h] D lies in Delta, the Picard operator maps the continuous
-        functions with sigma - sigma_k in Delta into themselves (Schauder; unique by Lipschitz), so the solution
-        stays in K + Delta and its rate in D. Returns (valid, DL, DH, SL, SH, switched) per box."""
-        n2 = 2 * self.n
-        K = FL.shape[0]
-        RL, RH, _ = self.ratek.eval_batch(FL, FH)
-        fin = np.all(np.isfinite(RL) & np.isfinite(RH), axis=1)
-        gl = _dn(h * np.minimum(RL, 0.0))
-        gh = _up(h * np.maximum(RH, 0.0))
-        w = gh - gl
-        al, ah = _dn(gl - 0.1 * w - 1e-12), _up(gh + 0.1 * w + 1e-12)     # Delta
-        valid = np.zeros(K, dtype=bool)
-        live = fin.copy()
-        DL, DH = np.full((K, n2), -np.inf), np.full((K, n2), np.inf)
-        SL, SH = kl.copy(), kh.copy()
-        sw = np.ones(K, dtype=bool)
-        nw = self.rate.w_flat.size
-        for _ in range(PICARD_ITERATIONS):
-            idx = np.flatnonzero(live & ~valid)
-            if not idx.size:
-                break
-            sl, sh = _dn(kl[idx] + al[idx]), _up(kh[idx] + ah[idx])
-            inside = np.all((sl > -lim) & (sh < lim), axis=1) if lim >= 1.0 else \
-                np.all((sl >= -lim) & (sh <= lim), axis=1)
-            live[idx[~inside]] = False
-            idx, sl, sh = idx[inside], sl[inside], sh[inside]
-            if not idx.size:
-                break
-            n_ = self.n
-            RLo = np.concatenate([tl[idx, None], sl, FL[idx, 2 * n_ + 1:self.i_st], UL[idx], FL[idx, self.i_st:]], 1)
-            RHi = np.concatenate([th[idx, None], sh, FH[idx, 2 * n_ + 1:self.i_st], UH[idx], FH[idx, self.i_st:]], 1)
-            NL, NH, nsw = self.rate.eval_batch(RLo, RHi)
-            JL, JH, _ = self.rate.jac.eval_batch(RLo, RHi)
-            m = idx.size
-            JL = JL.reshape(m, nw, n2).transpose(0, 2, 1)
-            JH = JH.reshape(m, nw, n2).transpose(0, 2, 1)
-            # J_t [0, h]
-            tL = _dn(h * np.minimum(JL[:, :, 0], 0.0))
-            tH = _up(h * np.maximum(JH[:, :, 0], 0.0))
-            # J_sigma Delta, interval matrix times interval vector, outward
-            pl, ph = _imul(JL[:, :, 1:n2 + 1], JH[:, :, 1:n2 + 1], al[idx][:, None, :], ah[idx][:, None, :])
-            cl, ch = _sum_dn(pl, 2), _sum_up(ph, 2)
-            dl = _dn(_dn(RL[idx] + tL) + cl)
-            dh = _up(_up(RH[idx] + tH) + ch)
-            ok_ = np.isfinite(dl) & np.isfinite(dh)
-            dl = np.where(ok_, np.maximum(dl, NL), NL)
-            dh = np.where(ok_, np.minimum(dh, NH), NH)
-            smooth = self.continuous | ~np.asarray(nsw, bool)
-            fin2 = np.all(np.isfinite(dl) & np.isfinite(dh), axis=1) & smooth
-            live[idx[~fin2]] = False
-            nl, nh = _dn(h * np.minimum(dl, 0.0)), _up(h * np.maximum(dh, 0.0))
-            cont = fin2 & np.all((nl >= al[idx]) & (nh <= ah[idx]), axis=1)
-            g = idx[cont]
-            valid[g] = True
-            DL[g], DH[g], SL[g], SH[g] = dl[cont], dh[cont], sl[cont], sh[cont]
-            sw[g] = np.asarray(nsw, bool)[cont]
-            grow = fin2 & ~cont
-            gi = idx[grow]
-            ww = nh[grow] - nl[grow]
-            al[gi] = np.where(nl[grow] < al[gi], _dn(nl[grow] - 0.1 * ww - 1e-12), al[gi])
-            ah[gi] = np.where(nh[grow] > ah[gi], _up(nh[grow] + 0.1 * ww + 1e-12), ah[gi])
-        return valid, DL, DH, SL, SH, sw
+        """The a-priori enclosure in Taylor form per box of sample states (`sampled_taylor.taylor`): (valid, DL,
+        DH, SL, SH, switched)."""
+        return taylor(self, FL, FH, kl, kh, tl, th, UL, UH, h, lim)
 
     def _monotone(self, XL, XH, NL, NH, sw):
         """The next sample's bounds tightened by monotonicity: where next_o is provably nondecreasing in a variable

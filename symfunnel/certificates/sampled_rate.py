@@ -15,6 +15,7 @@ import numpy as np
 from .problem import Budget, Context
 from .result import Certificate
 from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, containment_set, declared_set, prove_period
+from .sampled_floor import set_floor
 
 
 #: the highest rate tried (the simulated search's ceiling)
@@ -110,7 +111,7 @@ def choose_set(ctx: Context, budget: Budget, margin: float, set_margin=None) -> 
 
 def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=None, tau_max=None,
                     start_hz: float | None = None, S: SampledSet | None = None, theory: bool = True,
-                    progress=None) -> Certificate:
+                    progress=None, floor_check: bool = True) -> Certificate:
     """certify.sampled: the lowest rate (within RATE_REL_TOL) at which one period from S provably keeps the
     funnels with margin `margin` and returns to S; undecided with what is left otherwise. S: given, else declared by
     `set_margin`, else the containment certificate's (`choose_set`)."""
@@ -175,7 +176,15 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
 
     f = float(start_hz or (impl.rate_hz if impl is not None else 1000.0))
     lo = hi = None
-    if attempt(f):
+    # a state of S that leaves S within a period at the starting rate: no proof over S at or below the rate it
+    # gives, so the search starts above it (`sampled_floor`)
+    floor = set_floor(op, S, T, 1.0 / f, tau_max) if floor_check else None
+    if floor is not None:
+        lo = min(floor["rate_hz"], MAX_RATE_HZ)
+        tried.append({"rate_hz": lo, "proven": False, "reason": "floor", "boxes": 0, "left": 1.0})
+        say(f"certify.sampled: a state of S leaves S after {floor['leaves_after_s']:.3g} s: no proof at or below "
+            f"{floor['rate_hz']:.6g} Hz")
+    elif attempt(f):
         hi = f
         while lo is None and hi / 4 >= 1.0:
             if attempt(hi / 4):
@@ -184,6 +193,7 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
                 lo = hi / 4
     else:
         lo = f
+    if hi is None:
         while hi is None and lo < MAX_RATE_HZ and not budget.expired():
             g = min(lo * 4, MAX_RATE_HZ)
             if attempt(g):
@@ -199,7 +209,7 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
     th = _theory(ctx, op, S, margin, tau_max) if theory else {"rate_hz": None, "reason": "not computed"}
     boxes = sum(r["boxes"] for r in tried)
     extra = {**base, "proven_rate_hz": hi, "not_proven_below_hz": lo, "tried": tried, "initial_in_set": inside,
-             "initial_e_over_F": sig0, "theory": th}
+             "initial_e_over_F": sig0, "theory": th, "set_floor": floor}
     secs = time.monotonic() - t0
     if hi is not None and inside:
         return Certificate(CID, "proven", f"at every rate >= {hi:.6g} Hz one period from any state of S (margins "
@@ -214,6 +224,11 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
                            undecided_fraction=1.0, extra=extra)
     last = tried[-1] if tried else {"left": 1.0, "reason": None}
     why = f"; a point of S fails the check '{last['failed']}'" if last.get("failed") else ""
+    if floor is not None:
+        why += (f"; no proof over this S exists at or below {floor['rate_hz']:.6g} Hz: from the state of S at t = "
+                f"{floor['t']:g} s, e/F = {np.round(floor['e_over_F'], 4).tolist()} (controller states at their "
+                f"sets' centres, nominal parameters) the plant under the step's held torque leaves S after "
+                f"{floor['leaves_after_s']:.3g} s (integrated)")
     return Certificate(CID, "undecided", f"no rate up to {lo:.6g} Hz proven (the last attempt ended on "
                        f"'{last['reason']}' with {last['left']:.3g} of S left{why})", upper=lo, region=region,
                        boxes=boxes, undecided_fraction=float(last["left"]), seconds=secs, method=_METHOD,
