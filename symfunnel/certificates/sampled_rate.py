@@ -225,7 +225,9 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
     last = tried[-1] if tried else {"left": 1.0, "reason": None}
     why = f"; a point of S fails the check '{last['failed']}'" if last.get("failed") else ""
     if floor is not None:
-        why += (f"; no proof over this S exists at or below {floor['rate_hz']:.6g} Hz: from the state of S at t = "
+        at = (f"at any rate up to {MAX_RATE_HZ:g} Hz (S is not kept even between samples this close)"
+              if floor["rate_hz"] > MAX_RATE_HZ else f"at or below {floor['rate_hz']:.6g} Hz")
+        why += (f"; no proof over this S exists {at}: from the state of S at t = "
                 f"{floor['t']:g} s, e/F = {np.round(floor['e_over_F'], 4).tolist()} (controller states at their "
                 f"sets' centres, nominal parameters) the plant under the step's held torque leaves S after "
                 f"{floor['leaves_after_s']:.3g} s (integrated)")
