@@ -30,8 +30,11 @@ __all__ = ["BACKENDS", "DirectCvodes", "available", "backend", "driver_library",
 BACKENDS = ("direct", "casadi")
 #: the most memory one chunk's step history may take (the paper's 500-point chunks: ~12 MB)
 HISTORY_BYTES = 256e6
+#: the Newton matrix factorised along the LU's precomputed update schedule (`csrc/sf_lu.h`: the same factors bit for
+#: bit, less time); False: through a dense work column, the previous path (the bench's baseline)
+SCHEDULED_LU = True
 DRIVER_FLAGS = ("-std=c99", "-O2", "-fPIC", "-shared")
-_SOURCES = ("cvodes_driver.c", "cvodes_loop.c", "cvodes_mem.h")
+_SOURCES = ("cvodes_driver.c", "cvodes_loop.c", "cvodes_mem.h", "sf_lu.h")
 _REASON: list[str] = []
 
 
@@ -85,6 +88,8 @@ def driver_library() -> ctypes.CDLL | None:
     lib.sf_set_order.argtypes = [vp, ip]
     lib.sf_free.restype = None
     lib.sf_free.argtypes = [vp]
+    lib.sf_set_lu_columns.restype = None
+    lib.sf_set_lu_columns.argtypes = [vp, ctypes.c_int]
     lib.sf_max_growth.restype = ctypes.c_double
     lib.sf_max_growth.argtypes = [vp]
     lib.sf_factor_solve.restype = ctypes.c_int
@@ -157,6 +162,8 @@ class DirectCvodes:
             raise RuntimeError(f"the CVODES driver refused the closed loop: {err.value.decode(errors='replace')}")
         self._h = h
         self._finalizer = weakref.finalize(self, lib.sf_free, h)
+        self.scheduled_lu = bool(SCHEDULED_LU)
+        lib.sf_set_lu_columns(h, 0 if self.scheduled_lu else 1)
         self.order = None if order is None else np.ascontiguousarray(order, dtype=np.intc)
         if self.order is not None and (self.order.shape != (nx,)
                                        or lib.sf_set_order(h, _ptr(self.order, ctypes.c_int))):

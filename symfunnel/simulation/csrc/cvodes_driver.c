@@ -28,8 +28,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include "cvodes_mem.h"
-
-#define SF_GROWTH_MAX 1e8       /* largest entry of the eliminated matrix / largest entry of A (Wilkinson growth) */
+#include "sf_lu.h"
 
 typedef long long int casadi_int;     /* the closed loop's generated code uses CasADi's default casadi_int */
 typedef int (*sf_fun)(const double **arg, double **res, casadi_int *iw, double *w, int mem);
@@ -62,149 +61,6 @@ realtype *N_VGetArrayPointer(N_Vector v);
 #define SF_NEWTON 2
 #define SF_NORMAL 1
 #define SF_ONE_STEP 2
-
-/* ---- LU of A = I - gamma J on a fixed pattern, diagonal pivots ------------------------------------------- */
-
-typedef struct {
-  int n;
-  int *Ap, *Ai, *jmap, *dmap;    /* A's pattern (CSC, the diagonal included); J nonzero k -> A entry jmap[k] */
-  double *Ax;
-  int *Lp, *Li, *Up, *Ui;        /* L strictly below the diagonal; U with each column's diagonal last */
-  double *Lx, *Ux, *x;           /* x: dense work vector, zero between uses */
-  double max_growth;             /* largest growth factor of a factorisation so far (statistics) */
-} sf_lu;
-
-static void sf_lu_free(sf_lu *f) {
-  free(f->Ap); free(f->Ai); free(f->jmap); free(f->dmap); free(f->Ax);
-  free(f->Lp); free(f->Li); free(f->Up); free(f->Ui); free(f->Lx); free(f->Ux); free(f->x);
-  memset(f, 0, sizeof *f);
-}
-
-/* Symbolic analysis, once: A's pattern from J's (CSC colind Jp, rows Ji) plus the diagonal, then the fill of L and
- * U column by column (no pivoting: column j's pattern is A's column closed under the L columns k < j it hits). */
-static int sf_lu_analyse(sf_lu *f, int n, const int *Jp, const int *Ji) {
-  int j, p, k, i, nnzA = 0, nl = 0, nu = 0, capl, capu;
-  char *mark;
-  int *list;
-  memset(f, 0, sizeof *f);
-  f->n = n;
-  f->max_growth = 0.0;
-  f->Ap = malloc((size_t) (n + 1) * sizeof(int));
-  f->Ai = malloc((size_t) (Jp[n] + n) * sizeof(int));
-  f->jmap = malloc((size_t) (Jp[n] > 0 ? Jp[n] : 1) * sizeof(int));
-  f->dmap = malloc((size_t) n * sizeof(int));
-  f->x = calloc((size_t) n, sizeof(double));
-  f->Lp = malloc((size_t) (n + 1) * sizeof(int));
-  f->Up = malloc((size_t) (n + 1) * sizeof(int));
-  mark = calloc((size_t) n, 1);
-  list = malloc((size_t) n * sizeof(int));
-  capl = capu = Jp[n] + n + 16;
-  f->Li = malloc((size_t) capl * sizeof(int));
-  f->Ui = malloc((size_t) capu * sizeof(int));
-  if (!f->Ap || !f->Ai || !f->jmap || !f->dmap || !f->x || !f->Lp || !f->Up || !mark || !list || !f->Li || !f->Ui)
-    goto fail;
-  for (j = 0; j < n; ++j) {                         /* A = J + diagonal, rows ascending within a column */
-    int diag_done = 0;
-    f->Ap[j] = nnzA;
-    for (p = Jp[j]; p < Jp[j + 1]; ++p) {
-      if (p > Jp[j] && Ji[p] <= Ji[p - 1]) goto fail;          /* rows must be sorted (CasADi's are) */
-      if (!diag_done && Ji[p] > j) { f->dmap[j] = nnzA; f->Ai[nnzA++] = j; diag_done = 1; }
-      if (Ji[p] == j) { f->dmap[j] = nnzA; diag_done = 1; }
-      f->jmap[p] = nnzA;
-      f->Ai[nnzA++] = Ji[p];
-    }
-    if (!diag_done) { f->dmap[j] = nnzA; f->Ai[nnzA++] = j; }
-  }
-  f->Ap[n] = nnzA;
-  f->Ax = malloc((size_t) nnzA * sizeof(double));
-  if (!f->Ax) goto fail;
-  for (j = 0; j < n; ++j) {                         /* fill: column j of L + U */
-    int m = 0;
-    for (p = f->Ap[j]; p < f->Ap[j + 1]; ++p) mark[f->Ai[p]] = 1;
-    for (k = 0; k < j; ++k) {                       /* ascending k: every update of x[k] comes from an m < k */
-      if (!mark[k]) continue;
-      for (p = f->Lp[k]; p < f->Lp[k + 1]; ++p) mark[f->Li[p]] = 1;
-    }
-    for (i = 0; i < n; ++i)
-      if (mark[i]) { list[m++] = i; mark[i] = 0; }
-    f->Up[j] = nu;
-    f->Lp[j] = nl;
-    for (k = 0; k < m; ++k) {
-      i = list[k];
-      if (i <= j) {
-        if (nu == capu) { capu *= 2; f->Ui = realloc(f->Ui, (size_t) capu * sizeof(int)); if (!f->Ui) goto fail; }
-        f->Ui[nu++] = i;                            /* ascending, so the diagonal (i = j) comes last */
-      } else {
-        if (nl == capl) { capl *= 2; f->Li = realloc(f->Li, (size_t) capl * sizeof(int)); if (!f->Li) goto fail; }
-        f->Li[nl++] = i;
-      }
-    }
-    f->Lp[j + 1] = nl;                              /* read by later columns' fill */
-    if (nu == f->Up[j] || f->Ui[nu - 1] != j) goto fail;
-  }
-  f->Up[n] = nu;
-  f->Lx = malloc((size_t) (nl > 0 ? nl : 1) * sizeof(double));
-  f->Ux = malloc((size_t) nu * sizeof(double));
-  free(mark);
-  free(list);
-  return (f->Lx && f->Ux) ? 0 : -1;
-fail:
-  free(mark);
-  free(list);
-  sf_lu_free(f);
-  return -1;
-}
-
-/* A = I - gamma J from J's nonzeros, then the numeric factorisation; 1 on a zero or non-finite pivot or too much
- * growth. */
-static int sf_lu_factor(sf_lu *f, const double *Jx, int nnzJ, double gamma) {
-  int n = f->n, j, p, q, k;
-  double *x = f->x, amax = 0.0, gmax = 0.0;
-  memset(f->Ax, 0, (size_t) f->Ap[n] * sizeof(double));
-  for (k = 0; k < nnzJ; ++k) f->Ax[f->jmap[k]] = -gamma * Jx[k];
-  for (j = 0; j < n; ++j) f->Ax[f->dmap[j]] += 1.0;
-  for (p = 0; p < f->Ap[n]; ++p)
-    if (fabs(f->Ax[p]) > amax) amax = fabs(f->Ax[p]);
-  for (j = 0; j < n; ++j) {
-    double piv;
-    for (p = f->Ap[j]; p < f->Ap[j + 1]; ++p) x[f->Ai[p]] = f->Ax[p];
-    for (p = f->Up[j]; p < f->Up[j + 1] - 1; ++p) {  /* U entries above the diagonal, ascending row */
-      double xk;
-      k = f->Ui[p];
-      xk = x[k];
-      for (q = f->Lp[k]; q < f->Lp[k + 1]; ++q) x[f->Li[q]] -= f->Lx[q] * xk;
-    }
-    for (p = f->Up[j]; p < f->Up[j + 1]; ++p) {
-      f->Ux[p] = x[f->Ui[p]];
-      x[f->Ui[p]] = 0.0;
-      if (fabs(f->Ux[p]) > gmax) gmax = fabs(f->Ux[p]);
-    }
-    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p)
-      if (fabs(x[f->Li[p]]) > gmax) gmax = fabs(x[f->Li[p]]);
-    piv = f->Ux[f->Up[j + 1] - 1];
-    if (piv == 0.0 || !isfinite(piv) || !(gmax <= SF_GROWTH_MAX * amax)) {
-      for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) x[f->Li[p]] = 0.0;
-      return 1;
-    }
-    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) { f->Lx[p] = x[f->Li[p]] / piv; x[f->Li[p]] = 0.0; }
-  }
-  if (amax > 0.0 && gmax / amax > f->max_growth) f->max_growth = gmax / amax;
-  return 0;
-}
-
-/* b <- A^-1 b with the last factorisation. */
-static void sf_lu_solve(const sf_lu *f, double *b) {
-  int n = f->n, j, p;
-  for (j = 0; j < n; ++j) {                         /* column by column, as CSparse's cs_lsolve and cs_usolve */
-    double bj = b[j];
-    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) b[f->Li[p]] -= f->Lx[p] * bj;
-  }
-  for (j = n - 1; j >= 0; --j) {
-    double bj = b[j] / f->Ux[f->Up[j + 1] - 1];
-    b[j] = bj;
-    for (p = f->Up[j]; p < f->Up[j + 1] - 1; ++p) b[f->Ui[p]] -= f->Ux[p] * bj;
-  }
-}
 
 /* ---- the solver object --------------------------------------------------------------------------------- */
 
@@ -452,6 +308,12 @@ int sf_set_order(void *handle, const int *order) {
   free(s->order);
   s->order = o;
   return 0;
+}
+
+/* Which factorisation setups use from now on: 1, sf_lu_factor_columns (the previous one, kept as the reference);
+ * 0, sf_lu_factor (the same factors, faster). */
+void sf_set_lu_columns(void *handle, int columns) {
+  ((sf_solver *) handle)->lu.columns = columns;
 }
 
 /* The largest growth factor of the factorisations so far (0 before the first), for the tests. */
