@@ -29,6 +29,9 @@
 #include <string.h>
 #include "cvodes_mem.h"
 #include "sf_lu.h"
+#include "sf_nvec.h"
+
+static int sf_wide_vectors = 1;  /* sf_set_wide_vectors */
 
 typedef long long int casadi_int;     /* the closed loop's generated code uses CasADi's default casadi_int */
 typedef int (*sf_fun)(const double **arg, double **res, casadi_int *iw, double *w, int mem);
@@ -52,10 +55,16 @@ int CVodeGetNonlinSolvStats(void *mem, long int *nniters, long int *nncfails);
 char *CVodeGetReturnFlagName(long int flag);
 int CVodeGetDky(void *mem, realtype t, int k, N_Vector dky);
 void N_VSetArrayPointer(realtype *v_data, N_Vector v);
+void N_VScale(realtype c, N_Vector x, N_Vector z);
 void CVodeFree(void **mem);
 N_Vector N_VMake_Serial(long int length, realtype *data);
 void N_VDestroy_Serial(N_Vector v);
 realtype *N_VGetArrayPointer(N_Vector v);
+void N_VLinearSum(realtype a, N_Vector x, realtype b, N_Vector y, N_Vector z);
+void N_VAbs(N_Vector x, N_Vector z);
+void N_VInv(N_Vector x, N_Vector z);
+void N_VAddConst(N_Vector x, realtype b, N_Vector z);
+realtype N_VMin(N_Vector x);
 
 #define SF_BDF 2
 #define SF_NEWTON 2
@@ -75,6 +84,7 @@ typedef struct {
   void *mem;
   N_Vector y;
   long njac, npivfail;
+  int wide;                      /* 1: its vectors run sf_nvec.h's operations */
   char msg[400];
   /* the last sf_run_hist's steps: each one's tn, h, hu, q and Nordsieck array zn[0..q] (hist_z from hist_off) */
   double *hist_t, *hist_h, *hist_hu, *hist_z;
@@ -210,10 +220,12 @@ void *sf_create(int nx, int np, void *ode, void *jac, const long long *sizes, co
   if (!s->arg || !s->res || !s->iw || !s->w || !s->p || !s->Jx) SF_FAIL("out of memory");
   if (sf_lu_analyse(&s->lu, nx, Jp, Ji)) SF_FAIL("the Jacobian's pattern cannot be factorised in place");
   s->y = N_VMake_Serial(nx, calloc((size_t) nx, sizeof(double)));
+  if (s->y && sf_wide_vectors) s->wide = sf_nv_install(s->y);    /* before CVodeInit: its clones copy the table */
   s->scratch = calloc((size_t) nx, sizeof(double));
   if (!s->y || !s->scratch) SF_FAIL("out of memory");
   s->scratch_v = N_VMake_Serial(nx, s->scratch);
   if (!s->scratch_v) SF_FAIL("out of memory");
+  if (s->wide) sf_nv_install(s->scratch_v);
   s->mem = CVodeCreate(SF_BDF, SF_NEWTON);
   if (!s->mem) SF_FAIL("CVodeCreate failed");
   if (CVodeSetErrHandlerFn(s->mem, sf_ehfun, s) || CVodeSetUserData(s->mem, s)
@@ -316,6 +328,35 @@ void sf_set_lu_columns(void *handle, int columns) {
   ((sf_solver *) handle)->lu.columns = columns;
 }
 
+/* Whether solvers created from now on install sf_nvec.h's vector operations (1, where they apply) or keep
+ * SUNDIALS' (0, the previous path); and whether a solver has them. */
+void sf_set_wide_vectors(int wide) {
+  sf_wide_vectors = wide;
+}
+int sf_has_wide_vectors(void *handle) {
+  return ((sf_solver *) handle)->wide;
+}
+
+/* One vector operation on serial vectors over x, y, z (length n), through CVODES' dispatch, with sf_nvec.h's
+ * operations installed (wide 1) or SUNDIALS' own (0): op 0 N_VLinearSum(a, x, b, y, z), 1 N_VScale(a, x, z), 2
+ * N_VAbs, 3 N_VInv, 4 N_VAddConst(x, a, z), 5 N_VMin(x) into *r; alias 1: z is x, 2: z is y. For tests. Returns
+ * whether the wide operations were installed, or -1. */
+int sf_nv_apply(int op, double a, double b, long n, double *x, double *y, double *z, int alias, int wide, double *r) {
+  N_Vector X = N_VMake_Serial(n, x), Y = N_VMake_Serial(n, y), Z = N_VMake_Serial(n, z), W;
+  int on = 0;
+  if (!X || !Y || !Z) { if (X) N_VDestroy_Serial(X); if (Y) N_VDestroy_Serial(Y); if (Z) N_VDestroy_Serial(Z); return -1; }
+  W = alias == 1 ? X : alias == 2 ? Y : Z;
+  if (wide) on = sf_nv_install(X) & sf_nv_install(Y) & sf_nv_install(Z);
+  if (op == 0) N_VLinearSum(a, X, b, Y, W);
+  else if (op == 1) N_VScale(a, X, W);
+  else if (op == 2) N_VAbs(X, W);
+  else if (op == 3) N_VInv(X, W);
+  else if (op == 4) N_VAddConst(X, a, W);
+  else *r = N_VMin(X);
+  N_VDestroy_Serial(X); N_VDestroy_Serial(Y); N_VDestroy_Serial(Z);
+  return on;
+}
+
 /* The largest growth factor of the factorisations so far (0 before the first), for the tests. */
 double sf_max_growth(void *handle) {
   return ((sf_solver *) handle)->lu.max_growth;
@@ -392,6 +433,7 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
     for (j = 0; j < L_MAX; ++j) {
       s->hist_v[j] = N_VMake_Serial(s->nx, y);
       if (!s->hist_v[j]) return 1;
+      if (s->wide) sf_nv_install(s->hist_v[j]);
     }
   }
   for (k = 0; k < K; ++k) {
