@@ -372,6 +372,20 @@ int sf_factor_solve(void *handle, const double *Jx, double gamma, double *b) {
 
 /* ---- one chunk, its samples chosen after it: the history of its steps ----------------------------------- */
 
+/* dst[0..n-1] = src[0..n-1], written past the caches where the processor can (SSE2's non-temporal stores, 16-byte
+ * aligned): a chunk's history (MBs, read once after the chunk by sf_sample) then does not evict CVODES' own
+ * vectors and LU from the caches at every step. */
+static void sf_copy_stream(double *dst, const double *src, size_t n) {
+#if defined(__GNUC__) && defined(__x86_64__)
+  size_t i = 0;
+  if (((size_t) dst & 15) != 0) { dst[0] = src[0]; i = 1; }
+  for (; i + 2 <= n; i += 2) _mm_stream_pd(dst + i, _mm_loadu_pd(src + i));
+  for (; i < n; ++i) dst[i] = src[i];
+#else
+  memcpy(dst, src, n * sizeof(double));
+#endif
+}
+
 /* Keep the step CVODES has just taken (tn, h, hu, q, zn[0..q]); 0 when the history would pass max_bytes or memory
  * runs out (the history is then incomplete and sf_sample refuses). */
 static int sf_hist_push(sf_solver *s, double max_bytes) {
@@ -408,7 +422,7 @@ static int sf_hist_push(sf_solver *s, double max_bytes) {
   s->hist_q[s->hist_n] = m->cv_q;
   s->hist_off[s->hist_n] = s->hist_zlen;
   for (j = 0; j <= (size_t) m->cv_q; ++j)
-    memcpy(s->hist_z + s->hist_zlen + j * nx, N_VGetArrayPointer(m->cv_zn[j]), nx * sizeof(double));
+    sf_copy_stream(s->hist_z + s->hist_zlen + j * nx, N_VGetArrayPointer(m->cv_zn[j]), nx);
   s->hist_zlen += need;
   s->hist_n++;
   return 1;
@@ -463,6 +477,9 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
       nstloc = 0;
     }
   }
+#if defined(__GNUC__) && defined(__x86_64__)
+  _mm_sfence();                     /* the history's streamed stores ordered before whoever samples it next */
+#endif
   return sf_finish(s, flag, stats, msg, msglen);
 }
 
