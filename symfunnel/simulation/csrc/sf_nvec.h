@@ -11,12 +11,11 @@
  * addition is their result.
  *
  * They are installed in a vector's operation table (which CVODES' clones copy) only where that table holds,
- * slot for slot, the serial functions this SUNDIALS exports -- the layout this code was written for -- and the
- * processor has AVX2; otherwise the vector keeps SUNDIALS' functions. */
+ * slot for slot, the serial functions this SUNDIALS exports (linked by name) -- the layout this code was written
+ * for -- and the processor has AVX2; otherwise the vector keeps SUNDIALS' functions. */
 #ifndef SF_NVEC_H
 #define SF_NVEC_H
 
-#include <dlfcn.h>
 #include <string.h>
 
 #if defined(__GNUC__) && defined(__x86_64__)
@@ -29,21 +28,42 @@
 #endif
 
 #define SF_NV_SLOTS 25
-/* SUNDIALS 2.6.1's struct _generic_N_Vector_Ops, slot by slot, and the serial vector's content */
-static const char *const sf_nv_slot_names[SF_NV_SLOTS] = {
-  "N_VClone_Serial", "N_VCloneEmpty_Serial", "N_VDestroy_Serial", "N_VSpace_Serial", "N_VGetArrayPointer_Serial",
-  "N_VSetArrayPointer_Serial", "N_VLinearSum_Serial", "N_VConst_Serial", "N_VProd_Serial", "N_VDiv_Serial",
-  "N_VScale_Serial", "N_VAbs_Serial", "N_VInv_Serial", "N_VAddConst_Serial", "N_VDotProd_Serial",
-  "N_VMaxNorm_Serial", "N_VWrmsNorm_Serial", "N_VWrmsNormMask_Serial", "N_VMin_Serial", "N_VWL2Norm_Serial",
-  "N_VL1Norm_Serial", "N_VCompare_Serial", "N_VInvTest_Serial", "N_VConstrMask_Serial", "N_VMinQuotient_Serial"};
+/* SUNDIALS 2.6.1's serial vector functions (nvector_serial.h), the slots of its struct _generic_N_Vector_Ops in
+ * order, and the serial vector's content */
+N_Vector N_VClone_Serial(N_Vector w);
+N_Vector N_VCloneEmpty_Serial(N_Vector w);
+void N_VDestroy_Serial(N_Vector v);
+void N_VSpace_Serial(N_Vector v, long int *lrw, long int *liw);
+realtype *N_VGetArrayPointer_Serial(N_Vector v);
+void N_VSetArrayPointer_Serial(realtype *v_data, N_Vector v);
+void N_VLinearSum_Serial(realtype a, N_Vector x, realtype b, N_Vector y, N_Vector z);
+void N_VConst_Serial(realtype c, N_Vector z);
+void N_VProd_Serial(N_Vector x, N_Vector y, N_Vector z);
+void N_VDiv_Serial(N_Vector x, N_Vector y, N_Vector z);
+void N_VScale_Serial(realtype c, N_Vector x, N_Vector z);
+void N_VAbs_Serial(N_Vector x, N_Vector z);
+void N_VInv_Serial(N_Vector x, N_Vector z);
+void N_VAddConst_Serial(N_Vector x, realtype b, N_Vector z);
+realtype N_VDotProd_Serial(N_Vector x, N_Vector y);
+realtype N_VMaxNorm_Serial(N_Vector x);
+realtype N_VWrmsNorm_Serial(N_Vector x, N_Vector w);
+realtype N_VWrmsNormMask_Serial(N_Vector x, N_Vector w, N_Vector id);
+realtype N_VMin_Serial(N_Vector x);
+realtype N_VWL2Norm_Serial(N_Vector x, N_Vector w);
+realtype N_VL1Norm_Serial(N_Vector x);
+void N_VCompare_Serial(realtype c, N_Vector x, N_Vector z);
+booleantype N_VInvTest_Serial(N_Vector x, N_Vector z);
+booleantype N_VConstrMask_Serial(N_Vector c, N_Vector x, N_Vector m);
+realtype N_VMinQuotient_Serial(N_Vector num, N_Vector denom);
 enum { SF_NV_LINEARSUM = 6, SF_NV_SCALE = 10, SF_NV_ABS = 11, SF_NV_INV = 12, SF_NV_ADDCONST = 13, SF_NV_MIN = 18 };
 
-typedef struct { void *slot[SF_NV_SLOTS]; } sf_nv_ops;   /* function pointers, stored as POSIX's dlsym has them */
+typedef void (*sf_nv_fn)(void);
+typedef struct { sf_nv_fn slot[SF_NV_SLOTS]; } sf_nv_ops;
 typedef struct { void *content; sf_nv_ops *ops; } sf_nv;
 typedef struct { long int length; int own_data; double *data; } sf_nv_content;
 
-#define SF_NV_LEN(v) (((sf_nv_content *) ((sf_nv *) (v))->content)->length)
-#define SF_NV_DATA(v) (((sf_nv_content *) ((sf_nv *) (v))->content)->data)
+#define SF_NV_LEN(v) (((sf_nv_content *) ((sf_nv *) (void *) (v))->content)->length)
+#define SF_NV_DATA(v) (((sf_nv_content *) ((sf_nv *) (void *) (v))->content)->data)
 
 /* z[i] = EXPR for i < n: four at a time (V: the __m256d form), then the rest (S: the scalar form) */
 #define SF_NV_LOOP(V, S) do { for (i = 0; i + 4 <= n; i += 4) { V; } for (; i < n; ++i) { S; } } while (0)
@@ -60,7 +80,7 @@ SF_AVX2 static void sf_nv_axpy(double a, const double *x, double *y, long n) {  
 }
 
 /* N_VLinearSum: z = a x + b y, by SUNDIALS' cases */
-SF_AVX2 static void sf_nv_linearsum(double a, void *X, double b, void *Y, void *Z) {
+SF_AVX2 static void sf_nv_linearsum(realtype a, N_Vector X, realtype b, N_Vector Y, N_Vector Z) {
   long i, n = SF_NV_LEN(X);
   const double *x = SF_NV_DATA(X), *y = SF_NV_DATA(Y), *u, *v;
   double *z = SF_NV_DATA(Z), c;
@@ -98,7 +118,7 @@ SF_AVX2 static void sf_nv_linearsum(double a, void *X, double b, void *Y, void *
 }
 
 /* N_VScale: z = c x (x scaled in place, copied, negated or multiplied, as SUNDIALS' cases) */
-SF_AVX2 static void sf_nv_scale(double c, void *X, void *Z) {
+SF_AVX2 static void sf_nv_scale(realtype c, N_Vector X, N_Vector Z) {
   long i, n = SF_NV_LEN(X);
   const double *x = SF_NV_DATA(X);
   double *z = SF_NV_DATA(Z);
@@ -110,7 +130,7 @@ SF_AVX2 static void sf_nv_scale(double c, void *X, void *Z) {
 }
 
 /* N_VAbs: z = |x| (SUNRabs here is fabs: the sign bit cleared) */
-SF_AVX2 static void sf_nv_abs(void *X, void *Z) {
+SF_AVX2 static void sf_nv_abs(N_Vector X, N_Vector Z) {
   long i, n = SF_NV_LEN(X);
   const double *x = SF_NV_DATA(X);
   double *z = SF_NV_DATA(Z);
@@ -119,7 +139,7 @@ SF_AVX2 static void sf_nv_abs(void *X, void *Z) {
 }
 
 /* N_VAddConst: z = x + b */
-SF_AVX2 static void sf_nv_addconst(void *X, double b, void *Z) {
+SF_AVX2 static void sf_nv_addconst(N_Vector X, realtype b, N_Vector Z) {
   long i, n = SF_NV_LEN(X);
   const double *x = SF_NV_DATA(X);
   double *z = SF_NV_DATA(Z);
@@ -128,7 +148,7 @@ SF_AVX2 static void sf_nv_addconst(void *X, double b, void *Z) {
 }
 
 /* N_VInv: z = 1 / x */
-SF_AVX2 static void sf_nv_inv(void *X, void *Z) {
+SF_AVX2 static void sf_nv_inv(N_Vector X, N_Vector Z) {
   long i, n = SF_NV_LEN(X);
   const double *x = SF_NV_DATA(X);
   double *z = SF_NV_DATA(Z);
@@ -138,7 +158,7 @@ SF_AVX2 static void sf_nv_inv(void *X, void *Z) {
 
 /* N_VMin: x[0], then each later x[i] < the running minimum replaces it (NaNs after x[0] skipped). Four running
  * minima give the same value, except which zero (+0 or -0) comes first: a zero result is found again in order. */
-SF_AVX2 static double sf_nv_min(void *X) {
+SF_AVX2 static realtype sf_nv_min(N_Vector X) {
   long i, n = SF_NV_LEN(X);
   const double *x = SF_NV_DATA(X);
   double m = x[0], lane[4];
@@ -159,30 +179,32 @@ SF_AVX2 static double sf_nv_min(void *X) {
 
 /* Install the four-wide operations in vector v's operation table: 1 when installed; 0 when v keeps SUNDIALS'
  * (no AVX2 here, or a table that is not slot for slot the serial one this code knows). */
-static int sf_nv_install(void *v) {
+static int sf_nv_install(N_Vector v) {
 #if SF_NV_SIMD
-  sf_nv_ops *ops = ((sf_nv *) v)->ops;
-  void (*ls)(double, void *, double, void *, void *) = sf_nv_linearsum, (*sc)(double, void *, void *) = sf_nv_scale;
-  void (*ab)(void *, void *) = sf_nv_abs, (*iv)(void *, void *) = sf_nv_inv;
-  void (*ac)(void *, double, void *) = sf_nv_addconst;
-  double (*mn)(void *) = sf_nv_min;
+  const sf_nv_fn want[SF_NV_SLOTS] = {
+    (sf_nv_fn) N_VClone_Serial, (sf_nv_fn) N_VCloneEmpty_Serial, (sf_nv_fn) N_VDestroy_Serial,
+    (sf_nv_fn) N_VSpace_Serial, (sf_nv_fn) N_VGetArrayPointer_Serial, (sf_nv_fn) N_VSetArrayPointer_Serial,
+    (sf_nv_fn) N_VLinearSum_Serial, (sf_nv_fn) N_VConst_Serial, (sf_nv_fn) N_VProd_Serial, (sf_nv_fn) N_VDiv_Serial,
+    (sf_nv_fn) N_VScale_Serial, (sf_nv_fn) N_VAbs_Serial, (sf_nv_fn) N_VInv_Serial, (sf_nv_fn) N_VAddConst_Serial,
+    (sf_nv_fn) N_VDotProd_Serial, (sf_nv_fn) N_VMaxNorm_Serial, (sf_nv_fn) N_VWrmsNorm_Serial,
+    (sf_nv_fn) N_VWrmsNormMask_Serial, (sf_nv_fn) N_VMin_Serial, (sf_nv_fn) N_VWL2Norm_Serial,
+    (sf_nv_fn) N_VL1Norm_Serial, (sf_nv_fn) N_VCompare_Serial, (sf_nv_fn) N_VInvTest_Serial,
+    (sf_nv_fn) N_VConstrMask_Serial, (sf_nv_fn) N_VMinQuotient_Serial};
+  sf_nv_ops *ops = ((sf_nv *) (void *) v)->ops;
   int k;
   __builtin_cpu_init();
   if (!__builtin_cpu_supports("avx2") || !ops) return 0;
-  for (k = 0; k < SF_NV_SLOTS; ++k) {
-    void *want = dlsym(RTLD_DEFAULT, sf_nv_slot_names[k]);
-    if (!want || ops->slot[k] != want) return 0;
-  }
-  memcpy(&ops->slot[SF_NV_LINEARSUM], &ls, sizeof ls);
-  memcpy(&ops->slot[SF_NV_SCALE], &sc, sizeof sc);
-  memcpy(&ops->slot[SF_NV_ABS], &ab, sizeof ab);
-  memcpy(&ops->slot[SF_NV_INV], &iv, sizeof iv);
-  memcpy(&ops->slot[SF_NV_ADDCONST], &ac, sizeof ac);
-  memcpy(&ops->slot[SF_NV_MIN], &mn, sizeof mn);
+  for (k = 0; k < SF_NV_SLOTS; ++k)
+    if (ops->slot[k] != want[k]) return 0;
+  ops->slot[SF_NV_LINEARSUM] = (sf_nv_fn) sf_nv_linearsum;
+  ops->slot[SF_NV_SCALE] = (sf_nv_fn) sf_nv_scale;
+  ops->slot[SF_NV_ABS] = (sf_nv_fn) sf_nv_abs;
+  ops->slot[SF_NV_INV] = (sf_nv_fn) sf_nv_inv;
+  ops->slot[SF_NV_ADDCONST] = (sf_nv_fn) sf_nv_addconst;
+  ops->slot[SF_NV_MIN] = (sf_nv_fn) sf_nv_min;
   return 1;
 #else
   (void) v;
-  (void) sf_nv_slot_names;
   return 0;
 #endif
 }
