@@ -12,6 +12,8 @@ import pytest
 
 from symfunnel.simulation import sundials
 
+from .test_sf_lu import assert_same_run
+
 pytestmark = pytest.mark.skipif(not sundials.available(), reason="the CVODES driver does not build here")
 
 SPECIAL = np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 1e-310, -1e300, 3.0])
@@ -96,10 +98,4 @@ def test_a_run_with_the_wide_vectors_is_the_run_without(scenario, monkeypatch):
     for wide in (True, False):
         monkeypatch.setattr(sundials, "WIDE_VECTORS", wide)
         runs.append(simulate(run.scenario, run.design, t_final=1.0, closed_loop=run.closed_loop))
-    a, b = runs
-    assert a.stats["cvodes_backend"] == "direct" == b.stats["cvodes_backend"]
-    assert np.array_equal(a.t, b.t) and np.array_equal(a.x, b.x)
-    for k in a.signals:
-        assert np.array_equal(a.signals[k], b.signals[k], equal_nan=True), k
-    for k in ("steps", "rhs_evaluations", "jacobian_evaluations", "error_test_failures", "between"):
-        assert a.stats[k] == b.stats[k], k
+    assert_same_run(*runs)
