@@ -91,3 +91,15 @@ def test_c_loop_vs_python_runs_both_loops_on_the_same_trajectory(paper_run):
     assert len(r["c"]) == len(r["python"]) == len(PERTURBATIONS)
     assert r["steps_c"] == r["steps_python"] and min(r["steps_c"]) > 50
     assert r["paired_ratio"] > 0 and crun.RUN_IN_C is True
+
+
+def test_driver_kernels_compares_both_forms_on_the_same_trajectory_and_restores_the_switches(paper_run):
+    """bench.simulate.driver_kernels (`simulate.driver_kernels`): the kernels on and off give the same step counts
+    (the same doubles), and the switches are as they were afterwards."""
+    from symfunnel.bench.simulate import driver_kernels
+    from symfunnel.simulation import sundials
+    r = driver_kernels(paper_run.scenario, paper_run.design, paper_run.closed_loop, 0.5, rounds=1)
+    assert len(r["this"]) == len(r["previous"]) == 9
+    assert r["steps_this"] == r["steps_previous"] and min(r["steps_this"]) > 50
+    assert r["paired_ratio"] > 0 and r["lu_paired_ratio"] > 0 and r["vectors_paired_ratio"] > 0
+    assert sundials.SCHEDULED_LU is True and sundials.WIDE_VECTORS is True

@@ -189,8 +189,9 @@ def _compile_driver(tmp_path, header_text: str):
 
     from symfunnel.core.ccompile import compile_cached
     d = Path(_ca.__file__).resolve().parent
-    src = {"cvodes_driver.c": resources.files("symfunnel.simulation").joinpath("csrc", "cvodes_driver.c")
-           .read_text(encoding="utf-8"), "cvodes_mem.h": header_text}
+    csrc = resources.files("symfunnel.simulation").joinpath("csrc")
+    src = {name: csrc.joinpath(name).read_text(encoding="utf-8") for name in sundials._SOURCES}
+    src["cvodes_mem.h"] = header_text
     libs = (f"-L{d}", "-l:libcasadi_integrator_cvodes.so", "-l:libcasadi_sundials_common.so", f"-Wl,-rpath,{d}",
             "-lm")
     built = compile_cached(src, ["cvodes_driver.c"], "drv.so", sundials.DRIVER_FLAGS, libs=libs, cache=tmp_path)

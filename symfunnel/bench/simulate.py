@@ -12,6 +12,9 @@ warm compile cache and bytecode cache, CPU time beside; baseline: a process that
 `simulate.cpu_per_run_vs_previous` (the same perturbed 20 s paper runs in a fresh process, against the previous
 path -- the chunks run by the Python loop, `simulation.crun` off -- in another, the two alternated) and
 `simulate.arm7_cpu_per_sim_s` (CPU seconds per simulated second of arm7's 20 s run, the same two paths alternated).
+`simulate.driver_kernels` (CPU per 20 s paper run with the CVODES driver's Newton LU along its update schedule and
+its vector operations four doubles at a time, against the same runs with the column LU and SUNDIALS' own vector
+operations, interleaved in one process: the same trajectories, so a paired ratio; each kernel's own ratio beside).
 `simulate.cpu_per_run` and `simulate.realtime_factor` carry the previous path (the Python loop over the same C
 driver, interleaved with the C loop in the same process) beside them: its CPU per run and the paired ratio.
 """
@@ -138,6 +141,34 @@ def c_loop_vs_python(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
             "median_python": float(np.median(cpu[False])), "paired_ratio": r["paired_ratio"]}
 
 
+class _Kernels:
+    """The CVODES driver's two kernels (`sundials.SCHEDULED_LU`, `sundials.WIDE_VECTORS`) as one switch `on`."""
+
+    @property
+    def on(self) -> bool:
+        from ..simulation import sundials
+        return bool(sundials.SCHEDULED_LU and sundials.WIDE_VECTORS)
+
+    @on.setter
+    def on(self, value: bool) -> None:
+        from ..simulation import sundials
+        sundials.SCHEDULED_LU = sundials.WIDE_VECTORS = bool(value)
+
+
+def driver_kernels(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """CPU per run with both driver kernels and with neither (the previous path), interleaved over the perturbed
+    runs; then each kernel alone against its previous form. Paired ratios (previous / this); the steps of both
+    sides (the same: the kernels compute the same doubles)."""
+    from ..simulation import sundials
+    both = alternated(sc, d, cl, t_final, _Kernels(), "on", rounds)
+    lu = alternated(sc, d, cl, t_final, sundials, "SCHEDULED_LU", rounds)
+    vec = alternated(sc, d, cl, t_final, sundials, "WIDE_VECTORS", rounds)
+    return {"this": both["cpu"][True], "previous": both["cpu"][False], "steps_this": both["steps"][True],
+            "steps_previous": both["steps"][False], "median_this": float(np.median(both["cpu"][True])),
+            "median_previous": float(np.median(both["cpu"][False])), "paired_ratio": both["paired_ratio"],
+            "lu_paired_ratio": lu["paired_ratio"], "vectors_paired_ratio": vec["paired_ratio"]}
+
+
 def samples_from_steps(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
     """CPU seconds per run with the samples between output points taken from the kept steps and with a chunk
     integrated again instead (`runner.SAMPLE_FROM_STEPS`; the C loop runs only with it on), interleaved over the
@@ -248,6 +279,9 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
     with _cvodes_backend("direct"):
         sfs = samples_from_steps(sc, d, cl, tf)
+    say("simulate: the driver's LU schedule and wide vector operations, and their previous forms, interleaved")
+    with _cvodes_backend("direct"):
+        kern = driver_kernels(sc, d, cl, tf)
     say("simulate: this path and the previous one in fresh processes, alternated (paper, then arm7 20 s)")
     prev = against_previous("paper", tf)
     arm7_tf = float(os.environ.get("SYMFUNNEL_BENCH_ARM7_T_FINAL", 20.0))
@@ -290,6 +324,15 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
                cpu_previous=prev["previous"], steps_this=prev["steps_this"], steps_previous=prev["steps_previous"],
                realtime_factor_cpu=tf / prev["median_this"], target=TARGET_CPU_PER_RUN,
                note="ratio: median of the paired ratios (same variant, same round)"),
+        result("simulate.driver_kernels", kern["median_this"], "CPU s",
+               "the column LU and SUNDIALS' own vector operations, same runs interleaved", kern["median_previous"],
+               kern["paired_ratio"], t_final=tf, cpu_this=kern["this"], cpu_previous=kern["previous"],
+               steps_this=kern["steps_this"], steps_previous=kern["steps_previous"],
+               lu_paired_ratio=kern["lu_paired_ratio"], vectors_paired_ratio=kern["vectors_paired_ratio"],
+               realtime_factor_cpu=tf / kern["median_this"], target=TARGET_CPU_PER_RUN,
+               meets_target=bool(kern["median_this"] <= TARGET_CPU_PER_RUN),
+               note="ratio: median of the paired ratios (same perturbation, same round); lu_ and vectors_: each "
+                    "kernel alone against its previous form"),
         result("simulate.arm7_cpu_per_sim_s", arm7["median_this"] / arm7_tf, "CPU s per simulated s",
                "the previous path, fresh processes alternated", arm7["median_previous"] / arm7_tf,
                arm7["paired_ratio"], t_final=arm7_tf, cpu_this=arm7["this"], cpu_previous=arm7["previous"],

@@ -93,7 +93,8 @@ class Runner:
                 or sundials.backend() != "direct":
             return None
         opts = self._options(1, self.h)           # the options do not depend on the grid
-        key = ("direct", PUBLIC_ORDER_IN_C, tuple(sorted((k, repr(v)) for k, v in opts.items())))
+        key = ("direct", PUBLIC_ORDER_IN_C, sundials.SCHEDULED_LU, sundials.WIDE_VECTORS,
+               tuple(sorted((k, repr(v)) for k, v in opts.items())))
         if key not in self._integrators:
             try:
                 d = sundials.DirectCvodes(self.comp.library, self.cl.nx, 1 + len(self.comp.pvals), opts,

@@ -30,9 +30,16 @@ __all__ = ["BACKENDS", "DirectCvodes", "available", "backend", "driver_library",
 BACKENDS = ("direct", "casadi")
 #: the most memory one chunk's step history may take (the paper's 500-point chunks: ~12 MB)
 HISTORY_BYTES = 256e6
+#: the Newton matrix factorised along the LU's precomputed update schedule (`csrc/sf_lu.h`: the same factors bit for
+#: bit, less time); False: through a dense work column, the previous path (the bench's baseline)
+SCHEDULED_LU = True
+#: CVODES' vector operations four doubles at a time where the processor has AVX2 (`csrc/sf_nvec.h`: the same
+#: doubles); False: SUNDIALS' own (the previous path, the bench's baseline)
+WIDE_VECTORS = True
 DRIVER_FLAGS = ("-std=c99", "-O2", "-fPIC", "-shared")
-_SOURCES = ("cvodes_driver.c", "cvodes_loop.c", "cvodes_mem.h")
+_SOURCES = ("cvodes_driver.c", "cvodes_loop.c", "cvodes_mem.h", "sf_lu.h", "sf_nvec.h")
 _REASON: list[str] = []
+_CREATE_LOCK = threading.Lock()
 
 
 def backend() -> str:
@@ -85,6 +92,15 @@ def driver_library() -> ctypes.CDLL | None:
     lib.sf_set_order.argtypes = [vp, ip]
     lib.sf_free.restype = None
     lib.sf_free.argtypes = [vp]
+    lib.sf_set_wide_vectors.restype = None
+    lib.sf_set_wide_vectors.argtypes = [ctypes.c_int]
+    lib.sf_nv_apply.restype = ctypes.c_int
+    lib.sf_nv_apply.argtypes = [ctypes.c_int, ctypes.c_double, ctypes.c_double, ctypes.c_long, dp, dp, dp,
+                                ctypes.c_int, ctypes.c_int, dp]
+    lib.sf_has_wide_vectors.restype = ctypes.c_int
+    lib.sf_has_wide_vectors.argtypes = [vp]
+    lib.sf_set_lu_columns.restype = None
+    lib.sf_set_lu_columns.argtypes = [vp, ctypes.c_int]
     lib.sf_max_growth.restype = ctypes.c_double
     lib.sf_max_growth.argtypes = [vp]
     lib.sf_factor_solve.restype = ctypes.c_int
@@ -149,14 +165,20 @@ class DirectCvodes:
         err = ctypes.create_string_buffer(400)
         fptr = (ctypes.cast(self._cl.symfunnel_ode, ctypes.c_void_p).value,
                 ctypes.cast(self._cl.jac_symfunnel_ode, ctypes.c_void_p).value)
-        h = lib.sf_create(nx, n_p, fptr[0], fptr[1], _ptr(sizes, ctypes.c_longlong), _ptr(Jp, ctypes.c_int),
-                          _ptr(Ji, ctypes.c_int), float(options["reltol"]), float(options["abstol"]),
-                          int(options["max_num_steps"]), float(options.get("max_step_size", 0.0)),
-                          int(options.get("max_order", 0)), err, len(err))
+        with _CREATE_LOCK:             # the driver reads the vector switch when it creates the solver
+            lib.sf_set_wide_vectors(1 if WIDE_VECTORS else 0)
+            h = lib.sf_create(nx, n_p, fptr[0], fptr[1], _ptr(sizes, ctypes.c_longlong), _ptr(Jp, ctypes.c_int),
+                              _ptr(Ji, ctypes.c_int), float(options["reltol"]), float(options["abstol"]),
+                              int(options["max_num_steps"]), float(options.get("max_step_size", 0.0)),
+                              int(options.get("max_order", 0)), err, len(err))
         if not h:
             raise RuntimeError(f"the CVODES driver refused the closed loop: {err.value.decode(errors='replace')}")
         self._h = h
         self._finalizer = weakref.finalize(self, lib.sf_free, h)
+        self.scheduled_lu = bool(SCHEDULED_LU)
+        #: whether this solver's vectors run the four-wide operations (AVX2 here and the table as expected)
+        self.wide_vectors = bool(lib.sf_has_wide_vectors(h))
+        lib.sf_set_lu_columns(h, 0 if self.scheduled_lu else 1)
         self.order = None if order is None else np.ascontiguousarray(order, dtype=np.intc)
         if self.order is not None and (self.order.shape != (nx,)
                                        or lib.sf_set_order(h, _ptr(self.order, ctypes.c_int))):

@@ -28,8 +28,10 @@
 #include <stdlib.h>
 #include <string.h>
 #include "cvodes_mem.h"
+#include "sf_lu.h"
+#include "sf_nvec.h"
 
-#define SF_GROWTH_MAX 1e8       /* largest entry of the eliminated matrix / largest entry of A (Wilkinson growth) */
+static int sf_wide_vectors = 1;  /* sf_set_wide_vectors */
 
 typedef long long int casadi_int;     /* the closed loop's generated code uses CasADi's default casadi_int */
 typedef int (*sf_fun)(const double **arg, double **res, casadi_int *iw, double *w, int mem);
@@ -53,158 +55,21 @@ int CVodeGetNonlinSolvStats(void *mem, long int *nniters, long int *nncfails);
 char *CVodeGetReturnFlagName(long int flag);
 int CVodeGetDky(void *mem, realtype t, int k, N_Vector dky);
 void N_VSetArrayPointer(realtype *v_data, N_Vector v);
+void N_VScale(realtype c, N_Vector x, N_Vector z);
 void CVodeFree(void **mem);
 N_Vector N_VMake_Serial(long int length, realtype *data);
 void N_VDestroy_Serial(N_Vector v);
 realtype *N_VGetArrayPointer(N_Vector v);
+void N_VLinearSum(realtype a, N_Vector x, realtype b, N_Vector y, N_Vector z);
+void N_VAbs(N_Vector x, N_Vector z);
+void N_VInv(N_Vector x, N_Vector z);
+void N_VAddConst(N_Vector x, realtype b, N_Vector z);
+realtype N_VMin(N_Vector x);
 
 #define SF_BDF 2
 #define SF_NEWTON 2
 #define SF_NORMAL 1
 #define SF_ONE_STEP 2
-
-/* ---- LU of A = I - gamma J on a fixed pattern, diagonal pivots ------------------------------------------- */
-
-typedef struct {
-  int n;
-  int *Ap, *Ai, *jmap, *dmap;    /* A's pattern (CSC, the diagonal included); J nonzero k -> A entry jmap[k] */
-  double *Ax;
-  int *Lp, *Li, *Up, *Ui;        /* L strictly below the diagonal; U with each column's diagonal last */
-  double *Lx, *Ux, *x;           /* x: dense work vector, zero between uses */
-  double max_growth;             /* largest growth factor of a factorisation so far (statistics) */
-} sf_lu;
-
-static void sf_lu_free(sf_lu *f) {
-  free(f->Ap); free(f->Ai); free(f->jmap); free(f->dmap); free(f->Ax);
-  free(f->Lp); free(f->Li); free(f->Up); free(f->Ui); free(f->Lx); free(f->Ux); free(f->x);
-  memset(f, 0, sizeof *f);
-}
-
-/* Symbolic analysis, once: A's pattern from J's (CSC colind Jp, rows Ji) plus the diagonal, then the fill of L and
- * U column by column (no pivoting: column j's pattern is A's column closed under the L columns k < j it hits). */
-static int sf_lu_analyse(sf_lu *f, int n, const int *Jp, const int *Ji) {
-  int j, p, k, i, nnzA = 0, nl = 0, nu = 0, capl, capu;
-  char *mark;
-  int *list;
-  memset(f, 0, sizeof *f);
-  f->n = n;
-  f->max_growth = 0.0;
-  f->Ap = malloc((size_t) (n + 1) * sizeof(int));
-  f->Ai = malloc((size_t) (Jp[n] + n) * sizeof(int));
-  f->jmap = malloc((size_t) (Jp[n] > 0 ? Jp[n] : 1) * sizeof(int));
-  f->dmap = malloc((size_t) n * sizeof(int));
-  f->x = calloc((size_t) n, sizeof(double));
-  f->Lp = malloc((size_t) (n + 1) * sizeof(int));
-  f->Up = malloc((size_t) (n + 1) * sizeof(int));
-  mark = calloc((size_t) n, 1);
-  list = malloc((size_t) n * sizeof(int));
-  capl = capu = Jp[n] + n + 16;
-  f->Li = malloc((size_t) capl * sizeof(int));
-  f->Ui = malloc((size_t) capu * sizeof(int));
-  if (!f->Ap || !f->Ai || !f->jmap || !f->dmap || !f->x || !f->Lp || !f->Up || !mark || !list || !f->Li || !f->Ui)
-    goto fail;
-  for (j = 0; j < n; ++j) {                         /* A = J + diagonal, rows ascending within a column */
-    int diag_done = 0;
-    f->Ap[j] = nnzA;
-    for (p = Jp[j]; p < Jp[j + 1]; ++p) {
-      if (p > Jp[j] && Ji[p] <= Ji[p - 1]) goto fail;          /* rows must be sorted (CasADi's are) */
-      if (!diag_done && Ji[p] > j) { f->dmap[j] = nnzA; f->Ai[nnzA++] = j; diag_done = 1; }
-      if (Ji[p] == j) { f->dmap[j] = nnzA; diag_done = 1; }
-      f->jmap[p] = nnzA;
-      f->Ai[nnzA++] = Ji[p];
-    }
-    if (!diag_done) { f->dmap[j] = nnzA; f->Ai[nnzA++] = j; }
-  }
-  f->Ap[n] = nnzA;
-  f->Ax = malloc((size_t) nnzA * sizeof(double));
-  if (!f->Ax) goto fail;
-  for (j = 0; j < n; ++j) {                         /* fill: column j of L + U */
-    int m = 0;
-    for (p = f->Ap[j]; p < f->Ap[j + 1]; ++p) mark[f->Ai[p]] = 1;
-    for (k = 0; k < j; ++k) {                       /* ascending k: every update of x[k] comes from an m < k */
-      if (!mark[k]) continue;
-      for (p = f->Lp[k]; p < f->Lp[k + 1]; ++p) mark[f->Li[p]] = 1;
-    }
-    for (i = 0; i < n; ++i)
-      if (mark[i]) { list[m++] = i; mark[i] = 0; }
-    f->Up[j] = nu;
-    f->Lp[j] = nl;
-    for (k = 0; k < m; ++k) {
-      i = list[k];
-      if (i <= j) {
-        if (nu == capu) { capu *= 2; f->Ui = realloc(f->Ui, (size_t) capu * sizeof(int)); if (!f->Ui) goto fail; }
-        f->Ui[nu++] = i;                            /* ascending, so the diagonal (i = j) comes last */
-      } else {
-        if (nl == capl) { capl *= 2; f->Li = realloc(f->Li, (size_t) capl * sizeof(int)); if (!f->Li) goto fail; }
-        f->Li[nl++] = i;
-      }
-    }
-    f->Lp[j + 1] = nl;                              /* read by later columns' fill */
-    if (nu == f->Up[j] || f->Ui[nu - 1] != j) goto fail;
-  }
-  f->Up[n] = nu;
-  f->Lx = malloc((size_t) (nl > 0 ? nl : 1) * sizeof(double));
-  f->Ux = malloc((size_t) nu * sizeof(double));
-  free(mark);
-  free(list);
-  return (f->Lx && f->Ux) ? 0 : -1;
-fail:
-  free(mark);
-  free(list);
-  sf_lu_free(f);
-  return -1;
-}
-
-/* A = I - gamma J from J's nonzeros, then the numeric factorisation; 1 on a zero or non-finite pivot or too much
- * growth. */
-static int sf_lu_factor(sf_lu *f, const double *Jx, int nnzJ, double gamma) {
-  int n = f->n, j, p, q, k;
-  double *x = f->x, amax = 0.0, gmax = 0.0;
-  memset(f->Ax, 0, (size_t) f->Ap[n] * sizeof(double));
-  for (k = 0; k < nnzJ; ++k) f->Ax[f->jmap[k]] = -gamma * Jx[k];
-  for (j = 0; j < n; ++j) f->Ax[f->dmap[j]] += 1.0;
-  for (p = 0; p < f->Ap[n]; ++p)
-    if (fabs(f->Ax[p]) > amax) amax = fabs(f->Ax[p]);
-  for (j = 0; j < n; ++j) {
-    double piv;
-    for (p = f->Ap[j]; p < f->Ap[j + 1]; ++p) x[f->Ai[p]] = f->Ax[p];
-    for (p = f->Up[j]; p < f->Up[j + 1] - 1; ++p) {  /* U entries above the diagonal, ascending row */
-      double xk;
-      k = f->Ui[p];
-      xk = x[k];
-      for (q = f->Lp[k]; q < f->Lp[k + 1]; ++q) x[f->Li[q]] -= f->Lx[q] * xk;
-    }
-    for (p = f->Up[j]; p < f->Up[j + 1]; ++p) {
-      f->Ux[p] = x[f->Ui[p]];
-      x[f->Ui[p]] = 0.0;
-      if (fabs(f->Ux[p]) > gmax) gmax = fabs(f->Ux[p]);
-    }
-    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p)
-      if (fabs(x[f->Li[p]]) > gmax) gmax = fabs(x[f->Li[p]]);
-    piv = f->Ux[f->Up[j + 1] - 1];
-    if (piv == 0.0 || !isfinite(piv) || !(gmax <= SF_GROWTH_MAX * amax)) {
-      for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) x[f->Li[p]] = 0.0;
-      return 1;
-    }
-    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) { f->Lx[p] = x[f->Li[p]] / piv; x[f->Li[p]] = 0.0; }
-  }
-  if (amax > 0.0 && gmax / amax > f->max_growth) f->max_growth = gmax / amax;
-  return 0;
-}
-
-/* b <- A^-1 b with the last factorisation. */
-static void sf_lu_solve(const sf_lu *f, double *b) {
-  int n = f->n, j, p;
-  for (j = 0; j < n; ++j) {                         /* column by column, as CSparse's cs_lsolve and cs_usolve */
-    double bj = b[j];
-    for (p = f->Lp[j]; p < f->Lp[j + 1]; ++p) b[f->Li[p]] -= f->Lx[p] * bj;
-  }
-  for (j = n - 1; j >= 0; --j) {
-    double bj = b[j] / f->Ux[f->Up[j + 1] - 1];
-    b[j] = bj;
-    for (p = f->Up[j]; p < f->Up[j + 1] - 1; ++p) b[f->Ui[p]] -= f->Ux[p] * bj;
-  }
-}
 
 /* ---- the solver object --------------------------------------------------------------------------------- */
 
@@ -219,6 +84,7 @@ typedef struct {
   void *mem;
   N_Vector y;
   long njac, npivfail;
+  int wide;                      /* 1: its vectors run sf_nvec.h's operations */
   char msg[400];
   /* the last sf_run_hist's steps: each one's tn, h, hu, q and Nordsieck array zn[0..q] (hist_z from hist_off) */
   double *hist_t, *hist_h, *hist_hu, *hist_z;
@@ -354,10 +220,12 @@ void *sf_create(int nx, int np, void *ode, void *jac, const long long *sizes, co
   if (!s->arg || !s->res || !s->iw || !s->w || !s->p || !s->Jx) SF_FAIL("out of memory");
   if (sf_lu_analyse(&s->lu, nx, Jp, Ji)) SF_FAIL("the Jacobian's pattern cannot be factorised in place");
   s->y = N_VMake_Serial(nx, calloc((size_t) nx, sizeof(double)));
+  if (s->y && sf_wide_vectors) s->wide = sf_nv_install(s->y);    /* before CVodeInit: its clones copy the table */
   s->scratch = calloc((size_t) nx, sizeof(double));
   if (!s->y || !s->scratch) SF_FAIL("out of memory");
   s->scratch_v = N_VMake_Serial(nx, s->scratch);
   if (!s->scratch_v) SF_FAIL("out of memory");
+  if (s->wide) sf_nv_install(s->scratch_v);
   s->mem = CVodeCreate(SF_BDF, SF_NEWTON);
   if (!s->mem) SF_FAIL("CVodeCreate failed");
   if (CVodeSetErrHandlerFn(s->mem, sf_ehfun, s) || CVodeSetUserData(s->mem, s)
@@ -454,6 +322,41 @@ int sf_set_order(void *handle, const int *order) {
   return 0;
 }
 
+/* Which factorisation setups use from now on: 1, sf_lu_factor_columns (the previous one, kept as the reference);
+ * 0, sf_lu_factor (the same factors, faster). */
+void sf_set_lu_columns(void *handle, int columns) {
+  ((sf_solver *) handle)->lu.columns = columns;
+}
+
+/* Whether solvers created from now on install sf_nvec.h's vector operations (1, where they apply) or keep
+ * SUNDIALS' (0, the previous path); and whether a solver has them. */
+void sf_set_wide_vectors(int wide) {
+  sf_wide_vectors = wide;
+}
+int sf_has_wide_vectors(void *handle) {
+  return ((sf_solver *) handle)->wide;
+}
+
+/* One vector operation on serial vectors over x, y, z (length n), through CVODES' dispatch, with sf_nvec.h's
+ * operations installed (wide 1) or SUNDIALS' own (0): op 0 N_VLinearSum(a, x, b, y, z), 1 N_VScale(a, x, z), 2
+ * N_VAbs, 3 N_VInv, 4 N_VAddConst(x, a, z), 5 N_VMin(x) into *r; alias 1: z is x, 2: z is y. For tests. Returns
+ * whether the wide operations were installed, or -1. */
+int sf_nv_apply(int op, double a, double b, long n, double *x, double *y, double *z, int alias, int wide, double *r) {
+  N_Vector X = N_VMake_Serial(n, x), Y = N_VMake_Serial(n, y), Z = N_VMake_Serial(n, z), W;
+  int on = 0;
+  if (!X || !Y || !Z) { if (X) N_VDestroy_Serial(X); if (Y) N_VDestroy_Serial(Y); if (Z) N_VDestroy_Serial(Z); return -1; }
+  W = alias == 1 ? X : alias == 2 ? Y : Z;
+  if (wide) on = sf_nv_install(X) & sf_nv_install(Y) & sf_nv_install(Z);
+  if (op == 0) N_VLinearSum(a, X, b, Y, W);
+  else if (op == 1) N_VScale(a, X, W);
+  else if (op == 2) N_VAbs(X, W);
+  else if (op == 3) N_VInv(X, W);
+  else if (op == 4) N_VAddConst(X, a, W);
+  else *r = N_VMin(X);
+  N_VDestroy_Serial(X); N_VDestroy_Serial(Y); N_VDestroy_Serial(Z);
+  return on;
+}
+
 /* The largest growth factor of the factorisations so far (0 before the first), for the tests. */
 double sf_max_growth(void *handle) {
   return ((sf_solver *) handle)->lu.max_growth;
@@ -468,6 +371,20 @@ int sf_factor_solve(void *handle, const double *Jx, double gamma, double *b) {
 }
 
 /* ---- one chunk, its samples chosen after it: the history of its steps ----------------------------------- */
+
+/* dst[0..n-1] = src[0..n-1], written past the caches where the processor can (SSE2's non-temporal stores, 16-byte
+ * aligned): a chunk's history (MBs, read once after the chunk by sf_sample) then does not evict CVODES' own
+ * vectors and LU from the caches at every step. */
+static void sf_copy_stream(double *dst, const double *src, size_t n) {
+#if defined(__GNUC__) && defined(__x86_64__)
+  size_t i = 0;
+  if (((size_t) dst & 15) != 0) { dst[0] = src[0]; i = 1; }
+  for (; i + 2 <= n; i += 2) _mm_stream_pd(dst + i, _mm_loadu_pd(src + i));
+  for (; i < n; ++i) dst[i] = src[i];
+#else
+  memcpy(dst, src, n * sizeof(double));
+#endif
+}
 
 /* Keep the step CVODES has just taken (tn, h, hu, q, zn[0..q]); 0 when the history would pass max_bytes or memory
  * runs out (the history is then incomplete and sf_sample refuses). */
@@ -505,7 +422,7 @@ static int sf_hist_push(sf_solver *s, double max_bytes) {
   s->hist_q[s->hist_n] = m->cv_q;
   s->hist_off[s->hist_n] = s->hist_zlen;
   for (j = 0; j <= (size_t) m->cv_q; ++j)
-    memcpy(s->hist_z + s->hist_zlen + j * nx, N_VGetArrayPointer(m->cv_zn[j]), nx * sizeof(double));
+    sf_copy_stream(s->hist_z + s->hist_zlen + j * nx, N_VGetArrayPointer(m->cv_zn[j]), nx);
   s->hist_zlen += need;
   s->hist_n++;
   return 1;
@@ -530,6 +447,7 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
     for (j = 0; j < L_MAX; ++j) {
       s->hist_v[j] = N_VMake_Serial(s->nx, y);
       if (!s->hist_v[j]) return 1;
+      if (s->wide) sf_nv_install(s->hist_v[j]);
     }
   }
   for (k = 0; k < K; ++k) {
@@ -559,6 +477,9 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
       nstloc = 0;
     }
   }
+#if defined(__GNUC__) && defined(__x86_64__)
+  _mm_sfence();                     /* the history's streamed stores ordered before whoever samples it next */
+#endif
   return sf_finish(s, flag, stats, msg, msglen);
 }
 
