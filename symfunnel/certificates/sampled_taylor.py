@@ -24,7 +24,11 @@ def taylor(op, FL, FH, kl, kh, tl, th, UL, UH, h, lim):
     Clarke's Jacobian where sigma' is Lipschitz along the period, which is required: `continuous`, or no
     discontinuity switches on the box). If [0, h] D lies in Delta, the Picard operator maps the continuous
     functions with sigma - sigma_k in Delta into themselves (Schauder; unique by Lipschitz), so the solution
-    stays in K + Delta and its rate in D. Returns (valid, DL, DH, SL, SH, switched) per box."""
+    stays in K + Delta and its rate in D. Where Coulomb friction's sign(dq) is what makes the rates jump
+    (`op.n_sw`), the rates take it as inputs sw and D gains J_sw (S - S_k), S and S_k the hulls of sign over the
+    period's box and over the sample box: the mean-value theorem in (t, sigma, sw) jointly (a Filippov solution's
+    sign in [-1, 1] where dq = 0 included); friction opposing motion keeps forward solutions unique. Returns
+    (valid, DL, DH, SL, SH, switched) per box."""
     n2 = 2 * op.n
     K = FL.shape[0]
     ns = op.n_sw
