@@ -717,7 +717,7 @@ def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
     import symfunnel.deployed.loop as loop
     from symfunnel.deployed.rate import min_rate
 
-    def fake(scenario, design, *, rate_hz, t_final=None):
+    def fake(scenario, design, *, rate_hz, t_final=None, search_build=None):
         m = 0.05 + 0.1 * math.log(rate_hz / 1234.0)
         return SimpleNamespace(ok=m > -0.3, min_margin=m, min_margin_after_transient=m, stats={},
                                status="ok" if m > -0.3 else "breach", breach=None)
@@ -732,7 +732,7 @@ def test_rate_search_brackets_and_bisects_to_within_its_tolerance(monkeypatch):
         assert tried[round(out["min_rate_hz"], 6)]
     # a run that breaches never holds, whatever its margin before the breach
     monkeypatch.setattr(loop, "simulate_sampled",
-                        lambda s, d, *, rate_hz, t_final=None: SimpleNamespace(ok=rate_hz > 500, min_margin=0.9,
+                        lambda s, d, *, rate_hz, t_final=None, **kw: SimpleNamespace(ok=rate_hz > 500, min_margin=0.9,
                                                                               min_margin_after_transient=0.9,
                                                                               stats={}, status="ok",
                                                                               breach=None))
