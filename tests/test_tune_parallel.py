@@ -97,3 +97,12 @@ def test_gradient_search_stops_at_the_evaluation_cap_and_kills_the_rest(monkeypa
     assert [list(z) for z in judged] == [list(starts[0] / 2)]
     assert any("after 1 evaluations" in s for s in lines)
     assert not lc._children                                     # the two uncollected starts were killed and reaped
+
+
+def test_sequential_starts_the_bench_baseline_judge_the_same(monkeypatch):
+    """$SYMFUNNEL_TUNE_STARTS=sequential (bench `tune.paper_side_by_side_wall_s`'s baseline): one start after the
+    other, the same results judged in the same order."""
+    monkeypatch.setenv("SYMFUNNEL_TUNE_STARTS", "sequential")
+    starts, judged, lines = _search(monkeypatch, delays=[0.2, 0.1, 0.0])
+    assert [list(z) for z in judged] == [list(s / 2) for s in starts]
+    assert any("3 starts one after the other" in s for s in lines)

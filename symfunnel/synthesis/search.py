@@ -484,19 +484,28 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
     left = deadline - time.perf_counter()
     if left <= 1.0:
         raise _OutOfTime("search stopped at the wall-clock limit")
-    say(f"IPOPT: {len(starts)} starts side by side (at most {left:.0f} s)")
-    # IPOPT gets the time left but what the full simulation of its result needs; in forked workers: IPOPT inside
-    # one C call hears no signal and no limit, the waiting parent does
-    jobs = [start_killable(gp.solve, np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0), wall_s=0.9 * left,
-                           progress=_tagged(say, f"IPOPT start {i + 1}: "))
-            for i, z0 in enumerate(starts)]
+    side = starts_side_by_side()
+    say(f"IPOPT: {len(starts)} starts " + ("side by side" if side else "one after the other")
+        + f" (at most {left:.0f} s)")
+
+    def launch(i: int):
+        # IPOPT gets the time left but what the full simulation of its result needs; in forked workers: IPOPT
+        # inside one C call hears no signal and no limit, the waiting parent does
+        left = deadline - time.perf_counter()
+        job = start_killable(gp.solve, np.asarray(starts[i], float), objective=obj, ref=ref.get(obj, 1.0),
+                             wall_s=0.9 * left, progress=_tagged(say, f"IPOPT start {i + 1}: "))
+        return job, left
+    jobs = [launch(i) for i in range(len(starts))] if side else []
     try:
-        for i, job in enumerate(jobs):
+        for i in range(len(starts)):
             if deadline - time.perf_counter() <= 1.0:
                 raise _OutOfTime("search stopped at the wall-clock limit")
             if max_evaluations and ev.count >= max_evaluations:
                 raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)",
                                  by="evaluations")
+            if not side:
+                jobs.append(launch(i))
+            job, left = jobs[i]
             say(f"IPOPT start {i + 1} of {len(starts)}: waiting for its result")
             try:
                 try:
@@ -516,8 +525,15 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
                 timed.append(i + 1)
             f(r["z"], final=True)
     finally:
-        for job in jobs:                         # the starts not collected (a limit, an error) stop here
+        for job, _ in jobs:                      # the starts not collected (a limit, an error) stop here
             job.kill()
+
+
+def starts_side_by_side() -> bool:
+    """Whether the IPOPT starts run side by side (issue 43), or one after the other as before when
+    $SYMFUNNEL_TUNE_STARTS is 'sequential' (the bench's baseline, `bench.tune`)."""
+    import os
+    return os.environ.get("SYMFUNNEL_TUNE_STARTS", "").strip().lower() != "sequential"
 
 
 def _tagged(say, tag: str):
