@@ -76,10 +76,15 @@ def test_cli_tune_runs_both_schedules_in_fresh_processes(tmp_path):
     raw["tune"] = {"parameters": ["controller.k2"]}
     src = tmp_path / "s.toml"
     src.write_text(dumps(raw), encoding="utf-8")
-    for path in ("", "previous"):
-        r = cli_tune(path, str(tmp_path / f"out{path}.toml"), ("--max-evals", "1"), scenario=str(src))
+    outs = {}
+    for path, starts in (("", ""), ("previous", ""), ("", "sequential")):
+        out = tmp_path / f"out{path}{starts}.toml"
+        r = cli_tune(path, str(out), ("--max-evals", "1"), scenario=str(src), starts=starts)
         assert r["rc"] in (0, 1) and r["json"]["status"] in ("ok", "infeasible"), r
         assert r["cpu_s"] > 0 and r["wall_s"] > 0 and r["json"]["method"].startswith("gradient")
+        outs[starts or path or "now"] = (r["json"]["objective"], out.read_bytes() if out.exists() else None)
+    # tune.paper_side_by_side_wall_s's two paths: the same search, the same answer
+    assert outs["now"] == outs["sequential"]
 
 
 def test_c_loop_vs_python_runs_both_loops_on_the_same_trajectory(paper_run):

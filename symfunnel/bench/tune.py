@@ -12,6 +12,10 @@ method auto (IPOPT on the paper, chosen by the problem's size), default 240 s li
 fresh process, the compiled DAE already cached), beside the same command on the previous schedule
 (`SYMFUNNEL_TUNE_PATH=previous`, `synthesis.gradient.PREVIOUS`) in the same run: wall and CPU time of each (the
 process and its IPOPT child), ratios previous / now; target <= 60 s wall.
+`tune.paper_side_by_side_wall_s` (issue 43): the same default command with its IPOPT starts side by side (now),
+beside them one after the other (`SYMFUNNEL_TUNE_STARTS=sequential`, the path before) in the same run, alternating
+which goes first over `PAIRS` pairs: median wall and CPU time of each, paired ratios, and whether every pair wrote the
+same tuned file (it must: the starts' results are judged in the same order).
 Horizon: $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s).
 """
 
@@ -98,16 +102,18 @@ def run(progress) -> list[dict]:
                       lowers_peak_torque=bool(r.objective["after"] is not None and r.objective["before"] is not None
                                               and r.objective["after"] < r.objective["before"])))
     out.append(paper_default(progress))
+    out.append(paper_side_by_side(progress))
     return out
 
 
-def cli_tune(env_path: str, out_file: str, extra: tuple = (), scenario: str = "paper") -> dict:
-    """`symfunnel tune SCENARIO --json --out FILE` in a fresh process on the schedule `env_path` ("" now, "previous"):
+def cli_tune(env_path: str, out_file: str, extra: tuple = (), scenario: str = "paper", starts: str = "") -> dict:
+    """`symfunnel tune SCENARIO --json --out FILE` in a fresh process on the schedule `env_path` ("" now, "previous"),
+    its IPOPT starts side by side ("") or one after the other (`starts` "sequential"):
     {"wall_s", "cpu_s" (the process and its waited-for children), "json" (its --json output or None), "rc"}."""
     import json
     import subprocess
     import sys
-    env = {**os.environ, "SYMFUNNEL_TUNE_PATH": env_path}
+    env = {**os.environ, "SYMFUNNEL_TUNE_PATH": env_path, "SYMFUNNEL_TUNE_STARTS": starts}
     c0, t0 = _children_cpu(), time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "symfunnel", "tune", scenario, "--json", "--out", out_file, *extra],
                        capture_output=True, text=True, env=env)
@@ -141,6 +147,42 @@ def paper_default(progress) -> dict:
                   gate=(js.get("gate") or {}).get("status"), objective=js.get("objective"),
                   evaluations=js.get("evaluations"), baseline_status=pj.get("status"),
                   baseline_objective=pj.get("objective"), exit_codes=[now["rc"], prev["rc"]])
+
+
+#: pairs of the side-by-side bench (each pair runs both paths, the first of the pair alternating)
+PAIRS = 2
+
+
+def paper_side_by_side(progress, pairs: int = PAIRS) -> dict:
+    """`tune.paper_side_by_side_wall_s`: the default tune of the paper with its IPOPT starts side by side and one
+    after the other, interleaved in one run (the VM's speed drifts: only paired ratios compare)."""
+    import statistics
+    import tempfile
+    from pathlib import Path
+    _warm_compile(progress)
+    runs: dict[str, list] = {"now": [], "sequential": []}
+    same = []
+    with tempfile.TemporaryDirectory(prefix="symfunnel-bench-tune-") as tmp:
+        for k in range(pairs):
+            order = ("sequential", "now") if k % 2 == 0 else ("now", "sequential")
+            for label in order:
+                progress(f"tune: symfunnel tune paper (defaults), IPOPT starts {label}, pair {k + 1} of {pairs}")
+                runs[label].append(cli_tune("", str(Path(tmp, f"{label}{k}.toml")),
+                                            starts="sequential" if label == "sequential" else ""))
+            same.append(Path(tmp, f"now{k}.toml").read_bytes() == Path(tmp, f"sequential{k}.toml").read_bytes())
+    now, seq = runs["now"], runs["sequential"]
+    med = statistics.median
+    js = now[-1]["json"] or {}
+    wall, base = med(r["wall_s"] for r in now), med(r["wall_s"] for r in seq)
+    cpu, base_cpu = med(r["cpu_s"] for r in now), med(r["cpu_s"] for r in seq)
+    return result("tune.paper_side_by_side_wall_s", wall, "s",
+                  "the same command, its IPOPT starts one after the other (SYMFUNNEL_TUNE_STARTS=sequential)", base,
+                  base / wall, cpu_s=cpu, baseline_cpu_s=base_cpu,
+                  paired_wall_ratios=[s["wall_s"] / n["wall_s"] for s, n in zip(seq, now)],
+                  paired_cpu_ratios=[s["cpu_s"] / n["cpu_s"] for s, n in zip(seq, now) if n["cpu_s"] > 0],
+                  same_file=all(same), target_s=DEFAULT_TARGET_S, meets_target=bool(wall <= DEFAULT_TARGET_S),
+                  status=js.get("status"), gate=(js.get("gate") or {}).get("status"),
+                  objective=js.get("objective"), exit_codes=[r["rc"] for r in now + seq])
 
 
 def _warm_compile(progress) -> None:

@@ -17,7 +17,7 @@ import time
 from . import deadline
 from .lifecycle import become_worker, check, in_worker, register_child, signals_deferred, unregister_child
 
-__all__ = ["WorkerDied", "run_killable"]
+__all__ = ["Pending", "WorkerDied", "run_killable", "start_killable"]
 
 
 class WorkerDied(RuntimeError):
@@ -33,10 +33,16 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
     pickled (the child is a fork). Without fork, or inside a worker, the call runs
     in this process.
     """
+    return start_killable(fn, *args, **kwargs).result(wall_limit=wall_limit, what=what)
+
+
+def start_killable(fn, *args, **kwargs) -> "Pending":
+    """Start `fn(*args, **kwargs)` in a forked child now and return at once: several calls then run side by side
+    (on several cores) and `Pending.result` collects each as `run_killable` would; without fork, or inside a
+    worker, the call runs in this process when its result is asked for."""
     if not hasattr(os, "fork") or in_worker():
-        return fn(*args, **kwargs)
+        return Pending(None, None, time.monotonic(), (fn, args, kwargs))
     started = time.monotonic()
-    limit = None if wall_limit is None else started + float(wall_limit)
     with contextlib.suppress(Exception):
         sys.stdout.flush()
         sys.stderr.flush()
@@ -64,43 +70,77 @@ def run_killable(fn, *args, wall_limit: float | None = None, what: str | None = 
         finally:
             os._exit(code)
     os.close(wfd)
-    chunks: list[bytes] = []
-    status = None
-    try:
+    return Pending(pid, rfd, started, (getattr(fn, "__name__", "a call"), None, None))
+
+
+class Pending:
+    """A call `start_killable` started: `result` waits for it (killing the child at a limit or a signal), `kill`
+    stops it unheard; either reaps the child, once."""
+
+    def __init__(self, pid, rfd, started: float, call: tuple):
+        self.pid, self.rfd, self.started, self.call = pid, rfd, started, call
+
+    def result(self, wall_limit: float | None = None, what: str | None = None):
+        """The call's result or its exception raised; `wall_limit` counts from the start of the call."""
+        if self.pid is None:
+            fn, args, kwargs = self.call
+            self.call = (getattr(fn, "__name__", "a call"), None, None)
+            return fn(*args, **kwargs)
+        started, pid, rfd = self.started, self.pid, self.rfd
+        self.pid = self.rfd = None
+        limit = None if wall_limit is None else started + float(wall_limit)
+        chunks: list[bytes] = []
+        status = None
+        try:
+            with deadline.step(what) if what else contextlib.nullcontext():
+                while True:
+                    check()
+                    deadline.check()
+                    wait = 0.2
+                    if limit is not None:
+                        left = limit - time.monotonic()
+                        if left <= 0:
+                            raise deadline.WallLimitReached(float(wall_limit), what or deadline.current_step(),
+                                                            time.monotonic() - started)
+                        wait = min(wait, left)
+                    ready, _, _ = select.select([rfd], [], [], max(wait, 0.0))
+                    if ready:
+                        block = os.read(rfd, 1 << 20)
+                        if not block:
+                            break
+                        chunks.append(block)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+            raise
+        finally:
+            os.close(rfd)
+            with contextlib.suppress(ChildProcessError):
+                _, status = os.waitpid(pid, 0)
+            unregister_child(pid)
+        if not chunks:
+            raise WorkerDied(f"the worker process for {what or self.call[0]} ended without an "
+                             f"answer (exit status {status}; out of memory?)")
         with deadline.step(what) if what else contextlib.nullcontext():
-            while True:
-                check()
-                deadline.check()
-                wait = 0.2
-                if limit is not None:
-                    left = limit - time.monotonic()
-                    if left <= 0:
-                        raise deadline.WallLimitReached(float(wall_limit), what or deadline.current_step(),
-                                                        time.monotonic() - started)
-                    wait = min(wait, left)
-                ready, _, _ = select.select([rfd], [], [], max(wait, 0.0))
-                if ready:
-                    block = os.read(rfd, 1 << 20)
-                    if not block:
-                        break
-                    chunks.append(block)
-    except BaseException:
+            kind, value = _loads(b"".join(chunks))    # unpickling a large graph is part of the step (0.3 s at 343k nodes)
+        if kind == "err":
+            raise value
+        return value
+
+    def kill(self) -> None:
+        """Stop the call if it still runs (its result unheard) and reap its child."""
+        if self.pid is None:
+            self.call = (self.call[0] if isinstance(self.call[0], str) else "a call", None, None)
+            return
+        pid, rfd = self.pid, self.rfd
+        self.pid = self.rfd = None
         with contextlib.suppress(OSError):
             os.kill(pid, signal.SIGKILL)
-        raise
-    finally:
-        os.close(rfd)
+        with contextlib.suppress(OSError):
+            os.close(rfd)
         with contextlib.suppress(ChildProcessError):
-            _, status = os.waitpid(pid, 0)
+            os.waitpid(pid, 0)
         unregister_child(pid)
-    if not chunks:
-        raise WorkerDied(f"the worker process for {what or getattr(fn, '__name__', 'a call')} ended without an "
-                         f"answer (exit status {status}; out of memory?)")
-    with deadline.step(what) if what else contextlib.nullcontext():
-        kind, value = _loads(b"".join(chunks))    # unpickling a large graph is part of the step (0.3 s at 343k nodes)
-    if kind == "err":
-        raise value
-    return value
 
 
 def _dumps(result) -> bytes:

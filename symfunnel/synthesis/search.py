@@ -468,43 +468,77 @@ def _gradient_sound() -> tuple[bool, str]:
 
 def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: float,
                      max_evaluations: int | None, timed: list | None = None) -> None:
-    """IPOPT from the user's values, then from Sobol points, while time remains; every result is judged by `f`
-    (the full simulation of the Evaluator), which records the best candidate. Each IPOPT run is a child process
-    killed at the deadline (its best grid-feasible iterate so far is then the result). The starts (1-based) whose
-    pass IPOPT's own wall-time limit ended (a timing, not a count) are appended to `timed`."""
+    """IPOPT from the user's values and from Sobol points, all started at once (each a child process, so the
+    starts share the machine's cores instead of queueing), their results judged in the starts' order by `f` (the
+    full simulation of the Evaluator), which records the best candidate: the same results, in the same order, as one
+    start after the other. Each IPOPT run is killed at the deadline (its best grid-feasible iterate so far is then the
+    result). The starts (1-based) whose pass IPOPT's own wall-time limit ended (a timing, not a count) are appended
+    to `timed`."""
+    from ..core import deadline as _deadline
     from ..core.sobol import sobol
+    from ..core.worker import start_killable
     say(f"gradient problem: {gp.d} parameter(s), {gp.ng} grid constraints ({gp.nplants} plant(s) x {gp.K + 1} "
         "points)")
     starts = [z_user, *sobol(len(vars_), GRADIENT_SOBOL_STARTS, 0)]
     obj = spec.objective
-    for i, z0 in enumerate(starts):
+    left = deadline - time.perf_counter()
+    if left <= 1.0:
+        raise _OutOfTime("search stopped at the wall-clock limit")
+    side = starts_side_by_side()
+    say(f"IPOPT: {len(starts)} starts " + ("side by side" if side else "one after the other")
+        + f" (at most {left:.0f} s)")
+
+    def launch(i: int):
+        # IPOPT gets the time left but what the full simulation of its result needs; in forked workers: IPOPT
+        # inside one C call hears no signal and no limit, the waiting parent does
         left = deadline - time.perf_counter()
-        if left <= 1.0:
-            raise _OutOfTime("search stopped at the wall-clock limit")
-        if max_evaluations and ev.count >= max_evaluations:
-            raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)", by="evaluations")
-        say(f"IPOPT start {i + 1} of {len(starts)} (at most {left:.0f} s)")
-        # IPOPT gets the time left but what the full simulation of its result needs
-        try:
-            # in a forked worker: IPOPT inside one C call hears no signal and no limit, the waiting parent does
-            from ..core.worker import run_killable
-            from ..core import deadline as _deadline
+        job = start_killable(gp.solve, np.asarray(starts[i], float), objective=obj, ref=ref.get(obj, 1.0),
+                             wall_s=0.9 * left, progress=_tagged(say, f"IPOPT start {i + 1}: "))
+        return job, left
+    jobs = [launch(i) for i in range(len(starts))] if side else []
+    try:
+        for i in range(len(starts)):
+            if deadline - time.perf_counter() <= 1.0:
+                raise _OutOfTime("search stopped at the wall-clock limit")
+            if max_evaluations and ev.count >= max_evaluations:
+                raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)",
+                                 by="evaluations")
+            if not side:
+                jobs.append(launch(i))
+            job, left = jobs[i]
+            say(f"IPOPT start {i + 1} of {len(starts)}: waiting for its result")
             try:
-                r = run_killable(gp.solve, np.asarray(z0, float), objective=obj, ref=ref.get(obj, 1.0),
-                                 wall_s=0.9 * left, progress=say, wall_limit=left + 2.0, what="solving with IPOPT")
-            except _deadline.WallLimitReached:
-                if _deadline.expired_limit() is not None:     # a limit around tune: it ends the command
-                    raise
-                raise _OutOfTime("search stopped at the wall-clock limit (IPOPT did not stop by itself)") from None
-        except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
-            from ..core.lifecycle import reraise_interrupt
-            reraise_interrupt(exc)
-            say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
-            continue
-        say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
-        if timed is not None and any("WallTime" in str(p.get("status", "")) for p in (r, r.get("coarse") or {})):
-            timed.append(i + 1)
-        f(r["z"], final=True)
+                try:
+                    r = job.result(wall_limit=left + 2.0, what="solving with IPOPT")
+                except _deadline.WallLimitReached:
+                    if _deadline.expired_limit() is not None:     # a limit around tune: it ends the command
+                        raise
+                    raise _OutOfTime("search stopped at the wall-clock limit (IPOPT did not stop by itself)") \
+                        from None
+            except RuntimeError as exc:          # e.g. the start itself does not integrate: next start
+                from ..core.lifecycle import reraise_interrupt
+                reraise_interrupt(exc)
+                say(f"IPOPT start {i + 1}: skipped ({_last_line(exc)})")
+                continue
+            say(f"IPOPT start {i + 1}: {r['status']} after {r['iterations']} iteration(s)")
+            if timed is not None and any("WallTime" in str(p.get("status", "")) for p in (r, r.get("coarse") or {})):
+                timed.append(i + 1)
+            f(r["z"], final=True)
+    finally:
+        for job, _ in jobs:                      # the starts not collected (a limit, an error) stop here
+            job.kill()
+
+
+def starts_side_by_side() -> bool:
+    """Whether the IPOPT starts run side by side (issue 43), or one after the other as before when
+    $SYMFUNNEL_TUNE_STARTS is 'sequential' (the bench's baseline, `bench.tune`)."""
+    import os
+    return os.environ.get("SYMFUNNEL_TUNE_STARTS", "").strip().lower() != "sequential"
+
+
+def _tagged(say, tag: str):
+    """`say` with each line prefixed by `tag` (the IPOPT starts run side by side: their lines interleave)."""
+    return lambda s: say(tag + s)
 
 
 def _with_tracking(ev: Evaluator, spec: TuneSpec, before: Candidate, say) -> Candidate:
