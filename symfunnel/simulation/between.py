@@ -44,6 +44,9 @@ SCAN_POINTS = 4
 MAX_REFINED_PER_CHUNK = 4
 #: how far below both of its samples the scan of a gap must go to count as a dip
 SCAN_DIP = 0.01
+#: refine_peaks integrates an output step once however many joints peak in it; False: once per joint (the same
+#: samples again: the bench's baseline)
+SHARE_REFINED_STEPS = True
 
 
 def margin_function(design) -> ca.Function:
@@ -260,7 +263,8 @@ def refine_peaks(result, runner, comp, between: Between) -> None:
         for a in sorted({max(k - 1, 0), min(k, t.size - 2)}):
             if t[a + 1] - t[a] < 0.5 * h or t[a + 1] - t[a] > 1.5 * h:
                 continue                                     # not a whole output step (the located end of a run)
-            if a not in done:           # a fresh integration from the same state: the same samples, bit for bit
+            if a not in done or not SHARE_REFINED_STEPS:   # a fresh integration from the same state: the same
+                # samples, bit for bit
                 done[a] = refine(runner, comp, between.n, float(t[a]), X[a], float(t[a + 1] - t[a]))
             r = done[a]
             if r is not None:           # taken once per joint as before (the same counts in `between`)
