@@ -104,14 +104,15 @@ def vs_previous(sc, runs: int, rounds: int = 4) -> dict:
                 got[kind].append((time.process_time() - c) / runs)
     finally:
         crun.SAMPLES_IN_PLACE = between.SHARE_REFINED_STEPS = True
-    ratios = sorted(p / n for n, p in zip(got["now"], got["previous"]))
-    now, prev = sorted(got["now"]), sorted(got["previous"])
-    return result("sweep.cpu_per_run_vs_previous", now[len(now) // 2], "CPU s",
+    from statistics import median
+    ratios = [p / n for n, p in zip(got["now"], got["previous"])]
+    now, prev = median(got["now"]), median(got["previous"])
+    return result("sweep.cpu_per_run_vs_previous", now, "CPU s",
                   "the previous path (samples copied into time order, a step refined once per joint)",
-                  prev[len(prev) // 2], ratios[len(ratios) // 2], now=got["now"], previous=got["previous"],
+                  prev, median(ratios), now=got["now"], previous=got["previous"],
                   paired_ratios=ratios, runs=runs, rounds=rounds, load_average_1min=os.getloadavg()[0],
-                  cpu_bound_10000_runs_s=10000 * now[len(now) // 2] / 2,
-                  cpu_bound_10000_runs_previous_s=10000 * prev[len(prev) // 2] / 2, target_10000_runs_s=250.0,
+                  cpu_bound_10000_runs_s=10000 * now / 2,
+                  cpu_bound_10000_runs_previous_s=10000 * prev / 2, target_10000_runs_s=250.0,
                   note="medians over the rounds; ratio: the median paired ratio previous / now (> 1: now is faster)")
 
 
