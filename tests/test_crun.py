@@ -142,3 +142,18 @@ def test_env_selects_the_python_loop(tmp_path, monkeypatch):
     monkeypatch.setenv("SYMFUNNEL_RUN_LOOP", "python")
     r = simulate(sc, d, t_final=tf)
     assert r.ok and not called
+
+
+@pytest.mark.parametrize("which", ["paper", "dip"])
+def test_samples_written_in_place_or_copied_into_time_order_give_the_python_loops_run(which, tmp_path, monkeypatch):
+    """The C loop's two placements of the samples between output points (straight into their rows in time order,
+    the default, and the previous buffer-then-copy kept as the bench's baseline) are each the Python loop's run."""
+    sc, tf = _scenario(which, tmp_path)
+    monkeypatch.setattr(crun, "SAMPLES_IN_PLACE", False)
+    copied, py, calls = _both(sc, tf, monkeypatch)
+    assert calls and copied.ok
+    _assert_same(copied, py)
+    monkeypatch.setattr(crun, "SAMPLES_IN_PLACE", True)
+    placed, _, calls = _both(sc, tf, monkeypatch)
+    assert calls and [rc for rc, _ in calls][-1] == crun.DONE
+    _assert_same(placed, py)

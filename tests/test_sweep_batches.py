@@ -107,3 +107,22 @@ def test_bench_on_dask_compares_the_same_rows_and_stops_its_cluster(tmp_path):
     for i in (1, 2, 3):
         _same(_rows(tmp_path / f"dask{i}" / "results.parquet"), ref)
     assert {p.pid for p in psutil.Process().children(recursive=True)} <= before     # scheduler and workers gone
+
+
+def test_bench_compares_this_path_with_the_previous_one_on_identical_rows(monkeypatch):
+    """`sweep.cpu_per_run_vs_previous` alternates the two paths on the same runs, and both give the same rows."""
+    from symfunnel.bench.sweep import campaign, vs_previous
+    from symfunnel.campaigns.campaign import make_job, run_chunk
+    from symfunnel.simulation import between, crun
+
+    from .test_sweep import _same
+    sc = campaign(4, 0.5)
+    r = vs_previous(sc, 2, rounds=2)
+    assert r["id"] == "sweep.cpu_per_run_vs_previous" and len(r["now"]) == len(r["previous"]) == 2
+    assert r["ratio"] == pytest.approx(sum(p / n for n, p in zip(r["now"], r["previous"])) / 2)   # median of 2
+    assert crun.SAMPLES_IN_PLACE and between.SHARE_REFINED_STEPS          # restored
+    job = make_job(sc)
+    now = run_chunk(job, range(4))
+    monkeypatch.setattr(crun, "SAMPLES_IN_PLACE", False)
+    monkeypatch.setattr(between, "SHARE_REFINED_STEPS", False)
+    _same(run_chunk(job, range(4)), now)

@@ -9,7 +9,8 @@ step left free, `simulation.max_step = 0`, as campaigns ran before they capped i
 (the one compilation of a campaign, in a fresh cache) and `sweep.batches` (2 workers, tasks of batches sized to
 about 1.5 CPU-s each against one run per task, the same campaign back to back: runs/s, CPU per run of the parent and its
 workers, and the 10,000-run time of each; `sweep.batches_dask` the same on a dask scheduler and 2 workers started on
-127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS
+127.0.0.1, a quarter of the runs, with the CPU of client, scheduler and workers) and `sweep.cpu_per_run_vs_previous`
+(CPU per run in one process, this path and the previous one alternated on the same runs: paired ratios). Sizes: $SYMFUNNEL_BENCH_SWEEP_RUNS
 (default 500 runs per campaign: issue 24's 10,000-run target is extrapolated from at least that many),
 $SYMFUNNEL_BENCH_T_FINAL (default the paper's 20 s). Targets (issue 24): 10,000 runs in at most 300 s on 2 workers,
 2-worker scaling at least 1.8; both are wall-clock figures, so `cpu_bound_10000_runs_s` (10,000 times the CPU
@@ -80,6 +81,39 @@ def cpu_per_run(sc, runs: int) -> dict:
     run_chunk(job, range(1, runs + 1))
     return {"cpu_s_per_run": (time.process_time() - c) / runs, "wall_s_per_run": (time.perf_counter() - t) / runs,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def vs_previous(sc, runs: int, rounds: int = 4) -> dict:
+    """`sweep.cpu_per_run_vs_previous`: CPU per campaign run in this process, the same runs alternately on this path
+    and on the previous one (the samples between output points copied into time order after they were taken,
+    `crun.SAMPLES_IN_PLACE`; refine_peaks integrating a step once per joint peaking in it,
+    `between.SHARE_REFINED_STEPS`), the order swapped every round: paired ratios previous / now."""
+    from ..campaigns.campaign import make_job, run_chunk
+    from ..simulation import between, crun
+    job = make_job(sc)
+    ids = list(range(1, runs + 1))
+    vals = sc.campaign.values(ids, job.runs)
+    run_chunk(job, [0])
+    got = {"now": [], "previous": []}
+    try:
+        for r in range(rounds):
+            for kind in (("now", "previous") if r % 2 == 0 else ("previous", "now")):
+                crun.SAMPLES_IN_PLACE = between.SHARE_REFINED_STEPS = kind == "now"
+                c = time.process_time()
+                run_chunk(job, ids, vals)
+                got[kind].append((time.process_time() - c) / runs)
+    finally:
+        crun.SAMPLES_IN_PLACE = between.SHARE_REFINED_STEPS = True
+    from statistics import median
+    ratios = [p / n for n, p in zip(got["now"], got["previous"])]
+    now, prev = median(got["now"]), median(got["previous"])
+    return result("sweep.cpu_per_run_vs_previous", now, "CPU s",
+                  "the previous path (samples copied into time order, a step refined once per joint)",
+                  prev, median(ratios), now=got["now"], previous=got["previous"],
+                  paired_ratios=ratios, runs=runs, rounds=rounds, load_average_1min=os.getloadavg()[0],
+                  cpu_bound_10000_runs_s=10000 * now / 2,
+                  cpu_bound_10000_runs_previous_s=10000 * prev / 2, target_10000_runs_s=250.0,
+                  note="medians over the rounds; ratio: the median paired ratio previous / now (> 1: now is faster)")
 
 
 def _children_cpu() -> float:
@@ -241,6 +275,8 @@ def run(progress=None) -> list[dict]:
             os.environ.pop("SYMFUNNEL_CVODES", None)
         else:
             os.environ["SYMFUNNEL_CVODES"] = old_backend
+    say("sweep: CPU time per run, this path and the previous one alternated")
+    previous = vs_previous(sc, max(2, min(runs // 20, 25)))
     base_runs = max(2, min(runs // 4, 6))        # each compiles its own closed loop: a few show the rate
     say(f"sweep baseline: a loop of {base_runs} simulate() calls on scenario variants")
     base_rps = baseline_loop(sc, base_runs)
@@ -277,7 +313,7 @@ def run(progress=None) -> list[dict]:
                casadi_backend=via_casadi, ratio_vs_casadi_backend=via_casadi["cpu_s_per_run"] / one["cpu_s_per_run"],
                note="ratio = CPU per run free / capped (> 1: the campaign's cap is faster); casadi_backend: the "
                     "capped runs through casadi.integrator instead of the direct CVODES backend"),
-        batches, on_dask,
+        previous, batches, on_dask,
         result("sweep.compile_time", first["compile_time"], "s", None, None, None,
                compilations=compiled, campaigns=len(out), runs_per_campaign=runs,
                cache_hit_first=first["compile_cache_hit"]),

@@ -44,6 +44,9 @@ SCAN_POINTS = 4
 MAX_REFINED_PER_CHUNK = 4
 #: how far below both of its samples the scan of a gap must go to count as a dip
 SCAN_DIP = 0.01
+#: refine_peaks integrates an output step once however many joints peak in it; False: once per joint (the same
+#: samples again: the bench's baseline)
+SHARE_REFINED_STEPS = True
 
 
 def margin_function(design) -> ca.Function:
@@ -243,12 +246,14 @@ def refine(runner, comp, n: int, t_a: float, x_a: np.ndarray, h: float) -> tuple
 
 
 def refine_peaks(result, runner, comp, between: Between) -> None:
-    """After a run: each joint's largest |tau| (output points or samples between them) refined on its output step."""
+    """After a run: each joint's largest |tau| (output points or samples between them) refined on its output step,
+    each step integrated once however many joints peak in it (the paper's two joints both peak in the first)."""
     t, X = result.t, result.x
     if t.size < 2:
         return
     h = runner.h
     tau = np.abs(result.signals["tau"])
+    done: dict[int, tuple | None] = {}     # output step -> its refinement: joints peaking in one step share it
     for j in range(between.n):
         i = int(np.nanargmax(np.where(np.isfinite(tau[:, j]), tau[:, j], -np.inf)))
         best, tb = float(tau[i, j]), float(t[i])
@@ -258,6 +263,9 @@ def refine_peaks(result, runner, comp, between: Between) -> None:
         for a in sorted({max(k - 1, 0), min(k, t.size - 2)}):
             if t[a + 1] - t[a] < 0.5 * h or t[a + 1] - t[a] > 1.5 * h:
                 continue                                     # not a whole output step (the located end of a run)
-            r = refine(runner, comp, between.n, float(t[a]), X[a], float(t[a + 1] - t[a]))
-            if r is not None:
+            if a not in done or not SHARE_REFINED_STEPS:   # a fresh integration from the same state: the same
+                # samples, bit for bit
+                done[a] = refine(runner, comp, between.n, float(t[a]), X[a], float(t[a + 1] - t[a]))
+            r = done[a]
+            if r is not None:           # taken once per joint as before (the same counts in `between`)
                 between.update(r[0], r[2], 0)

@@ -22,6 +22,9 @@ from .closedloop import OUTPUT_NAMES
 
 #: run the chunks in C where the run allows it; the bench switches it off for its baseline
 RUN_IN_C = True
+#: the samples between output points written straight into their rows in time order (`csrc/cvodes_loop.c`,
+#: `sf_sample_rows`); False: sampled into a buffer and copied into time order after (the bench's baseline)
+SAMPLES_IN_PLACE = True
 #: the longest a C call runs before it returns for the progress line (seconds)
 SLICE_S = 2.0
 DONE, HANDOVER, SLICE, TIMEOUT = 0, 1, 2, 3
@@ -98,7 +101,8 @@ class CLoop:
         idx = {name: i for i, name in enumerate(OUTPUT_NAMES)}
         ints = np.array([M, nx, n, 1 + self._pvals.size, len(OUTPUT_NAMES), idx["m1"], idx["m2"], idx["tau"],
                          idx["tau_applied"], self._q0, self._dq0, BETWEEN_MAX, SCAN_POINTS, MAX_REFINED_PER_CHUNK,
-                         REFINE_POINTS, int(bool(fixed)), self._chunks.size], dtype=np.intc)
+                         REFINE_POINTS, int(bool(fixed)), self._chunks.size, int(bool(SAMPLES_IN_PLACE))],
+                        dtype=np.intc)
         reals = np.array([h, tf, limit, elapsed, SLICE_S, SCAN_DIP, sundials.HISTORY_BYTES], dtype=float)
         runner = self.runner
         state = _long([k, K, sub, between.points, between.density, between.refined, runner.unchecked, 0])

@@ -487,7 +487,15 @@ int sf_run_hist(void *handle, const double *p, const double *x0, int K, const do
  * each from the first kept step reaching it, by CVodeGetDky on that step's tn, h, hu, q and Nordsieck array --
  * the value CVode in CV_NORMAL mode returns for that time as an output point. 0, or 1 (history incomplete, or a
  * time outside the chunk). CVODES' memory is as before afterwards. */
+int sf_sample_rows(void *handle, int M, const double *t, double *Y, const long *rows);
+
 int sf_sample(void *handle, int M, const double *t, double *Y) {
+  return sf_sample_rows(handle, M, t, Y, 0);
+}
+
+/* sf_sample writing sample i into row rows[i] of Y (rows NULL: row i): the samples straight into their places in
+ * time order among the output points, without a second copy. */
+int sf_sample_rows(void *handle, int M, const double *t, double *Y, const long *rows) {
   sf_solver *s = (sf_solver *) handle;
   struct CVodeMemRec *m = (struct CVodeMemRec *) s->mem;
   N_Vector zn[L_MAX];
@@ -508,7 +516,7 @@ int sf_sample(void *handle, int M, const double *t, double *Y) {
       m->cv_zn[j] = s->hist_v[j];
     }
     if (CVodeGetDky(s->mem, t[i], 0, s->scratch_v) != 0) rc = 1;
-    else sf_put(s, s->scratch, Y + (size_t) i * nx);
+    else sf_put(s, s->scratch, Y + (size_t) (rows ? rows[i] : i) * nx);
   }
   memcpy(m->cv_zn, zn, sizeof zn);
   m->cv_tn = tn; m->cv_h = h; m->cv_hu = hu; m->cv_q = q;

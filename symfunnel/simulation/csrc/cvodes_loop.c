@@ -25,6 +25,7 @@ int sf_run(void *handle, const double *p, const double *x0, int K, const double 
 int sf_run_hist(void *handle, const double *p, const double *x0, int K, const double *grid, double *X, long *stats,
                 char *msg, int msglen, double max_bytes);
 int sf_sample(void *handle, int M, const double *t, double *Y);
+int sf_sample_rows(void *handle, int M, const double *t, double *Y, const long *rows);
 
 #define SF_LOOP_DONE 0
 #define SF_LOOP_HANDOVER 1
@@ -34,7 +35,7 @@ int sf_sample(void *handle, int M, const double *t, double *Y);
 
 /* Integer settings (ints[]), by index */
 enum { I_M, I_NX, I_N, I_NP, I_NOUT, I_IM1, I_IM2, I_ITAU, I_ITAUA, I_Q0, I_DQ0, I_BETWEEN_MAX, I_SCAN_POINTS,
-       I_MAX_REFINED, I_REFINE_POINTS, I_FIXED, I_NCHUNK, I_NINTS };
+       I_MAX_REFINED, I_REFINE_POINTS, I_FIXED, I_NCHUNK, I_IN_PLACE, I_NINTS };
 /* Real settings (reals[]), by index */
 enum { R_H, R_TF, R_LIMIT, R_ELAPSED0, R_SLICE, R_SCAN_DIP, R_HISTORY_BYTES, R_NREALS };
 /* State (in and out): ints k, K, sub, points, density, refined, unchecked; reals lowest, integrate time */
@@ -250,7 +251,7 @@ static int sf_integrate(sf_loop *L, double t0, const double *x, int K, const dou
 }
 
 typedef struct {
-  sf_buf grid, X, tb, Xb, X1, ta, Xa, order, O, tsc, Qsc, DQsc, Msc, tr, Xr, Or, tg, Xg, xp, samp;
+  sf_buf grid, X, tb, Xb, X1, ta, Xa, order, O, tsc, Qsc, DQsc, Msc, tr, Xr, Or, tg, Xg, xp, samp, rel, g1, rows;
 } sf_work;
 
 static void sf_work_free(sf_work *w) {
@@ -320,13 +321,59 @@ static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_
   tb = sf_need(&w->tb, (size_t) nb + 1);
   Xb = sf_need(&w->Xb, ((size_t) nb + 1) * nx);
   if (!tb || !Xb) return -1;
+  tc = t_out + row;
+  for (i = 0; i < Kc; ++i) tc[i] = t0 + h * (double) (i + 1);
+  if ((sf_cint) k + Kc == L->ints[I_M] && tc[Kc - 1] > L->reals[R_TF]) tc[Kc - 1] = L->reals[R_TF];
   if (s > 1) {
     long nin = (long) (Kc - 1) * (s - 1), nfirst = 0;
-    double *rel = sf_need(&w->ta, (size_t) nin + 1);
-    double *X1 = sf_need(&w->X1, (size_t) s * nx), *g1 = sf_need(&w->order, (size_t) s);
+    double *rel = sf_need(&w->rel, (size_t) nin + 1);
+    double *X1 = sf_need(&w->X1, (size_t) s * nx), *g1 = sf_need(&w->g1, (size_t) s);
+    int first_ok;
     if (!rel || !X1 || !g1) return -1;
     for (i = 0; i + 1 < Kc; ++i)
       for (j = 1; j < s; ++j) rel[(size_t) i * (s - 1) + (j - 1)] = h * (double) (i + 1) + (double) j * hs;
+    /* the first output step's own integration, before the sampling (it leaves the chunk's kept steps alone): how
+     * many samples it gives is then known, and so every sample's place in time order */
+    for (i = 0; i < s; ++i) g1[i] = hs * (double) (i + 1);
+    first_ok = sf_integrate(L, t0, x, s, g1, X1, xp, 0, 0) == 0;
+    if (L->ints[I_IN_PLACE] && nin > 0) {
+      /* tb's times, the stable sort of [tc; tb] as below, then the kept steps' samples written by sf_sample_rows
+       * straight into their rows of Xa = [x; samples in time order]: the values of the path below, one copy less */
+      long a, *rows, *tmp;
+      double *key;
+      nfirst = first_ok ? s - 1 : 0;
+      nb = nfirst + nin;
+      Ta = Kc + nb;
+      tb = sf_need(&w->tb, (size_t) nb + 1);
+      ta = sf_need(&w->ta, (size_t) Ta + 1);
+      order = (long *) (void *) sf_need(&w->order, (size_t) Ta + 1);
+      rows = (long *) (void *) sf_need(&w->rows, (size_t) Ta + 1);
+      Xa = sf_need(&w->Xa, ((size_t) Ta + 1) * nx);
+      key = sf_need(&w->tg, (size_t) Ta + 1);
+      tmp = (long *) (void *) sf_need(&w->Xr, (size_t) Ta + 1);
+      if (!tb || !ta || !order || !rows || !Xa || !key || !tmp) return -1;
+      for (j = 1; j <= nfirst; ++j) tb[j - 1] = t0 + hs * (double) j;
+      for (i = 0; i < nin; ++i) tb[nfirst + i] = t0 + rel[i];
+      for (a = 0; a < Ta; ++a) { key[a] = a < Kc ? tc[a] : tb[a - Kc]; order[a] = a; }
+      sf_stable_sort(key, order, tmp, Ta);
+      for (a = 0; a < Ta; ++a) { ta[a] = key[order[a]]; rows[order[a]] = a + 1; }
+      {
+        double c0 = sf_now();
+        int rc = sf_sample_rows(L->cv, (int) nin, rel, Xa, rows + Kc + nfirst);
+        L->integ += sf_now() - c0;
+        if (rc == 0) {
+          if (!first_ok) ++*unchecked;
+          memcpy(Xa, x, (size_t) nx * sizeof(double));
+          for (a = 0; a < Kc; ++a) memcpy(Xa + (size_t) rows[a] * nx, X + (size_t) a * nx, (size_t) nx * sizeof(double));
+          for (a = 0; a < nfirst; ++a)
+            memcpy(Xa + (size_t) rows[Kc + a] * nx, X1 + (size_t) a * nx, (size_t) nx * sizeof(double));
+          O = sf_need(&w->O, ((size_t) Ta + 1) * L->nnz_all);
+          if (!O) return -1;
+          goto placed;
+        }
+      }
+      nfirst = 0;                        /* the kept steps did not fit: the path below */
+    }
     if (nin > 0) {
       double c0 = sf_now();
       int rc = sf_sample(L->cv, (int) nin, rel, Xb + (size_t) (s - 1) * nx);
@@ -344,8 +391,7 @@ static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_
           if (d % s) memcpy(Xb + (size_t) (s - 1 + i++) * nx, Xd + (size_t) d * nx, (size_t) nx * sizeof(double));
       }
     }
-    for (i = 0; i < s; ++i) g1[i] = hs * (double) (i + 1);
-    if (sf_integrate(L, t0, x, s, g1, X1, xp, 0, 0) == 0) nfirst = s - 1;
+    if (first_ok) nfirst = s - 1;
     else ++*unchecked;
     /* tb: [t1 (nfirst); t0 + rel]; Xb: [X1[:-1]; Y] */
     if (nfirst == 0) memmove(Xb, Xb + (size_t) (s - 1) * nx, (size_t) nin * nx * sizeof(double));
@@ -357,11 +403,9 @@ static int sf_chunk(sf_loop *L, sf_work *w, long k, int Kc, const double *x, sf_
     nb = 0;
   }
 sorted:
-  /* tc, and every sample in time order (a stable sort of [tc; tb]: nearly sorted, so insertion) */
+  /* every sample in time order (a stable sort of [tc; tb]) copied into Xa: the path where the samples were not
+   * written in place (ints[I_IN_PLACE] 0, the kept steps did not fit, or a chunk of one output step) */
   Ta = Kc + nb;
-  tc = t_out + row;
-  for (i = 0; i < Kc; ++i) tc[i] = t0 + h * (double) (i + 1);
-  if ((sf_cint) k + Kc == L->ints[I_M] && tc[Kc - 1] > L->reals[R_TF]) tc[Kc - 1] = L->reals[R_TF];
   ta = sf_need(&w->ta, (size_t) Ta + 1);
   order = (long *) (void *) sf_need(&w->order, (size_t) Ta + 1);
   Xa = sf_need(&w->Xa, ((size_t) Ta + 1) * nx);
@@ -383,6 +427,7 @@ sorted:
              (size_t) nx * sizeof(double));
     }
   }
+placed:
   if (sf_outputs(L, Ta, ta, Xa + nx, O)) return 1;
   bi = sf_bad_index(L, O, Ta, Xa + nx);
   if (bi >= 0) return 1;
