@@ -17,9 +17,19 @@ from symfunnel.certificates.sampled_rate import reuse_containment, sampled_brack
 
 @pytest.fixture(scope="module")
 def run():
+    """A paper Run of its own: the pipeline's in-process certificate cache is emptied for this module (another test
+    of the worker may have certified the same scenario and horizon with other objects, whose containment the bracket
+    rightly does not reuse) and restored after."""
+    from symfunnel import pipeline
     from symfunnel.pipeline import Run, RunOptions
     from symfunnel.scenario import load_scenario
-    return Run(load_scenario("paper"), RunOptions(t_final=2.0, samples=200))
+    saved = dict(pipeline._CERTIFICATIONS)
+    pipeline._CERTIFICATIONS.clear()
+    try:
+        yield Run(load_scenario("paper"), RunOptions(t_final=2.0, samples=200))
+    finally:
+        pipeline._CERTIFICATIONS.clear()
+        pipeline._CERTIFICATIONS.update(saved)
 
 
 @pytest.fixture

@@ -117,11 +117,14 @@ def test_bench_compares_this_path_with_the_previous_one_on_identical_rows(monkey
 
     from .test_sweep import _same
     sc = campaign(4, 0.5)
+    defaults = crun.SAMPLES_IN_PLACE, between.SHARE_REFINED_STEPS
     r = vs_previous(sc, 2, rounds=2)
     assert r["id"] == "sweep.cpu_per_run_vs_previous" and len(r["now"]) == len(r["previous"]) == 2
     assert r["ratio"] == pytest.approx(sum(p / n for n, p in zip(r["now"], r["previous"])) / 2)   # median of 2
-    assert crun.SAMPLES_IN_PLACE and between.SHARE_REFINED_STEPS          # restored
+    assert (crun.SAMPLES_IN_PLACE, between.SHARE_REFINED_STEPS) == defaults          # restored
     job = make_job(sc)
+    monkeypatch.setattr(crun, "SAMPLES_IN_PLACE", True)
+    monkeypatch.setattr(between, "SHARE_REFINED_STEPS", True)
     now = run_chunk(job, range(4))
     monkeypatch.setattr(crun, "SAMPLES_IN_PLACE", False)
     monkeypatch.setattr(between, "SHARE_REFINED_STEPS", False)

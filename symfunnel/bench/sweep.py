@@ -95,6 +95,7 @@ def vs_previous(sc, runs: int, rounds: int = 4) -> dict:
     vals = sc.campaign.values(ids, job.runs)
     run_chunk(job, [0])
     got = {"now": [], "previous": []}
+    defaults = crun.SAMPLES_IN_PLACE, between.SHARE_REFINED_STEPS
     try:
         for r in range(rounds):
             for kind in (("now", "previous") if r % 2 == 0 else ("previous", "now")):
@@ -103,7 +104,7 @@ def vs_previous(sc, runs: int, rounds: int = 4) -> dict:
                 run_chunk(job, ids, vals)
                 got[kind].append((time.process_time() - c) / runs)
     finally:
-        crun.SAMPLES_IN_PLACE = between.SHARE_REFINED_STEPS = True
+        crun.SAMPLES_IN_PLACE, between.SHARE_REFINED_STEPS = defaults
     from statistics import median
     ratios = [p / n for n, p in zip(got["now"], got["previous"])]
     now, prev = median(got["now"]), median(got["previous"])
