@@ -10,7 +10,7 @@ import pytest
 
 from symfunnel.simulation import sundials
 
-from .test_sundials import _solver
+from .test_sundials import _jacobian, _solver
 
 
 def _both(D, Jx, gamma, b):
@@ -27,12 +27,10 @@ def test_scheduled_lu_gives_the_column_forms_doubles_and_numpys_solution(paper_r
     """On the paper loop's Jacobian at its start and at perturbed states, gamma from 1e-6 to 1: the two forms'
     solutions are equal to the last bit, and within 1e-12 of numpy's dense LU with partial pivoting."""
     cl, comp, D = _solver(paper_run)
-    jac = ca.external("jac_symfunnel_ode", comp.library)
-    ix = jac.index_out("jac_ode_x")
+    jac = _jacobian(cl, comp)
     rng = np.random.default_rng(11)
-    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
     for x in (cl.x0, cl.x0 + rng.normal(0, 0.05, cl.nx), cl.x0 + rng.normal(0, 0.3, cl.nx)):
-        J = jac(1.3, x[comp.perm], ca.DM(0, 1), P, ca.DM(0, 1), 0, 0, 0, 0)[ix]
+        J = jac(1.3, x)
         Jd = np.array(ca.densify(J))
         for gamma in (1e-6, 1e-4, 3e-3, 0.05, 1.0):
             b = rng.normal(size=cl.nx)
@@ -47,9 +45,7 @@ def test_scheduled_lu_refuses_what_the_column_form_refuses(paper_run):
     """A zero pivot (gamma = 1/J_00), a tiny one whose multipliers grow past the threshold, a non-finite Jacobian
     entry: both forms refuse; a good factorisation afterwards solves again, bit for bit alike."""
     cl, comp, D = _solver(paper_run)
-    jac = ca.external("jac_symfunnel_ode", comp.library)
-    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
-    J = jac(0.0, cl.x0[comp.perm], ca.DM(0, 1), P, ca.DM(0, 1), 0, 0, 0, 0)[jac.index_out("jac_ode_x")]
+    J = _jacobian(cl, comp)(0.0, cl.x0)
     Jx = np.array(J.nonzeros())
     J00 = float(J[0, 0])
     bad = Jx.copy()
@@ -65,16 +61,22 @@ def test_scheduled_lu_refuses_what_the_column_form_refuses(paper_run):
 def test_a_run_on_the_scheduled_lu_is_the_column_forms_run(scenario, monkeypatch):
     """A 1 s run with the scheduled LU (the default) and with the column form: the same trajectory, logged signals,
     step, right-hand-side and Jacobian counts and between-points statistics, array by array."""
+    runs = runs_with(scenario, monkeypatch, "SCHEDULED_LU")
+    assert runs[0].stats["steps"] > 100
+    assert_same_run(*runs)
+
+
+def runs_with(scenario, monkeypatch, flag: str) -> list:
+    """Two 1 s runs of `scenario` on the driver, with the `sundials` switch `flag` on, then off."""
     from symfunnel.pipeline import Run
     from symfunnel.simulation import simulate
     monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
     run = Run.load(scenario)
     runs = []
-    for scheduled in (True, False):
-        monkeypatch.setattr(sundials, "SCHEDULED_LU", scheduled)
+    for on in (True, False):
+        monkeypatch.setattr(sundials, flag, on)
         runs.append(simulate(run.scenario, run.design, t_final=1.0, closed_loop=run.closed_loop))
-    assert runs[0].stats["steps"] > 100
-    assert_same_run(*runs)
+    return runs
 
 
 def assert_same_run(a, b):

@@ -12,7 +12,7 @@ import pytest
 
 from symfunnel.simulation import sundials
 
-from .test_sf_lu import assert_same_run
+from .test_sf_lu import assert_same_run, runs_with
 
 pytestmark = pytest.mark.skipif(not sundials.available(), reason="the CVODES driver does not build here")
 
@@ -90,12 +90,4 @@ def _avx2() -> bool:
 def test_a_run_with_the_wide_vectors_is_the_run_without(scenario, monkeypatch):
     """A 1 s run with the four-wide operations (the default) and with SUNDIALS' own: the same trajectory, logged
     signals and counts, array by array."""
-    from symfunnel.pipeline import Run
-    from symfunnel.simulation import simulate
-    monkeypatch.setenv("SYMFUNNEL_CVODES", "direct")
-    run = Run.load(scenario)
-    runs = []
-    for wide in (True, False):
-        monkeypatch.setattr(sundials, "WIDE_VECTORS", wide)
-        runs.append(simulate(run.scenario, run.design, t_final=1.0, closed_loop=run.closed_loop))
-    assert_same_run(*runs)
+    assert_same_run(*runs_with(scenario, monkeypatch, "WIDE_VECTORS"))

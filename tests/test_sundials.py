@@ -124,6 +124,14 @@ def test_a_different_run_is_outside_the_band(paper, monkeypatch):
     assert float(np.max(np.abs(other.x[:, :4] - tight.x[:, :4]))) > 2 * max(band)
 
 
+def _jacobian(cl, comp):
+    """The loop's compiled Jacobian df/dx at (t, x) (x in the loop's order) with its own parameters."""
+    jac = ca.external("jac_symfunnel_ode", comp.library)
+    ix = jac.index_out("jac_ode_x")
+    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
+    return lambda t, x: jac(t, x[comp.perm], ca.DM(0, 1), P, ca.DM(0, 1), 0, 0, 0, 0)[ix]
+
+
 def _solver(run):
     from symfunnel.family.integrators import INTEGRATORS
     from symfunnel.simulation.compiled import compile_closed_loop
@@ -137,12 +145,10 @@ def test_fixed_pattern_lu_solves_the_newton_system(paper_run):
     """(I - gamma J) x = b with the driver's LU equals numpy's dense solve on the loop's real Jacobian, from
     gamma = 1e-6 to gamma = 1 (far beyond CVODES' steps here)."""
     cl, comp, D = _solver(paper_run)
-    jac = ca.external("jac_symfunnel_ode", comp.library)
-    ix = jac.index_out("jac_ode_x")
+    jac = _jacobian(cl, comp)
     rng = np.random.default_rng(3)
-    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
     for x in (cl.x0, cl.x0 + rng.normal(0, 0.05, cl.nx)):
-        J = jac(0.37, x[comp.perm], ca.DM(0, 1), P, ca.DM(0, 1), 0, 0, 0, 0)[ix]
+        J = jac(0.37, x)
         Jd = np.array(ca.densify(J))
         for gamma in (1e-6, 1e-3, 0.05, 1.0):
             b = rng.normal(size=cl.nx)
@@ -157,9 +163,7 @@ def test_a_vanishing_pivot_or_growth_is_refused_not_used(paper_run):
     multipliers blow the eliminated entries up: the factorisation reports both (CVODES then retries with a smaller
     step) instead of solving with them; the next good factorisation works again."""
     cl, comp, D = _solver(paper_run)
-    jac = ca.external("jac_symfunnel_ode", comp.library)
-    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
-    J = jac(0.0, cl.x0[comp.perm], ca.DM(0, 1), P, ca.DM(0, 1), 0, 0, 0, 0)[jac.index_out("jac_ode_x")]
+    J = _jacobian(cl, comp)(0.0, cl.x0)
     Jx = np.array(J.nonzeros())
     J00 = float(J[0, 0])
     assert J00 != 0.0

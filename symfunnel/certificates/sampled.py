@@ -52,13 +52,12 @@ from ..family.projection import outer_radius
 from ..plant.equations import plant_acceleration, plant_parameters
 from ..sx.batch import BatchCenteredForm, BatchIntervalFunction
 from ..sx.interval import IntervalError
-from ..sx.rewrite import replace_nodes
 from .problem import Context
 from .ball_form import BallForm
 from .face_forms import normal_components, with_alpha2_dot_through_e1
 from .region import region_signals
 from .sampled_set import SampledSet, containment_set, declared_set  # noqa: F401 (their home before)
-from .sampled_graph import _add_dn, _add_up, _continuous_rates, _dn, _switching_on, _up
+from .sampled_graph import _add_dn, _add_up, _continuous_rates, _dn, _switching_on, _up, coulomb_signs_as
 from .sampled_taylor import PICARD_ITERATIONS, taylor
 
 CID = "certify.sampled"
@@ -140,12 +139,12 @@ class OnePeriod:
         # Coulomb friction's sign(dq) as inputs sw: where it is what makes sigma' jump along a period, the rates with
         # sw held are smooth in (t, sigma), and the Taylor a-priori form takes sw in its hull over the box (`_taylor`)
         self.n_sw = 0
-        sgn, swv = ca.vertcat(*[ca.sign(sym["dq"][j]) for j in range(n)]), ca.SX.sym("sw", n)
+        swv = ca.SX.sym("sw", n)
         if not self.continuous:
-            ddq_s = replace_nodes([ddq], sgn, swv)[0]
+            ddq_s = coulomb_signs_as(ddq, sym["dq"], swv)[0]
             state = [sym["t"], sym["q"], sym["dq"]]
             ins = state + [u, pu]
-            rs, rks = replace_nodes([rates, rates_k], sgn, swv)
+            rs, rks = coulomb_signs_as([rates, rates_k], sym["dq"], swv)
             before, after = ([ca.vec(x) for x in xs] for xs in ((rates, rates_k), (rs, rks)))
             if _continuous_rates(d, ins + [swv], state, ddq_s)[0] and \
                     _switching_on(ca.symvar(ca.vertcat(*after, swv)), state, after) < \

@@ -17,8 +17,8 @@ import numpy as np
 
 from ..emit.step import step_function
 from ..plant.equations import plant_acceleration
-from ..sx.rewrite import replace_nodes
-from .sampled_graph import _switching_on
+from .sampled_graph import _switching_on, coulomb_signs_as
+from .sampled_set import normalised_errors
 
 #: how far past S's margin (in e/F) a state must be to count as having left S
 EXIT_MARGIN = 1e-6
@@ -35,7 +35,7 @@ def _frozen_plant(op):
     q, dq, u, s = (ca.SX.sym(k, n) for k in ("q", "dq", "u", "s"))
     t = ca.SX.sym("t")
     ddq = plant_acceleration(sc, q, dq, t, u, 0.0, p=ca.DM(np.asarray(op.ctx.params.nominal, float)))["ddq"]
-    ddq = replace_nodes([ddq], ca.vertcat(*[ca.sign(dq[j]) for j in range(n)]), s)[0]
+    ddq = coulomb_signs_as(ddq, dq, s)[0]
     if _switching_on([t, q, dq, u, s], [t, q, dq], [ddq]):
         return None
     return ca.Function("acc_frozen", [t, q, dq, u, s], [ddq])
@@ -86,11 +86,10 @@ def set_floor(op, S, t_final: float, h: float, tau_max=None) -> dict | None:
     step = step_function(d, 1.0 / h, tau_max)
     F = d.function("funnel_bounds", ["t"], ["F1", "F2"])
     a2 = d.function("alpha2", ["t", "q", "qd", "dqd"])
+    errors = normalised_errors(d)
 
     def sigma(tt, x):
-        qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(tt))
-        F1, F2 = (np.asarray(v, float).ravel() for v in F(tt))
-        return np.concatenate([(x[:n] - qd) / F1, (x[n:] - np.asarray(a2(tt, x[:n], qd, dqd), float).ravel()) / F2])
+        return errors(tt, x[:n], x[n:])
     xs, ws = step.size_in(3), step.size_in(4)
     centre = {k: 0.5 * (np.asarray(lo, float) + np.asarray(hi, float)) for k, (lo, hi) in S.states.items()}
     x_esn = centre.get("x_esn", np.zeros(xs)).reshape(xs, order="F")

@@ -44,6 +44,15 @@ def _switching_on(inputs: list, wrt: list, outputs: list) -> int:
     return count
 
 
+def coulomb_signs_as(exprs, dq, s) -> list:
+    """`exprs` (an SX or a list) with every sign(dq_j) node -- Coulomb friction's, as `plant.equations` writes it
+    at width 0 -- replaced by s_j: the plant with the friction's sign held, smooth in the state where only that
+    sign jumps."""
+    from ..sx.rewrite import replace_nodes
+    exprs = exprs if isinstance(exprs, (list, tuple)) else [exprs]
+    return replace_nodes(list(exprs), ca.vertcat(*[ca.sign(dq[j]) for j in range(dq.numel())]), s)
+
+
 def _continuous_rates(design, inputs, state, plant_ddq) -> tuple[bool, str]:
     """Whether sigma' is continuous along a period (so the next sample's second-order form may use the Lipschitz
     mean-value argument where its interval evaluation flags a sign that may switch): the plant's acceleration has no

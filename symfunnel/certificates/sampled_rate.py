@@ -16,6 +16,7 @@ from .problem import Budget, Context
 from .result import Certificate
 from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, containment_set, declared_set, prove_period
 from .sampled_floor import set_floor
+from .sampled_set import normalised_errors
 
 
 #: the highest rate tried (the simulated search's ceiling)
@@ -36,11 +37,7 @@ BOXES_PER_RATE = 40000
 def initial_in_set(ctx: Context, S: SampledSet) -> tuple[bool, list]:
     """Whether the scenario's initial state (t = 0) lies in S, and its normalised errors e/F."""
     d, sc = ctx.design, ctx.scenario
-    qd, dqd, _ = (np.asarray(v, float).ravel() for v in d.reference(0.0))
-    F1, F2 = (np.asarray(v, float).ravel() for v in d.function("funnel_bounds", ["t"], ["F1", "F2"])(0.0))
-    q0, dq0 = np.asarray(sc.q0, float), np.asarray(sc.dq0, float)
-    a2 = np.asarray(d.function("alpha2", ["t", "q", "qd", "dqd"])(0.0, q0, qd, dqd), float).ravel()
-    sig = np.concatenate([(q0 - qd) / F1, (dq0 - a2) / F2])
+    sig = normalised_errors(d)(0.0, sc.q0, sc.dq0)
     inside = bool(np.all(np.abs(sig[:d.n]) <= 1 - S.m1) and np.all(np.abs(sig[d.n:]) <= 1 - S.m2))
     if ctx.params.q0 is not None or ctx.params.dq0 is not None:
         inside = False              # an initial-state box: not checked here (the detail says so)

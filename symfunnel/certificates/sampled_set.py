@@ -32,6 +32,20 @@ class SampledSet:
                 **self.notes}
 
 
+def normalised_errors(design):
+    """sigma(t, q, dq) = (e1 / F1, (dq - alpha2) / F2) from the design's reference, funnels and alpha2: where a
+    joint state lies relative to S's margins."""
+    F = design.function("funnel_bounds", ["t"], ["F1", "F2"])
+    a2 = design.function("alpha2", ["t", "q", "qd", "dqd"])
+
+    def sigma(t, q, dq):
+        qd, dqd, _ = (np.asarray(v, float).ravel() for v in design.reference(t))
+        F1, F2 = (np.asarray(v, float).ravel() for v in F(t))
+        q, dq = np.asarray(q, float).ravel(), np.asarray(dq, float).ravel()
+        return np.concatenate([(q - qd) / F1, (dq - np.asarray(a2(t, q, qd, dqd), float).ravel()) / F2])
+    return sigma
+
+
 def declared_set(ctx: Context, m1: float, m2: float, w_box=None, w_source: str | None = None) -> SampledSet:
     """S with margins (m1, m2), x_esn in its invariant box and W_hat in `w_box` (else the bounds certificate's box:
     the run's range widened by its own width)."""
