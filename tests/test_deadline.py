@@ -92,10 +92,11 @@ def test_the_command_limit_is_not_swallowed_as_a_proof_timeout():
 
 def test_paused_blocks_watch_the_limit_themselves_and_check_raises_after():
     seen = {}
-    with deadline.limit(0.1):
-        # after the block the expiry is raised by the next check or by the alarm re-armed at 0.1 ms, whichever
-        # comes first (under load the alarm can fire before the check is reached)
-        with pytest.raises(deadline.WallLimitReached):
+    # after the block the expiry is raised by the next check or by the alarm re-armed at 0.1 ms, whichever comes
+    # first (under load the alarm can fire before the check is reached); the limit's block must end with it either
+    # way (an alarm's exception caught inside the block is raised again at its end: a clean-clone CI run)
+    with pytest.raises(deadline.WallLimitReached):
+        with deadline.limit(0.1):
             with deadline.paused():
                 _spin(0.3)                                # no alarm in here: the block runs to its end
                 seen["left"] = deadline.remaining()
@@ -310,6 +311,29 @@ def test_a_limit_never_interrupts_an_import_half_way(tmp_path):
     t, done = r.stdout.split()
     assert done == "True"                         # the import ran to its end and the module is whole ...
     assert 0.3 <= float(t) < 0.3 + 0.5            # ... and the limit was raised after it, soon
+
+
+def test_a_limit_reached_during_an_import_names_the_step_it_was_reached_in(tmp_path):
+    """The alarm that waits for an import to finish raises naming the step the limit was reached in, not the one
+    the command has moved on to (a clean-clone CI run: `derive --wall-limit 2` expired in its loading step's imports
+    and said "while working", the gap between loading and deriving, where the deferred alarm landed)."""
+    (tmp_path / "slow_import.py").write_text("import time\ntime.sleep(0.3)\n")
+    code = textwrap.dedent("""
+        import time
+        from symfunnel.core import deadline
+        try:
+            with deadline.limit(0.05):
+                with deadline.step("loading the scenario"):
+                    import slow_import
+                while True:                         # outside any step: where the deferred alarm lands
+                    time.sleep(0.01)
+        except deadline.WallLimitReached as exc:
+            print(exc.step)
+        """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                       env={**os.environ, "PYTHONPATH": str(tmp_path)})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "loading the scenario"
 
 
 def test_verify_under_a_limit_too_short_for_the_integration_stops_with_one_line(capsys):

@@ -42,7 +42,7 @@ class _Deadline:
     started: float
     make: Callable[[], BaseException] | None    # None: WallLimitReached
     fired: bool = False                 # the alarm's handler raised this deadline's exception
-    step: str | None = None             # what the command was doing then (the block may raise it after that step)
+    step: str | None = None             # what the command was doing when the alarm first found it expired
 
 
 _started = {"at": time.monotonic()}       # when the command began (`mark_command_start`)
@@ -143,12 +143,14 @@ def _expired() -> _Deadline | None:
 def _handler(signum, frame):
     d = _expired()
     if d is not None:
+        if d.step is None:
+            d.step = current_step()      # what the command was doing when the limit was reached (not after an import)
         if _importing(frame):
             # a module interrupted half-way through its import stays broken in sys.modules for the rest of the
             # process (the API's, a test worker's: "module 'sympy' has no attribute 'polys'"): raise after it
             signal.setitimer(signal.ITIMER_REAL, 0.01)
             return
-        d.fired, d.step = True, current_step()
+        d.fired = True
         raise _error(d)
     _arm()                               # woke early (an outer deadline was re-armed): wait for the next one
 
