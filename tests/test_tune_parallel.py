@@ -107,3 +107,27 @@ def test_sequential_starts_the_bench_baseline_judge_the_same(monkeypatch):
     starts, judged, lines = _search(monkeypatch, delays=[0.2, 0.1, 0.0])
     assert [list(z) for z in judged] == [list(s / 2) for s in starts]
     assert any("3 starts one after the other" in s for s in lines)
+
+
+def test_a_start_that_fails_to_launch_stops_the_ones_already_started(monkeypatch):
+    """The third start failing as it is launched (a signal, the command's limit, fork failing) kills and reaps the
+    two started before it instead of leaving them running and registered."""
+    import symfunnel.core.lifecycle as lc
+    import symfunnel.core.worker as worker
+    started = []
+
+    def launching(fn, *args, **kwargs):
+        if len(started) == 2:
+            raise OSError("fork failed")
+        job = start_killable(fn, *args, **kwargs)
+        started.append(job.pid)
+        return job
+    monkeypatch.setattr(worker, "start_killable", launching)
+    before = set(lc._children)
+    with pytest.raises(OSError, match="fork failed"):
+        _search(monkeypatch, delays=[30.0, 30.0, 30.0])
+    assert len(started) == 2
+    for pid in started:
+        with pytest.raises(ChildProcessError):                  # reaped: no child of that id any more
+            os.waitpid(pid, os.WNOHANG)
+    assert set(lc._children) <= before

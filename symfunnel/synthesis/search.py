@@ -495,8 +495,10 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
         job = start_killable(gp.solve, np.asarray(starts[i], float), objective=obj, ref=ref.get(obj, 1.0),
                              wall_s=0.9 * left, progress=_tagged(say, f"IPOPT start {i + 1}: "))
         return job, left
-    jobs = [launch(i) for i in range(len(starts))] if side else []
+    jobs: list = []
     try:
+        for i in range(len(starts) if side else 0):   # inside the try: a start that fails to launch stops the others
+            jobs.append(launch(i))
         for i in range(len(starts)):
             if deadline - time.perf_counter() <= 1.0:
                 raise _OutOfTime("search stopped at the wall-clock limit")
