@@ -108,3 +108,14 @@ def test_driver_kernels_compares_both_forms_on_the_same_trajectory_and_restores_
     assert r["steps_this"] == r["steps_previous"] and min(r["steps_this"]) > 50
     assert r["paired_ratio"] > 0 and r["lu_paired_ratio"] > 0 and r["vectors_paired_ratio"] > 0
     assert sundials.SCHEDULED_LU is True and sundials.WIDE_VECTORS is True
+
+
+def test_samples_in_place_compares_both_placements_on_the_same_trajectory(paper_run):
+    """bench.simulate.samples_in_place (`simulate.samples_in_place`): the samples written in place and copied give
+    the same step counts, and the switch is as it was afterwards."""
+    from symfunnel.bench.simulate import PERTURBATIONS, samples_in_place
+    from symfunnel.simulation import crun
+    r = samples_in_place(paper_run.scenario, paper_run.design, paper_run.closed_loop, 0.5, rounds=1)
+    assert len(r["in_place"]) == len(r["copied"]) == len(PERTURBATIONS)
+    assert r["steps_in_place"] == r["steps_copied"] and min(r["steps_in_place"]) > 50
+    assert r["paired_ratio"] > 0 and crun.SAMPLES_IN_PLACE is True

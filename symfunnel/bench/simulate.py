@@ -178,6 +178,16 @@ def samples_from_steps(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
     return {"with": r["cpu"][True], "without": r["cpu"][False], "paired_ratio": r["paired_ratio"]}
 
 
+def samples_in_place(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """CPU seconds per run with the samples between output points written straight into their rows and copied into
+    time order after (`crun.SAMPLES_IN_PLACE`, the previous path), interleaved over the perturbed runs; their paired
+    ratio (copied / in place) and the steps of both (the same trajectory)."""
+    from ..simulation import crun
+    r = alternated(sc, d, cl, t_final, crun, "SAMPLES_IN_PLACE", rounds)
+    return {"in_place": r["cpu"][True], "copied": r["cpu"][False], "steps_in_place": r["steps"][True],
+            "steps_copied": r["steps"][False], "paired_ratio": r["paired_ratio"]}
+
+
 def _process_seconds(cmd: list[str], env: dict, repeats: int = 3) -> dict:
     """Median wall and CPU (the child's rusage) seconds of running `cmd`, after one warm-up run."""
     subprocess.run(cmd, env=env, capture_output=True, timeout=600)
@@ -279,6 +289,9 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
     with _cvodes_backend("direct"):
         sfs = samples_from_steps(sc, d, cl, tf)
+    say("simulate: the samples between output points written in place, and copied into time order, interleaved")
+    with _cvodes_backend("direct"):
+        sip = samples_in_place(sc, d, cl, tf)
     say("simulate: the driver's LU schedule and wide vector operations, and their previous forms, interleaved")
     with _cvodes_backend("direct"):
         kern = driver_kernels(sc, d, cl, tf)
@@ -350,6 +363,13 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
                "the same runs integrating a chunk again for its samples", float(np.median(sfs["without"])),
                sfs["paired_ratio"], cpu_with=sfs["with"], cpu_without=sfs["without"], t_final=tf,
                note="median CPU per run; ratio: median of the paired ratios (interleaved, same variants)"),
+        result("simulate.samples_in_place", float(np.median(sip["in_place"])), "CPU s",
+               "the same runs with the samples copied into time order after sampling (crun.SAMPLES_IN_PLACE off)",
+               float(np.median(sip["copied"])), sip["paired_ratio"], cpu_in_place=sip["in_place"],
+               cpu_copied=sip["copied"], steps_in_place=sip["steps_in_place"], steps_copied=sip["steps_copied"],
+               t_final=tf, target=TARGET_CPU_PER_RUN,
+               note="median CPU per run; ratio: median of the paired ratios copied / in place (interleaved, same "
+                    "variants)"),
         result("simulate.overhead_ratio", wall / float(np.median(integ)), "x", "time inside the integrator calls",
                float(np.median(integ)), None, target=1.3, meets_target=bool(wall / float(np.median(integ)) <= 1.3),
                note="simulate() wall time with a built closed loop over the time spent in CVODES itself"),
