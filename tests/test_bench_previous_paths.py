@@ -119,3 +119,14 @@ def test_samples_in_place_compares_both_placements_on_the_same_trajectory(paper_
     assert len(r["in_place"]) == len(r["copied"]) == len(PERTURBATIONS)
     assert r["steps_in_place"] == r["steps_copied"] and min(r["steps_in_place"]) > 50
     assert r["paired_ratio"] > 0 and crun.SAMPLES_IN_PLACE is True
+
+
+def test_fused_interpolation_compares_both_forms_on_the_same_trajectory(paper_run):
+    """bench.simulate.fused_interpolation (`simulate.fused_interpolation`): the samples interpolated in one pass and
+    through CVodeGetDky give the same step counts, and the switch is as it was afterwards."""
+    from symfunnel.bench.simulate import PERTURBATIONS, fused_interpolation
+    from symfunnel.simulation import sundials
+    r = fused_interpolation(paper_run.scenario, paper_run.design, paper_run.closed_loop, 0.5, rounds=1)
+    assert len(r["fused"]) == len(r["previous"]) == len(PERTURBATIONS)
+    assert r["steps_fused"] == r["steps_previous"] and min(r["steps_fused"]) > 50
+    assert r["paired_ratio"] > 0 and sundials.FUSED_DKY is True

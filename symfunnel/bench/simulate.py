@@ -188,6 +188,16 @@ def samples_in_place(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
             "steps_copied": r["steps"][False], "paired_ratio": r["paired_ratio"]}
 
 
+def fused_interpolation(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """CPU seconds per run with the samples from the kept steps interpolated in one pass into their rows and through
+    CVodeGetDky then permuted (`sundials.FUSED_DKY`, the previous path), interleaved over the perturbed runs; their
+    paired ratio (previous / fused) and the steps of both (the same trajectory)."""
+    from ..simulation import sundials
+    r = alternated(sc, d, cl, t_final, sundials, "FUSED_DKY", rounds)
+    return {"fused": r["cpu"][True], "previous": r["cpu"][False], "steps_fused": r["steps"][True],
+            "steps_previous": r["steps"][False], "paired_ratio": r["paired_ratio"]}
+
+
 def _process_seconds(cmd: list[str], env: dict, repeats: int = 3) -> dict:
     """Median wall and CPU (the child's rusage) seconds of running `cmd`, after one warm-up run."""
     subprocess.run(cmd, env=env, capture_output=True, timeout=600)
@@ -292,6 +302,9 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     say("simulate: the samples between output points written in place, and copied into time order, interleaved")
     with _cvodes_backend("direct"):
         sip = samples_in_place(sc, d, cl, tf)
+    say("simulate: the samples interpolated in one pass, and through CVodeGetDky, interleaved")
+    with _cvodes_backend("direct"):
+        fdk = fused_interpolation(sc, d, cl, tf)
     say("simulate: the driver's LU schedule and wide vector operations, and their previous forms, interleaved")
     with _cvodes_backend("direct"):
         kern = driver_kernels(sc, d, cl, tf)
@@ -369,6 +382,13 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
                cpu_copied=sip["copied"], steps_in_place=sip["steps_in_place"], steps_copied=sip["steps_copied"],
                t_final=tf, target=TARGET_CPU_PER_RUN,
                note="median CPU per run; ratio: median of the paired ratios copied / in place (interleaved, same "
+                    "variants)"),
+        result("simulate.fused_interpolation", float(np.median(fdk["fused"])), "CPU s",
+               "the same runs interpolating each sample through CVodeGetDky, then permuted (sundials.FUSED_DKY off)",
+               float(np.median(fdk["previous"])), fdk["paired_ratio"], cpu_fused=fdk["fused"],
+               cpu_previous=fdk["previous"], steps_fused=fdk["steps_fused"], steps_previous=fdk["steps_previous"],
+               t_final=tf, target=TARGET_CPU_PER_RUN,
+               note="median CPU per run; ratio: median of the paired ratios previous / fused (interleaved, same "
                     "variants)"),
         result("simulate.overhead_ratio", wall / float(np.median(integ)), "x", "time inside the integrator calls",
                float(np.median(integ)), None, target=1.3, meets_target=bool(wall / float(np.median(integ)) <= 1.3),

@@ -124,6 +124,7 @@ class CLoop:
         def P(a, kind=dp):
             return a.ctypes.data_as(kind)
         with D._lock:
+            lib.sf_set_fused_dky(1 if sundials.FUSED_DKY else 0)
             rc = lib.sf_loop_run(D._h, self._fns[0], self._fns[1], P(ints, ip), P(reals), P(self._perm, ip),
                                  P(self._nnz, ip), P(self._chunks, ip), P(self._pvals), P(xs), P(state, lp),
                                  P(fstate), P(bw), P(stats, lp), P(t_out), P(X_out), P(O_out), rows)
