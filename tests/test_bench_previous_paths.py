@@ -108,3 +108,25 @@ def test_driver_kernels_compares_both_forms_on_the_same_trajectory_and_restores_
     assert r["steps_this"] == r["steps_previous"] and min(r["steps_this"]) > 50
     assert r["paired_ratio"] > 0 and r["lu_paired_ratio"] > 0 and r["vectors_paired_ratio"] > 0
     assert sundials.SCHEDULED_LU is True and sundials.WIDE_VECTORS is True
+
+
+def test_samples_in_place_compares_both_placements_on_the_same_trajectory(paper_run):
+    """bench.simulate.samples_in_place (`simulate.samples_in_place`): the samples written in place and copied give
+    the same step counts, and the switch is as it was afterwards."""
+    from symfunnel.bench.simulate import PERTURBATIONS, samples_in_place
+    from symfunnel.simulation import crun
+    r = samples_in_place(paper_run.scenario, paper_run.design, paper_run.closed_loop, 0.5, rounds=1)
+    assert len(r["in_place"]) == len(r["copied"]) == len(PERTURBATIONS)
+    assert r["steps_in_place"] == r["steps_copied"] and min(r["steps_in_place"]) > 50
+    assert r["paired_ratio"] > 0 and crun.SAMPLES_IN_PLACE is True
+
+
+def test_fused_interpolation_compares_both_forms_on_the_same_trajectory(paper_run):
+    """bench.simulate.fused_interpolation (`simulate.fused_interpolation`): the samples interpolated in one pass and
+    through CVodeGetDky give the same step counts, and the switch is as it was afterwards."""
+    from symfunnel.bench.simulate import PERTURBATIONS, fused_interpolation
+    from symfunnel.simulation import sundials
+    r = fused_interpolation(paper_run.scenario, paper_run.design, paper_run.closed_loop, 0.5, rounds=1)
+    assert len(r["fused"]) == len(r["previous"]) == len(PERTURBATIONS)
+    assert r["steps_fused"] == r["steps_previous"] and min(r["steps_fused"]) > 50
+    assert r["paired_ratio"] > 0 and sundials.FUSED_DKY is True

@@ -390,3 +390,33 @@ def test_states_written_in_the_callers_order_are_the_permuted_states(paper_run):
     assert np.array_equal(Xs, X[:, inv]) and np.array_equal(Yo, Y[:, inv])
     with pytest.raises(RuntimeError, match="permutation"):
         sundials.DirectCvodes(comp.library, cl.nx, P.size, opts, order=np.zeros(cl.nx, dtype=int))
+
+
+@pytest.mark.parametrize("wide", [True, False])
+def test_the_fused_interpolation_is_cvodegetdkys_bit_for_bit(paper_run, monkeypatch, wide):
+    """`sundials.FUSED_DKY`: the samples from the kept steps interpolated in one pass straight into the caller's
+    order are CVodeGetDky's values permuted (the previous path), to the last bit -- in CVODES' order and in the
+    public one, with the four-wide and the scalar form, for several samples per step, samples on output points and
+    on every order the run's steps take; a time outside the chunk is refused by both."""
+    monkeypatch.setattr(sundials, "WIDE_VECTORS", wide)
+    from symfunnel.family.integrators import INTEGRATORS
+    cl, comp, D0 = _solver(paper_run)
+    opts = INTEGRATORS.get("cvodes")(paper_run.scenario.simulation, 0.01, 0.01, 1)
+    P = np.concatenate([[0.0], comp.bind(cl.p0).pvals])
+    x0 = cl.x0[comp.perm]
+    grid = 0.01 * np.arange(1, 61)
+    rng = np.random.default_rng(7)
+    times = np.sort(np.concatenate([rng.uniform(1e-6, grid[-1], 400), grid[5:15] + 0.0, [grid[-1]]]))
+    for order in (None, np.argsort(comp.perm)):
+        D = sundials.DirectCvodes(comp.library, cl.nx, P.size, opts, order=order)
+        assert bool(D._lib.sf_has_wide_vectors(D._h)) == wide
+        got = {}
+        for fused in (True, False):
+            monkeypatch.setattr(sundials, "FUSED_DKY", fused)
+            X, st, Y = D.run_sampled(P, x0, grid, lambda s: times)
+            assert Y is not None and np.isfinite(Y).all()
+            got[fused] = (X, st, Y)
+            assert D.run_sampled(P, x0, grid, lambda s: np.array([0.01, grid[-1] + 0.01]))[2] is None
+        assert np.array_equal(got[True][0], got[False][0]) and got[True][1] == got[False][1]
+        assert np.array_equal(got[True][2], got[False][2])
+        assert got[True][1]["nsteps"] > 60            # several steps per output point, and their orders

@@ -178,6 +178,37 @@ def samples_from_steps(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
     return {"with": r["cpu"][True], "without": r["cpu"][False], "paired_ratio": r["paired_ratio"]}
 
 
+def switch_pair(sc, d, cl, t_final: float, module, flag: str, on: str, off: str, rounds: int = 2) -> dict:
+    """CPU seconds and CVODES steps per run with `module.<flag>` on (named `on`) and off (`off`, the previous path),
+    interleaved over the perturbed runs (`alternated`); their paired ratio off / on."""
+    r = alternated(sc, d, cl, t_final, module, flag, rounds)
+    return {on: r["cpu"][True], off: r["cpu"][False], "steps_" + on: r["steps"][True],
+            "steps_" + off: r["steps"][False], "paired_ratio": r["paired_ratio"]}
+
+
+def samples_in_place(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """The samples between output points written straight into their rows, and copied into time order after
+    (`crun.SAMPLES_IN_PLACE`, the previous path): `switch_pair`'s "in_place" and "copied"."""
+    from ..simulation import crun
+    return switch_pair(sc, d, cl, t_final, crun, "SAMPLES_IN_PLACE", "in_place", "copied", rounds)
+
+
+def fused_interpolation(sc, d, cl, t_final: float, rounds: int = 2) -> dict:
+    """The samples from the kept steps interpolated in one pass into their rows, and through CVodeGetDky then
+    permuted (`sundials.FUSED_DKY`, the previous path): `switch_pair`'s "fused" and "previous"."""
+    from ..simulation import sundials
+    return switch_pair(sc, d, cl, t_final, sundials, "FUSED_DKY", "fused", "previous", rounds)
+
+
+def _switch_result(rid: str, r: dict, on: str, off: str, baseline: str, t_final: float) -> dict:
+    """A `switch_pair` measurement as a bench result: medians, every run's CPU and steps, the paired ratio."""
+    return result(rid, float(np.median(r[on])), "CPU s", baseline, float(np.median(r[off])), r["paired_ratio"],
+                  **{"cpu_" + on: r[on], "cpu_" + off: r[off], "steps_" + on: r["steps_" + on],
+                     "steps_" + off: r["steps_" + off]}, t_final=t_final, target=TARGET_CPU_PER_RUN,
+                  note=f"median CPU per run; ratio: median of the paired ratios {off} / {on} (interleaved, same "
+                       "variants)")
+
+
 def _process_seconds(cmd: list[str], env: dict, repeats: int = 3) -> dict:
     """Median wall and CPU (the child's rusage) seconds of running `cmd`, after one warm-up run."""
     subprocess.run(cmd, env=env, capture_output=True, timeout=600)
@@ -279,6 +310,12 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
     say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
     with _cvodes_backend("direct"):
         sfs = samples_from_steps(sc, d, cl, tf)
+    say("simulate: the samples between output points written in place, and copied into time order, interleaved")
+    with _cvodes_backend("direct"):
+        sip = samples_in_place(sc, d, cl, tf)
+    say("simulate: the samples interpolated in one pass, and through CVodeGetDky, interleaved")
+    with _cvodes_backend("direct"):
+        fdk = fused_interpolation(sc, d, cl, tf)
     say("simulate: the driver's LU schedule and wide vector operations, and their previous forms, interleaved")
     with _cvodes_backend("direct"):
         kern = driver_kernels(sc, d, cl, tf)
@@ -350,6 +387,10 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
                "the same runs integrating a chunk again for its samples", float(np.median(sfs["without"])),
                sfs["paired_ratio"], cpu_with=sfs["with"], cpu_without=sfs["without"], t_final=tf,
                note="median CPU per run; ratio: median of the paired ratios (interleaved, same variants)"),
+        _switch_result("simulate.samples_in_place", sip, "in_place", "copied", "the same runs with the samples "
+                       "copied into time order after sampling (crun.SAMPLES_IN_PLACE off)", tf),
+        _switch_result("simulate.fused_interpolation", fdk, "fused", "previous", "the same runs interpolating each "
+                       "sample through CVodeGetDky, then permuted (sundials.FUSED_DKY off)", tf),
         result("simulate.overhead_ratio", wall / float(np.median(integ)), "x", "time inside the integrator calls",
                float(np.median(integ)), None, target=1.3, meets_target=bool(wall / float(np.median(integ)) <= 1.3),
                note="simulate() wall time with a built closed loop over the time spent in CVODES itself"),

@@ -23,11 +23,10 @@ from .closedloop import OUTPUT_NAMES
 #: run the chunks in C where the run allows it; the bench switches it off for its baseline
 RUN_IN_C = True
 #: the samples between output points written straight into their rows in time order (`csrc/cvodes_loop.c`,
-#: `sf_sample_rows`; 1.036x per paper run) instead of sampled into a buffer and copied after. Off by default: with
-#: it a run faults ~160 pages that glibc's kept heap (`simulation.heap.keep_heap`) otherwise avoids entirely
-#: (tests/test_heap.py: 481 against 0 minor faults over three 5 s paper runs), found after the merge and not yet
-#: explained; the bench's `sweep.cpu_per_run_vs_previous` measures it on
-SAMPLES_IN_PLACE = False
+#: `sf_sample_rows`) instead of sampled into a buffer and copied after (~12,800 rows x 156 states per paper run):
+#: the same arrays bit for bit (tests/test_crun.py). False is the previous path, the bench's baseline
+#: (`simulate.samples_in_place`, `sweep.cpu_per_run_vs_previous`)
+SAMPLES_IN_PLACE = True
 #: the longest a C call runs before it returns for the progress line (seconds)
 SLICE_S = 2.0
 DONE, HANDOVER, SLICE, TIMEOUT = 0, 1, 2, 3
@@ -125,6 +124,7 @@ class CLoop:
         def P(a, kind=dp):
             return a.ctypes.data_as(kind)
         with D._lock:
+            lib.sf_set_fused_dky(1 if sundials.FUSED_DKY else 0)
             rc = lib.sf_loop_run(D._h, self._fns[0], self._fns[1], P(ints, ip), P(reals), P(self._perm, ip),
                                  P(self._nnz, ip), P(self._chunks, ip), P(self._pvals), P(xs), P(state, lp),
                                  P(fstate), P(bw), P(stats, lp), P(t_out), P(X_out), P(O_out), rows)

@@ -36,6 +36,10 @@ SCHEDULED_LU = True
 #: CVODES' vector operations four doubles at a time where the processor has AVX2 (`csrc/sf_nvec.h`: the same
 #: doubles); False: SUNDIALS' own (the previous path, the bench's baseline)
 WIDE_VECTORS = True
+#: the samples between output points interpolated from the kept steps straight into their rows in the output order
+#: (`csrc/cvodes_driver.c`, sf_dky_put: CVodeGetDky's operations, the same doubles); False: CVodeGetDky into a scratch
+#: vector, then permuted (the previous path, the bench's baseline)
+FUSED_DKY = True
 DRIVER_FLAGS = ("-std=c99", "-O2", "-fPIC", "-shared")
 _SOURCES = ("cvodes_driver.c", "cvodes_loop.c", "cvodes_mem.h", "sf_lu.h", "sf_nvec.h")
 _REASON: list[str] = []
@@ -92,6 +96,8 @@ def driver_library() -> ctypes.CDLL | None:
     lib.sf_set_order.argtypes = [vp, ip]
     lib.sf_free.restype = None
     lib.sf_free.argtypes = [vp]
+    lib.sf_set_fused_dky.restype = None
+    lib.sf_set_fused_dky.argtypes = [ctypes.c_int]
     lib.sf_set_wide_vectors.restype = None
     lib.sf_set_wide_vectors.argtypes = [ctypes.c_int]
     lib.sf_nv_apply.restype = ctypes.c_int
@@ -232,6 +238,7 @@ class DirectCvodes:
             stats = self._read_stats()
             times = np.ascontiguousarray(times_for(stats), dtype=float)
             Y = np.empty((times.size, self.nx))
+            self._lib.sf_set_fused_dky(1 if FUSED_DKY else 0)
             if times.size and self._lib.sf_sample(self._h, int(times.size), _ptr(times), _ptr(Y)):
                 Y = None
         return X, stats, Y

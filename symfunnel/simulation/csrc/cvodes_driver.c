@@ -32,6 +32,7 @@
 #include "sf_nvec.h"
 
 static int sf_wide_vectors = 1;  /* sf_set_wide_vectors */
+static int sf_fused_dky = 1;     /* sf_set_fused_dky */
 
 typedef long long int casadi_int;     /* the closed loop's generated code uses CasADi's default casadi_int */
 typedef int (*sf_fun)(const double **arg, double **res, casadi_int *iw, double *w, int mem);
@@ -493,6 +494,34 @@ int sf_sample(void *handle, int M, const double *t, double *Y) {
   return sf_sample_rows(handle, M, t, Y, 0);
 }
 
+/* CVodeGetDky(t, k = 0) of SUNDIALS 2.6.1 on one kept step (tn, h, hu, q, its Nordsieck columns zn[0..q]), then
+ * sf_put into out: the same test of t against the step, the same s = (t - tn)/h, and per element the same
+ * operations in the same order -- N_VScale(1, zn[q]) a copy, then for j = q-1..0 N_VLinearSum(1, zn[j], s, dky,
+ * dky), whose cases (axpy for s = 1, a difference for s = -1, else s dky + zn[j]) each give the double
+ * s v + zn[j][i] (no fused multiply-add: -std=c99 keeps contraction off) -- so the same doubles, in one pass
+ * (sf_horner) instead of a copy and q passes through CVODES' vector operations. 0, or 1 where CVodeGetDky returns
+ * CV_BAD_T. */
+static int sf_dky_put(sf_solver *s, double tn, double h, double hu, int q, const double *const *zn, double t,
+                      double *out) {
+  double tfuzz = 100.0 * ((struct CVodeMemRec *) s->mem)->cv_uround * (fabs(tn) + fabs(hu)), tp, tn1, sc;
+  if (hu < 0.0) tfuzz = -tfuzz;
+  tp = tn - hu - tfuzz;
+  tn1 = tn + tfuzz;
+  if ((t - tp) * (t - tn1) > 0.0) return 1;
+  sc = (t - tn) / h;
+#if SF_NV_SIMD
+  if (s->wide) sf_horner(sc, zn, q, s->scratch, s->nx);
+  else
+#endif
+    sf_horner_scalar(sc, zn, q, s->scratch, s->nx);
+  sf_put(s, s->scratch, out);
+  return 0;
+}
+
+void sf_set_fused_dky(int fused) {
+  sf_fused_dky = fused;
+}
+
 /* sf_sample writing sample i into row rows[i] of Y (rows NULL: row i): the samples straight into their places in
  * time order among the output points, without a second copy. */
 int sf_sample_rows(void *handle, int M, const double *t, double *Y, const long *rows) {
@@ -507,6 +536,13 @@ int sf_sample_rows(void *handle, int M, const double *t, double *Y, const long *
   for (i = 0; i < M && rc == 0; ++i) {
     while (step < s->hist_n && (s->hist_t[step] - t[i]) * s->hist_h[step] < 0.0) ++step;
     if (step == s->hist_n || (i > 0 && t[i] < t[i - 1])) { rc = 1; break; }
+    if (sf_fused_dky) {
+      const double *z[L_MAX];
+      for (j = 0; j <= s->hist_q[step]; ++j) z[j] = s->hist_z + s->hist_off[step] + (size_t) j * nx;
+      rc = sf_dky_put(s, s->hist_t[step], s->hist_h[step], s->hist_hu[step], s->hist_q[step], z, t[i],
+                      Y + (size_t) (rows ? rows[i] : i) * nx);
+      continue;
+    }
     m->cv_tn = s->hist_t[step];
     m->cv_h = s->hist_h[step];
     m->cv_hu = s->hist_hu[step];
