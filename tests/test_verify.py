@@ -11,6 +11,8 @@ import pytest
 from symfunnel.checks.lyapunov import _sub_reference, lyapunov_function
 from symfunnel.pipeline import Run, RunOptions
 
+from .conftest import VERIFY_PAPER_2S, main_once
+
 T_FINAL = 5.0          # a shortened horizon keeps the suite fast; the CLI default is the scenario's 20 s
 
 
@@ -105,10 +107,9 @@ def test_corrected_decay_is_the_documented_identity(ver):
         assert abs(ad - ex) <= 1e-8 * max(1.0, abs(ad)), (res.t[k], ad, ex)
 
 
-def test_verify_json_and_exit_code(capsys):
-    from symfunnel.cli import main
-    code = main(["verify", "paper", "--json", "--t-final", "2", "--samples", "2000"])
-    out = json.loads(capsys.readouterr().out)
+def test_verify_json_and_exit_code(tmp_path_factory):
+    p = main_once(tmp_path_factory, *VERIFY_PAPER_2S)          # shared with test_certify, once per session
+    code, out = p.returncode, json.loads(p.stdout)
     unexpected = [c["id"] for c in out["checks"] if c["status"] in ("pass", "fail") and c["status"] != c["expected"]]
     assert code == (1 if unexpected else 0) == 0 and out["status"] == "pass"
     failed = {c["id"]: c for c in out["checks"] if c["status"] == "fail"}
