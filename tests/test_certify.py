@@ -575,9 +575,10 @@ def test_verify_shows_the_certificates_as_checks(tmp_path_factory):
     assert by["certify.bounds"]["evidence"]["region"]["kind"] == "stand_in"
 
 
-def test_report_overview_has_one_line_per_outcome(tmp_path):
-    path = sf.report("paper", tmp_path / "r.html", codegen=False, mutants=False, deployed=False).path
-    html = Path(path).read_text()
+def test_report_overview_has_one_line_per_outcome(paper_report_2s):
+    """The paper's report (conftest's PAPER_REPORT_2S, built once per session for test_report_layout and
+    test_report_deployed too) opens its certificates with one line per outcome."""
+    html = paper_report_2s
     i = html.index('id="certify-overview"')
     head = html[i:i + 2000]
     for word in ("PROVEN", "REFUTED", "UNDECIDED"):
