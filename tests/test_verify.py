@@ -139,7 +139,8 @@ def test_initial_error_outside_its_funnel_fails_verify(write_scenario, capsys):
 def test_corrected_decay_fails_when_the_implementation_departs_from_the_derivation(paper):
     """Not vacuous: with the adaptive law's sign flipped in the graph (as printed in eq. 33's first term under
     symfunnel's convention), V_dot exceeds -rho V + delta along the run and the check says so."""
-    v = Run(paper, RunOptions(t_final=2.0, samples=10000, mutant="flip_adaptation")).verification
+    # without the certificates, as mutation testing runs a mutant: none of them feeds the checks asserted here
+    v = Run(paper, RunOptions(t_final=2.0, samples=10000, mutant="flip_adaptation", certify=False)).verification
     ids = {c.id: c for c in v.checks}
     assert ids["lyapunov.decay"].status == "fail"
     assert ids["lyapunov.decay"].margin < 0
