@@ -338,3 +338,8 @@ def _no_deadline_or_signal_policy_left_behind():
         lifecycle.uninstall()
         lifecycle._pending.clear()
         pytest.fail(f"the test left process-wide state behind: {left}")
+
+
+#: `verify paper --json` over 2 s with 2000 falsification samples: test_verify checks its JSON and exit code,
+#: test_certify the certificates among its checks (before, a second run over the paper's whole 20 s horizon)
+VERIFY_PAPER_2S = ("verify", "paper", "--json", "--t-final", "2", "--samples", "2000")

@@ -31,7 +31,7 @@ from symfunnel.sx.batch import BatchIntervalFunction
 from symfunnel.sx.interval import IntervalFunction
 from symfunnel.sx.rewrite import replace_nodes
 
-from .conftest import certify_once
+from .conftest import VERIFY_PAPER_2S, certify_once, main_once
 from .pins import pins
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -563,8 +563,9 @@ def test_empty_region_exits_2_naming_the_key(tmp_path, capsys):
     assert "reference.q" in capsys.readouterr().err
 
 
-def test_verify_shows_the_certificates_as_checks(capsys):
-    code, out = _json(capsys, ["verify", "paper", "--json", "-q"])
+def test_verify_shows_the_certificates_as_checks(tmp_path_factory):
+    p = main_once(tmp_path_factory, *VERIFY_PAPER_2S)          # test_verify's run (the horizon changes none of these)
+    code, out = p.returncode, json.loads(p.stdout)
     assert code == 0 and out["status"] == "pass"
     by = {c["id"]: c for c in out["checks"]}
     assert by["certify.input_gain"]["status"] == "fail" and by["certify.input_gain"]["expected"] == "fail"
@@ -574,9 +575,10 @@ def test_verify_shows_the_certificates_as_checks(capsys):
     assert by["certify.bounds"]["evidence"]["region"]["kind"] == "stand_in"
 
 
-def test_report_overview_has_one_line_per_outcome(tmp_path):
-    path = sf.report("paper", tmp_path / "r.html", codegen=False, mutants=False, deployed=False).path
-    html = Path(path).read_text()
+def test_report_overview_has_one_line_per_outcome(paper_report_2s):
+    """The paper's report (conftest's PAPER_REPORT_2S, built once per session for test_report_layout and
+    test_report_deployed too) opens its certificates with one line per outcome."""
+    html = paper_report_2s
     i = html.index('id="certify-overview"')
     head = html[i:i + 2000]
     for word in ("PROVEN", "REFUTED", "UNDECIDED"):

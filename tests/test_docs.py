@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, cli_once
+from tests.conftest import REPO, _command_once, cli_once
 
 SHELL = {"sh", "bash", "console", "shell"}
 NOT_RUN = re.compile(r"^<!--\s*not-run:\s*(\S.*?)\s*-->$")
@@ -104,6 +104,34 @@ def _anywhere(argv: list[str], cwd: Path) -> bool:
             and not any((cwd / a.split("=", 1)[-1]).exists() for a in argv[2:] if not a.startswith("-") or "=" in a))
 
 
+def _inputs(argv: list[str], cwd: Path) -> dict[str, str] | None:
+    """For a READ_ONLY command without WRITES that names files of `cwd` (not `_anywhere`): the files it can read
+    there -- the ones it names and, transitively, every file of `cwd` whose relative path the text of one of those
+    contains (a scenario's URDF) -- as {relative path: sha256 of the content}; None for any other command line or
+    one that names a directory. The same line with the same inputs gives the same result in any directory, so it
+    runs once for all files (`init --urdf arm7.urdf --out robot.toml` then `simulate robot.toml` on two pages)."""
+    import hashlib
+    if len(argv) < 2 or argv[1] not in READ_ONLY or any(a.startswith(WRITES) for a in argv):
+        return None
+    named = [cwd / a.split("=", 1)[-1] for a in argv[2:] if not a.startswith("-") or "=" in a]
+    named = [p for p in named if p.exists() or p.is_symlink()]
+    if not named or any(not p.is_file() or p.is_symlink() for p in named):
+        return None
+    files = {str(f.relative_to(cwd)): f for f in cwd.rglob("*") if f.is_file() and not f.is_symlink()
+             and "derivations" not in f.relative_to(cwd).parts[:1]}
+    files.update({str(p.relative_to(cwd)): p for p in named})      # derivations/..., through its link
+    todo, seen = [str(p.relative_to(cwd)) for p in named], {}
+    while todo:
+        rel = todo.pop()
+        if rel in seen:
+            continue
+        data = files[rel].read_bytes()
+        seen[rel] = hashlib.sha256(data).hexdigest()
+        text = data.decode("utf-8", errors="replace")
+        todo += [other for other in files if other not in seen and other in text]
+    return dict(sorted(seen.items()))
+
+
 def run_shell(b: Block, cwd: Path, tmp_path_factory=None) -> None:
     for n, line in enumerate(b.code.splitlines()):
         argv = _command(line)
@@ -113,8 +141,15 @@ def run_shell(b: Block, cwd: Path, tmp_path_factory=None) -> None:
             f"{_where(b)}: line {n + 1} runs {argv[0]!r}; only `symfunnel ...` lines are run: change the example or "
             f"mark the block <!-- not-run: REASON -->")
         env = dict(os.environ, PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))
+        inputs = _inputs(argv, cwd) if tmp_path_factory is not None else None
         if tmp_path_factory is not None and _anywhere(argv, cwd):
             proc = cli_once(tmp_path_factory, *argv[1:], timeout=300, cwd=cwd)
+        elif inputs is not None:
+            def call(argv=argv):
+                p = subprocess.run([*_symfunnel(), *argv[1:]], cwd=cwd, capture_output=True, text=True, timeout=300,
+                                   env=env)
+                return p.returncode, p.stdout, p.stderr
+            proc = _command_once(tmp_path_factory, "docs-once", [*argv, inputs], call)
         else:
             proc = subprocess.run([*_symfunnel(), *argv[1:]], cwd=cwd, capture_output=True, text=True, timeout=300,
                                   env=env)
@@ -182,6 +217,27 @@ def test_runner_refuses_other_programs(tmp_path):
     b = Block(REPO / "README.md", 1, "sh", "symfunnel --version\nrm -rf build\n", None)
     with pytest.raises(AssertionError, match="only `symfunnel ...` lines are run"):
         run_shell(b, tmp_path)
+
+
+def test_a_line_reading_files_of_its_directory_is_keyed_by_their_contents(tmp_path):
+    """`_inputs`: the same read-only line on two pages shares its run only when the files it reads (named, and the
+    files those name) have the same bytes; a changed URDF, a written output or a named directory keep it apart."""
+    pages = []
+    for k in range(3):
+        d = tmp_path / f"page{k}"
+        d.mkdir()
+        (d / "robot.toml").write_text('[model]\npath = "arm7.urdf"\n', encoding="utf-8")
+        (d / "arm7.urdf").write_text("<robot/>" if k < 2 else "<robot name='other'/>", encoding="utf-8")
+        (d / f"unrelated{k}.html").write_text(str(k), encoding="utf-8")       # another example's output
+        pages.append(d)
+    line = ["symfunnel", "simulate", "robot.toml", "--t-final", "0.5"]
+    keys = [_inputs(line, d) for d in pages]
+    assert sorted(keys[0]) == ["arm7.urdf", "robot.toml"]          # the URDF the scenario names, not the html
+    assert keys[0] == keys[1] and keys[2] != keys[0]
+    assert _inputs([*line, "--out", "run.npz"], pages[0]) is None   # writes a file
+    assert _inputs(["symfunnel", "init", "--urdf", "arm7.urdf", "--out", "r.toml"], pages[0]) is None
+    assert _inputs(["symfunnel", "verify", "--t-final", "0.5"], pages[0]) is None   # names nothing (cli_once's)
+    assert _inputs(["symfunnel", "audit", "."], pages[0]) is None   # a directory
 
 
 def test_block_parser_reads_markers_and_languages(tmp_path):
