@@ -87,3 +87,43 @@ def test_second_order_form_contains_the_values_and_is_tighter():
         P[:4] = [[LO[k, 0], LO[k, 1]], [LO[k, 0], HI[k, 1]], [HI[k, 0], LO[k, 1]], [HI[k, 0], HI[k, 1]]]
         v = _numpy(P[:, 0], P[:, 1])
         assert np.all(L2[k, 0] <= v) and np.all(v <= H2[k, 0]), (k, L2[k], H2[k], v.min(), v.max())
+
+
+def _kinks_rebuilding_every_node(exprs):
+    """kink_quotients as first written (its rule builds every operation a second time): the reference the faster
+    rule must match node for node."""
+    from symfunnel.sx.rewrite import replace_nodes
+    syms = ca.vertcat(*ca.symvar(ca.vertcat(*[ca.vec(e) for e in exprs])))
+
+    def rule(name, _tags, vals):
+        if name == "DIV":
+            a, s_ = vals
+            if a.is_op(ca.OP_LE) and s_.is_op(ca.OP_ADD) and ca.is_equal(s_.dep(0), a, 0):
+                x, y = a, s_.dep(1)
+                if (y.is_op(ca.OP_LE) and ca.is_equal(x.dep(0), y.dep(1), 0) and ca.is_equal(x.dep(1), y.dep(0), 0)):
+                    return 0.5 * (1 + a - s_.dep(1)), True
+        op = getattr(ca, "OP_" + name)
+        return (ca.SX.unary(op, vals[0]) if len(vals) == 1 else ca.SX.binary(op, vals[0], vals[1])), True
+    return replace_nodes(exprs, syms, syms, tags=[{True}] * syms.numel(), rule=rule)
+
+
+def test_kink_quotients_build_each_operation_once_and_the_same_graph(monkeypatch):
+    """The rewrite of a Jacobian with fmax/fmin kinks: the same tape, instruction for instruction, as the rewrite that
+    rebuilt every node twice, with one SX.binary per binary operation of the tape (not two)."""
+    J = ca.jacobian(EXPR, ca.vertcat(X, Y))
+    ref = _kinks_rebuilding_every_node([J])[0]
+    calls = []
+    real = ca.SX.binary
+    monkeypatch.setattr(ca.SX, "binary", staticmethod(lambda *a: calls.append(a[0]) or real(*a)))
+    got = kink_quotients([J])[0]
+    monkeypatch.undo()
+    tape = ca.Function("t", [X, Y], [got], {"cse": True})
+    assert str(ca.Function("t", [X, Y], [ref], {"cse": True})) == str(tape)
+    assert [tape.instruction_id(k) for k in range(tape.n_instructions())] == \
+        [f.instruction_id(k) for f in [ca.Function("r", [X, Y], [ref], {"cse": True})]
+         for k in range(f.n_instructions())]
+    assert ca.is_equal(got, ref, 1000)
+    # the rewrite's own tape (the input plus the symbols) bounds the binary operations rebuilt; the old rule doubled
+    src = ca.Function("s", [X, Y], [J], {"cse": True})
+    n_binary = sum(1 for k in range(src.n_instructions()) if len(src.instruction_input(k)) == 2)
+    assert 0 < len(calls) <= n_binary + 8, (len(calls), n_binary)

@@ -403,3 +403,38 @@ def test_enclosure_with_coulomb_friction_contains_the_integrated_plant_across_it
             assert np.all(disp <= (tt - tk) * info["DH"][0] + 1e-8)
         checked += 1
     assert checked >= 20
+
+
+def test_the_theory_bound_on_the_declared_set_reuses_the_forms_and_equals_a_fresh_one_period_map(monkeypatch):
+    """`_theory` on a set whose margins leave no gap (m2 = M) falls back to the declared default set: its one-period
+    map there (`OnePeriod.on_set`) shares the forms of S's map (none built again: the forms do not depend on the set)
+    and gives the same bound, number for number, as a map built from scratch on that set."""
+    from symfunnel.certificates import sampled as SM
+    from symfunnel.certificates.problem import controller_state_boxes
+    from symfunnel.certificates.sampled import DEFAULT_SET_MARGIN, OnePeriod, SampledSet, declared_set
+    from symfunnel.certificates.sampled_rate import _theory, theory_rate
+    path = Path(__file__).parent.parent / "derivations" / "paper_small_dead_zone.toml"
+    ctx = _ctx(path, t_final=1.0)
+    d = ctx.design
+    W0 = np.zeros((d.n_regressor, d.n))
+    M = 0.05
+    S = SampledSet(0.5, M, controller_state_boxes(ctx, (W0 - 1.0, W0 + 1.0)), "test", {}, w_ball=1.0)
+    op = OnePeriod(ctx, S)
+    assert op.ball == 1.0
+    built = []
+    for cls in (SM.BatchCenteredForm, SM.BatchIntervalFunction):
+        init = cls.__init__
+        monkeypatch.setattr(cls, "__init__", lambda self, *a, _i=init, **k: built.append(a) or _i(self, *a, **k))
+    got = _theory(ctx, op, S, M, None)
+    assert built == []                                   # the old path built every form again
+    monkeypatch.undo()
+    D = declared_set(ctx, *DEFAULT_SET_MARGIN, w_box=S.states.get("w_hat"), w_source="S's W_hat box")
+    fresh = OnePeriod(ctx, D)
+    want = theory_rate(fresh, D, M, 1.0)
+    assert want["rate_hz"] is not None and got["rate_hz"] == want["rate_hz"]
+    assert {k: v for k, v in got.items() if k != "set"} == want
+    # the set's own parts are the set's, not the first map's (its W_hat ball and margins)
+    on = op.on_set(D)
+    assert on.ball is None and op.ball == 1.0 and on.S is D
+    assert np.array_equal(on.lim_S, fresh.lim_S) and not np.array_equal(on.lim_S, op.lim_S)
+    assert np.array_equal(on.st_lo, fresh.st_lo) and np.array_equal(on.st_hi, fresh.st_hi)

@@ -196,3 +196,21 @@ def test_count_ops():
     big = count_ops(all_ops_function())
     assert big["operations"] == sum(big["by_op"].values()) < big["instructions"]
     assert set(big["by_op"]) <= set(OP_NAMES.values())
+
+
+def test_read_tape_lists_every_instruction_as_casadi_reports_it():
+    """read_tape's instructions (named tuples since they are built once per instruction of large tapes) against
+    CasADi's own per-instruction accessors, field by field, on a tape with constants, unary and binary operations."""
+    import casadi as ca
+    from symfunnel.sx.tape import read_tape
+    x = ca.SX.sym("x", 3)
+    f = ca.Function("f", [x], [ca.vertcat(ca.sin(x[0]) * 2.5 + x[1] / x[2], ca.fmax(x[0], 0.3) - ca.sqrt(x[1]))])
+    tape = read_tape(f)
+    assert len(tape.instructions) == f.n_instructions()
+    for k, ins in enumerate(tape.instructions):
+        assert ins.op == f.instruction_id(k)
+        assert ins.args == tuple(f.instruction_input(k)) and ins.res == tuple(f.instruction_output(k))
+        assert ins.constant == (f.instruction_constant(k) if ins.op == ca.OP_CONST else None)
+        assert ins.name == next(n[3:] for n in dir(ca) if n.startswith("OP_") and getattr(ca, n) == ins.op) \
+            or getattr(ca, "OP_" + ins.name) == ins.op
+    assert {ins.name for ins in tape.instructions} >= {"SIN", "DIV", "FMAX", "SQRT", "CONST"}

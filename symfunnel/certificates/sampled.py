@@ -42,6 +42,7 @@ not a refutation: only a sampled run that breaches refutes a rate).
 
 from __future__ import annotations
 
+import copy
 import time
 
 import casadi as ca
@@ -215,11 +216,6 @@ class OnePeriod:
                                  ["acc"], opts)
         self.acc = _check(self.acc_f, sc.file, "the normalised errors' second derivative", None)
         self._switch_free(base, bnames, u, states, o, opts)
-        # W_hat in containment's ball: the torque and the rates at the sample enclosed over the ball, not its box
-        self.ball = S.w_ball if (S.w_ball is not None and "w_hat" in self.state_names) else None
-        if self.ball is not None:
-            self.tau_ball, self.ratek_ball = BallForm(self.tau), BallForm(self.ratek)
-            self.ratek_s_ball = BallForm(self.ratek_s) if self.n_sw else None
         self.w_f = None
         if self.w_rate is not None:
             self.w_f = ca.Function("w_affine", base + states, [o["w_affine"]], bnames + self.state_names, ["A"],
@@ -229,6 +225,26 @@ class OnePeriod:
         self.np = int(self.wide.size)
         self.i_p = 2 * n + 2
         self.i_st = self.i_p + self.np
+        self.dim = self.i_st                      # the split part: t, s1, s2, m, p (m is a point)
+        self._on(S)
+
+    def on_set(self, S: SampledSet) -> "OnePeriod":
+        """The same one-period map over another set S: its interval forms (which do not depend on S) shared, what
+        depends on S (the controller states' boxes, S's limits, W_hat's ball) set anew -- what OnePeriod(ctx, S,
+        tau_max) with this one's ctx and tau_max builds, without building its forms a second time."""
+        other = copy.copy(self)
+        other._on(S)
+        return other
+
+    def _on(self, S: SampledSet) -> None:
+        """The parts that depend on S: the set itself, W_hat's ball forms, the controller states' boxes, the limits."""
+        n = self.n
+        self.S = S
+        # W_hat in containment's ball: the torque and the rates at the sample enclosed over the ball, not its box
+        self.ball = S.w_ball if (S.w_ball is not None and "w_hat" in self.state_names) else None
+        if self.ball is not None:
+            self.tau_ball, self.ratek_ball = BallForm(self.tau), BallForm(self.ratek)
+            self.ratek_s_ball = BallForm(self.ratek_s) if self.n_sw else None
         st_lo, st_hi = [], []
         F = self.tau.natural
         for k in self.state_names:
@@ -245,7 +261,6 @@ class OnePeriod:
             st_hi.append(b)
         self.st_lo = np.concatenate(st_lo) if st_lo else np.zeros(0)
         self.st_hi = np.concatenate(st_hi) if st_hi else np.zeros(0)
-        self.dim = self.i_st                      # the split part: t, s1, s2, m, p (m is a point)
         self.taylor = True                        # the Taylor a-priori enclosure first (`_taylor`)
         self.monotone = True                      # the next sample's bounds on monotone faces (`_monotone`)
         self.lim_S = np.concatenate([np.full(n, 1 - S.m1), np.full(n, 1 - S.m2)])

@@ -241,7 +241,7 @@ def _theory(ctx: Context, op: OnePeriod, S: SampledSet, margin: float, tau_max) 
     if min(S.m1, S.m2) > margin:
         return {**theory_rate(op, S, margin, T), "set": {"e1": S.m1, "e2": S.m2, "source": S.source}}
     D = declared_set(ctx, *DEFAULT_SET_MARGIN, w_box=S.states.get("w_hat"), w_source="S's W_hat box")
-    out = theory_rate(OnePeriod(ctx, D, tau_max), D, margin, T)
+    out = theory_rate(op.on_set(D), D, margin, T)      # the same forms: only S's parts differ
     return {**out, "set": {"e1": D.m1, "e2": D.m2, "source": "declared (S's margins leave no gap above the rate's "
                                                               f"margin {margin:g})"}}
 

@@ -14,7 +14,10 @@ from collections.abc import Sequence
 
 import casadi as ca
 
-__all__ = ["replace_nodes"]
+__all__ = ["replace_nodes", "REBUILT"]
+
+#: a rule's value meaning "the operation as rebuilt" (saves building the same node twice; only its tag is new)
+REBUILT = object()
 
 
 def _scalars(exprs: Sequence[ca.SX]) -> list[ca.SX]:
@@ -32,7 +35,8 @@ def replace_nodes(exprs: Sequence[ca.SX], nodes: ca.SX, values: ca.SX, *, tags: 
     `tags` (a set per nonzero of `nodes`; a node CSE merged from several nonzeros gets their union) and
     `rule(opname, arg_tags, arg_values) -> (value, tag) | None` rewrite operations on tagged nodes as well: e.g. with
     e tagged {('e', i)} and F tagged {('F', i)}, a rule can replace F - e by F (1 - s); the tag it returns marks the
-    new value for the operations after it. A node listed in `nodes` with its own value as replacement is only tagged.
+    new value for the operations after it; a rule returning (`REBUILT`, tag) keeps the operation as rebuilt and
+    tags it. A node listed in `nodes` with its own value as replacement is only tagged.
     """
     exprs = _scalars(exprs)
     nodes, values = ca.SX(nodes), ca.SX(values)
@@ -85,7 +89,7 @@ def replace_nodes(exprs: Sequence[ca.SX], nodes: ca.SX, values: ca.SX, *, tags: 
             if any(x is not None for x in at):
                 got = rule(_NAMES.get(op), at, [work[j] for j in a[:nargs]])
                 if got is not None:
-                    v, t = got
+                    v, t = (v, got[1]) if got[0] is REBUILT else got
         if k in replace_at:
             js = replace_at[k]
             v = vals[js[0]]
@@ -128,6 +132,5 @@ def kink_quotients(exprs: Sequence[ca.SX]) -> list[ca.SX]:
             if a.is_op(ca.OP_LE) and s_.is_op(ca.OP_ADD) and ca.is_equal(s_.dep(0), a, 0) \
                     and swapped(a, s_.dep(1)):
                 return 0.5 * (1 + a - s_.dep(1)), True
-        op = getattr(ca, "OP_" + name)
-        return (ca.SX.unary(op, vals[0]) if len(vals) == 1 else ca.SX.binary(op, vals[0], vals[1])), True
+        return REBUILT, True
     return replace_nodes(exprs, syms, syms, tags=[{True}] * syms.numel(), rule=rule)

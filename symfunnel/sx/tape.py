@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import casadi
 
@@ -13,9 +14,11 @@ OP_NAMES: dict[int, str] = {getattr(casadi, n): n[3:] for n in sorted(dir(casadi
 BOOKKEEPING = frozenset(getattr(casadi, "OP_" + n) for n in ("INPUT", "OUTPUT", "CONST", "ASSIGN", "PARAMETER"))
 
 
-@dataclass(frozen=True)
-class Instruction:
-    """One tape instruction: opcode, argument work slots, result slot(s) and the constant (OP_CONST only)."""
+class Instruction(NamedTuple):
+    """One tape instruction: opcode, argument work slots, result slot(s) and the constant (OP_CONST only).
+
+    A named tuple rather than a frozen dataclass: read_tape builds one per instruction, and a frozen dataclass's
+    __init__ (object.__setattr__ per field) was a third of its time on a large tape."""
 
     op: int
     args: tuple[int, ...]
