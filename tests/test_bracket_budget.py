@@ -70,6 +70,27 @@ def test_a_set_up_step_past_the_budget_ends_the_bracket_undecided_naming_it(pape
     assert "Proven:" not in b["sentence"]
 
 
+
+def test_a_proof_whose_sampled_run_outlives_the_budget_is_not_claimed(paper_run, monkeypatch):
+    """A proven search whose cross-check (the C step's sampled run at f_proven, which could refute it) is still
+    running at the budget's end: undecided naming that step, no f_proven shown."""
+    import symfunnel.deployed.loop as LOOP
+    from symfunnel.certificates.result import Certificate
+    monkeypatch.setattr(SR, "certify_sampled", lambda ctx, budget, **k: Certificate(
+        SR.CID, "proven", "stand-in proof", lower=5000.0, extra={"proven_rate_hz": 5000.0, "theory": {
+            "rate_hz": 9000.0}}))
+
+    def slow(*a, **k):
+        time.sleep(SLEEP)
+    monkeypatch.setattr(LOOP, "simulate_sampled", slow)
+    monkeypatch.setattr(D, "BRACKET_WALL_LIMIT", 0.5)
+    t0 = time.monotonic()
+    b = D.rate_bracket(paper_run, {"min_rate_hz": 1000.0, "margin": 0.05})
+    assert time.monotonic() - t0 < 0.5 + GRACE
+    assert b["status"] == "undecided" and b["proven"] == "-" and b["theory"] == "-"
+    assert b["detail"] == f"the report's 0.5 s ran out while {SR.STEP_CHECK}"
+    assert "Proven:" not in b["sentence"]
+
 def test_a_theory_bound_past_its_share_is_not_computed_and_the_rest_stands(paper_run, monkeypatch):
     """The theory bound slowed past its share: "not computed (the report's budget ran out)"; status and detail equal
     the same bracket computed without a limit (an independent call), whose theory bound is a number."""
