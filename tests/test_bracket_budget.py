@@ -48,9 +48,10 @@ def _slowed(monkeypatch, name: str):
     monkeypatch.setattr(SR, name, slow)
 
 
+# budgets well above what the steps before the slowed one take on paper (the map 0.3-0.5 s), for a loaded machine
 @pytest.mark.parametrize("name, step, budget", [("choose_set", SR.STEP_SET, 0.5),
-                                                ("OnePeriod", SR.STEP_MAP, 1.0),
-                                                ("set_floor", SR.STEP_FLOOR, 1.5)])
+                                                ("OnePeriod", SR.STEP_MAP, 1.5),
+                                                ("set_floor", SR.STEP_FLOOR, 4.0)])
 def test_a_set_up_step_past_the_budget_ends_the_bracket_undecided_naming_it(paper_run, monkeypatch, name, step,
                                                                               budget):
     if name != "choose_set":
@@ -90,6 +91,24 @@ def test_a_proof_whose_sampled_run_outlives_the_budget_is_not_claimed(paper_run,
     assert b["status"] == "undecided" and b["proven"] == "-" and b["theory"] == "-"
     assert b["detail"] == f"the report's 0.5 s ran out while {SR.STEP_CHECK}"
     assert "Proven:" not in b["sentence"]
+
+
+def test_the_cut_names_the_brackets_step_and_the_step_inside_it(paper_run, monkeypatch):
+    """A cut inside a step some called code opens (a Run's "compiling the closed loop") names the bracket's step with
+    it; core.deadline.current_steps lists the open steps outermost first."""
+    from symfunnel.core import deadline
+    _declared_set(monkeypatch)
+    seen = []
+
+    def slow(*a, **k):
+        with deadline.step("compiling the closed loop"):
+            seen.append(deadline.current_steps()[-2:])
+            time.sleep(SLEEP)
+    monkeypatch.setattr(SR, "OnePeriod", slow)
+    monkeypatch.setattr(D, "BRACKET_WALL_LIMIT", 1.0)
+    b = D.rate_bracket(paper_run, {"min_rate_hz": 1000.0, "margin": 0.05})
+    assert seen == [(SR.STEP_MAP, "compiling the closed loop")]
+    assert b["detail"] == f"the report's 1 s ran out while {SR.STEP_MAP} (compiling the closed loop)"
 
 def test_a_theory_bound_past_its_share_is_not_computed_and_the_rest_stands(paper_run, monkeypatch):
     """The theory bound slowed past its share: "not computed (the report's budget ran out)"; status and detail equal

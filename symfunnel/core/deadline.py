@@ -19,7 +19,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-__all__ = ["mark_command_start", "command_elapsed", "WallLimitReached", "limit", "until", "remaining", "check", "paused", "step", "current_step", "current_steps",
+__all__ = ["mark_command_start", "command_elapsed", "WallLimitReached", "limit", "until", "remaining", "check", "paused",
+           "step", "current_step", "current_steps",
            "command_expiry", "expired_limit", "MAX_SECONDS", "check_seconds"]
 
 #: the longest limit accepted anywhere (--wall-limit, wall_limit, sympy_timeout, $SYMFUNNEL_COMPILE_TIMEOUT): a week
