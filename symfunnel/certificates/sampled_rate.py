@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from ..core import deadline
 from .problem import Budget, Context
 from .result import Certificate
 from .sampled import CID, DEFAULT_SET_MARGIN, OnePeriod, SampledSet, containment_set, declared_set, prove_period
@@ -32,6 +33,46 @@ CONTAINMENT_WORK = 1.5e8
 CONTAINMENT_SHARE = 0.4
 #: boxes per period h tried (a deterministic budget; --wall-limit can only end a search earlier)
 BOXES_PER_RATE = 40000
+#: a budget over the whole bracket (`sampled_bracket(budget_owner=...)`, the report's): the rate search's proof
+#: attempts end at this share of it, the theory bound at THEORY_BY, and the sampled run at f_proven has the rest
+SEARCH_BY = 0.6
+THEORY_BY = 0.85
+#: the steps of the bracket, named for a wall-clock limit reached inside them (core.deadline.step)
+STEP_SET = "choosing the set S (certify.containment)"
+STEP_MAP = "building the one-period map"
+STEP_FLOOR = "checking S's floor"
+STEP_SEARCH = "searching the proven rate"
+STEP_THEORY = "bounding the theory's rate"
+STEP_CHECK = "running the sampled loop at f_proven"
+STEPS = (STEP_SET, STEP_MAP, STEP_FLOOR, STEP_SEARCH, STEP_THEORY, STEP_CHECK)
+
+
+class _Cut(BaseException):
+    """A budget's deadline reached while doing `step` (a BaseException, so no `except Exception` swallows it)."""
+
+    def __init__(self, step: str):
+        self.step = step
+        super().__init__(step)
+
+
+class _TheoryCut(_Cut):
+    """The theory bound's own share ran out (not the whole budget's)."""
+
+
+def _cut_at_first_step(cls=_Cut):
+    """deadline.limit's on_expiry: a `cls` naming the bracket's step (STEPS) the expiry was first found in, with the
+    innermost step inside it (the alarm's handler makes it there; a re-raise after a swallowed alarm, outside that
+    step, keeps the first step)."""
+    seen: list[str] = []
+
+    def make() -> _Cut:
+        if not seen:
+            mine = [s for s in deadline.current_steps() if s in STEPS]
+            inner = deadline.current_step()
+            step = mine[-1] if mine else "setting up the bracket"
+            seen.append(step if inner == step or not mine else f"{step} ({inner})")
+        return cls(seen[0])
+    return make
 
 
 def initial_in_set(ctx: Context, S: SampledSet) -> tuple[bool, list]:
@@ -108,17 +149,20 @@ def choose_set(ctx: Context, budget: Budget, margin: float, set_margin=None) -> 
 
 def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_margin=None, tau_max=None,
                     start_hz: float | None = None, S: SampledSet | None = None, theory: bool = True,
-                    progress=None, floor_check: bool = True) -> Certificate:
+                    progress=None, floor_check: bool = True, theory_by: float | None = None,
+                    owner: str = "the") -> Certificate:
     """certify.sampled: the lowest rate (within RATE_REL_TOL) at which one period from S provably keeps the
     funnels with margin `margin` and returns to S; undecided with what is left otherwise. S: given, else declared by
-    `set_margin`, else the containment certificate's (`choose_set`)."""
+    `set_margin`, else the containment certificate's (`choose_set`). `theory_by` (time.monotonic()): the theory
+    bound ends by then, else it is "not computed (`owner` budget ran out)"."""
     t0 = time.monotonic()
     say = progress or (lambda s: None)
     sc, d = ctx.scenario, ctx.design
     T = float(ctx.t_final)
     choice = {"source": S.source} if S is not None else None
     if S is None:
-        S, choice = choose_set(ctx, budget, margin, set_margin)
+        with deadline.step(STEP_SET):
+            S, choice = choose_set(ctx, budget, margin, set_margin)
     region = S.describe(T)
     region["parameters"] = ctx.params.describe()
     if S.w_ball is not None:
@@ -134,7 +178,8 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
         return Certificate(CID, "undecided", "no W_hat box (no simulated run to take it from)", region=region,
                            undecided_fraction=1.0, seconds=time.monotonic() - t0, method=_METHOD,
                            extra={**base, "proven_rate_hz": None})
-    op = OnePeriod(ctx, S, tau_max)
+    with deadline.step(STEP_MAP):
+        op = OnePeriod(ctx, S, tau_max)
     if "w_hat" in S.states and op.w_ball is not None:
         lo, hi = (np.asarray(v, float) for v in S.states["w_hat"])
         if not (np.all(lo <= -op.w_ball) and np.all(hi >= op.w_ball)):
@@ -161,7 +206,8 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
         # a queue from a much longer period is most of S in many small boxes: re-checking it costs more than a
         # cold search at the shorter period, whose large boxes pass whole (measured on certify_none)
         w = w if w is not None and w["h"] >= h and len(w["queue"][2]) <= max_boxes // WARM_QUEUE else None
-        r = prove_period(op, h, margin, T, max_boxes=max_boxes, expiry=budget.expiry, warm=w)
+        with deadline.step(STEP_SEARCH):
+            r = prove_period(op, h, margin, T, max_boxes=max_boxes, expiry=budget.expiry, warm=w)
         if r.get("queue") is not None and (w is None or r["h"] <= w["h"]):
             warm["r"] = r
         tried.append({"rate_hz": f, "proven": r["proven"], "reason": r["reason"], "boxes": r["boxes"],
@@ -175,7 +221,8 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
     lo = hi = None
     # a state of S that leaves S within a period at the starting rate: no proof over S at or below the rate it
     # gives, so the search starts above it (`sampled_floor`)
-    floor = set_floor(op, S, T, 1.0 / f, tau_max) if floor_check else None
+    with deadline.step(STEP_FLOOR):
+        floor = set_floor(op, S, T, 1.0 / f, tau_max) if floor_check else None
     if floor is not None:
         lo = min(floor["rate_hz"], MAX_RATE_HZ)
         tried.append({"rate_hz": lo, "proven": False, "reason": "floor", "boxes": 0, "left": 1.0})
@@ -203,7 +250,8 @@ def certify_sampled(ctx: Context, budget: Budget, *, margin: float = 0.05, set_m
             hi = mid
         else:
             lo = mid
-    th = _theory(ctx, op, S, margin, tau_max) if theory else {"rate_hz": None, "reason": "not computed"}
+    th = _theory_within(ctx, op, S, margin, tau_max, theory_by, owner) if theory else \
+        {"rate_hz": None, "reason": "not computed"}
     boxes = sum(r["boxes"] for r in tried)
     extra = {**base, "proven_rate_hz": hi, "not_proven_below_hz": lo, "tried": tried, "initial_in_set": inside,
              "initial_e_over_F": sig0, "theory": th, "set_floor": floor}
@@ -244,6 +292,21 @@ def _theory(ctx: Context, op: OnePeriod, S: SampledSet, margin: float, tau_max) 
     out = theory_rate(op.on_set(D), D, margin, T)      # the same forms: only S's parts differ
     return {**out, "set": {"e1": D.m1, "e2": D.m2, "source": "declared (S's margins leave no gap above the rate's "
                                                               f"margin {margin:g})"}}
+
+
+def _theory_within(ctx: Context, op: OnePeriod, S: SampledSet, margin: float, tau_max, by: float | None,
+                   owner: str) -> dict:
+    """`_theory`, ended at time.monotonic() `by` (None: unbounded) as "not computed": its branch and bound stopped
+    early would give a looser number than the command's, so a cut bound is no number at all."""
+    cut = {"rate_hz": None, "reason": f"not computed ({owner} budget ran out)"}
+    left = math.inf if by is None else by - time.monotonic()
+    if left <= 0:
+        return cut
+    try:
+        with deadline.limit(left, on_expiry=_cut_at_first_step(_TheoryCut)), deadline.step(STEP_THEORY):
+            return _theory(ctx, op, S, margin, tau_max)
+    except _TheoryCut:
+        return cut
 
 
 def _source_words(S: SampledSet) -> str:
@@ -298,25 +361,52 @@ def reuse_containment(ctx: Context, prior: Context | None) -> bool:
 
 def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, set_margin=None,
                     f_sim: float | None = None, w_hat_range=None, wall_limit: float | None = None,
-                    work: float = 5e7, progress=None, prior: Context | None = None) -> dict:
+                    work: float = 5e7, progress=None, prior: Context | None = None,
+                    budget_owner: str | None = None) -> dict:
     """`rate --certify`'s additions: {"proven_rate_hz", "theory_rate_hz", "ratio" (proven / simulated),
     "certificate", "sampled_run_at_proven"} -- the last a sampled run of the generated C step at f_proven from the
     scenario's initial state, which a proof must never contradict (a breach there would refute the certificate).
     `prior`: the context of certificates already computed (a report's), whose containment is reused when it poses
-    the same problem (`reuse_containment`)."""
+    the same problem (`reuse_containment`). `wall_limit` bounds the proof's search; with `budget_owner` (e.g.
+    "the report's") it bounds the whole bracket instead -- set, one-period map, floor, search (to SEARCH_BY of it),
+    theory bound (to THEORY_BY) and the sampled run at f_proven -- and a bracket still running at its end is
+    undecided, naming the step it ran out in, with nothing proven."""
+    if budget_owner is None or wall_limit is None:
+        return _bracket(scenario, design, t_final=t_final, margin=margin, set_margin=set_margin, f_sim=f_sim,
+                        w_hat_range=w_hat_range, work=work, progress=progress, prior=prior,
+                        expiry=None if wall_limit is None else time.monotonic() + float(wall_limit))
+    t0 = time.monotonic()
+    W = float(wall_limit)
+    try:
+        with deadline.limit(W, on_expiry=_cut_at_first_step()):
+            return _bracket(scenario, design, t_final=t_final, margin=margin, set_margin=set_margin, f_sim=f_sim,
+                            w_hat_range=w_hat_range, work=work, progress=progress, prior=prior,
+                            expiry=t0 + SEARCH_BY * W, theory_by=t0 + THEORY_BY * W, owner=budget_owner)
+    except _Cut as cut:
+        why = f"{budget_owner} {W:g} s ran out while {cut.step}"
+        cert = Certificate(CID, "undecided", why, undecided_fraction=1.0, seconds=time.monotonic() - t0,
+                           method=_METHOD, extra={"proven_rate_hz": None, "budget_ran_out": cut.step, "theory": {
+                               "rate_hz": None, "reason": f"not computed ({budget_owner} budget ran out)"}})
+        return {"proven_rate_hz": None, "theory_rate_hz": None, "ratio": None, "certificate": cert.to_json(),
+                "sampled_run_at_proven": None}
+
+
+def _bracket(scenario, design, *, t_final, margin, set_margin, f_sim, w_hat_range, work, progress, prior, expiry,
+             theory_by=None, owner="the") -> dict:
+    """sampled_bracket's work: the proof's search ends at `expiry`, the theory bound at `theory_by`."""
     from ..deployed.loop import simulate_sampled
     from .region import parameter_box
     ctx = Context(scenario, design, float(t_final), parameter_box(scenario), None, w_hat_range)
     reuse_containment(ctx, prior)
-    expiry = None if wall_limit is None else time.monotonic() + float(wall_limit)
     impl = getattr(scenario, "implementation", None)
     tau_max = impl.tau_max if impl is not None else None
     cert = certify_sampled(ctx, Budget(float(work), expiry), margin=margin, set_margin=set_margin, tau_max=tau_max,
-                           start_hz=f_sim, progress=progress)
+                           start_hz=f_sim, progress=progress, theory_by=theory_by, owner=owner)
     fp = cert.extra.get("proven_rate_hz") if cert.status == "proven" else None
     check = None
     if fp is not None:
-        res = simulate_sampled(scenario, design, rate_hz=fp, t_final=t_final)
+        with deadline.step(STEP_CHECK):
+            res = simulate_sampled(scenario, design, rate_hz=fp, t_final=t_final)
         check = {"rate_hz": fp, "status": res.status, "min_margin": res.min_margin, "holds": bool(
             res.ok and res.min_margin >= margin)}
         if not check["holds"]:

@@ -19,7 +19,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-__all__ = ["mark_command_start", "command_elapsed", "WallLimitReached", "limit", "until", "remaining", "check", "paused", "step", "current_step",
+__all__ = ["mark_command_start", "command_elapsed", "WallLimitReached", "limit", "until", "remaining", "check", "paused",
+           "step", "current_step", "current_steps",
            "command_expiry", "expired_limit", "MAX_SECONDS", "check_seconds"]
 
 #: the longest limit accepted anywhere (--wall-limit, wall_limit, sympy_timeout, $SYMFUNNEL_COMPILE_TIMEOUT): a week
@@ -124,6 +125,11 @@ def _main() -> bool:
 def current_step() -> str:
     """What the command is doing now (for the message of a reached limit)."""
     return _steps[-1] if _steps else "working"
+
+
+def current_steps() -> tuple[str, ...]:
+    """Every step open now, outermost first (a caller's budget names its own step among them)."""
+    return tuple(_steps)
 
 
 def _error(d: _Deadline) -> BaseException:
