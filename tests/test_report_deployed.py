@@ -52,7 +52,7 @@ def _classes(el) -> dict:
 @pytest.fixture(scope="module")
 def certify_none_report(tmp_path_factory) -> str:
     """The report on certify_none, written once per session whichever worker runs this module's tests first."""
-    # the proof's wall-clock budget raised from the report's 10 s: on a loaded CI machine 10 s may end it undecided,
+    # the bracket's wall-clock budget raised from the report's 10 s: on a loaded CI machine 10 s may end it undecided,
     # which the report says honestly but this test (which checks the proven case) cannot use; and its bisection
     # stopped once the proven rate is within BRACKET_REL_TOL of the unproven one: the same deterministic search as
     # the command's, cut after its first proven rate (3 of its 7 attempts, 33k of its 110k boxes), so both ends of
