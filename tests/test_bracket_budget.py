@@ -48,10 +48,11 @@ def _slowed(monkeypatch, name: str):
     monkeypatch.setattr(SR, name, slow)
 
 
-# budgets well above what the steps before the slowed one take on paper (the map 0.3-0.5 s), for a loaded machine
+# budgets well above what the steps before the slowed one take on paper (the map 0.25 CPU-s warm, 0.85 with a cold
+# compile cache on a quiet machine), for a loaded CI machine
 @pytest.mark.parametrize("name, step, budget", [("choose_set", SR.STEP_SET, 0.5),
                                                 ("OnePeriod", SR.STEP_MAP, 1.5),
-                                                ("set_floor", SR.STEP_FLOOR, 4.0)])
+                                                ("set_floor", SR.STEP_FLOOR, 8.0)])
 def test_a_set_up_step_past_the_budget_ends_the_bracket_undecided_naming_it(paper_run, monkeypatch, name, step,
                                                                               budget):
     if name != "choose_set":
@@ -69,7 +70,6 @@ def test_a_set_up_step_past_the_budget_ends_the_bracket_undecided_naming_it(pape
     assert "No rate is proven" in b["sentence"] and f"ran out while {step}" in b["sentence"]
     assert f"The report gives the bracket {budget:g} s (set, one-period map, proof, theory bound)" in b["sentence"]
     assert "Proven:" not in b["sentence"]
-
 
 
 def test_a_proof_whose_sampled_run_outlives_the_budget_is_not_claimed(paper_run, monkeypatch):
@@ -109,6 +109,7 @@ def test_the_cut_names_the_brackets_step_and_the_step_inside_it(paper_run, monke
     b = D.rate_bracket(paper_run, {"min_rate_hz": 1000.0, "margin": 0.05})
     assert seen == [(SR.STEP_MAP, "compiling the closed loop")]
     assert b["detail"] == f"the report's 1 s ran out while {SR.STEP_MAP} (compiling the closed loop)"
+
 
 def test_a_theory_bound_past_its_share_is_not_computed_and_the_rest_stands(paper_run, monkeypatch):
     """The theory bound slowed past its share: "not computed (the report's budget ran out)"; status and detail equal
