@@ -7,6 +7,7 @@ f_proven, is a rate above which the sampled loop provably keeps the funnels from
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 
@@ -371,17 +372,16 @@ def sampled_bracket(scenario, design, *, t_final: float, margin: float = 0.05, s
     "the report's") it bounds the whole bracket instead -- set, one-period map, floor, search (to SEARCH_BY of it),
     theory bound (to THEORY_BY) and the sampled run at f_proven -- and a bracket still running at its end is
     undecided, naming the step it ran out in, with nothing proven."""
-    if budget_owner is None or wall_limit is None:
-        return _bracket(scenario, design, t_final=t_final, margin=margin, set_margin=set_margin, f_sim=f_sim,
-                        w_hat_range=w_hat_range, work=work, progress=progress, prior=prior,
-                        expiry=None if wall_limit is None else time.monotonic() + float(wall_limit))
     t0 = time.monotonic()
-    W = float(wall_limit)
+    W = None if wall_limit is None else float(wall_limit)
+    owned = budget_owner is not None and W is not None
+    work_of = functools.partial(_bracket, scenario, design, t_final=t_final, margin=margin, set_margin=set_margin,
+                                f_sim=f_sim, w_hat_range=w_hat_range, work=work, progress=progress, prior=prior)
+    if not owned:
+        return work_of(expiry=None if W is None else t0 + W)
     try:
         with deadline.limit(W, on_expiry=_cut_at_first_step()):
-            return _bracket(scenario, design, t_final=t_final, margin=margin, set_margin=set_margin, f_sim=f_sim,
-                            w_hat_range=w_hat_range, work=work, progress=progress, prior=prior,
-                            expiry=t0 + SEARCH_BY * W, theory_by=t0 + THEORY_BY * W, owner=budget_owner)
+            return work_of(expiry=t0 + SEARCH_BY * W, theory_by=t0 + THEORY_BY * W, owner=budget_owner)
     except _Cut as cut:
         why = f"{budget_owner} {W:g} s ran out while {cut.step}"
         cert = Certificate(CID, "undecided", why, undecided_fraction=1.0, seconds=time.monotonic() - t0,
