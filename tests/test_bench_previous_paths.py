@@ -28,6 +28,21 @@ def test_w_as_loops_is_the_loop_form_and_restores_the_generator(paper_design):
     assert "sk_xdot_Wx[247]" in loops and "sk_xdot_Wx[" not in now
 
 
+def test_wx_scalar_is_the_scalar_rows_and_restores_the_generator(paper_design):
+    """The baseline of `wx_scalar_ns`: the file without the fused blocks of W x, the rest the same; the generator's
+    switch as it was afterwards."""
+    from symfunnel.bench.implementation import wx_scalar
+    from symfunnel.emit.files import generate
+    from symfunnel.family.esn import ESN
+    rows = wx_scalar(paper_design, 1000.0)
+    now = generate(paper_design, "c", rate_hz=1000.0)
+    assert ESN.VECTOR_WX is True
+    c_rows, c_now = rows["symfunnel_controller.c"], now["symfunnel_controller.c"]
+    assert "_mm256_fmadd_pd" not in c_rows and c_now.count("_mm256_fmadd_pd(") == 204
+    assert c_rows.count("    s += ") == c_now.count("    s += ") == 247    # the scalar rows kept as the fallback
+    assert all(rows[k] == v for k, v in now.items() if k not in ("symfunnel_controller.c", "manifest.json"))
+
+
 def test_tanh_as_3div_is_the_previous_tanh_and_computes_the_same_step(paper_design):
     """The baseline of `tanh3div_ns`: only the tanh differs (three divisions per lane in its loop instead of one), and
     the step built from it agrees with the current one to the tanh's rounding."""

@@ -7,13 +7,15 @@ with `_timing.bench_cflags`; baseline: the same step with the controller and ste
 each, built and timed the same way in the same run; the strict -O2 build of both and the step on CasADi's VM from
 Python beside, and the previous path -- the same pair with the reservoir's W x as loops over arrays instead of
 straight-line code -- built and timed the same way in the same run, `w_loops_ns`; and the previous tanh, three
-divisions per lane (templates/sf_tanh3div.h) in place of the one-division one, `tanh3div_ns`) and
+divisions per lane (templates/sf_tanh3div.h) in place of the one-division one, `tanh3div_ns`; and the previous
+W x, the scalar straight-line rows instead of blocks of 4 rows in fused multiply-adds, `wx_scalar_ns`) and
 `implementation.rate_search_s` (wall time of `symfunnel rate` on the paper; baseline: one 20 s sampled run at the
 rate it finds).
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -39,6 +41,22 @@ def w_as_loops(design, rate: float) -> dict:
         return generate(design, "c", rate_hz=rate)
     finally:
         ESN.UNROLL_W_MAX = old
+        step._RATE_FREE.clear()
+
+
+def wx_scalar(design, rate: float) -> dict:
+    """The generated C pair with the reservoir's W x as the scalar straight-line rows only (the previous path), without
+    the fused blocks of 4 rows (`family.esn._wx_blocks`)."""
+    from ..emit import step
+    from ..emit.files import generate
+    from ..family.esn import ESN
+    old = ESN.VECTOR_WX
+    step._RATE_FREE.clear()
+    try:
+        ESN.VECTOR_WX = False
+        return generate(design, "c", rate_hz=rate)
+    finally:
+        ESN.VECTOR_WX = old
         step._RATE_FREE.clear()
 
 
@@ -116,10 +134,12 @@ def run(progress) -> list[dict]:
     t = {(k, fl): run_c_bench(f, fl, 100000, on_build=progress)["step_ns"]
          for k, f in (("loops", files), ("unrolled", unrolled)) for fl in (fast, strict)}
     tanh3 = tanh_as_3div(files)
-    w_ns, tanh_ns = [], []                     # the previous paths and this one, interleaved
+    wx_rows = wx_scalar(design, rate)
+    w_ns, tanh_ns, wx_ns = [], [], []          # the previous paths and this one, interleaved
     for _ in range(3):
         w_ns.append((run_c_bench(w_loops, fast, 100000)["step_ns"], run_c_bench(files, fast, 100000)["step_ns"]))
         tanh_ns.append((run_c_bench(tanh3, fast, 100000)["step_ns"], run_c_bench(files, fast, 100000)["step_ns"]))
+        wx_ns.append((run_c_bench(wx_rows, fast, 100000)["step_ns"], run_c_bench(files, fast, 100000)["step_ns"]))
     step_ns, base_ns = t[("loops", fast)], t[("unrolled", fast)]
     f = step_function(design, rate)
     vm_step = VMStep(design, rate)
@@ -138,7 +158,12 @@ def run(progress) -> list[dict]:
                       w_note="the previous path: W x as loops over arrays (ESN.UNROLL_W_MAX = 0), interleaved",
                       tanh3div_ns=min(a for a, _ in tanh_ns), tanh1div_ns=min(b for _, b in tanh_ns),
                       tanh_paired_ratio=float(np.median([a / b for a, b in tanh_ns])),
-                      tanh_note="the previous tanh: three divisions per lane (templates/sf_tanh3div.h), interleaved"))
+                      tanh_note="the previous tanh: three divisions per lane (templates/sf_tanh3div.h), interleaved",
+                      wx_scalar_ns=min(a for a, _ in wx_ns), wx_blocks_ns=min(b for _, b in wx_ns),
+                      wx_paired_ratio=float(np.median([a / b for a, b in wx_ns])),
+                      wx_note="the previous W x: the scalar straight-line rows (ESN.VECTOR_WX = False) instead of "
+                              "blocks of 4 rows in fused multiply-adds, interleaved",
+                      load_average_1min=os.getloadavg()[0]))
 
     progress("implementation: symfunnel rate on the paper")
     t0 = time.perf_counter()
