@@ -207,7 +207,14 @@ def shared_source(design, F: str) -> str:
         "#include <stdint.h>",
         "#include <string.h>",
         template("sf_tanh.h").replace("@P@", F + "sk_"),
-        esn.xdot_c(F + "sk_xdot", tanh=F + "sk_tanh"),
+        "/* the loops' multiply-adds: fused where the target has FMA (inlined, one rounding; -DSYMFUNNEL_NO_FMA keeps",
+        " * them unfused, as a target without FMA does: the graph's roundings) */",
+        "#if (defined(__FMA__) || defined(__ARM_FEATURE_FMA)) && !defined(SYMFUNNEL_NO_FMA)",
+        f"#define {F}sk_kma(a, b, c) fma(a, b, c)",
+        "#else",
+        f"#define {F}sk_kma(a, b, c) ((a) * (b) + (c))",
+        "#endif",
+        esn.xdot_c(F + "sk_xdot", tanh=F + "sk_tanh", ma=F + "sk_kma"),
     ])
 
 
@@ -224,6 +231,7 @@ def _emit(design, name: str, mode: str, scalar: ca.Function, c_W: float, F: str,
     small = [i for i, k in enumerate(names) if k not in ("x_esn", "w_hat", "etd")]
     ns = scalar.n_out()
     sc = scalar
+    M = F + "sk_kma"                               # a multiply-add, fused where the target has FMA (shared_source)
     L = [
         f"/* {name}: the SX scalar part {sc.name()} and the loops */",
         f"static int {name}_loops(const casadi_real **in, casadi_real **out) {{",
@@ -238,9 +246,10 @@ def _emit(design, name: str, mode: str, scalar: ca.Function, c_W: float, F: str,
         f"    const double *Wj = W + j * {nr};",
         "    double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;     /* four partial sums: no single chain */",
         f"    for (i = 0; i + 3 < {N}; i += 4) {{",
-        "      s0 += Wj[i] * x[i]; s1 += Wj[i + 1] * x[i + 1]; s2 += Wj[i + 2] * x[i + 2]; s3 += Wj[i + 3] * x[i + 3];",
+        f"      s0 = {M}(Wj[i], x[i], s0); s1 = {M}(Wj[i + 1], x[i + 1], s1); s2 = {M}(Wj[i + 2], x[i + 2], s2); "
+        f"s3 = {M}(Wj[i + 3], x[i + 3], s3);",
         "    }",
-        f"    for (i = {N - N % 4}; i < {N}; ++i) s0 += Wj[i] * x[i];",
+        f"    for (i = {N - N % 4}; i < {N}; ++i) s0 = {M}(Wj[i], x[i], s0);",
         f"    yhat[j] = ((s0 + s1) + (s2 + s3)){f' + Wj[{N}]' if bias else ''};",
         "  }",
     ]
@@ -251,23 +260,23 @@ def _emit(design, name: str, mode: str, scalar: ca.Function, c_W: float, F: str,
     if mode == "step":
         ie = names.index("etd")
         L += [f"  {F}sk_xdot(x, u, xdot);",
-              f"  for (i = 0; i < {N}; ++i) out[1][i] = x[i] + in[{ie}][0] * xdot[i];",
+              f"  for (i = 0; i < {N}; ++i) out[1][i] = {M}(in[{ie}][0], xdot[i], x[i]);",
               f"  for (j = 0; j < {n}; ++j) {{                /* W_hat+ = W_hat + etd[1] (c W_hat + Phi p^T) */",
               f"    const double *Wj = W + j * {nr};",
               f"    double *Wn = out[2] + j * {nr};",
               f"    const double pj = p[j], h = in[{ie}][1];",
-              f"    for (i = 0; i < {N}; ++i) Wn[i] = Wj[i] + h * ({c_W!r} * Wj[i] + x[i] * pj);"]
+              f"    for (i = 0; i < {N}; ++i) Wn[i] = {M}(h, {M}({c_W!r}, Wj[i], x[i] * pj), Wj[i]);"]
         if bias:
-            L.append(f"    Wn[{N}] = Wj[{N}] + h * ({c_W!r} * Wj[{N}] + pj);")
+            L.append(f"    Wn[{N}] = {M}(h, {M}({c_W!r}, Wj[{N}], pj), Wj[{N}]);")
     else:
         L += [f"  {F}sk_xdot(x, u, out[1]);",
               f"  for (j = 0; j < {n}; ++j) {{                /* W_hat_dot = c W_hat + Phi p^T */",
               f"    const double *Wj = W + j * {nr};",
               f"    double *Wd = out[2] + j * {nr};",
               "    const double pj = p[j];",
-              f"    for (i = 0; i < {N}; ++i) Wd[i] = {c_W!r} * Wj[i] + x[i] * pj;"]
+              f"    for (i = 0; i < {N}; ++i) Wd[i] = {M}({c_W!r}, Wj[i], x[i] * pj);"]
         if bias:
-            L.append(f"    Wd[{N}] = {c_W!r} * Wj[{N}] + pj;")
+            L.append(f"    Wd[{N}] = {M}({c_W!r}, Wj[{N}], pj);")
     L += ["  }", "  return 0;", "}", ""]
     source, header = _casadi_api(name, ins, outs, name + "_loops")
     return Kernel(name=name, scalar=scalar, source="\n".join(L) + source, header=header, c_W=c_W)

@@ -148,7 +148,8 @@ def _wx_preamble(name: str) -> list[str]:
     """File-scope C lines before `name`: `name`_FMA4 (and AVX's intrinsics) where the target has AVX2 and FMA
     (-march=native on x86-64 since Haswell) unless -DSYMFUNNEL_NO_FMA or -DSYMFUNNEL_SCALAR_WX. Elsewhere W x
     stays the scalar rows: unfused, the same block form in gcc vectors measured 3 % slower than them."""
-    return ["#if defined(__AVX2__) && defined(__FMA__) && !defined(SYMFUNNEL_NO_FMA) && !defined(SYMFUNNEL_SCALAR_WX)",
+    return ["#if defined(__AVX2__) && defined(__FMA__) \\",
+            "    && !defined(SYMFUNNEL_NO_FMA) && !defined(SYMFUNNEL_SCALAR_WX)",
             "#include <immintrin.h>",
             f"#define {name}_FMA4 1",
             "#endif"]
@@ -287,9 +288,10 @@ class ESN:
         """`regressor` evaluated (from its SX) for x of shape (N,) or (N, m)."""
         return self._evaluate(1, x, None)
 
-    def xdot_c(self, name: str, tanh: str = "tanh") -> str:
+    def xdot_c(self, name: str, tanh: str = "tanh", ma: str | None = None) -> str:
         """C twin of `xdot`: `static void name(const double *x, const double *u, double *xdot)` as loops over the
-        weights in static const arrays (sizes fixed here), which a compiler vectorises; `tanh` names the tanh used.
+        weights in static const arrays (sizes fixed here), which a compiler vectorises; `tanh` names the tanh used,
+        `ma` (a macro name) the multiply-add of W_in u (None: unfused, s += w u).
 
         The sums run in the SX graph's order (W_in u and W x each over their columns ascending, then
         (W_in u + W x) + b), so with libm's tanh the result is the graph's value bit for bit (up to the sign of
@@ -341,9 +343,11 @@ class ESN:
                   "  int i, j;" if unroll and dense_in else "  int i, j, p;",
                   f"  for (i = 0; i < {N}; ++i) zu[i] = 0.0;"]
         if dense_in:
+            acc = (f"zu[i] = {ma}({name}_Win[j * {N} + i], uj, zu[i]);" if ma else
+                   f"zu[i] += {name}_Win[j * {N} + i] * uj;")
             lines += [f"  for (j = 0; j < {K}; ++j) {{",
                       "    const double uj = u[j];",
-                      f"    for (i = 0; i < {N}; ++i) zu[i] += {name}_Win[j * {N} + i] * uj;",
+                      f"    for (i = 0; i < {N}; ++i) {acc}",
                       "  }"]
         else:
             lines += [f"  for (j = 0; j < {K}; ++j)",
