@@ -340,17 +340,17 @@ class ESN:
             lines += _wx_preamble(name)
         lines += [f"static void {name}(const double *restrict x, const double *restrict u, double *restrict xdot) {{",
                   f"  double zu[{N}];",
-                  "  int i, j;" if unroll and dense_in else "  int i, j, p;",
-                  f"  for (i = 0; i < {N}; ++i) zu[i] = 0.0;"]
-        if dense_in:
-            acc = (f"zu[i] = {ma}({name}_Win[j * {N} + i], uj, zu[i]);" if ma else
-                   f"zu[i] += {name}_Win[j * {N} + i] * uj;")
-            lines += [f"  for (j = 0; j < {K}; ++j) {{",
-                      "    const double uj = u[j];",
-                      f"    for (i = 0; i < {N}; ++i) {acc}",
+                  "  int i, j;" if unroll and dense_in else "  int i, j, p;"]
+        if dense_in:                             # row by row, the sum in a register over the columns ascending
+            acc = f"s = {ma}({name}_Win[j * {N} + i], u[j], s);" if ma else f"s += {name}_Win[j * {N} + i] * u[j];"
+            lines += [f"  for (i = 0; i < {N}; ++i) {{",
+                      "    double s = 0.0;",
+                      f"    for (j = 0; j < {K}; ++j) {acc}",
+                      "    zu[i] = s;",
                       "  }"]
         else:
-            lines += [f"  for (j = 0; j < {K}; ++j)",
+            lines += [f"  for (i = 0; i < {N}; ++i) zu[i] = 0.0;",
+                      f"  for (j = 0; j < {K}; ++j)",
                       f"    for (p = {name}_Winp[j]; p < {name}_Winp[j + 1]; ++p) "
                       f"zu[{name}_Wini[p]] += {name}_Winx[p] * u[j];"]
         if unroll:                               # row by row, the weights as constants: no index loads, no branches
