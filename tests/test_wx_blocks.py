@@ -123,3 +123,48 @@ def test_strict_and_unfused_builds_keep_the_scalar_rows(paper_design, flags):
         for a, b in zip(f(*args), g(*args)):
             assert np.array_equal(np.asarray(a), np.asarray(b))
     assert _worst(paper_design, f) <= 1e-14
+
+
+def _blocks_of(W: np.ndarray) -> int:
+    """Blocks of 4 rows x 1 column of W holding a nonzero, counted from W itself."""
+    i, j = np.nonzero(W)
+    return len(set(zip(j.tolist(), (i // 4).tolist())))
+
+
+def test_blocks_only_up_to_their_limit():
+    """N = 80 (566 blocks) gets the blocks, N = 110 (1,030, past WX_BLOCKS_MAX = 600: 4x the constants of the
+    scalar rows, measured slower there) keeps the scalar rows only."""
+    from symfunnel.family.esn import ESN, ESNConfig, WX_BLOCKS_MAX
+    for size, blocked in ((80, True), (110, False)):
+        esn = ESN(ESNConfig(size=size), 8)
+        c = esn.xdot_c("r_xdot")
+        assert (_blocks_of(np.asarray(esn.W)) <= WX_BLOCKS_MAX) is blocked
+        assert c.count("_mm256_fmadd_pd(") == (_blocks_of(np.asarray(esn.W)) if blocked else 0)
+        assert c.count("    s += ") == np.count_nonzero(esn.W)
+
+
+@needs_fma4
+def test_blocks_in_two_passes_agree_with_the_sx_xdot(tmp_path):
+    """N = 80: 20 groups of rows in two passes (12 + 8 sums in registers); with libm's tanh the compiled x_dot
+    agrees with the SX x_dot (`ESN.xdot_numpy`) to 1e-14 at random states and inputs."""
+    import ctypes
+    from symfunnel.emit.c import template
+    from symfunnel.family.esn import ESN, ESNConfig
+    esn = ESN(ESNConfig(size=80, seed=4), 8)
+    c = esn.xdot_c("r_xdot", tanh="r_tanh")
+    assert c.count("/* rows ") == 2
+    src = "\n".join(["#include <math.h>", "#include <stdint.h>", "#include <string.h>",
+                     template("sf_tanh.h").replace("@P@", "r_"), c,
+                     "void run(const double *x, const double *u, double *out) { r_xdot(x, u, out); }"])
+    so = tmp_path / "libr.so"
+    (tmp_path / "r.c").write_text(src, encoding="utf-8")
+    subprocess.run([GCC, *STRICT, "-O3", "-march=native", "-DSYMFUNNEL_LIBM_TANH", "-o", str(so),
+                    str(tmp_path / "r.c"), "-lm"], check=True, capture_output=True)
+    run = ctypes.CDLL(str(so)).run
+    rng = np.random.default_rng(5)
+    P = ctypes.POINTER(ctypes.c_double)
+    for _ in range(16):
+        x, u, out = rng.uniform(-1, 1, 80), rng.normal(0, 2, 8), np.zeros(80)
+        run(x.ctypes.data_as(P), u.ctypes.data_as(P), out.ctypes.data_as(P))
+        ref = esn.xdot_numpy(x, u)
+        assert np.max(np.abs(out - ref)) <= 1e-14 * max(1.0, float(np.max(np.abs(ref))))

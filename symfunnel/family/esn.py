@@ -144,6 +144,14 @@ def _round_sig(x: float, digits: int) -> float:
     return float(f"{x:.{digits - 1}e}")
 
 
+#: `_wx_blocks` up to this many blocks (32 bytes of constants each, 4x the scalar rows' 8 per nonzero): measured
+#: 1.07-1.13x over the scalar rows at 204 and 566 blocks, none or a loss at 1,030 (the constants leave L1)
+WX_BLOCKS_MAX = 600
+#: groups of 4 rows whose sums `_wx_blocks` keeps in registers in one pass over the columns (AVX2's 16 registers:
+#: 12 sums, the broadcast x[j] and a weight vector)
+WX_PASS_GROUPS = 12
+
+
 def _wx_preamble(name: str) -> list[str]:
     """File-scope C lines before `name`: `name`_FMA4 (and AVX's intrinsics) where the target has AVX2 and FMA
     (-march=native on x86-64 since Haswell) unless -DSYMFUNNEL_NO_FMA or -DSYMFUNNEL_SCALAR_WX. Elsewhere W x
@@ -153,6 +161,15 @@ def _wx_preamble(name: str) -> list[str]:
             "#include <immintrin.h>",
             f"#define {name}_FMA4 1",
             "#endif"]
+
+
+def _wx_block_map(N: int, rp: list, cj: list, vals: list) -> dict[tuple[int, int], list[float]]:
+    """W's blocks of 4 rows x 1 column with a nonzero: (column j, group g) -> the weights of rows 4g..4g+3 in j."""
+    block: dict[tuple[int, int], list[float]] = {}
+    for i in range(N):
+        for q in range(rp[i], rp[i + 1]):
+            block.setdefault((cj[q], i // 4), [0.0] * 4)[i % 4] = vals[q]
+    return block
 
 
 def _wx_blocks(name: str, N: int, rp: list, cj: list, vals: list) -> list[str]:
@@ -168,19 +185,20 @@ def _wx_blocks(name: str, N: int, rp: list, cj: list, vals: list) -> list[str]:
     the scalar rows is the rounding: one per product and sum instead of two, so each partial sum's error is at most
     the unfused one's first-order bound (sum over its terms of |product| + |partial sum|, in units of u)."""
     G = -(-N // 4)
-    block: dict[tuple[int, int], list[float]] = {}
-    for i in range(N):
-        for q in range(rp[i], rp[i + 1]):
-            block.setdefault((cj[q], i // 4), [0.0] * 4)[i % 4] = vals[q]
+    block = _wx_block_map(N, rp, cj, vals)
     out = ["  /* W x by blocks of 4 rows x 1 column, fused multiply-adds (family/esn.py, _wx_blocks) */",
            "  {",
            f"    double sv[{4 * G}];",
-           "    __m256d " + ", ".join(f"s{g} = _mm256_setzero_pd()" for g in range(G)) + ", xj;"]
-    for j in sorted({j for j, _ in block}):           # one line per column
-        out.append(" ".join([f"    xj = _mm256_set1_pd(x[{j}]);"] + [
-            f"s{g} = _mm256_fmadd_pd(_mm256_setr_pd({', '.join(repr(v) for v in block[(j, g)])}), xj, s{g});"
-            for g in range(G) if (j, g) in block]))
-    out += [f"    _mm256_storeu_pd(sv + {4 * g}, s{g});" for g in range(G)]
+           "    __m256d xj, " + ", ".join(f"s{g}" for g in range(G)) + ";"]
+    for first in range(0, G, WX_PASS_GROUPS):         # a pass's sums stay in registers (AVX2 has 16)
+        groups = range(first, min(G, first + WX_PASS_GROUPS))
+        out.append(f"    /* rows {4 * first}..{min(N, 4 * groups[-1] + 4) - 1} */")
+        out.append("    " + " ".join(f"s{g} = _mm256_setzero_pd();" for g in groups))
+        for j in sorted({j for j, g in block if g in groups}):          # one line per column
+            out.append(" ".join([f"    xj = _mm256_set1_pd(x[{j}]);"] + [
+                f"s{g} = _mm256_fmadd_pd(_mm256_setr_pd({', '.join(repr(v) for v in block[(j, g)])}), xj, s{g});"
+                for g in groups if (j, g) in block]))
+        out += [f"    _mm256_storeu_pd(sv + {4 * g}, s{g});" for g in groups]
     out += [f"    for (i = 0; i < {N}; ++i) zu[i] = (zu[i] + sv[i]) + {name}_b[i];", "  }"]
     return out
 
@@ -336,7 +354,8 @@ class ESN:
             lines += [f"static const int {name}_Wp[{N + 1}] = {{{ints(rp)}}};",
                       f"static const int {name}_Wj[{max(len(cj), 1)}] = {{{ints(cj)}}};",
                       f"static const double {name}_Wx[{max(len(cj), 1)}] = {{{num(vals)}}};"]
-        if unroll and self.VECTOR_WX:
+        blocks = self.VECTOR_WX and unroll and len(_wx_block_map(N, rp, cj, vals)) <= WX_BLOCKS_MAX
+        if blocks:
             lines += _wx_preamble(name)
         lines += [f"static void {name}(const double *restrict x, const double *restrict u, double *restrict xdot) {{",
                   f"  double zu[{N}];",
@@ -354,7 +373,7 @@ class ESN:
                       f"    for (p = {name}_Winp[j]; p < {name}_Winp[j + 1]; ++p) "
                       f"zu[{name}_Wini[p]] += {name}_Winx[p] * u[j];"]
         if unroll:                               # row by row, the weights as constants: no index loads, no branches
-            if self.VECTOR_WX:
+            if blocks:
                 lines += [f"#ifdef {name}_FMA4"] + _wx_blocks(name, N, rp, cj, vals) + ["#else"]
             lines.append("  /* W x row by row, the weights as constants */")
             for i in range(N):
@@ -363,7 +382,7 @@ class ESN:
                 lines += [f"    s += {vals[q]!r} * x[{cj[q]}];" for q in range(rp[i], rp[i + 1])]
                 lines.append(f"    zu[{i}] = (zu[{i}] + s) + {name}_b[{i}];")
                 lines.append("  }")
-            if self.VECTOR_WX:
+            if blocks:
                 lines.append("#endif")
         else:
             lines += [f"  for (i = 0; i < {N}; ++i) {{               /* W x row by row (a gather, no scatter) */",
