@@ -29,35 +29,32 @@ GOAL_STEP_NS = 300.0
 TARGET_RATE_S = 60.0
 
 
-def w_as_loops(design, rate: float) -> dict:
-    """The generated C pair with the reservoir's W x as loops over arrays (the previous path), whatever its size."""
+def _generated_with(design, rate: float, **switches) -> dict:
+    """The generated C pair with `family.esn.ESN`'s class switches set as given, and set back afterwards."""
     from ..emit import step
     from ..emit.files import generate
     from ..family.esn import ESN
-    old = ESN.UNROLL_W_MAX
+    old = {k: getattr(ESN, k) for k in switches}
     step._RATE_FREE.clear()
     try:
-        ESN.UNROLL_W_MAX = 0
+        for k, v in switches.items():
+            setattr(ESN, k, v)
         return generate(design, "c", rate_hz=rate)
     finally:
-        ESN.UNROLL_W_MAX = old
+        for k, v in old.items():
+            setattr(ESN, k, v)
         step._RATE_FREE.clear()
+
+
+def w_as_loops(design, rate: float) -> dict:
+    """The generated C pair with the reservoir's W x as loops over arrays (the previous path), whatever its size."""
+    return _generated_with(design, rate, UNROLL_W_MAX=0)
 
 
 def wx_scalar(design, rate: float) -> dict:
     """The generated C pair with the reservoir's W x as the scalar straight-line rows only (the previous path), without
     the fused blocks of 4 rows (`family.esn._wx_blocks`)."""
-    from ..emit import step
-    from ..emit.files import generate
-    from ..family.esn import ESN
-    old = ESN.VECTOR_WX
-    step._RATE_FREE.clear()
-    try:
-        ESN.VECTOR_WX = False
-        return generate(design, "c", rate_hz=rate)
-    finally:
-        ESN.VECTOR_WX = old
-        step._RATE_FREE.clear()
+    return _generated_with(design, rate, VECTOR_WX=False)
 
 
 def tanh_as_3div(files: dict) -> dict:
