@@ -168,19 +168,21 @@ def test_rate_and_verify_rate_run_without_an_echo_state_network(capsys):
 
 
 @pytest.mark.slow
-def test_verify_rate_on_mujoco_runs_the_rbf_and_the_model_based_design(tmp_path, capsys):
+def test_verify_rate_on_mujoco_runs_the_rbf_and_the_model_based_design(tmp_path):
+    """`verify --rate 2000 --plant mujoco --t-final 1`'s Run (the command's, as test_mujoco's arm7 test runs it through
+    the CLI) without the certificates: the sampled run on the engine is what broke, and no certificate is asserted
+    (they were 8 of its 11 s with a cold compile cache)."""
     pytest.importorskip("mujoco")
-    import json
-
-    from symfunnel.cli import main
     from symfunnel.core.toml_write import dumps
     from tests.conftest import REPO
     none = tmp_path / "none.toml"
     none.write_text(dumps(_no_approximator(tmp_path).raw), encoding="utf-8")
     for path in (REPO / "derivations" / "ppc_log_rbf.toml", none):
-        code = main(["verify", str(path), "--rate", "2000", "--plant", "mujoco", "--t-final", "1", "-q", "--json"])
-        checks = {c["id"]: c for c in json.loads(capsys.readouterr().out)["checks"]}
-        assert code in (0, 1) and checks["implementation.containment"]["status"] == "pass", (path, checks)
+        options = RunOptions(t_final=1.0, rate_hz=2000.0, engine="mujoco", certify=False)
+        v = Run(load_scenario(path), options).verification
+        checks = {c.id: c for c in v.checks}
+        assert v.status in ("pass", "fail") and checks["implementation.containment"].status == "pass", (path, checks)
+        assert checks["implementation.containment"].evidence["engine"] == "mujoco"
 
 
 # --- 5. the deployed step is baked at a rate the user chose, and --check runs it -----------------------
