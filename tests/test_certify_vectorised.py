@@ -192,3 +192,44 @@ def test_rounding_directions_as_arrays_give_numpy_nextafter_bits():
         assert ch.tobytes() == np.nextafter(np.maximum(lo * -3.0, hi * -3.0), np.inf).tobytes()
     s = batch_rules._dn(1.0)
     assert type(s) is np.float64 and s == np.nextafter(1.0, -np.inf) and batch_rules._up(1.0) == np.nextafter(1.0, 2)
+
+
+def _old_work_per_box(F):
+    """RegionProblem.work_per_box before the change: every tape's operations counted by reading it again."""
+    from symfunnel.sx.tape import count_ops
+
+    def cost(F):
+        f = count_ops(F.natural.function)["operations"]
+        jac = getattr(F.jac, "inner", F.jac)
+        hook = getattr(getattr(F, "refine", None), "F", None)
+        extra = F.refine_passes * count_ops(hook.function)["operations"] if hook is not None else 0
+        return 2 * f + extra + (cost(jac) if isinstance(jac, BatchCenteredForm)
+                                else count_ops(jac.function)["operations"])
+    return cost(F)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_work_per_box_counts_the_tapes_without_reading_them_again(monkeypatch, order):
+    """The box budget's operations per box from the counts taken when the tapes were read: the same number as
+    count_ops over each tape (the old way), and count_ops is not called."""
+    from types import SimpleNamespace
+
+    import symfunnel.sx.tape as tape
+    from symfunnel.certificates.problem import RegionProblem
+    from symfunnel.sx.batch import BatchIntervalFunction
+
+    x, y, u = ca.SX.sym("x", 2), ca.SX.sym("y"), ca.SX.sym("u", 3)
+    g = ca.Function("g", [x, y, u], [ca.vertcat(ca.sin(x[0]) * ca.exp(y) + 2.5 * u[0] * x[1] - 1.0,
+                                                 ca.fmax(x[0], y) * u[1] + ca.sqrt(1 + x[1] ** 2))],
+                    ["x", "y", "u"], ["n"], {"cse": True})
+    F = BatchCenteredForm(g, ["x", "y"], order=order)
+    h = ca.Function("h", [x, y, u], [x[0] * y + u[2]], ["x", "y", "u"], ["r"])
+    F.refine, F.refine_passes = SimpleNamespace(F=BatchIntervalFunction(h)), 2
+    expected = _old_work_per_box(F)
+    calls = []
+    real = tape.count_ops
+    monkeypatch.setattr(tape, "count_ops", lambda f: calls.append(f) or real(f))
+    assert RegionProblem.work_per_box(SimpleNamespace(F=F)) == expected
+    assert calls == []
+    for G in (F.natural, F.refine.F):
+        assert G.operations == real(G.function)["operations"] > 0
