@@ -45,6 +45,7 @@ import casadi as ca
 import numpy as np
 
 from .problem import Budget, Context, RegionProblem, controller_state_boxes
+from .face_bisect import bisect_open
 from .face_forms import normal_components
 from .projection_face import projection_face
 from .regressor_jacobian import RegressorColumns, regressor_form
@@ -303,27 +304,13 @@ def _decide(F, faces: list[dict], split_of, max_boxes: int, seconds: float | Non
             k = int(np.flatnonzero(bad)[0])
             return {"status": "failed", "boxes": boxes, "face": faces[batch[k][2]], "x": mid[k],
                     "value": float(V[k])}
-        wpos = {int(j): i for i, j in enumerate(F.w_flat)}
-        for k in np.flatnonzero(~proven):
-            lo, hi, fk, vol = batch[k]
-            split = split_of[fk]
-            width = hi - lo
-            wi = [wpos.get(int(j), -1) for j in split]
-            sens = np.array([J[k][pos[k], w] * wd if w >= 0 else np.nan for w, wd in zip(wi, width)])
-            rel = width / np.where(faces[fk]["hi"][split] > faces[fk]["lo"][split],
-                                   faces[fk]["hi"][split] - faces[fk]["lo"][split], 1.0)
-            score = np.where(np.isfinite(sens) & (sens > 0), sens, 0.0)
-            s = int(np.argmax(score)) if np.any(score > 0) else int(np.argmax(rel))
-            m = 0.5 * lo[s] + 0.5 * hi[s]
-            if not (lo[s] < m < hi[s]):
-                # too thin to split: stays open for good
-                return {"status": "undecided", "boxes": boxes, "face": faces[fk]["name"], "fraction": vol,
-                        "fractions": {faces[fk]["name"]: vol}}
-            h1, l2 = hi.copy(), lo.copy()
-            h1[s] = m
-            l2[s] = m
-            queue.append((lo, h1, fk, vol / 2))
-            queue.append((l2, hi, fk, vol / 2))
+        children, thin = bisect_open(batch, np.flatnonzero(~proven), J, pos, split_of, faces, F.w_flat)
+        if thin is not None:
+            # too thin to split: stays open for good
+            fk, vol = batch[thin][2], batch[thin][3]
+            return {"status": "undecided", "boxes": boxes, "face": faces[fk]["name"], "fraction": vol,
+                    "fractions": {faces[fk]["name"]: vol}}
+        queue.extend(children)
     return {"status": "proven", "boxes": boxes}
 
 

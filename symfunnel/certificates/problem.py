@@ -137,14 +137,18 @@ class RegionProblem:
         from ..sx.tape import count_ops
         from ..sx.batch import BatchCenteredForm
 
+        def ops(G):
+            # counted when G's tape was read (BatchIntervalFunction.operations), else by reading it
+            n = getattr(G, "operations", None)
+            return n if isinstance(n, int) else count_ops(G.function)["operations"]
+
         def cost(F):
-            f = count_ops(F.natural.function)["operations"]
+            f = ops(F.natural)
             jac = getattr(F.jac, "inner", F.jac)
             # a refine hook's own tape (e.g. the regressor columns) per pass
             hook = getattr(getattr(F, "refine", None), "F", None)
-            extra = F.refine_passes * count_ops(hook.function)["operations"] if hook is not None else 0
-            return 2 * f + extra + (cost(jac) if isinstance(jac, BatchCenteredForm)
-                                    else count_ops(jac.function)["operations"])
+            extra = F.refine_passes * ops(hook) if hook is not None else 0
+            return 2 * f + extra + (cost(jac) if isinstance(jac, BatchCenteredForm) else ops(jac))
         return cost(self.F)
 
     def initial_boxes(self, lo: np.ndarray, hi: np.ndarray, limit: int = 4096):

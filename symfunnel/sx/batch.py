@@ -21,7 +21,7 @@ from .batch_rules import _INF, _RULES, _SWITCHING, _UNARY, BATCH_OPS, TRANSCENDE
 from .buffered import Buffered
 from .interval import IntervalError, IntervalFunction, read_layout
 from .rewrite import kink_quotients
-from .tape import OP_NAMES
+from .tape import BOOKKEEPING, OP_NAMES
 
 __all__ = ["BatchIntervalFunction", "TRANSCENDENTAL_ULPS", "BATCH_OPS"]
 
@@ -167,6 +167,9 @@ class BatchIntervalFunction(IntervalFunction):
         self.backend = None
         self.form = "natural"
         self._run, self._deps = _compile(tape, self.in_off, self.out_off)
+        #: the tape's real operations, `tape.count_ops(f)["operations"]`, counted from the tape read here (a
+        #: certificate's budget needs it; reading every instruction of the function again cost as much)
+        self.operations = sum(1 for ins in tape.instructions if ins.op not in BOOKKEEPING)
         self._jac = None
         self._last = None
         self._map: dict[int, Buffered] = {}

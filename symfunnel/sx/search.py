@@ -68,6 +68,14 @@ def _choose(LO, HI, sens, split, scale):
     return np.where(ok, k, -1)
 
 
+def _sensitivities(J, wpos, width, pos, K, nsplit):
+    """(K, len(pos), nsplit): |J|'s entry of output pos[o] in split variable i times the box's width in it (nan
+    where the form has no derivative in that variable, or no Jacobian at all)."""
+    if J is None:
+        return np.full((K, len(pos), nsplit), np.nan)
+    return np.where(wpos >= 0, J[:, pos][:, :, np.maximum(wpos, 0)] * width[:, None, :], np.nan)
+
+
 def _mid(LO, HI):
     return np.where(LO == HI, LO, 0.5 * LO + 0.5 * HI)
 
@@ -159,12 +167,11 @@ def extrema(F: BatchCenteredForm | BatchIntervalFunction, lo: np.ndarray, hi: np
             i = int(np.argmin(V[:, o]))
             if V[i, o] < best[o]:
                 best[o], arg[o] = float(V[i, o]), M[i]
-        width = HI[:, split] - LO[:, split]
+        # every box's split sensitivities (K, nobj, nsplit) in one product: |J| times the box's width per split
+        # variable (nan where the form has no derivative in it), each entry the same product as box by box
+        SS = _sensitivities(J, wpos, HI[:, split] - LO[:, split], pos, LO.shape[0], split.size)
         for r in range(LO.shape[0]):
-            if J is not None:
-                S = np.where(wpos >= 0, J[r][:, np.maximum(wpos, 0)] * width[r], np.nan)[pos]   # (nobj, nsplit)
-            else:
-                S = np.full((nobj, split.size), np.nan)
+            S = SS[r]
             invalid = ~np.isfinite(B[r])
             if invalid.any() and culprit[r] >= 0:
                 blamed = _blame(F, culprit[r:r + 1], np.array([True]), LO[r:r + 1], HI[r:r + 1], split, scale,
