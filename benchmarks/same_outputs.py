@@ -5,7 +5,7 @@ else (a tuned TOML) byte for byte.
     python benchmarks/same_outputs.py BEFORE_DIR AFTER_DIR [NAME ...]     # exit 0: all the same; 1: a difference
 
 Masked in HTML: the timings table's values ("1.23 s"), the "generated" timestamp, wall time and real-time factor of
-the simulation summary. Removed from JSON: keys naming seconds or wall time ("seconds", "wall_s", "wall_time",
+the simulation summary, the certificates' seconds (their total and the table's "time [s]" column), the generated code check's seconds. Removed from JSON: keys naming seconds or wall time ("seconds", "wall_s", "wall_time",
 "*_s" timings, "realtime_factor", "timings"). Each difference is printed with its first differing lines.
 """
 
@@ -23,7 +23,11 @@ _HTML_MASKS = [
     (re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d UTC"), "#DATE#"),                            # generated at
     (re.compile(r"wall time</t[dh]>\s*<td>[^<]*"), "wall time</td><td>#"),               # simulation summary
     (re.compile(r"real-time factor [^)]*\)"), "real-time factor #)"),
+    (re.compile(r"\d+(\.\d+)? s in all"), "# s in all"),                              # the certificates' total
+    (re.compile(r"points \(\d+(\.\d+)? s\)"), "points (# s)"),                          # the code check's seconds
 ]
+#: the certificates table's "time [s]" column (after "boxes", before "undecided fraction")
+_CERT_TIME = re.compile(r'(<td class="num">[^<]*</td><td class="num">)\d+(\.\d+)?(</td><td class="num">[^<]*</td>\s*<td>)')
 
 
 def _strip(x):
@@ -40,6 +44,10 @@ def normalised(path: Path) -> str:
     if path.suffix in (".html", ".htm"):
         for rx, sub in _HTML_MASKS:
             text = rx.sub(sub, text)
+        a = text.find('<section id="certificates">')
+        if a >= 0:
+            b = text.find("</section>", a)
+            text = text[:a] + _CERT_TIME.sub(r"\1#\3", text[a:b]) + text[b:]
         return text
     if path.suffix == ".json" or path.suffix == ".out":
         try:
