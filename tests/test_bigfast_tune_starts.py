@@ -66,3 +66,18 @@ def test_a_start_whose_result_was_already_judged_lets_the_next_one_run(monkeypat
         lines.append(str(exc))
     assert [list(z) for z in judged] == [list(starts[0] / 2), list(starts[1] / 2)]
     assert len(launched) == 2 and [list(z) for z in launched] == [list(starts[0]), list(starts[1])]
+
+
+def test_no_start_is_launched_when_the_cap_is_already_spent(monkeypatch):
+    from symfunnel.synthesis import search
+    launched = _counting(monkeypatch)
+    monkeypatch.setattr("symfunnel.core.sobol.sobol", lambda d, n, skip: [np.array([0.25, 0.001])] * n)
+    ev = SimpleNamespace(count=2)
+    lines: list[str] = []
+    try:
+        search._gradient_search(_FakeProblem([0.0]), [None, None], ev, np.array([0.5, 0.0]), lambda z, final=False: 0.0,
+                                {}, lines.append, SimpleNamespace(objective="peak_torque"),
+                                deadline=time.perf_counter() + 60.0, max_evaluations=2)
+    except search._OutOfTime as exc:
+        lines.append(str(exc))
+    assert launched == [] and "after 2 evaluations" in lines[-1]

@@ -494,7 +494,7 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
             return i + 1
         if not max_evaluations:
             return len(starts)
-        return min(len(starts), i + max(max_evaluations - ev.count, 1))
+        return min(len(starts), i + max(max_evaluations - ev.count, 0))
     ahead = running(0)
     say(f"IPOPT: {len(starts)} starts " + ("side by side" if side else "one after the other")
         + (f" ({ahead} at once: the evaluations left judge no more)" if side and ahead < len(starts) else "")
@@ -517,7 +517,7 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
             if max_evaluations and ev.count >= max_evaluations:
                 raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)",
                                  by="evaluations")
-            while len(jobs) < running(i):
+            while len(jobs) <= i or len(jobs) < running(i):
                 jobs.append(launch(len(jobs)))
             job, left = jobs[i]
             say(f"IPOPT start {i + 1} of {len(starts)}: waiting for its result")
