@@ -118,9 +118,20 @@ def _across_layer(design, pts: dict, proj: dict, rng) -> dict:
     return out
 
 
-def check_identity(design, rng, *, closed_loop=None, result=None, samples: int = IDENTITY_SAMPLES) -> CheckResult:
+def _first_states(pts: dict[str, np.ndarray], k: int, m: int) -> dict[str, np.ndarray]:
+    """The first m of k sampled states (casadi map layout: an (r, k*c) input holds state j in columns j*c..j*c+c-1)."""
+    return {name: a[:, :m * (a.shape[1] // k)] for name, a in pts.items()}
+
+
+def check_identity(design, rng, *, closed_loop=None, result=None, samples: int = IDENTITY_SAMPLES,
+                   failure_first: int | None = None) -> CheckResult:
     """design.identity.vdot: V_dot along nominal model + f equals the variant's target form (sampled, by AD), to
-    IDENTITY_TOL relative, or to the round-off bound of the residual's evaluation where that is larger."""
+    IDENTITY_TOL relative, or to the round-off bound of the residual's evaluation where that is larger.
+
+    `failure_first` (mutation testing, which reads only whether the check fails): the first that many states of the
+    first set are judged first, and a state failing among them fails the check at once (detail, margin and evidence
+    then of those states). Each state is judged alone (its residual, scale and round-off allowance are its own), so
+    the status is the full check's: a failing state fails it wherever it lies; without one the full check runs."""
     f = identity_function(design)
     n, nr = design.n, design.n_regressor
     sets = [("inside the funnels", funnel_states(design, samples, rng, fill=0.98))]
@@ -136,22 +147,34 @@ def check_identity(design, rng, *, closed_loop=None, result=None, samples: int =
     margin, widened, unresolved, widest = np.inf, 0, 0, IDENTITY_TOL
     failing = None                                    # (relative residual, where, label) of the most violated state
     bound: list = []
-    for what, pts in sets:
-        k = pts["t"].shape[1]
-        pts = dict(pts)
-        pts["W_star"] = rng.normal(0.0, 1.0, (nr, k * n)) if nr else np.zeros((0, k * n))
-        pts["eps"] = rng.normal(0.0, 10.0, (n, k))
+
+    def judged(pts, k):
         resid, scale = (a.ravel() for a in eval_mapped(f, pts, k))
         rel = np.abs(resid) / np.maximum(scale, 1e-300)
         rel = np.where(np.isfinite(rel), rel, np.inf)
         allowed = identity_allowance(f, pts, resid, scale, bound)
+        with np.errstate(invalid="ignore"):
+            slack = allowed - rel
+        return rel, allowed, np.where(np.isnan(slack), -np.inf, slack)
+
+    for i, (what, pts) in enumerate(sets):
+        k = pts["t"].shape[1]
+        pts = dict(pts)
+        pts["W_star"] = rng.normal(0.0, 1.0, (nr, k * n)) if nr else np.zeros((0, k * n))
+        pts["eps"] = rng.normal(0.0, 10.0, (n, k))
+        out = None
+        if i == 0 and failure_first and failure_first < k:
+            first = _first_states(pts, k, failure_first)
+            out = judged(first, failure_first)
+            if np.min(out[2]) < 0:
+                pts, k = first, failure_first
+            else:
+                out = None
+        rel, allowed, slack = judged(pts, k) if out is None else out
         evaluated += k
         widened += int(np.sum(allowed > IDENTITY_TOL))
         unresolved += int(np.sum(allowed > IDENTITY_UNRESOLVED))
         widest = max(widest, float(np.max(np.where(allowed > IDENTITY_UNRESOLVED, 0.0, allowed))))
-        with np.errstate(invalid="ignore"):
-            slack = allowed - rel
-        slack = np.where(np.isnan(slack), -np.inf, slack)
         j = int(np.argmin(slack))
         if slack[j] < margin:
             margin = float(slack[j])
@@ -161,6 +184,8 @@ def check_identity(design, rng, *, closed_loop=None, result=None, samples: int =
         if rel[jr] >= worst:
             worst, label = float(rel[jr]), what
             where = point_of(pts, jr)
+        if failure_first and failing is not None:
+            break
     form = design.variant.target_text()
     ev = {"states": evaluated, "max_relative_residual": worst, "tolerance": IDENTITY_TOL, "target": form,
           "roundoff_widened_states": widened, "roundoff_unresolved_states": unresolved,

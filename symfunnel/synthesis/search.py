@@ -485,7 +485,19 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
     if left <= 1.0:
         raise _OutOfTime("search stopped at the wall-clock limit")
     side = starts_side_by_side()
+
+    def running(i: int) -> int:
+        # how many starts are launched once start i is collected: each start's result costs at most one evaluation
+        # (`f`; none when it repeats a design already judged), so a start the evaluations left cannot reach is not
+        # launched ahead (its IPOPT run would be killed unheard: --max-evals 2 leaves one, 1 start's CPU, not 3)
+        if not side:
+            return i + 1
+        if not max_evaluations:
+            return len(starts)
+        return min(len(starts), i + max(max_evaluations - ev.count, 0))
+    ahead = running(0)
     say(f"IPOPT: {len(starts)} starts " + ("side by side" if side else "one after the other")
+        + (f" ({ahead} at once: the evaluations left judge no more)" if side and ahead < len(starts) else "")
         + f" (at most {left:.0f} s)")
 
     def launch(i: int):
@@ -497,7 +509,7 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
         return job, left
     jobs: list = []
     try:
-        for i in range(len(starts) if side else 0):   # inside the try: a start that fails to launch stops the others
+        for i in range(ahead if side else 0):   # inside the try: a start that fails to launch stops the others
             jobs.append(launch(i))
         for i in range(len(starts)):
             if deadline - time.perf_counter() <= 1.0:
@@ -505,8 +517,8 @@ def _gradient_search(gp, vars_, ev, z_user, f, ref, say, spec, *, deadline: floa
             if max_evaluations and ev.count >= max_evaluations:
                 raise _OutOfTime(f"search stopped after {max_evaluations} evaluations (--max-evals)",
                                  by="evaluations")
-            if not side:
-                jobs.append(launch(i))
+            while len(jobs) <= i or len(jobs) < running(i):
+                jobs.append(launch(len(jobs)))
             job, left = jobs[i]
             say(f"IPOPT start {i + 1} of {len(starts)}: waiting for its result")
             try:
