@@ -6,7 +6,7 @@ else (a tuned TOML) byte for byte.
 
 Masked in HTML: the timings table's values ("1.23 s"), the "generated" timestamp, wall time and real-time factor of
 the simulation summary, the certificates' seconds (their total and the table's "time [s]" column), the generated code check's seconds. Removed from JSON: keys naming seconds or wall time ("seconds", "wall_s", "wall_time",
-"*_s" timings, "realtime_factor", "timings"). Each difference is printed with its first differing lines.
+"*_s" timings, "realtime_factor", "timings", and any key containing "seconds", "cpu" or "wall"). Each difference is printed with its first differing lines.
 """
 
 from __future__ import annotations
@@ -30,9 +30,15 @@ _HTML_MASKS = [
 _CERT_TIME = re.compile(r'(<td class="num">[^<]*</td><td class="num">)\d+(\.\d+)?(</td><td class="num">[^<]*</td>\s*<td>)')
 
 
+def _timing(key) -> bool:
+    """Whether a JSON key holds a time (removed before comparing)."""
+    k = str(key)
+    return bool(_TIME_KEYS.match(k)) or any(s in k.lower() for s in ("seconds", "cpu", "wall"))
+
+
 def _strip(x):
     if isinstance(x, dict):
-        return {k: _strip(v) for k, v in x.items() if not _TIME_KEYS.match(str(k))}
+        return {k: _strip(v) for k, v in x.items() if not _timing(k)}
     if isinstance(x, list):
         return [_strip(v) for v in x]
     return x
