@@ -30,7 +30,8 @@ def bisect_open(batch: list[tuple], open_rows: np.ndarray, J: np.ndarray, pos: n
         width = hi - lo
         wi = np.array([wpos.get(int(j), -1) for j in split], dtype=int)
         Jw = J[ks, pos[ks]][:, np.maximum(wi, 0)] if J.shape[-1] else np.zeros_like(width)   # no w: all nan
-        sens = np.where(wi >= 0, Jw * width, np.nan)
+        with np.errstate(invalid="ignore"):                  # inf * 0 of a masked or nan entry: scored 0 below
+            sens = np.where(wi >= 0, Jw * width, np.nan)
         flo, fhi = faces[f]["lo"][split], faces[f]["hi"][split]
         rel = width / np.where(fhi > flo, fhi - flo, 1.0)
         score = np.where(np.isfinite(sens) & (sens > 0), sens, 0.0)
