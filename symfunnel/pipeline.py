@@ -213,7 +213,7 @@ class Run:
                           "dq": np.asarray(res.signals["dq"][-1]).tolist() if len(res.t) else None,
                           **{k: b[k] for k in ("funnel", "joint", "abs_error", "boundary") if k in b},
                           "message": res.message}
-        key = _certification_key(self.scenario, self.t_final, only, o.mutant, o.certify_work)
+        key = _certification_key(self.scenario, self.t_final, only, o.mutant, o.certify_work, design=design)
         if o.certify_wall_limit is None and key in _CERTIFICATIONS:
             return _CERTIFICATIONS[key]
         wall = o.certify_wall_limit
@@ -301,14 +301,44 @@ def scaled_work(share: float) -> dict:
     return {k: float(v) * float(share) for k, v in DEFAULT_WORK.items()}
 
 
-def _certification_key(scenario, t_final: float, only, mutant=None, work: float = 1.0) -> str:
+def _certification_key(scenario, t_final: float, only, mutant=None, work: float = 1.0, design=None) -> str:
+    """The in-process certification cache's key: the scenario's content, the horizon, the certificates and their
+    budget, and the design's own graph (`design_fingerprint`) where a design is given."""
     import hashlib
     import json
     # the files the scenario reads (a URDF: {path: sha256}) are part of it: an edited robot is another scenario
     text = json.dumps([str(scenario.path), scenario.raw, getattr(scenario, "inputs", {}), float(t_final),
-                       sorted(only) if only else None, mutant, float(work)],
+                       sorted(only) if only else None, mutant, float(work),
+                       None if design is None else design_fingerprint(design)],
                       sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def design_fingerprint(design) -> str:
+    """sha256 of the design's SX graphs (signals, reference, constants, named parts; CasADi's serialisation, every
+    constant's bits): the same scenario with another design (one set on a Run, or a derive patched in a test) must
+    not be given the certificates proven for the derived one (~30 ms on arm7)."""
+    import hashlib
+
+    import casadi as ca
+    h = hashlib.sha256(f"{type(design.variant).__name__}|{design.mutant}".encode())
+
+    def add(tag: str, value) -> None:
+        if isinstance(value, dict):
+            for k in sorted(value, key=str):
+                add(f"{tag}.{k}", value[k])
+        elif isinstance(value, (list, tuple)):
+            for i, v in enumerate(value):
+                add(f"{tag}[{i}]", v)
+        elif isinstance(value, (ca.SX, ca.DM)):
+            h.update(tag.encode() + b"=" + value.serialize().encode())
+        elif isinstance(value, (int, float, str, bool, np.ndarray, np.generic)) or value is None:
+            h.update(tag.encode() + b"=" + repr(np.asarray(value).tolist()).encode())
+        else:
+            h.update(tag.encode() + b"=" + type(value).__name__.encode())
+    for name in ("signals", "reference_t", "constants", "parts"):
+        add(name, getattr(design, name, None))
+    return h.hexdigest()
 
 
 # --- mutation testing of the verifier ---------------------------------------------------------------------
