@@ -303,42 +303,15 @@ def scaled_work(share: float) -> dict:
 
 def _certification_key(scenario, t_final: float, only, mutant=None, work: float = 1.0, design=None) -> str:
     """The in-process certification cache's key: the scenario's content, the horizon, the certificates and their
-    budget, and the design's own graph (`design_fingerprint`) where a design is given."""
+    budget, and the design's own graph (`Design.fingerprint`) where a design is given."""
     import hashlib
     import json
     # the files the scenario reads (a URDF: {path: sha256}) are part of it: an edited robot is another scenario
     text = json.dumps([str(scenario.path), scenario.raw, getattr(scenario, "inputs", {}), float(t_final),
                        sorted(only) if only else None, mutant, float(work),
-                       None if design is None else design_fingerprint(design)],
+                       None if design is None else design.fingerprint()],
                       sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def design_fingerprint(design) -> str:
-    """sha256 of the design's SX graphs (signals, reference, constants, named parts; CasADi's serialisation, every
-    constant's bits): the same scenario with another design (one set on a Run, or a derive patched in a test) must
-    not be given the certificates proven for the derived one (~30 ms on arm7)."""
-    import hashlib
-
-    import casadi as ca
-    h = hashlib.sha256(f"{type(design.variant).__name__}|{design.mutant}".encode())
-
-    def add(tag: str, value) -> None:
-        if isinstance(value, dict):
-            for k in sorted(value, key=str):
-                add(f"{tag}.{k}", value[k])
-        elif isinstance(value, (list, tuple)):
-            for i, v in enumerate(value):
-                add(f"{tag}[{i}]", v)
-        elif isinstance(value, (ca.SX, ca.DM)):
-            h.update(tag.encode() + b"=" + value.serialize().encode())
-        elif isinstance(value, (int, float, str, bool, np.ndarray, np.generic)) or value is None:
-            h.update(tag.encode() + b"=" + repr(np.asarray(value).tolist()).encode())
-        else:
-            h.update(tag.encode() + b"=" + type(value).__name__.encode())
-    for name in ("signals", "reference_t", "constants", "parts"):
-        add(name, getattr(design, name, None))
-    return h.hexdigest()
 
 
 # --- mutation testing of the verifier ---------------------------------------------------------------------

@@ -65,6 +65,30 @@ class Design:
         """name -> (description, funnel level needed) for every derived signal."""
         return {k: v for k, v in self.variant.signal_info().items() if k in self.signals}
 
+    def fingerprint(self) -> str:
+        """sha256 of the design's SX graphs (signals, reference, constants, named parts; CasADi's serialisation, every
+        constant's bits, where printing rounds to 6 digits): what tells two designs of one scenario apart (one set on
+        a Run, or a derive patched in a test), e.g. for the certification cache's key (2-6 ms on paper and arm7)."""
+        import hashlib
+        h = hashlib.sha256(f"{type(self.variant).__name__}|{self.mutant}".encode())
+
+        def add(tag: str, value) -> None:
+            if isinstance(value, dict):
+                for k in sorted(value, key=str):
+                    add(f"{tag}.{k}", value[k])
+            elif isinstance(value, (list, tuple)):
+                for i, v in enumerate(value):
+                    add(f"{tag}[{i}]", v)
+            elif isinstance(value, (ca.SX, ca.DM)):
+                h.update(tag.encode() + b"=" + value.serialize().encode())
+            elif isinstance(value, (int, float, str, bool, np.ndarray, np.generic)) or value is None:
+                h.update(tag.encode() + b"=" + repr(np.asarray(value).tolist()).encode())
+            else:
+                h.update(tag.encode() + b"=" + type(value).__name__.encode())
+        for name in ("signals", "reference_t", "constants", "parts"):
+            add(name, getattr(self, name))
+        return h.hexdigest()
+
     @property
     def n_regressor(self) -> int:
         """Length of the approximator's regressor Phi (0 without one)."""
