@@ -540,13 +540,19 @@ def test_bad_options_exit_2(argv, key, capsys):
     assert key in capsys.readouterr().err
 
 
-def test_operation_without_interval_rule_exits_2_naming_signal_and_op(monkeypatch, capsys):
+@pytest.mark.parametrize("backend", ["c", "numpy"])
+def test_operation_without_interval_rule_exits_2_naming_signal_and_op(monkeypatch, capsys, backend):
     import symfunnel.pipeline as pipeline
     import symfunnel.sx.batch as B
+    import symfunnel.sx.batch_vm as V
     monkeypatch.setattr(pipeline, "_CERTIFICATIONS", {})     # a certification of paper kept by an earlier test
-    rules = dict(B._RULES)
-    rules.pop("COS")
-    monkeypatch.setattr(B, "_RULES", rules)
+    monkeypatch.setenv("SYMFUNNEL_INTERVAL", backend)
+    if backend == "numpy":
+        rules = dict(B._RULES)
+        rules.pop("COS")
+        monkeypatch.setattr(B, "_RULES", rules)
+    else:
+        monkeypatch.setattr(V, "_CODE", {k: v for k, v in V._CODE.items() if k != "COS"})
     assert main(["certify", "paper", "--only", "input_gain", "-q"]) == 2
     err = capsys.readouterr().err
     assert "OP_COS" in err and "input_gain" in err and "Traceback" not in err

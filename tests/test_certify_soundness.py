@@ -262,26 +262,38 @@ def _cheap_none(only):
                             work={"certify.bounds": 2e6, "certify.invariance": 2e6})
 
 
-def _unsound_exp(monkeypatch, which):
+_EXP_C = "rl[b] = nmax(wdn(exp(l)), 0.0); rh[b] = wup(exp(xh[b]));"
+
+
+def _unsound_exp(monkeypatch, which, backend, cache):
     """The batched backend's exp rule made unsound: collapsed onto its upper end [exp(hi), exp(hi)] (too narrow:
-    misses every value below the top of a box), or halved (wrong at points too)."""
-    from symfunnel.sx import batch
-    good = batch._RULES["EXP"]
+    misses every value below the top of a box), or halved (wrong at points too); in the numpy rules or in the
+    compiled interpreter's C."""
+    from symfunnel.sx import batch, batch_vm
+    if backend == "numpy":
+        good = batch._RULES["EXP"]
 
-    def narrow(al, ah):
-        lo, hi, bad = good(al, ah)
-        return (hi, hi, bad) if which == "narrow" else (0.5 * lo, 0.5 * hi, bad)
-    monkeypatch.setitem(batch._RULES, "EXP", narrow)
+        def narrow(al, ah):
+            lo, hi, bad = good(al, ah)
+            return (hi, hi, bad) if which == "narrow" else (0.5 * lo, 0.5 * hi, bad)
+        monkeypatch.setitem(batch._RULES, "EXP", narrow)
+        return
+    from tests.test_interval_vm import mutant_interpreter
+    new = ("rh[b] = wup(exp(xh[b])); rl[b] = rh[b];" if which == "narrow"
+           else "rl[b] = 0.5 * nmax(wdn(exp(l)), 0.0); rh[b] = 0.5 * wup(exp(xh[b]));")
+    monkeypatch.setattr(batch_vm, "_LIB", [mutant_interpreter(cache, _EXP_C, new)])
 
 
+@pytest.mark.parametrize("backend", ["c", "numpy"])
 @pytest.mark.parametrize("only, which", [(("certify.bounds",), "narrow"), (("certify.invariance",), "halved")])
-def test_an_unsound_interval_rule_stops_certify_with_an_internal_error(monkeypatch, only, which):
+def test_an_unsound_interval_rule_stops_certify_with_an_internal_error(monkeypatch, tmp_path, only, which, backend):
     """With exp's rule too narrow (the funnels are exponentials, so every signal goes through it), the enclosures
     miss values the ordinary Functions attain at the searches' own witnesses: EnclosureViolation, no verdict.
-    The same run with the sound rule gives a verdict."""
+    The same run with the sound rule gives a verdict; on either backend."""
     from symfunnel.certificates.selfcheck import EnclosureViolation
+    monkeypatch.setenv("SYMFUNNEL_INTERVAL", backend)
     assert _cheap_none(only).certificates[0].status in ("proven", "refuted", "undecided")
-    _unsound_exp(monkeypatch, which)
+    _unsound_exp(monkeypatch, which, backend, tmp_path)
     with pytest.raises(EnclosureViolation, match="self-check failed"):
         _cheap_none(only)
 
@@ -313,13 +325,13 @@ def test_a_longer_certify_horizon_is_proven_regular_too(tmp_path, capsys):
     assert main(["certify", path, "--t-final", "6", "--only", "input_gain", "-q"]) == 0
 
 
-def test_the_self_check_is_an_internal_error_of_the_command(monkeypatch, capsys):
+def test_the_self_check_is_an_internal_error_of_the_command(monkeypatch, capsys, tmp_path):
     """`symfunnel certify` with an unsound rule: exit 3 (internal error) with one line naming the self-check, and
     no verdict on stdout."""
     from pathlib import Path
 
     from symfunnel.cli import main
-    _unsound_exp(monkeypatch, "halved")
+    _unsound_exp(monkeypatch, "halved", "c", tmp_path)
     path = str(Path(__file__).resolve().parent.parent / NONE)
     code = main(["certify", path, "--only", "bounds", "--t-final", "1", "--json"])
     out, err = capsys.readouterr()

@@ -54,6 +54,7 @@ def test_the_interval_search_is_the_same_from_a_warm_cache(tmp_path, monkeypatch
 
     from symfunnel.sx.batch import BatchIntervalFunction
     monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path))
+    monkeypatch.setenv("SYMFUNNEL_INTERVAL", "numpy")        # the backend whose tapes are Python code
     monkeypatch.setattr(pycode, "_MEMORY", {})
     x = ca.SX.sym("x", 3)
     y = x[0]

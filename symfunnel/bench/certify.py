@@ -20,6 +20,12 @@ the interval evaluator's throughput against the same function in floating point.
 - certify.tau_boxes_per_s: boxes per second of the batched interval evaluator on the paper's tau over the funnel
   region (natural form, batches of 256); baseline CasADi evaluating the same tape in double at mapped points
   (the overhead ratio of interval over floating point).
+- certify.interval_c_boxes_per_s: the same tape's boxes per second in the compiled interval interpreter
+  (`sx.batch_vm`) at batches of 16 and 256; baseline the numpy backend (`SYMFUNNEL_INTERVAL=numpy`), the two
+  alternated in one run, with the enclosures compared bit for bit (no transcendental operation on that tape).
+- certify.interval_c_paper_cpu_s: CPU seconds of `certify paper`'s certificates (full budget, W* simulated once)
+  with the interpreter; baseline the numpy backend, alternated, two rounds each (min of each); the verdicts and box
+  counts of both beside it.
 """
 
 from __future__ import annotations
@@ -123,5 +129,90 @@ def run(progress) -> list[dict]:
     boxes, points, ops = _throughput(progress)
     out.append(result("certify.tau_boxes_per_s", boxes, "boxes/s", "CasADi double at mapped points (points/s)",
                       points, boxes / points, operations=ops, overhead=points / boxes))
+    out.extend(_interpreter(progress))
+    return out
+
+
+def _backend(name: str):
+    """A context in which new interval tapes use backend `name` ('c' or 'numpy')."""
+    import contextlib
+    import os
+
+    @contextlib.contextmanager
+    def ctx():
+        old = os.environ.get("SYMFUNNEL_INTERVAL")
+        os.environ["SYMFUNNEL_INTERVAL"] = name
+        try:
+            yield
+        finally:
+            if old is None:
+                os.environ.pop("SYMFUNNEL_INTERVAL", None)
+            else:
+                os.environ["SYMFUNNEL_INTERVAL"] = old
+    return ctx()
+
+
+def _interpreter(progress) -> list[dict]:
+    """certify.interval_c_*: the compiled interpreter beside the numpy backend, alternated in this run."""
+    import casadi as ca
+
+    from .. import pipeline
+    from ..certificates.problem import Context, RegionProblem, controller_state_boxes
+    from ..certificates.region import parameter_box
+    from ..sx.batch import BatchIntervalFunction
+    from ..sx.batch_vm import library
+    if library() is None:           # no C compiler: the numpy backend is all there is
+        return []
+    r = pipeline.Run.load("paper", certify_work=1.0)
+    sc, d = r.scenario, r.design
+    ctx = Context(sc, d, sc.simulation.t_final, parameter_box(sc), None, None)
+    p = ca.SX.sym("p", len(ctx.params.names))
+    prob = RegionProblem(ctx, {"tau": d.signals["tau"]}, p, "tau")
+    states = controller_state_boxes(ctx, (-np.ones((d.n_regressor, d.n)), np.ones((d.n_regressor, d.n))))
+    lo, hi = prob.flat(prob.region(0.05, states))
+    rng = np.random.default_rng(0)
+    f = prob.F.natural.function
+    tapes = {}
+    for name in ("c", "numpy"):
+        with _backend(name):
+            tapes[name] = BatchIntervalFunction(f)
+    progress("certify: the compiled interval interpreter beside the numpy backend")
+    per_k, same = {}, True
+    for K in (16, 256):
+        a = lo + rng.random((K, lo.size)) * (hi - lo)
+        b = lo + rng.random((K, lo.size)) * (hi - lo)
+        LO, HI = np.minimum(a, b), np.maximum(a, b)
+        outs = {k: F.eval_batch(LO, HI) for k, F in tapes.items()}
+        same &= all(np.array_equal(x, y) for x, y in zip(outs["c"], outs["numpy"]))
+        rates = {"c": [], "numpy": []}
+        for _ in range(3):
+            for k, F in tapes.items():
+                n_, t0 = 0, time.perf_counter()
+                while time.perf_counter() - t0 < 0.3:
+                    F.eval_batch(LO, HI)
+                    n_ += 1
+                rates[k].append(n_ * K / (time.perf_counter() - t0))
+        per_k[K] = {k: max(v) for k, v in rates.items()}
+    out = [result("certify.interval_c_boxes_per_s", per_k[256]["c"], "boxes/s", "numpy backend (boxes/s)",
+                  per_k[256]["numpy"], per_k[256]["c"] / per_k[256]["numpy"], bit_for_bit=bool(same),
+                  batch_16={"c": per_k[16]["c"], "numpy": per_k[16]["numpy"],
+                            "ratio": per_k[16]["c"] / per_k[16]["numpy"]})]
+    progress("certify: certify paper's certificates with each backend, alternated")
+    r.simulation
+    cpu = {"c": [], "numpy": []}
+    seen = {}
+    for _ in range(2):
+        for k in ("c", "numpy"):
+            pipeline._CERTIFICATIONS.clear()
+            r.__dict__.pop("certification", None)
+            with _backend(k):
+                t0 = time.process_time()
+                cert = r.certification
+                cpu[k].append(time.process_time() - t0)
+            seen[k] = {c.id: (c.status, c.boxes) for c in cert.certificates}
+    pipeline._CERTIFICATIONS.clear()
+    c_s, n_s = min(cpu["c"]), min(cpu["numpy"])
+    out.append(result("certify.interval_c_paper_cpu_s", c_s, "s", "numpy backend (CPU s)", n_s, n_s / c_s,
+                      verdicts_and_boxes_equal=bool(seen["c"] == seen["numpy"]), verdicts=seen["c"]))
     return out
 

@@ -3,10 +3,12 @@
 The rules, one per tape operation on arrays of (lo, hi) with their rounding and domain errors, are `batch_rules`;
 this module compiles a tape into straight-line calls of them.
 
-`BatchIntervalFunction(f)` compiles the tape once into straight-line numpy code over arrays of lower and upper
-bounds, one entry per box, so a branch and bound evaluates hundreds of boxes in one call (the scalar backends of
-`sx.interval` pay Python's overhead per operation and box). It is the third, independent implementation beside
-codac and arb; `tests/test_interval.py` checks every rule against 200-bit arb values as for the other two.
+`BatchIntervalFunction(f)` runs the tape over arrays of lower and upper bounds, one entry per box, so a branch and
+bound evaluates hundreds of boxes in one call (the scalar backends of `sx.interval` pay Python's overhead per
+operation and box): by default in the compiled interpreter of `batch_vm` (the same rules in C, one call per batch),
+else (`SYMFUNNEL_INTERVAL=numpy`, or no C compiler) compiled once into straight-line numpy code. It is the third,
+independent implementation beside codac and arb; `tests/test_interval.py` checks every rule against 200-bit arb
+values as for the other two, `tests/test_interval_vm.py` the interpreter against the numpy rules bit for bit.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import casadi
 import numpy as np
 
 from ..core.pycode import compile_source
-from .batch_rules import _INF, _RULES, _SWITCHING, _UNARY, BATCH_OPS, TRANSCENDENTAL_ULPS, _dn, _mulc, _up
+from .batch_rules import _FAILING, _INF, _RULES, _SWITCHING, _UNARY, BATCH_OPS, TRANSCENDENTAL_ULPS, _dn, _mulc, _up
 from .buffered import Buffered
 from .interval import IntervalError, IntervalFunction, read_layout
 from .rewrite import kink_quotients
@@ -136,10 +138,32 @@ def _compile(tape, in_off, out_off):
     return ns["run"], deps
 
 
+def _culprit_deps(tape, in_off) -> list[int]:
+    """`_compile`'s second result alone: per operation with a domain (in tape order), the bitmask of the flat
+    inputs it depends on."""
+    dep: dict[int, int] = {}
+    deps: list[int] = []
+    for ins in tape.instructions:
+        op, a, r = ins.op, ins.args, ins.res
+        if op == casadi.OP_OUTPUT:
+            continue
+        if op == casadi.OP_INPUT:
+            dep[r[0]] = 1 << (in_off[a[0]] + a[1])
+        elif op == casadi.OP_CONST:
+            dep[r[0]] = 0
+        else:
+            mask = 0
+            for j in a[:1] if OP_NAMES.get(op) in _UNARY else a[:2]:
+                mask |= dep.get(j, 0)
+            if OP_NAMES.get(op) in _FAILING:
+                deps.append(mask)
+            dep[r[0]] = mask
+    return deps
+
+
 #: the largest map eval_points builds (a power of two, as its other sizes are)
 POINTS_PER_MAP = 8192
 
-_FAILING = frozenset(("DIV", "INV", "LOG", "SQRT", "TAN", "ASIN", "ACOS", "ATANH", "POW", "CONSTPOW"))
 
 
 def _orb(*flags):
@@ -166,7 +190,13 @@ class BatchIntervalFunction(IntervalFunction):
         tape = read_layout(self, self.function)
         self.backend = None
         self.form = "natural"
-        self._run, self._deps = _compile(tape, self.in_off, self.out_off)
+        from . import batch_vm
+        fn = batch_vm.library() if batch_vm.wanted() else None
+        if fn is not None:          # the compiled interpreter: the same rules, no Python per operation
+            self._run, self._deps = batch_vm.Program(tape, self.in_off, self.out_off, fn).run, _culprit_deps(tape,
+                                                                                                       self.in_off)
+        else:
+            self._run, self._deps = _compile(tape, self.in_off, self.out_off)
         #: the tape's real operations, `tape.count_ops(f)["operations"]`, counted from the tape read here (a
         #: certificate's budget needs it; reading every instruction of the function again cost as much)
         self.operations = sum(1 for ins in tape.instructions if ins.op not in BOOKKEEPING)

@@ -357,5 +357,7 @@ _RULES = {name: fn for name, fn in globals().items() if name.isupper() and calla
 _UNARY = frozenset(("ASSIGN", "NEG", "SQ", "TWICE", "INV", "EXP", "LOG", "SQRT", "SIN", "COS", "TAN", "ASIN",
                     "ACOS", "ATAN", "SINH", "COSH", "TANH", "ATANH", "FABS", "SIGN", "FLOOR", "CEIL", "NOT"))
 _SWITCHING = frozenset(("SIGN", "FLOOR", "CEIL", "LT", "LE", "EQ", "NE", "NOT", "AND", "OR", "IF_ELSE_ZERO"))
+#: the operations with a domain: an error there makes the box's culprit (the first failing one)
+_FAILING = frozenset(("DIV", "INV", "LOG", "SQRT", "TAN", "ASIN", "ACOS", "ATANH", "POW", "CONSTPOW"))
 #: the tape operations this backend has a rule for (the same set as codac's and arb's)
 BATCH_OPS = frozenset(_RULES)
