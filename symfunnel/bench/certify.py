@@ -152,8 +152,9 @@ def _backend(name: str):
     return ctx()
 
 
-def _interpreter(progress) -> list[dict]:
-    """certify.interval_c_*: the compiled interpreter beside the numpy backend, alternated in this run."""
+def _interpreter(progress, rounds: int = 2) -> list[dict]:
+    """certify.interval_c_*: the compiled interpreter beside the numpy backend, alternated in this run (`rounds`
+    of the whole certification each)."""
     import casadi as ca
 
     from .. import pipeline
@@ -201,7 +202,7 @@ def _interpreter(progress) -> list[dict]:
     r.simulation
     cpu = {"c": [], "numpy": []}
     seen = {}
-    for _ in range(2):
+    for _ in range(rounds):
         for k in ("c", "numpy"):
             pipeline._CERTIFICATIONS.clear()
             r.__dict__.pop("certification", None)
