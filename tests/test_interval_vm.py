@@ -92,6 +92,30 @@ def test_arithmetic_and_logic_rules_are_the_numpy_backends_doubles_bit_for_bit(m
     assert fn._deps == fc._deps and len(fc._deps) >= 8
 
 
+def test_the_outward_step_is_nextafter_on_every_kind_of_double(monkeypatch):
+    """[x, x] + [0, 0] is (dn(x + 0), up(x + 0)): on random bit patterns (every exponent, subnormals, both signs)
+    and the edges -- +-0, the smallest subnormals, the largest finite doubles, +-inf, NaN -- the interpreter's bit
+    arithmetic gives numpy's nextafter toward -inf and +inf."""
+    x, y = ca.SX.sym("x"), ca.SX.sym("y")
+    monkeypatch.setenv("SYMFUNNEL_INTERVAL", "c")
+    F = batch.BatchIntervalFunction(ca.Function("add", [x, y], [x + y]))
+    rng = np.random.default_rng(12)
+    bits = rng.integers(0, 2 ** 63, 20000, dtype=np.uint64) | (rng.integers(0, 2, 20000, dtype=np.uint64) << 63)
+    tiny, big = 5e-324, np.finfo(float).max
+    edges = np.array([0.0, -0.0, tiny, -tiny, 2 * tiny, -2 * tiny, big, -big, np.inf, -np.inf, np.nan, 1.0, -1.0,
+                      np.finfo(float).tiny, -np.finfo(float).tiny, np.nextafter(big, 0), -np.nextafter(big, 0)])
+    v = np.concatenate([bits.view(float), edges])
+    L, H, *_ = F._run(np.stack([v, np.zeros_like(v)], 1), np.stack([v, np.zeros_like(v)], 1))     # before NaN -> +-inf
+    with np.errstate(all="ignore"):         # NaN in, +-inf out: what the rules see too
+        s = v + 0.0
+        down, up = np.nextafter(s, -np.inf), np.nextafter(s, np.inf)
+    assert np.array_equal(L[:, 0], down, equal_nan=True) and np.array_equal(H[:, 0], up, equal_nan=True)
+    # and the signs of the zeros they give (nextafter(-tiny, +inf) is -0.0)
+    num = ~np.isnan(s)
+    assert np.array_equal(np.signbit(L[num, 0]), np.signbit(down[num]))
+    assert np.array_equal(np.signbit(H[num, 0]), np.signbit(up[num]))
+
+
 def test_with_libms_functions_in_numpy_every_rule_is_bit_for_bit(monkeypatch):
     """The transcendental rules too once numpy calls libm as the C does: the C is each rule's own sequence of
     operations (its widening, its clamps at 0 and +-1, pow's integer and real exponents, tan's poles)."""

@@ -23,22 +23,39 @@ static const double TWO_PI = 6.283185307179586;     /* 2.0 * math.pi in double *
 static inline double nmin(double a, double b) { return a != a ? a : (b != b ? b : (a < b ? a : b)); }
 static inline double nmax(double a, double b) { return a != a ? a : (b != b ? b : (a > b ? a : b)); }
 
-/* nextafter(x, +inf) and nextafter(x, -inf) by the bits (C99's results, NaN and infinities included) */
+/* min(min(p, q), min(r, s)) and the max as numpy computes them; without a NaN among the four (the usual case) the
+ * NaN tests of nmin / nmax are all false, so their plain comparisons alone give the same doubles */
+static inline void minmax4(double p, double q, double r, double s, double *lo, double *hi) {
+    if (p == p && q == q && r == r && s == s) {
+        double a = p < q ? p : q, b = r < s ? r : s, c = p > q ? p : q, d = r > s ? r : s;
+        *lo = a < b ? a : b;
+        *hi = c > d ? c : d;
+    } else {
+        *lo = nmin(nmin(p, q), nmin(r, s));
+        *hi = nmax(nmax(p, q), nmax(r, s));
+    }
+}
+
+/* nextafter(x, +inf) and nextafter(x, -inf) by the bits, C99's results: a finite nonzero x (the usual case) moves
+ * one unit of its magnitude, +-0 goes to the smallest subnormal of the direction's sign, an infinity of the other
+ * sign to the largest finite double, an infinity of the direction's sign and NaN stay */
 static inline double up(double x) {
-    uint64_t u;
-    if (x != x || x == INFINITY) return x;
-    if (x == 0.0) return 4.9406564584124654e-324;
+    uint64_t u, m;
     memcpy(&u, &x, 8);
-    if (x > 0) u++; else u--;
+    m = u & 0x7FFFFFFFFFFFFFFFull;
+    if (m - 1 < 0x7FEFFFFFFFFFFFFFull) u += 1 - ((u >> 63) << 1);
+    else if (m == 0) u = 1;
+    else if (u == 0xFFF0000000000000ull) u -= 1;
     memcpy(&x, &u, 8);
     return x;
 }
 static inline double dn(double x) {
-    uint64_t u;
-    if (x != x || x == -INFINITY) return x;
-    if (x == 0.0) return -4.9406564584124654e-324;
+    uint64_t u, m;
     memcpy(&u, &x, 8);
-    if (x > 0) u--; else u++;
+    m = u & 0x7FFFFFFFFFFFFFFFull;
+    if (m - 1 < 0x7FEFFFFFFFFFFFFFull) u += ((u >> 63) << 1) - 1;
+    else if (m == 0) u = 0x8000000000000001ull;
+    else if (u == 0x7FF0000000000000ull) u -= 1;
     memcpy(&x, &u, 8);
     return x;
 }
@@ -161,8 +178,8 @@ int sfi_eval(const int32_t *code, int n_code, const double *consts, int n_work, 
                 break;
             case VM_MUL:
                 for (b = 0; b < nb; b++) {
-                    double p1 = xl[b] * yl[b], p2 = xl[b] * yh[b], p3 = xh[b] * yl[b], p4 = xh[b] * yh[b];
-                    double lo = nmin(nmin(p1, p2), nmin(p3, p4)), hi = nmax(nmax(p1, p2), nmax(p3, p4));
+                    double p1 = xl[b] * yl[b], p2 = xl[b] * yh[b], p3 = xh[b] * yl[b], p4 = xh[b] * yh[b], lo, hi;
+                    minmax4(p1, p2, p3, p4, &lo, &hi);
                     rl[b] = dn(lo); rh[b] = up(hi); rb[b] = xb[b] | yb[b];
                 }
                 break;
@@ -170,8 +187,8 @@ int sfi_eval(const int32_t *code, int n_code, const double *consts, int n_work, 
                 for (b = 0; b < nb; b++) {
                     int e = yl[b] <= 0 && yh[b] >= 0;
                     double bl = e ? 1.0 : yl[b], bh = e ? 1.0 : yh[b];
-                    double q1 = xl[b] / bl, q2 = xl[b] / bh, q3 = xh[b] / bl, q4 = xh[b] / bh;
-                    double lo = nmin(nmin(q1, q2), nmin(q3, q4)), hi = nmax(nmax(q1, q2), nmax(q3, q4));
+                    double q1 = xl[b] / bl, q2 = xl[b] / bh, q3 = xh[b] / bl, q4 = xh[b] / bh, lo, hi;
+                    minmax4(q1, q2, q3, q4, &lo, &hi);
                     rl[b] = dn(lo); rh[b] = up(hi); rb[b] = xb[b] | yb[b] | e;
                     if (e && cu[b] < 0) cu[b] = aux;
                 }
