@@ -240,3 +240,42 @@ def test_bench_area_gives_both_backends_ids_with_equal_certificates():
     assert b["bit_for_bit"] and b["batch_16"]["ratio"] > 0
     c = rows["certify.interval_c_paper_cpu_s"]
     assert c["verdicts_and_boxes_equal"] and len(c["verdicts"]) == 4
+
+
+def test_any_layout_of_the_boxes_is_read_as_rows_and_a_wrong_width_is_refused(monkeypatch):
+    """The C reads rows of n_in doubles: a Fortran-ordered or strided batch gives the contiguous batch's bounds, a
+    batch of another width is a ValueError (never a read past the rows)."""
+    monkeypatch.setenv("SYMFUNNEL_INTERVAL", "c")
+    F = batch.BatchIntervalFunction(OPS_F)
+    LO, HI = _boxes(2, 300, 3)
+    ref = F._run(LO, HI)
+    for lo, hi in ((np.asfortranarray(LO), np.asfortranarray(HI)),
+                   (np.repeat(LO, 2, axis=0)[::2], np.repeat(HI, 2, axis=0)[::2])):
+        got = F._run(lo, hi)
+        assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(ref, got))
+    with pytest.raises(ValueError, match=r"expected \(K, 2\)"):
+        F._run(np.zeros((4, 3)), np.zeros((4, 3)))
+
+
+def test_without_a_compiler_the_numpy_rules_give_the_enclosures_with_a_warning(monkeypatch, tmp_path):
+    """$CC naming no compiler and an empty cache: a RuntimeWarning, the numpy backend, the same bounds; a malformed
+    $SYMFUNNEL_COMPILE_TIMEOUT is bad input (exit 2 in the CLI), not a reason to fall back."""
+    from symfunnel.core.errors import InputError
+    LO, HI = _boxes(2, 200, 4)
+    monkeypatch.setenv("SYMFUNNEL_INTERVAL", "c")
+    want = batch.BatchIntervalFunction(OPS_F).eval_batch_culprit(LO, HI)
+    monkeypatch.setenv("SYMFUNNEL_CACHE", str(tmp_path))
+    monkeypatch.setattr(batch_vm, "_LIB", [])
+    monkeypatch.setenv("SYMFUNNEL_COMPILE_TIMEOUT", "soon")
+    with pytest.raises(InputError, match="SYMFUNNEL_COMPILE_TIMEOUT"):
+        batch_vm.library()
+    monkeypatch.delenv("SYMFUNNEL_COMPILE_TIMEOUT")
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    with pytest.warns(RuntimeWarning, match="numpy backend"):
+        F = batch.BatchIntervalFunction(OPS_F)
+    assert not isinstance(getattr(F._run, "__self__", None), batch_vm.Program)
+    got = F.eval_batch_culprit(LO, HI)
+    names = list(OP_EXPRS)
+    for a, b in zip(want[:2], got[:2]):
+        cols = [names.index(n) for n in ARITHMETIC]
+        assert np.array_equal(a[:, cols], b[:, cols], equal_nan=True)

@@ -53,13 +53,20 @@ def library():
     C compiler (the numpy backend is used then)."""
     if _LIB:
         return _LIB[0]
+    import subprocess
+
     from ..core.ccompile import compile_cached
+    from ..core.errors import InputError
     src = (Path(__file__).parent / "csrc" / "interval_vm.c").read_text(encoding="utf-8")
     try:
         built = compile_cached({"interval_vm.c": src, "interval_vm_ops.h": header()}, ["interval_vm.c"],
                                "libsfs_interval.so", VM_FLAGS)
         lib = ctypes.CDLL(str(built.path))
-    except Exception as exc:       # no compiler, a failed build: the numpy backend computes the same enclosures
+    except (OSError, RuntimeError, subprocess.SubprocessError, InputError) as exc:
+        # no compiler, a failed or timed-out build: the numpy backend computes the same enclosures; other bad
+        # input (a malformed $SYMFUNNEL_COMPILE_TIMEOUT) is the user's to fix, as for every other compile
+        if isinstance(exc, InputError) and exc.key != "CC":
+            raise
         warnings.warn(f"the compiled interval interpreter is not available ({exc}); using the numpy backend",
                       RuntimeWarning, stacklevel=2)
         _LIB.append(None)
@@ -114,6 +121,10 @@ class Program:
         self._fn = fn
 
     def run(self, LO: np.ndarray, HI: np.ndarray):
+        LO = np.ascontiguousarray(LO, dtype=float)        # the C reads rows of n_in doubles: no other layout
+        HI = np.ascontiguousarray(HI, dtype=float)
+        if LO.ndim != 2 or LO.shape != HI.shape or LO.shape[1] != self.n_in:
+            raise ValueError(f"boxes of shape {LO.shape} / {HI.shape}, expected (K, {self.n_in}) both")
         K = LO.shape[0]
         B = max(1, min(self.chunk, K))
         Lo = np.empty((K, self.n_out))
@@ -126,8 +137,7 @@ class Program:
         wb = np.empty(self.n_work * B, dtype=np.uint8)
         p = lambda a: a.ctypes.data                     # noqa: E731
         rc = self._fn(p(self.code), len(self.code), p(self.consts), self.n_work, self.n_in, self.n_out, p(LO),
-                      p(HI), K, B, p(Lo), p(Hi), p(Bad), p(sw), p(culprit), p(wl),
-                      p(wh), p(wb))
+                      p(HI), K, B, p(Lo), p(Hi), p(Bad), p(sw), p(culprit), p(wl), p(wh), p(wb))
         if rc == -1:
             from ..core.errors import SymfunnelError
             raise SymfunnelError("interval evaluation needs the rounding mode round-to-nearest (it was changed and "
