@@ -230,16 +230,16 @@ def test_unknown_operations_and_free_variables_are_refused_by_name(monkeypatch):
 
 @pytest.mark.slow
 def test_bench_area_gives_both_backends_ids_with_equal_certificates():
-    """`symfunnel bench --only certify`'s interpreter rows, one round: the contract's keys, the tau enclosures bit
-    for bit, and `certify paper`'s four certificates with the same verdicts and box counts on both backends (the
-    speed is the bench's to report, not this test's)."""
+    """`symfunnel bench --only certify`'s interpreter rows, one round: the contract's keys, the tau enclosures the
+    same up to the last bits of libm's exp, sin and cos against numpy's, and `certify paper`'s four certificates with
+    the same verdicts and box counts on both backends (the speed is the bench's to report, not this test's)."""
     from symfunnel.bench.certify import _interpreter
     rows = {r["id"]: r for r in _interpreter(lambda s: None, rounds=1)}
     assert set(rows) == {"certify.interval_c_boxes_per_s", "certify.interval_c_paper_cpu_s"}
     for r in rows.values():
         assert {"id", "value", "unit", "baseline", "baseline_value", "ratio"} <= set(r) and r["value"] > 0
     b = rows["certify.interval_c_boxes_per_s"]
-    assert b["bit_for_bit"] and b["batch_16"]["ratio"] > 0
+    assert b["max_rel_diff"] <= 1e-12 and b["batch_16"]["ratio"] > 0
     c = rows["certify.interval_c_paper_cpu_s"]
     assert c["verdicts_and_boxes_equal"] and len(c["verdicts"]) == 4
 

@@ -22,7 +22,8 @@ the interval evaluator's throughput against the same function in floating point.
   (the overhead ratio of interval over floating point).
 - certify.interval_c_boxes_per_s: the same tape's boxes per second in the compiled interval interpreter
   (`sx.batch_vm`) at batches of 16 and 256; baseline the numpy backend (`SYMFUNNEL_INTERVAL=numpy`), the two
-  alternated in one run, with the enclosures compared bit for bit (no transcendental operation on that tape).
+  alternated in one run, with the enclosures compared (`bit_for_bit`, and `max_rel_diff` of the ends: the tape's
+  exp, sin and cos are libm's in C and numpy's own, possibly SIMD, code in numpy, which may differ in the last bit).
 - certify.interval_c_paper_cpu_s: CPU seconds of `certify paper`'s certificates (full budget, W* simulated once)
   with the interpreter; baseline the numpy backend, alternated, two rounds each (min of each); the verdicts and box
   counts of both beside it.
@@ -30,6 +31,9 @@ the interval evaluator's throughput against the same function in floating point.
 
 from __future__ import annotations
 
+import contextlib
+import math
+import os
 import time
 from pathlib import Path
 
@@ -133,23 +137,18 @@ def run(progress) -> list[dict]:
     return out
 
 
+@contextlib.contextmanager
 def _backend(name: str):
     """A context in which new interval tapes use backend `name` ('c' or 'numpy')."""
-    import contextlib
-    import os
-
-    @contextlib.contextmanager
-    def ctx():
-        old = os.environ.get("SYMFUNNEL_INTERVAL")
-        os.environ["SYMFUNNEL_INTERVAL"] = name
-        try:
-            yield
-        finally:
-            if old is None:
-                os.environ.pop("SYMFUNNEL_INTERVAL", None)
-            else:
-                os.environ["SYMFUNNEL_INTERVAL"] = old
-    return ctx()
+    old = os.environ.get("SYMFUNNEL_INTERVAL")
+    os.environ["SYMFUNNEL_INTERVAL"] = name
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("SYMFUNNEL_INTERVAL", None)
+        else:
+            os.environ["SYMFUNNEL_INTERVAL"] = old
 
 
 def _interpreter(progress, rounds: int = 2) -> list[dict]:
@@ -178,13 +177,19 @@ def _interpreter(progress, rounds: int = 2) -> list[dict]:
         with _backend(name):
             tapes[name] = BatchIntervalFunction(f)
     progress("certify: the compiled interval interpreter beside the numpy backend")
-    per_k, same = {}, True
+    per_k, same, rel = {}, True, 0.0
     for K in (16, 256):
         a = lo + rng.random((K, lo.size)) * (hi - lo)
         b = lo + rng.random((K, lo.size)) * (hi - lo)
         LO, HI = np.minimum(a, b), np.maximum(a, b)
         outs = {k: F.eval_batch(LO, HI) for k, F in tapes.items()}
         same &= all(np.array_equal(x, y) for x, y in zip(outs["c"], outs["numpy"]))
+        for x, y in zip(outs["c"][:2], outs["numpy"][:2]):
+            fin = np.isfinite(x) & np.isfinite(y)
+            if not np.array_equal(np.isfinite(x), np.isfinite(y)):
+                rel = math.inf
+            elif fin.any():
+                rel = max(rel, float(np.max(np.abs(x[fin] - y[fin]) / np.maximum(np.abs(y[fin]), 1e-300))))
         rates = {"c": [], "numpy": []}
         for _ in range(3):
             for k, F in tapes.items():
@@ -196,6 +201,7 @@ def _interpreter(progress, rounds: int = 2) -> list[dict]:
         per_k[K] = {k: max(v) for k, v in rates.items()}
     out = [result("certify.interval_c_boxes_per_s", per_k[256]["c"], "boxes/s", "numpy backend (boxes/s)",
                   per_k[256]["numpy"], per_k[256]["c"] / per_k[256]["numpy"], bit_for_bit=bool(same),
+                  max_rel_diff=rel,
                   batch_16={"c": per_k[16]["c"], "numpy": per_k[16]["numpy"],
                             "ratio": per_k[16]["c"] / per_k[16]["numpy"]})]
     progress("certify: certify paper's certificates with each backend, alternated")
