@@ -1,4 +1,4 @@
-"""Batched endpoint interval evaluation of an SX tape with numpy: many boxes per call, outward rounded.
+"""Batched endpoint interval evaluation of an SX tape: many boxes per call, outward rounded, in C or in numpy.
 
 The rules, one per tape operation on arrays of (lo, hi) with their rounding and domain errors, are `batch_rules`;
 this module compiles a tape into straight-line calls of them.
