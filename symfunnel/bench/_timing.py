@@ -8,7 +8,9 @@ CPU time is the figure to compare on a shared machine: a loaded machine stretche
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import os
 import resource
 import subprocess
 import tempfile
@@ -158,3 +160,18 @@ def time_controller(design: Design, c_files: dict[str, str], py_files: dict[str,
     margs = [pts[n].transpose(0, 2, 1).reshape(pts[n].shape[0], -1) for n in names]
     put("casadi_map_ns", best(lambda: fmap(*margs), min_time, 3), batch)
     return out
+
+
+@contextlib.contextmanager
+def env_set(name: str, value: str):
+    """$name set to `value` for the block, and as it was afterwards (a variant of the code under test chosen by its
+    environment variable, e.g. $SYMFUNNEL_CVODES or $SYMFUNNEL_INTERVAL)."""
+    old = os.environ.get(name)
+    os.environ[name] = value
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = old

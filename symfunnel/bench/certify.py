@@ -31,15 +31,14 @@ the interval evaluator's throughput against the same function in floating point.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from ._result import result
+from ._timing import env_set
 
 _SMALL = Path(__file__).resolve().parent.parent.parent / "derivations" / "paper_small_dead_zone.toml"
 
@@ -137,20 +136,6 @@ def run(progress) -> list[dict]:
     return out
 
 
-@contextlib.contextmanager
-def _backend(name: str):
-    """A context in which new interval tapes use backend `name` ('c' or 'numpy')."""
-    old = os.environ.get("SYMFUNNEL_INTERVAL")
-    os.environ["SYMFUNNEL_INTERVAL"] = name
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("SYMFUNNEL_INTERVAL", None)
-        else:
-            os.environ["SYMFUNNEL_INTERVAL"] = old
-
-
 def _interpreter(progress, rounds: int = 2) -> list[dict]:
     """certify.interval_c_*: the compiled interpreter beside the numpy backend, alternated in this run (`rounds`
     of the whole certification each)."""
@@ -174,7 +159,7 @@ def _interpreter(progress, rounds: int = 2) -> list[dict]:
     f = prob.F.natural.function
     tapes = {}
     for name in ("c", "numpy"):
-        with _backend(name):
+        with env_set("SYMFUNNEL_INTERVAL", name):
             tapes[name] = BatchIntervalFunction(f)
     progress("certify: the compiled interval interpreter beside the numpy backend")
     per_k, same, rel = {}, True, 0.0
@@ -212,7 +197,7 @@ def _interpreter(progress, rounds: int = 2) -> list[dict]:
         for k in ("c", "numpy"):
             pipeline._CERTIFICATIONS.clear()
             r.__dict__.pop("certification", None)
-            with _backend(k):
+            with env_set("SYMFUNNEL_INTERVAL", k):
                 t0 = time.process_time()
                 cert = r.certification
                 cpu[k].append(time.process_time() - t0)

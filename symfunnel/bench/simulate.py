@@ -21,7 +21,6 @@ driver, interleaved with the C loop in the same process) beside them: its CPU pe
 
 from __future__ import annotations
 
-import contextlib
 import os
 import resource
 import subprocess
@@ -33,6 +32,7 @@ import types
 import numpy as np
 
 from ._result import result
+from ._timing import env_set
 
 #: Targets of issue 43 (issue 24's CPU per run was 0.07).
 TARGET_CPU_PER_RUN = 0.045
@@ -74,24 +74,10 @@ def run_scipy(cl, t_final: float, method: str = "BDF"):
     return time.perf_counter() - t0, sol
 
 
-@contextlib.contextmanager
-def _cvodes_backend(backend: str):
-    """$SYMFUNNEL_CVODES set to `backend` for the block, and as it was afterwards."""
-    old = os.environ.get("SYMFUNNEL_CVODES")
-    os.environ["SYMFUNNEL_CVODES"] = backend
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("SYMFUNNEL_CVODES", None)
-        else:
-            os.environ["SYMFUNNEL_CVODES"] = old
-
-
 def cpu_per_run(sc, d, cl, t_final: float, backend: str) -> dict:
     """CPU and wall seconds of each perturbed run with one CVODES backend (`PERTURBATIONS`), and their steps."""
     from ..simulation import simulate
-    with _cvodes_backend(backend):
+    with env_set("SYMFUNNEL_CVODES", backend):
         simulate(sc, d, t_final=min(t_final, 0.5), closed_loop=cl)          # the backend's one-time set-up
         cpu, wall, steps = [], [], []
         for eps in PERTURBATIONS:
@@ -302,22 +288,22 @@ def run(progress=None, *, t_final: float | None = None, repeats: int = 3) -> lis
         integ.append(r.stats["integrate_time"])
     wall = float(np.median(walls))
     say("simulate: CPU per run, the chunks in C and in the Python loop, interleaved")
-    with _cvodes_backend("direct"):
+    with env_set("SYMFUNNEL_CVODES", "direct"):
         loops = c_loop_vs_python(sc, d, cl, tf)
     say("simulate: CPU per run, direct CVODES backend and casadi.integrator")
     direct, casadi_ = cpu_per_run(sc, d, cl, tf, "direct"), cpu_per_run(sc, d, cl, tf, "casadi")
     cpu_d, cpu_c = loops["median_c"], float(np.median(casadi_["cpu"]))
     say("simulate: samples between output points from the kept steps, and from a chunk integrated again")
-    with _cvodes_backend("direct"):
+    with env_set("SYMFUNNEL_CVODES", "direct"):
         sfs = samples_from_steps(sc, d, cl, tf)
     say("simulate: the samples between output points written in place, and copied into time order, interleaved")
-    with _cvodes_backend("direct"):
+    with env_set("SYMFUNNEL_CVODES", "direct"):
         sip = samples_in_place(sc, d, cl, tf)
     say("simulate: the samples interpolated in one pass, and through CVodeGetDky, interleaved")
-    with _cvodes_backend("direct"):
+    with env_set("SYMFUNNEL_CVODES", "direct"):
         fdk = fused_interpolation(sc, d, cl, tf)
     say("simulate: the driver's LU schedule and wide vector operations, and their previous forms, interleaved")
-    with _cvodes_backend("direct"):
+    with env_set("SYMFUNNEL_CVODES", "direct"):
         kern = driver_kernels(sc, d, cl, tf)
     say("simulate: this path and the previous one in fresh processes, alternated (paper, then arm7 20 s)")
     prev = against_previous("paper", tf)

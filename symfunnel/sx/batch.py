@@ -19,7 +19,8 @@ import casadi
 import numpy as np
 
 from ..core.pycode import compile_source
-from .batch_rules import _FAILING, _INF, _RULES, _SWITCHING, _UNARY, BATCH_OPS, TRANSCENDENTAL_ULPS, _dn, _mulc, _up
+from .batch_rules import (_FAILING, _INF, _RULES, _SWITCHING, _UNARY, BATCH_OPS, TRANSCENDENTAL_ULPS, _dn, _mulc, _up,
+                          rule_name)
 from .buffered import Buffered
 from .interval import IntervalError, IntervalFunction, read_layout
 from .rewrite import kink_quotients
@@ -39,8 +40,7 @@ def _compile(tape, in_off, out_off):
     name = tape.function.name()
     lines = ["def run(LO, HI):", "    K = LO.shape[0]", "    sw = np.zeros(K, dtype=bool)",
              "    culprit = np.full(K, -1)"]
-    dep: dict[int, int] = {}                # work slot -> bitmask of the flat inputs it depends on
-    deps: list[int] = []                    # per failing instruction (in culprit numbering), its inputs' bitmask
+    n_failing = 0                           # failing instructions so far: the next one's culprit number
     flagged: dict[int, bool] = {}           # work slot -> its flag b<slot> may be an array (else it is None)
     const: dict[int, float] = {}            # work slot -> the constant it holds
     outs = [None] * out_off[-1]
@@ -64,11 +64,9 @@ def _compile(tape, in_off, out_off):
         const.pop(w, None)
         if op == casadi.OP_INPUT:
             j = in_off[a[0]] + a[1]
-            dep[w] = 1 << j
             flagged[w] = False
             lines.append(f"    l{w} = LO[:, {j}]; h{w} = HI[:, {j}]")
         elif op == casadi.OP_CONST:
-            dep[w] = 0
             c = float(ins.constant)
             flagged[w] = not math.isfinite(c)
             if math.isfinite(c):
@@ -76,18 +74,10 @@ def _compile(tape, in_off, out_off):
                 lines.append(f"    l{w} = h{w} = {c!r}")
             else:
                 lines.append(f"    l{w} = h{w} = np.float64({str(c)!r}); b{w} = np.ones(K, dtype=bool)")  # 'inf'/'nan'
-        elif op == casadi.OP_PARAMETER:
-            raise IntervalError(f"function {name!r} has free SX variables; interval evaluation needs every symbol "
-                                "as an input")
         else:
-            opname = OP_NAMES.get(op, f"<{op}>")
-            if opname not in _RULES:
-                raise IntervalError(f"no interval rule for OP_{opname} in function {name!r}")
+            opname = rule_name(tape, op, _RULES)
             ns[opname] = _RULES[opname]
             args = [a[0]] if opname in _UNARY else [a[0], a[1]]
-            mask = 0
-            for j in args:
-                mask |= dep.get(j, 0)
             argtxt = ", ".join(f"l{j}, h{j}" for j in args)
             fl = flags(args)
             if opname == "IF_ELSE_ZERO":
@@ -106,8 +96,8 @@ def _compile(tape, in_off, out_off):
                     lines.append(f"    b{w} = _orb({', '.join(fl)})")
             elif opname in _FAILING:
                 lines.append(f"    l{w}, h{w}, e_ = {opname}({argtxt})")
-                lines.append(f"    if e_ is not None: culprit = np.where((culprit < 0) & e_, {len(deps)}, culprit)")
-                deps.append(mask)
+                lines.append(f"    if e_ is not None: culprit = np.where((culprit < 0) & e_, {n_failing}, culprit)")
+                n_failing += 1
                 lines.append(f"    b{w} = _orb({', '.join(fl + ['e_'])})")
                 is_flagged = True
             else:
@@ -120,7 +110,6 @@ def _compile(tape, in_off, out_off):
                 is_flagged = bool(fl)
                 if fl:
                     lines.append(f"    b{w} = {fl[0]}" if len(fl) == 1 else f"    b{w} = _orb({', '.join(fl)})")
-            dep[w] = mask
             flagged[w] = is_flagged
     ns["_orb"] = _orb
     n = out_off[-1]
@@ -135,7 +124,7 @@ def _compile(tape, in_off, out_off):
     lines.append("    return Lo, Hi, Bad, sw, culprit")
     code = compile_source("\n".join(lines), f"<batch interval tape of {name}>")
     exec(code, ns)
-    return ns["run"], deps
+    return ns["run"], _culprit_deps(tape, in_off)
 
 
 def _culprit_deps(tape, in_off) -> list[int]:

@@ -18,7 +18,11 @@ from __future__ import annotations
 
 import math
 
+import casadi
 import numpy as np
+
+from .interval import IntervalError
+from .tape import OP_NAMES
 
 __all__ = ["TRANSCENDENTAL_ULPS", "BATCH_OPS"]
 
@@ -361,3 +365,15 @@ _SWITCHING = frozenset(("SIGN", "FLOOR", "CEIL", "LT", "LE", "EQ", "NE", "NOT", 
 _FAILING = frozenset(("DIV", "INV", "LOG", "SQRT", "TAN", "ASIN", "ACOS", "ATANH", "POW", "CONSTPOW"))
 #: the tape operations this backend has a rule for (the same set as codac's and arb's)
 BATCH_OPS = frozenset(_RULES)
+
+
+def rule_name(tape, op: int, rules) -> str:
+    """The name of operation `op` of `tape` (without OP_), which `rules` must have: an IntervalError naming the
+    function for a free SX variable or an operation without a rule (both backends refuse the same tapes)."""
+    if op == casadi.OP_PARAMETER:
+        raise IntervalError(f"function {tape.function.name()!r} has free SX variables; interval evaluation needs "
+                            "every symbol as an input")
+    name = OP_NAMES.get(op, f"<{op}>")
+    if name not in rules:
+        raise IntervalError(f"no interval rule for OP_{name} in function {tape.function.name()!r}")
+    return name

@@ -17,9 +17,7 @@ from pathlib import Path
 import casadi
 import numpy as np
 
-from .batch_rules import _FAILING, _RULES, TRANSCENDENTAL_ULPS
-from .interval import IntervalError
-from .tape import OP_NAMES
+from .batch_rules import _FAILING, _RULES, TRANSCENDENTAL_ULPS, rule_name
 
 #: the interpreter's operations, in the order of interval_vm_ops.h (generated from this tuple)
 VM_OPS = ("INPUT", "OUTPUT", "CONST", "ASSIGN", "ADD", "SUB", "MUL", "DIV", "NEG", "TWICE", "FABS", "SQ", "INV",
@@ -95,13 +93,8 @@ def encode(tape, in_off, out_off) -> tuple[np.ndarray, np.ndarray]:
         elif op == casadi.OP_CONST:
             code[i] = (_CODE["CONST"], 0, 0, r[0], len(consts))
             consts.append(float(ins.constant))
-        elif op == casadi.OP_PARAMETER:
-            raise IntervalError(f"function {tape.function.name()!r} has free SX variables; interval evaluation "
-                                "needs every symbol as an input")
         else:
-            name = OP_NAMES.get(op, f"<{op}>")
-            if name not in _CODE:
-                raise IntervalError(f"no interval rule for OP_{name} in function {tape.function.name()!r}")
+            name = rule_name(tape, op, _CODE)
             aux = -1
             if name in _FAILING:
                 aux, n_failing = n_failing, n_failing + 1
