@@ -18,11 +18,7 @@ from __future__ import annotations
 
 import math
 
-import casadi
 import numpy as np
-
-from .interval import IntervalError
-from .tape import OP_NAMES
 
 __all__ = ["TRANSCENDENTAL_ULPS", "BATCH_OPS"]
 
@@ -369,7 +365,12 @@ BATCH_OPS = frozenset(_RULES)
 
 def rule_name(tape, op: int, rules) -> str:
     """The name of operation `op` of `tape` (without OP_), which `rules` must have: an IntervalError naming the
-    function for a free SX variable or an operation without a rule (both backends refuse the same tapes)."""
+    function for a free SX variable or an operation without a rule (both backends refuse the same tapes). Imported
+    here: the rules module itself stays numpy only, imported early and cheaply."""
+    import casadi
+
+    from .interval import IntervalError
+    from .tape import OP_NAMES
     if op == casadi.OP_PARAMETER:
         raise IntervalError(f"function {tape.function.name()!r} has free SX variables; interval evaluation needs "
                             "every symbol as an input")
